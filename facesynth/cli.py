@@ -1,0 +1,73 @@
+"""The ``facesynth`` command: one entry point, one subcommand per pipeline stage.
+
+Each subcommand lives beside the code it drives, in a module that defines
+``add_arguments(parser)`` and ``run(args) -> int``. Modules are imported only when
+their subcommand runs, so ``facesynth app`` never imports torch and ``--help`` is fast.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import logging
+import sys
+
+from facesynth.errors import FacesynthError
+
+# name -> (module, one-line help). Keep in pipeline order.
+SUBCOMMANDS: dict[str, tuple[str, str]] = {
+    "ingest": ("facesynth.data.ingest_cli", "detect faces and fit 68 landmarks in a video -> training folder"),
+    "fit-model": ("facesynth.model.cli", "fit the shape/appearance face model on a sequence and print its figures"),
+    "evaluate": ("facesynth.eval.cli", "re-evaluate a saved training run (PSNR under landmark noise, NCC)"),
+    "transfer-expression": ("facesynth.eri.cli", "drive a target face with a driver's expressions via ratio images"),
+    "transfer3d": ("facesynth.mesh.cli", "drive a 3D face mesh with head pose and expressions from landmarks"),
+    "codec": ("facesynth.codec.cli", "encode/decode geometry videos with the PDP codec; RD sweeps"),
+    "export": ("facesynth.runtime.export_cli", "export a trained run to one ONNX file"),
+    "app": ("facesynth.runtime.app", "render a talking-head video from landmarks with ONNX Runtime"),
+}
+
+
+def _top_parser() -> argparse.ArgumentParser:
+    lines = "\n".join(f"  {name:<21}{help_}" for name, (_, help_) in SUBCOMMANDS.items())
+    p = argparse.ArgumentParser(
+        prog="facesynth",
+        description="facesynth: learning-based facial expression synthesis.",
+        epilog=f"subcommands:\n{lines}\n\nRun 'facesynth SUBCOMMAND --help' for each one's options.",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("subcommand", nargs="?", choices=list(SUBCOMMANDS), metavar="SUBCOMMAND")
+    p.add_argument("--version", action="store_true", help="print the version and exit")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    top = _top_parser()
+    if not argv or argv[0] not in SUBCOMMANDS:
+        ns = top.parse_args(argv[:1] if argv else ["--help"])
+        if ns.version:
+            from facesynth import __version__
+
+            print(__version__)
+        return 0
+    name, rest = argv[0], argv[1:]
+    module_name, help_ = SUBCOMMANDS[name]
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    try:
+        module = importlib.import_module(module_name)
+    except ModuleNotFoundError as exc:
+        if exc.name and exc.name.startswith("facesynth"):
+            print(f"error: subcommand '{name}' is not available in this build", file=sys.stderr)
+            return 2
+        raise
+    parser = argparse.ArgumentParser(prog=f"facesynth {name}", description=help_)
+    module.add_arguments(parser)
+    args = parser.parse_args(rest)
+    try:
+        return int(module.run(args) or 0)
+    except FacesynthError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return 130

@@ -1,0 +1,14 @@
+"""Data layer: sequences of frames + 68-point landmarks, readers/writers, splits,
+the synthetic default subject, and video ingest (dlib, optional extra)."""
+
+from facesynth.data.pts import read_pts, write_pts
+from facesynth.data.readers import load_landmarks, load_sequence, register_reader, register_writer, save_landmarks
+from facesynth.data.sequence import N_LANDMARKS, FaceSequence, validate_landmarks
+from facesynth.data.shared import shared_clip, shared_data_dir, shared_mesh_dir
+from facesynth.data.splits import temporal_split
+
+__all__ = [
+    "N_LANDMARKS", "FaceSequence", "load_landmarks", "load_sequence", "read_pts", "register_reader",
+    "register_writer", "save_landmarks", "shared_clip", "shared_data_dir", "shared_mesh_dir",
+    "temporal_split", "validate_landmarks", "write_pts",
+]

@@ -1,0 +1,142 @@
+"""``FaceSequence``: the frames and 68-point landmarks of one subject."""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+from typing import Iterator, Sequence
+
+import numpy as np
+
+from facesynth.data.frames import FrameSource
+from facesynth.errors import FacesynthError
+from facesynth.provenance import array_fingerprint
+
+log = logging.getLogger(__name__)
+
+N_LANDMARKS = 68
+
+
+def validate_landmarks(landmarks: np.ndarray, where: str, allow_nan_rows: bool = False) -> np.ndarray:
+    """Check and convert landmarks to float32 (N, 68, 2).
+
+    Parameters
+    ----------
+    landmarks : array-like
+        (N, 68, 2) or a single (68, 2) frame, (x, y) pixels.
+    where : str
+        File or field name used in error messages.
+    allow_nan_rows : bool
+        Whether whole-frame NaN rows (frames without a face) are allowed.
+    """
+    lm = np.asarray(landmarks)
+    if lm.ndim == 2:
+        lm = lm[None]
+    if lm.ndim != 3 or lm.shape[1:] != (N_LANDMARKS, 2):
+        raise FacesynthError(
+            f"{where}: landmarks must have shape (N, {N_LANDMARKS}, 2) in iBUG 68-point order, got {lm.shape}"
+        )
+    if not np.issubdtype(lm.dtype, np.number):
+        raise FacesynthError(f"{where}: landmarks must be numeric, got dtype {lm.dtype}")
+    lm = lm.astype(np.float32, copy=False)
+    bad = ~np.isfinite(lm)
+    if bad.any():
+        rows = bad.any(axis=(1, 2))
+        partial = rows & ~bad.all(axis=(1, 2))
+        if partial.any() or not allow_nan_rows:
+            first = int(np.flatnonzero(partial if partial.any() else rows)[0])
+            raise FacesynthError(
+                f"{where}: landmarks of frame {first} contain NaN/inf"
+                + (" in some points only (a frame is either all NaN or all finite)" if partial.any() else "")
+            )
+    return lm
+
+
+@dataclass
+class FaceSequence:
+    """One subject's frames and landmarks.
+
+    Attributes
+    ----------
+    landmarks : np.ndarray
+        float32 (N, 68, 2), (x, y) pixels, 0-based iBUG order; never NaN (frames without
+        a face are dropped on loading and counted in ``meta['dropped_frames']``).
+    frame_index : np.ndarray
+        int64 (N,): each row's frame number in ``frames`` (the original video).
+    frames : FrameSource or None
+        Where images come from; ``None`` for landmark-only sequences.
+    fps : float
+    name : str
+    meta : dict
+        Free-form provenance (source file, detector, ...).
+    """
+
+    landmarks: np.ndarray
+    frame_index: np.ndarray
+    frames: FrameSource | None = None
+    fps: float = 30.0
+    name: str = "sequence"
+    meta: dict = field(default_factory=dict)
+
+    @classmethod
+    def from_arrays(
+        cls,
+        landmarks: np.ndarray,
+        frames: FrameSource | None = None,
+        *,
+        where: str = "landmarks",
+        **kwargs,
+    ) -> "FaceSequence":
+        """Validate landmarks (T, 68, 2), drop NaN frames (logged), and build a sequence."""
+        lm = validate_landmarks(landmarks, where, allow_nan_rows=True)
+        if frames is not None and len(frames) and len(frames) < len(lm):
+            raise FacesynthError(f"{where}: {len(lm)} landmark frames but only {len(frames)} image frames")
+        keep = np.isfinite(lm).all(axis=(1, 2))
+        meta = dict(kwargs.pop("meta", {}) or {})
+        dropped = int((~keep).sum())
+        meta["dropped_frames"] = dropped
+        if dropped:
+            log.info("%s: dropped %d of %d frames without landmarks (NaN rows)", where, dropped, len(lm))
+        if not keep.any():
+            raise FacesynthError(f"{where}: no frame has landmarks (all {len(lm)} rows are NaN)")
+        return cls(landmarks=lm[keep], frame_index=np.flatnonzero(keep).astype(np.int64), frames=frames, meta=meta, **kwargs)
+
+    def __len__(self) -> int:
+        return len(self.landmarks)
+
+    @property
+    def has_frames(self) -> bool:
+        return self.frames is not None
+
+    @property
+    def image_size(self) -> tuple[int, int]:
+        """(H, W) of the frames."""
+        if self.frames is None:
+            raise FacesynthError(f"{self.name}: sequence has landmarks only, no frames")
+        return tuple(self.frames.size)
+
+    @property
+    def fingerprint(self) -> str:
+        """Hash of the landmarks and frame numbers (and source file hash, when known)."""
+        extra = np.frombuffer(str(self.meta.get("source_sha256", "")).encode(), dtype=np.uint8)
+        return array_fingerprint(self.landmarks, self.frame_index, extra)
+
+    def iter_frames(self, rows: Sequence[int] | None = None) -> Iterator[np.ndarray]:
+        """Yield uint8 RGB (H, W, 3) images for sequence rows (default: all), in order."""
+        if self.frames is None:
+            raise FacesynthError(f"{self.name}: sequence has landmarks only, no frames")
+        rows = np.arange(len(self)) if rows is None else np.asarray(rows)
+        yield from self.frames.read(self.frame_index[rows])
+
+    def frame(self, row: int) -> np.ndarray:
+        """uint8 RGB (H, W, 3) image of one row."""
+        return next(self.iter_frames([row]))
+
+    def load_frames(self, rows: Sequence[int] | None = None) -> np.ndarray:
+        """uint8 (n, H, W, 3) images of ``rows``. Mind memory: 1000 frames at 512x512 take 786 MB."""
+        return np.stack(list(self.iter_frames(rows)))
+
+    def subset(self, rows: Sequence[int]) -> "FaceSequence":
+        """A sequence of the given rows (frames stay lazily referenced)."""
+        rows = np.asarray(rows)
+        return FaceSequence(self.landmarks[rows], self.frame_index[rows], self.frames, self.fps, self.name, dict(self.meta))
