@@ -1,0 +1,252 @@
+"""The statistical face model: Procrustes-aligned shape PCA and appearance PCA on
+textures warped (piecewise affine) into the mean shape.
+
+References
+----------
+T. F. Cootes, G. J. Edwards, C. J. Taylor, "Active appearance models", IEEE TPAMI
+23(6), 2001.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+import torch
+from tqdm.auto import tqdm
+
+from facesynth.data.sequence import FaceSequence, validate_landmarks
+from facesynth.errors import FacesynthError
+from facesynth.model.pca import PCAModel
+from facesynth.model.procrustes import apply_affine, generalised_procrustes, similarity_fit
+from facesynth.model.reference import ReferenceFrame
+from facesynth.model.warp import ToReference, ToTarget, apply_affine_t, candidate_spans, invert_affine_t, similarity_to
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class FaceModelConfig:
+    """Face model settings (the Hydra ``model/`` group fills this).
+
+    n_shape / n_appearance take precedence over the variance fractions when set.
+    """
+
+    n_shape: int | None = None
+    shape_variance: float = 0.98
+    n_appearance: int | None = None
+    appearance_variance: float = 0.98
+    reference_width: int = 128
+    margin: float = 0.1
+    grey: bool = False
+    clamp_k: float = 3.0
+    span_safety: float = 1.3
+    batch_size: int = 32
+
+
+@dataclass
+class FaceModel:
+    """A fitted face model. Build it with :meth:`fit` (or :func:`load_face_model`).
+
+    Attributes
+    ----------
+    config : FaceModelConfig
+    shape_pca : PCAModel
+        Over flattened (68 * 2,) Procrustes-aligned shapes (unit-norm scale).
+    reference : ReferenceFrame
+        Mean shape at ``reference_width`` pixels, triangulated.
+    appearance_pca : PCAModel
+        Over flattened (C * M,) textures in [0, 1], channel-major, M = mask pixels.
+    span : np.ndarray
+        int64 (T, 2) candidate block sizes for rendering (see :class:`ToTarget`).
+    fingerprint : str
+        Fingerprint of the training data.
+    """
+
+    config: FaceModelConfig
+    shape_pca: PCAModel
+    reference: ReferenceFrame
+    appearance_pca: PCAModel
+    span: np.ndarray
+    fingerprint: str = ""
+    meta: dict = field(default_factory=dict)
+
+    # ------------------------------------------------------------------ fitting
+    @classmethod
+    def fit(cls, seq: FaceSequence, config: FaceModelConfig | None = None, rows=None, progress: bool = True) -> "FaceModel":
+        """Fit shape and appearance models on ``seq`` (rows: training rows, default all)."""
+        cfg = config or FaceModelConfig()
+        rows = np.arange(len(seq)) if rows is None else np.asarray(rows)
+        if len(rows) < 3:
+            raise FacesynthError(f"{seq.name}: need at least 3 frames to fit a face model, got {len(rows)}")
+        t0 = time.perf_counter()
+        lm = seq.landmarks[rows].astype(np.float64)
+        aligned, mean = generalised_procrustes(lm)
+        shape_pca = PCAModel.fit(aligned.reshape(len(rows), -1), cfg.n_shape, cfg.shape_variance)
+        ref = ReferenceFrame.from_mean_shape(mean, cfg.reference_width, cfg.margin)
+        model = cls(cfg, shape_pca, ref, None, np.zeros((ref.n_triangles, 2), np.int64), seq.fingerprint)  # type: ignore[arg-type]
+        canvas_shapes = model.to_canvas(seq.landmarks[rows])[0]
+        extremes = model._shape_extremes()
+        model.span = candidate_spans(ref, np.concatenate([canvas_shapes, extremes]), cfg.span_safety)
+        t1 = time.perf_counter()
+        textures = model.sample_textures(seq, rows, progress=progress)
+        t2 = time.perf_counter()
+        model.appearance_pca = PCAModel.fit(textures, cfg.n_appearance, cfg.appearance_variance)
+        t3 = time.perf_counter()
+        model.meta = {
+            "train_frames": int(len(rows)),
+            "fit_seconds": {"shape": t1 - t0, "textures": t2 - t1, "appearance_pca": t3 - t2},
+            "sequence": seq.name,
+        }
+        log.info(
+            "face model: %d shape / %d appearance components (%.1f%% / %.1f%% variance), %d mask pixels",
+            shape_pca.n_components, model.appearance_pca.n_components, 100 * shape_pca.explained_variance_ratio,
+            100 * model.appearance_pca.explained_variance_ratio, model.n_pixels,
+        )
+        return model
+
+    # --------------------------------------------------------------- geometry
+    @property
+    def n_channels(self) -> int:
+        return 1 if self.config.grey else 3
+
+    @property
+    def n_pixels(self) -> int:
+        return self.sampler().n_pixels
+
+    @property
+    def mean_shape(self) -> np.ndarray:
+        """(68, 2) Procrustes mean (unit norm)."""
+        return self.shape_pca.mean.reshape(-1, 2)
+
+    def align(self, landmarks: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Similarity-align (N, 68, 2) landmarks to the mean shape.
+
+        Returns aligned shapes (N, 68, 2) and the (N, 2, 3) transforms used.
+        """
+        lm = validate_landmarks(landmarks, "landmarks").astype(np.float64)
+        m = similarity_fit(lm, self.mean_shape[None].astype(np.float64))
+        return apply_affine(lm, m), m
+
+    def shape_params(self, landmarks: np.ndarray, clamp: bool = False) -> np.ndarray:
+        """b_s of (N, 68, 2) landmarks -> (N, K_s) float32."""
+        aligned, _ = self.align(landmarks)
+        b = self.shape_pca.project(aligned.reshape(len(aligned), -1))
+        return self.shape_pca.clamp(b, self.config.clamp_k) if clamp else b
+
+    def shape_from_params(self, b_s: np.ndarray) -> np.ndarray:
+        """(N, K_s) -> (N, 68, 2) shapes in the model's normalised frame."""
+        return self.shape_pca.reconstruct(b_s).reshape(len(b_s), -1, 2)
+
+    def to_canvas(self, landmarks: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Map (N, 68, 2) frame landmarks into reference-frame pixels by a similarity.
+
+        Returns canvas landmarks (N, 68, 2) float32 and the (N, 2, 3) frame->canvas transforms.
+        """
+        lm = validate_landmarks(landmarks, "landmarks").astype(np.float64)
+        m = similarity_fit(lm, self.reference.points[None].astype(np.float64))
+        return apply_affine(lm, m).astype(np.float32), m
+
+    def _shape_extremes(self) -> np.ndarray:
+        """Shapes at +-clamp_k sigma along each shape component, in canvas pixels."""
+        k = self.config.clamp_k
+        lim = k * np.sqrt(self.shape_pca.eigenvalues)
+        b = np.concatenate([np.diag(lim), -np.diag(lim)]).astype(np.float32)
+        return self.to_canvas(self.shape_from_params(b))[0]
+
+    # --------------------------------------------------------------- textures
+    def sampler(self) -> ToReference:
+        """The image -> reference warp module (built once, cached)."""
+        if "_sampler" not in self.__dict__:
+            self.__dict__["_sampler"] = ToReference(self.reference)
+        return self.__dict__["_sampler"]
+
+    def renderer(self) -> ToTarget:
+        """The reference -> target warp module (built once per span, cached)."""
+        key = self.span.tobytes()
+        if self.__dict__.get("_renderer_key") != key:
+            self.__dict__["_renderer"] = ToTarget(self.reference, self.span)
+            self.__dict__["_renderer_key"] = key
+        return self.__dict__["_renderer"]
+
+    def sample_textures(self, seq: FaceSequence, rows=None, progress: bool = False) -> np.ndarray:
+        """Textures of sequence rows in the reference frame: (N, C * M) float32 in [0, 1]."""
+        rows = np.arange(len(seq)) if rows is None else np.asarray(rows)
+        sampler = self.sampler()
+        bs = self.config.batch_size
+        out = np.empty((len(rows), self.n_channels * sampler.n_pixels), np.float32)
+        frames = seq.iter_frames(rows)
+        bar = tqdm(total=len(rows), desc="textures", unit="frame", disable=not progress, leave=False)
+        for start in range(0, len(rows), bs):
+            chunk = rows[start : start + bs]
+            imgs = np.stack([next(frames) for _ in chunk])
+            out[start : start + len(chunk)] = self.textures_from_images(imgs, seq.landmarks[chunk], sampler)
+            bar.update(len(chunk))
+        bar.close()
+        return out
+
+    def textures_from_images(self, images: np.ndarray, landmarks: np.ndarray, sampler: ToReference | None = None) -> np.ndarray:
+        """uint8 (B, H, W, 3) images + (B, 68, 2) landmarks -> (B, C * M) float32 textures."""
+        sampler = sampler or self.sampler()
+        x = torch.from_numpy(np.ascontiguousarray(images)).permute(0, 3, 1, 2).float().div_(255.0)
+        if self.config.grey:
+            x = (x * torch.tensor([0.299, 0.587, 0.114]).view(1, 3, 1, 1)).sum(1, keepdim=True)
+        with torch.no_grad():
+            tex = sampler(x, torch.from_numpy(np.asarray(landmarks, np.float32)))
+        return tex.reshape(len(images), -1).numpy()
+
+    def appearance_params(self, textures: np.ndarray, clamp: bool = False) -> np.ndarray:
+        """(N, C * M) textures -> (N, K_g) b_g."""
+        b = self.appearance_pca.project(textures)
+        return self.appearance_pca.clamp(b, self.config.clamp_k) if clamp else b
+
+    def texture_from_params(self, b_g: np.ndarray) -> np.ndarray:
+        """(N, K_g) -> (N, C * M) textures (not clipped)."""
+        return self.appearance_pca.reconstruct(b_g)
+
+    def texture_images(self, textures: np.ndarray, fill: float = 0.0) -> np.ndarray:
+        """(N, C * M) textures -> float32 (N, H, W, C) reference images."""
+        t = torch.from_numpy(np.asarray(textures, np.float32)).reshape(len(textures), self.n_channels, -1)
+        return self.sampler().to_image(t, fill).permute(0, 2, 3, 1).numpy()
+
+    def render(self, textures: np.ndarray, landmarks: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Warp textures onto frame landmarks, in the reference-scale crop.
+
+        Parameters
+        ----------
+        textures : (B, C * M) float32
+        landmarks : (B, 68, 2) frame pixels
+
+        Returns
+        -------
+        crop : float32 (B, H, W, C) in [0, 1]
+        mask : float32 (B, H, W)
+        placement : float64 (B, 2, 3) affine map from crop pixels to frame pixels
+        """
+        canvas, m = self.to_canvas(landmarks)
+        with torch.no_grad():
+            img, mask = self.renderer()(
+                torch.from_numpy(np.asarray(textures, np.float32)).reshape(len(textures), self.n_channels, -1).clamp(0, 1),
+                torch.from_numpy(canvas),
+            )
+        placement = invert_affine_t(torch.from_numpy(m)).numpy()
+        return img.permute(0, 2, 3, 1).numpy(), mask[:, 0].numpy(), placement
+
+    def describe(self) -> dict:
+        """Sizes and variance figures (for reports)."""
+        return {
+            "n_shape": self.shape_pca.n_components,
+            "n_appearance": self.appearance_pca.n_components,
+            "shape_variance_kept": self.shape_pca.explained_variance_ratio,
+            "appearance_variance_kept": self.appearance_pca.explained_variance_ratio,
+            "reference_size": list(self.reference.size),
+            "n_triangles": self.reference.n_triangles,
+            "n_mask_pixels": self.n_pixels,
+            "channels": self.n_channels,
+            "config": asdict(self.config),
+        }
+
+
+__all__ = ["FaceModel", "FaceModelConfig", "apply_affine_t", "similarity_to"]

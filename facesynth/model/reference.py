@@ -1,0 +1,119 @@
+"""The reference frame: the mean shape at a fixed pixel scale, its triangulation, its
+mask, and the fixed per-pixel triangle index and barycentric coordinates.
+
+Coordinates are (x, y) with integer values at pixel centres (OpenCV's convention).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import Delaunay
+
+from facesynth.errors import FacesynthError
+
+
+@dataclass
+class ReferenceFrame:
+    """Attributes
+    ----------
+    points : np.ndarray
+        float32 (68, 2): reference landmarks, (x, y) pixels in the reference image.
+    size : tuple of int
+        (H, W) of the reference image.
+    triangles : np.ndarray
+        int64 (T, 3): Delaunay triangulation of ``points`` (counter-clockwise in image axes).
+    """
+
+    points: np.ndarray
+    size: tuple[int, int]
+    triangles: np.ndarray
+
+    @classmethod
+    def from_mean_shape(cls, mean_shape: np.ndarray, width: int = 128, margin: float = 0.1) -> "ReferenceFrame":
+        """Scale a (68, 2) mean shape so that its landmark bounding box is ``width`` pixels
+        wide, add ``margin`` (fraction of the width) on every side, and triangulate."""
+        if width < 16:
+            raise FacesynthError(f"reference width must be >= 16 px, got {width}")
+        pts = np.asarray(mean_shape, np.float64)
+        lo, hi = pts.min(0), pts.max(0)
+        scale = (width - 1) / (hi[0] - lo[0])
+        pad = margin * width
+        pts = (pts - lo) * scale + pad
+        size = (int(np.ceil(pts[:, 1].max() + pad)) + 1, int(np.ceil(pts[:, 0].max() + pad)) + 1)
+        tri = Delaunay(pts).simplices.astype(np.int64)
+        return cls(pts.astype(np.float32), size, orient_ccw(pts, tri))
+
+    @property
+    def n_triangles(self) -> int:
+        return len(self.triangles)
+
+    def rasterise(self) -> tuple[np.ndarray, np.ndarray]:
+        """Per-pixel triangle index and barycentric coordinates of the reference image.
+
+        Returns
+        -------
+        tri_index : np.ndarray
+            int64 (H, W); -1 outside the triangulated face region.
+        bary : np.ndarray
+            float32 (H, W, 3); weights of the triangle's three vertices (0 outside).
+        """
+        cached = self.__dict__.get("_raster")
+        if cached is None:
+            h, w = self.size
+            ys, xs = np.mgrid[0:h, 0:w]
+            pix = np.stack([xs, ys], -1).reshape(-1, 2).astype(np.float64)
+            tri_index, bary = locate(pix, self.points.astype(np.float64), self.triangles)
+            cached = (tri_index.reshape(h, w), bary.reshape(h, w, 3).astype(np.float32))
+            self.__dict__["_raster"] = cached
+        return cached
+
+    def mask(self) -> np.ndarray:
+        """bool (H, W): pixels covered by the triangulation."""
+        return self.rasterise()[0] >= 0
+
+
+def orient_ccw(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """Reorder triangle vertices so that every triangle has positive signed area."""
+    p = points[triangles]
+    e1, e2 = p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]
+    area = e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]
+    out = triangles.copy()
+    out[area < 0] = out[area < 0][:, [0, 2, 1]]
+    return out
+
+
+def barycentric(pix: np.ndarray, tri_pts: np.ndarray) -> np.ndarray:
+    """Barycentric coordinates of (P, 2) points in each of (T, 3, 2) triangles -> (P, T, 3)."""
+    v0, v1, v2 = tri_pts[:, 0], tri_pts[:, 1], tri_pts[:, 2]
+    e1, e2 = v1 - v0, v2 - v0
+    det = e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]
+    d = pix[:, None, :] - v0[None]
+    l1 = (d[..., 0] * e2[:, 1] - d[..., 1] * e2[:, 0]) / det
+    l2 = (e1[:, 0] * d[..., 1] - e1[:, 1] * d[..., 0]) / det
+    return np.stack([1 - l1 - l2, l1, l2], -1)
+
+
+def locate(pix: np.ndarray, points: np.ndarray, triangles: np.ndarray, eps: float = 1e-9) -> tuple[np.ndarray, np.ndarray]:
+    """First triangle containing each point, and its barycentrics (brute force, for fixed geometry).
+
+    Parameters
+    ----------
+    pix : (P, 2) points; points : (68, 2) vertices; triangles : (T, 3) indices.
+
+    Returns
+    -------
+    tri_index : int64 (P,), -1 where no triangle contains the point; bary : (P, 3).
+    """
+    out_t = np.full(len(pix), -1, np.int64)
+    out_b = np.zeros((len(pix), 3))
+    for start in range(0, len(pix), 8192):
+        b = barycentric(pix[start : start + 8192], points[triangles])
+        inside = (b >= -eps).all(-1)
+        has = inside.any(1)
+        first = inside.argmax(1)
+        idx = np.arange(start, start + len(b))
+        out_t[idx[has]] = first[has]
+        out_b[idx[has]] = b[np.flatnonzero(has), first[has]]
+    return out_t, out_b
