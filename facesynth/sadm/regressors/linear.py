@@ -1,0 +1,50 @@
+"""The linear SADM (Eq. 5 of the paper): A = G S^T (S S^T)^-1 with a bias, optional ridge."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from facesynth.sadm.regressors.base import Regressor, register
+
+
+@dataclass
+class LinearConfig:
+    ridge: float = 0.0  # lambda of ||A||^2 (the bias is not penalised)
+
+
+@register("linear")
+class LinearRegressor(Regressor):
+    """y = x W^T + b. Forward: (B, D_in) -> (B, D_out)."""
+
+    def __init__(self, weight: torch.Tensor, bias: torch.Tensor, ridge: float = 0.0):
+        super().__init__()
+        self.register_buffer("weight", weight.float())
+        self.register_buffer("bias", bias.float())
+        self.ridge = float(ridge)
+
+    @classmethod
+    def fit(cls, x, y, config=None, x_val=None, y_val=None, seed=0):
+        cfg = config or LinearConfig()
+        ridge = float(getattr(cfg, "ridge", 0.0))
+        x = np.asarray(x, np.float64)
+        y = np.asarray(y, np.float64)
+        mx, my = x.mean(0), y.mean(0)
+        xc, yc = x - mx, y - my
+        # Closed form on centred data: the bias absorbs the means (unpenalised).
+        gram = xc.T @ xc + ridge * np.eye(x.shape[1])
+        w = np.linalg.lstsq(gram, xc.T @ yc, rcond=None)[0].T  # (D_out, D_in)
+        b = my - w @ mx
+        return cls(torch.from_numpy(w), torch.from_numpy(b), ridge)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return torch.matmul(x, self.weight.t()) + self.bias
+
+    def config_dict(self) -> dict:
+        return {"ridge": self.ridge}
+
+    @classmethod
+    def from_state(cls, config, tensors):
+        return cls(tensors["weight"], tensors["bias"], config.get("ridge", 0.0))

@@ -1,0 +1,163 @@
+"""Synthesis from landmarks alone, as one torch graph (the graph that ONNX export traces):
+
+    landmarks (frame px) -> similarity alignment -> b_s (clamped) -> shape features
+      -> SADM regressor -> b_g (clamped) -> texture in the reference frame
+      -> piecewise-affine warp to the landmarks -> crop + mask + placement in the frame
+
+Pasting the crop into a frame (feathered) is :func:`composite`, outside the graph.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import torch
+from torch import nn
+
+from facesynth.model.face_model import FaceModel
+from facesynth.model.warp import ToTarget, apply_affine_t, invert_affine_t, similarity_to
+from facesynth.sadm.regressors.base import Regressor
+
+FEATURE_KINDS = ("bs", "landmarks", "bs+landmarks")
+
+
+class ShapeEncoder(nn.Module):
+    """Frame landmarks -> aligned shape and shape parameters.
+
+    Forward
+    -------
+    landmarks : (B, 68, 2) float32 frame pixels
+    returns : aligned (B, 68, 2) in the model's normalised frame, b_s (B, K_s) clamped
+      to +-k sqrt(lambda) when ``clamp_k > 0``.
+    """
+
+    def __init__(self, model: FaceModel, clamp: bool = True):
+        super().__init__()
+        pca = model.shape_pca
+        self.register_buffer("mean_shape", torch.from_numpy(pca.mean.reshape(-1, 2).copy()))
+        self.register_buffer("mean", torch.from_numpy(pca.mean.copy()))
+        self.register_buffer("components", torch.from_numpy(pca.components.copy()))
+        lim = model.config.clamp_k * np.sqrt(pca.eigenvalues) if clamp else np.full(pca.n_components, np.inf)
+        self.register_buffer("limit", torch.from_numpy(lim.astype(np.float32)))
+
+    def forward(self, landmarks: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        aligned = apply_affine_t(landmarks, similarity_to(landmarks, self.mean_shape))
+        b = torch.matmul(aligned.reshape(aligned.shape[0], -1) - self.mean, self.components.t())
+        return aligned, torch.clamp(b, -self.limit, self.limit)
+
+
+class ShapeFeatures(nn.Module):
+    """Regressor inputs from the aligned shape: ``bs`` (b_s, the paper), ``landmarks``
+    (the aligned coordinates minus the mean, scaled to pixels of a 100-px face), or both.
+
+    Forward: aligned (B, 68, 2), b_s (B, K_s) -> features (B, F).
+    """
+
+    def __init__(self, model: FaceModel, kind: str = "bs"):
+        super().__init__()
+        if kind not in FEATURE_KINDS:
+            raise ValueError(f"features must be one of {FEATURE_KINDS}, got {kind!r}")
+        self.kind = kind
+        self.register_buffer("mean", torch.from_numpy(model.shape_pca.mean.copy()))
+        mean = model.shape_pca.mean.reshape(-1, 2)
+        self.scale = float(100.0 / (mean[:, 0].max() - mean[:, 0].min()))
+
+    def forward(self, aligned: torch.Tensor, b_s: torch.Tensor) -> torch.Tensor:
+        if self.kind == "bs":
+            return b_s
+        lm = (aligned.reshape(aligned.shape[0], -1) - self.mean) * self.scale
+        return lm if self.kind == "landmarks" else torch.cat([b_s, lm], 1)
+
+    @staticmethod
+    def numpy(model: FaceModel, landmarks: np.ndarray, kind: str = "bs") -> np.ndarray:
+        """The same features computed from (N, 68, 2) frame landmarks -> (N, F) float32."""
+        enc = ShapeEncoder(model)
+        feat = ShapeFeatures(model, kind)
+        with torch.no_grad():
+            aligned, b = enc(torch.from_numpy(np.asarray(landmarks, np.float32)))
+            return feat(aligned, b).numpy()
+
+
+class GlobalAppearance(nn.Module):
+    """Shape features -> b_g (regressor) -> clamp -> texture (B, C, M) via the appearance PCA."""
+
+    def __init__(self, model: FaceModel, regressor: Regressor, features: str = "bs", clamp: bool = True):
+        super().__init__()
+        pca = model.appearance_pca
+        self.features = ShapeFeatures(model, features)
+        self.regressor = regressor
+        self.channels = model.n_channels
+        self.register_buffer("mean", torch.from_numpy(pca.mean.copy()))
+        self.register_buffer("components", torch.from_numpy(pca.components.copy()))
+        lim = model.config.clamp_k * np.sqrt(pca.eigenvalues) if clamp else np.full(pca.n_components, np.inf)
+        self.register_buffer("limit", torch.from_numpy(lim.astype(np.float32)))
+
+    def params(self, aligned: torch.Tensor, b_s: torch.Tensor) -> torch.Tensor:
+        """b_g (B, K_g), clamped."""
+        b_g = self.regressor(self.features(aligned, b_s))
+        return torch.clamp(b_g, -self.limit, self.limit)
+
+    def forward(self, aligned: torch.Tensor, b_s: torch.Tensor) -> torch.Tensor:
+        tex = self.mean + torch.matmul(self.params(aligned, b_s), self.components)
+        return tex.reshape(tex.shape[0], self.channels, -1)
+
+
+class Synthesizer(nn.Module):
+    """The whole synthesis graph.
+
+    Forward
+    -------
+    landmarks : (B, 68, 2) float32 frame pixels, iBUG order
+    returns : crop (B, C, H, W) float32 in [0, 1] (zeros outside the face), mask (B, 1, H, W)
+      in {0, 1}, placement (B, 2, 3) affine map from crop pixels to frame pixels.
+    """
+
+    def __init__(self, model: FaceModel, appearance: nn.Module, clamp_shape: bool = True):
+        super().__init__()
+        self.encoder = ShapeEncoder(model, clamp_shape)
+        self.appearance = appearance
+        self.warp = ToTarget(model.reference, model.span)
+        self.register_buffer("ref_points", torch.from_numpy(model.reference.points.copy()))
+
+    def texture(self, landmarks: torch.Tensor) -> torch.Tensor:
+        """Predicted reference-frame texture (B, C, M), clipped to [0, 1]."""
+        aligned, b_s = self.encoder(landmarks)
+        return torch.clamp(self.appearance(aligned, b_s), 0.0, 1.0)
+
+    def forward(self, landmarks: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        tex = self.texture(landmarks)
+        to_canvas = similarity_to(landmarks, self.ref_points)
+        crop, mask = self.warp(tex, apply_affine_t(landmarks, to_canvas))
+        return crop, mask, invert_affine_t(to_canvas)
+
+
+def composite(
+    crop: np.ndarray, mask: np.ndarray, placement: np.ndarray, background: np.ndarray, feather: float = 2.0
+) -> np.ndarray:
+    """Paste a rendered crop into a frame with a feathered boundary.
+
+    Parameters
+    ----------
+    crop : float32 (H_c, W_c, 3) in [0, 1]
+    mask : float32 (H_c, W_c) in [0, 1]
+    placement : (2, 3) crop -> frame affine map
+    background : uint8 (H, W, 3) frame
+    feather : float
+        Width (frame pixels) of the soft edge; the face is shrunk by it before blurring,
+        so no background-coloured ring enters the face.
+
+    Returns
+    -------
+    uint8 (H, W, 3)
+    """
+    h, w = background.shape[:2]
+    face = cv2.warpAffine(crop, placement, (w, h), flags=cv2.INTER_LINEAR)
+    alpha = cv2.warpAffine(mask.astype(np.float32), placement, (w, h), flags=cv2.INTER_LINEAR)
+    if feather > 0:
+        r = int(np.ceil(feather))
+        hard = (alpha > 0.999).astype(np.float32)
+        alpha = cv2.erode(hard, np.ones((2 * r + 1, 2 * r + 1), np.uint8))
+        alpha = cv2.GaussianBlur(alpha, (0, 0), feather / 2) * hard
+    bg = background.astype(np.float32) / 255.0
+    out = alpha[..., None] * np.clip(face, 0, 1) + (1 - alpha[..., None]) * bg
+    return np.clip(out * 255.0 + 0.5, 0, 255).astype(np.uint8)
