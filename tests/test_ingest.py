@@ -77,6 +77,20 @@ def test_cli_reproduces_shipped_landmarks(shared_clip_dir, tmp_path, capsys):
     np.testing.assert_array_equal(seq.frame(0), cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB))
 
 
+@pytest.mark.shared
+@needs_dlib
+def test_downscaled_detection_matches_shipped_landmarks(shared_clip_dir, detector, tmp_path):
+    # lp_s18 is 1280x720 (W x H): detection runs on a 640-px copy, the box is scaled back and the
+    # predictor runs at full resolution, as for the shipped landmarks.
+    from facesynth.data.ingest import ingest_video
+
+    clip = shared_clip_dir("lp_s18")
+    seq = ingest_video(clip / "video.mp4", tmp_path / "s18", max_frames=6, detector=detector)
+    ref = np.load(clip / "landmarks.npy")[:6]
+    assert seq.image_size == (720, 1280)
+    assert np.median(np.linalg.norm(seq.landmarks - ref, axis=-1)) <= 1.5
+
+
 @needs_dlib
 def test_dlib_finds_the_synthetic_face_near_its_landmarks(synth_video, detector):
     # An independent check of the synthetic subject's plausibility: a real face
