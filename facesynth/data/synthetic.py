@@ -23,6 +23,8 @@ per pixel in face coordinates. 300 frames at 256 x 256 take about a second or tw
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import cv2
 import numpy as np
 
@@ -46,6 +48,7 @@ _SCLERA = np.array([0.93, 0.91, 0.88], np.float32)
 _IRIS = np.array([0.36, 0.24, 0.13], np.float32)
 _LIGHT = np.array([-0.35, -0.45, 0.82], np.float32) / np.linalg.norm([-0.35, -0.45, 0.82])
 _SS = 16  # sub-pixel factor for cv2 drawing (shift=4)
+_HEAD_BOX = [[-0.62, -0.36], [0.62, -0.36], [-0.62, 1.32], [0.62, 1.32]]  # face units: hair, ears, face, jaw open
 
 
 def _bbox(alpha: np.ndarray) -> tuple[slice, slice] | None:
@@ -56,16 +59,39 @@ def _bbox(alpha: np.ndarray) -> tuple[slice, slice] | None:
     return slice(rows[0], rows[-1] + 1), slice(cols[0], cols[-1] + 1)
 
 
-def _blend(img: np.ndarray, alpha: np.ndarray, color) -> None:
-    """img <- img + alpha (color - img) in place, on the bounding box of alpha's support.
+class _Alpha(NamedTuple):
+    """Coverage (H, W) float32 in [0, 1], zero outside the slices ``s``."""
 
-    alpha (H, W); color (3,) or (H, W, 3)."""
-    s = _bbox(alpha)
-    if s is None:
+    a: np.ndarray
+    s: tuple[slice, slice]
+
+
+class _Shaded(NamedTuple):
+    """A colour (3,) times a shading map (H, W, 1), evaluated only where it is drawn."""
+
+    rgb: np.ndarray
+    shade: np.ndarray
+
+
+def _blend(img: np.ndarray, alpha: _Alpha | np.ndarray, color, k: float = 1.0) -> None:
+    """img <- img + k alpha (color - img) in place, on alpha's bounding box only.
+
+    alpha: an ``_Alpha`` or an (H, W) array; color (3,) or (H, W, 3)."""
+    if isinstance(alpha, _Alpha):
+        s, a = alpha.s, alpha.a[alpha.s]
+    else:
+        s = _bbox(alpha)
+        if s is None:
+            return
+        a = alpha[s]
+    if a.size == 0:
         return
-    col = color[s] if np.ndim(color) == 3 else color
+    if isinstance(color, _Shaded):
+        col = color.rgb * color.shade[s]
+    else:
+        col = color[s] if np.ndim(color) == 3 else color
     sub = img[s]
-    sub += alpha[s][..., None] * (col - sub)
+    sub += (a * k)[..., None] * (col - sub)
 
 
 class _Frame:
@@ -74,11 +100,16 @@ class _Frame:
     def __init__(self, size: int, m: np.ndarray, grid: np.ndarray):
         self.size = size
         self.m = m
-        inv = invert_similarity(m[None])[0]
-        self.U = inv[0, 0] * grid[0] + inv[0, 1] * grid[1] + inv[0, 2]
-        self.V = inv[1, 0] * grid[0] + inv[1, 1] * grid[1] + inv[1, 2]
         self.ppu = float(np.hypot(m[0, 0], m[1, 0]))  # pixels per face unit
         self.angle = float(np.arctan2(m[1, 0], m[0, 0]))
+        # face coordinates of each pixel, computed on the head's box only (zero elsewhere)
+        self.head = self.box(_HEAD_BOX, 0.02)
+        inv = invert_similarity(m[None])[0]
+        self.U = np.zeros((size, size), np.float32)
+        self.V = np.zeros((size, size), np.float32)
+        gx, gy = grid[0][self.head], grid[1][self.head]
+        self.U[self.head] = inv[0, 0] * gx + inv[0, 1] * gy + inv[0, 2]
+        self.V[self.head] = inv[1, 0] * gx + inv[1, 1] * gy + inv[1, 2]
 
     def to_img(self, pts: np.ndarray) -> np.ndarray:
         return pts @ self.m[:, :2].T + self.m[:, 2]
@@ -90,21 +121,27 @@ class _Frame:
         hi = np.ceil(p.max(0) + margin * self.ppu + 2).astype(int).clip(0, self.size)
         return slice(lo[1], hi[1]), slice(lo[0], hi[0])
 
-    def poly(self, pts_local: np.ndarray) -> np.ndarray:
-        """Anti-aliased alpha (H, W) float32 of a filled polygon given in face units."""
+    def _alpha(self, mask: np.ndarray, s: tuple[slice, slice]) -> _Alpha:
+        out = np.zeros((self.size, self.size), np.float32)
+        out[s] = mask[s] * np.float32(1.0 / 255.0)
+        return _Alpha(out, s)
+
+    def poly(self, pts_local: np.ndarray) -> _Alpha:
+        """Anti-aliased coverage of a filled polygon given in face units."""
         mask = np.zeros((self.size, self.size), np.uint8)
         p = np.round(self.to_img(pts_local) * _SS).astype(np.int32)
         cv2.fillPoly(mask, [p], 255, cv2.LINE_AA, shift=4)
-        return mask.astype(np.float32) * (1.0 / 255.0)
+        return self._alpha(mask, self.box(pts_local, 0.0))
 
-    def line(self, pts_local: np.ndarray, width_units: float, blur: float = 0.0) -> np.ndarray:
-        """Anti-aliased alpha of an open polyline (width in face units), optionally blurred."""
+    def line(self, pts_local: np.ndarray, width_units: float, blur: float = 0.0) -> _Alpha:
+        """Anti-aliased coverage of an open polyline (width in face units), optionally blurred."""
         mask = np.zeros((self.size, self.size), np.uint8)
         p = np.round(self.to_img(pts_local) * _SS).astype(np.int32)
         cv2.polylines(mask, [p], False, 255, max(1, int(round(width_units * self.ppu))), cv2.LINE_AA, shift=4)
-        out = mask.astype(np.float32) * (1.0 / 255.0)
+        s = self.box(pts_local, width_units + 3.5 * blur)
+        out = self._alpha(mask, s)
         if blur > 0:
-            out = cv2.GaussianBlur(out, (0, 0), blur * self.ppu)
+            out.a[s] = cv2.GaussianBlur(out.a[s], (0, 0), blur * self.ppu, borderType=cv2.BORDER_CONSTANT)
         return out
 
     def shade_blob(self, img: np.ndarray, amount: float, cx: float, cy: float, sx: float, sy: float | None = None,
@@ -127,21 +164,24 @@ def _bezier(p0, p1, p2, n: int = 16) -> np.ndarray:
 def _render_one(L: np.ndarray, c: np.ndarray, f: _Frame, background: np.ndarray) -> np.ndarray:
     """Draw one face. L: (68, 2) landmarks in face units; c: (K,) controls in [0, 1]."""
     jaw_open, smile, brow, eye_close = c
-    U, V = f.U, f.V
+    U, V, h = f.U, f.V, f.head
     img = background.copy()
     # shading of a head-sized ellipsoid under a fixed light (normal rotated with the head roll)
-    nx, ny = U / 0.52, (V - 0.42) / 0.78
+    Uh, Vh = U[h], V[h]
+    nx, ny = Uh / 0.52, (Vh - 0.42) / 0.78
     nz = np.sqrt(np.clip(1.0 - nx**2 - ny**2, 0.02, 1.0))
     ca, sa = np.cos(f.angle), np.sin(f.angle)
-    lam = np.clip((ca * nx - sa * ny) * _LIGHT[0] + (sa * nx + ca * ny) * _LIGHT[1] + nz * _LIGHT[2], 0, 1)
+    lam = np.full(U.shape, 0.5, np.float32)
+    lam[h] = np.clip((ca * nx - sa * ny) * _LIGHT[0] + (sa * nx + ca * ny) * _LIGHT[1] + nz * _LIGHT[2], 0, 1)
     shade = (0.5 + 0.55 * lam)[..., None]
-    skin = _SKIN * shade
+    skin = _Shaded(_SKIN, shade)
 
     # hair behind the head, ears, neck
-    r_hair = np.sqrt((U / 0.6) ** 2 + ((V - 0.3) / 0.62) ** 2)
-    hair_a = np.clip((1.0 - r_hair) * 0.6 * f.ppu, 0, 1) * np.clip((0.62 - V) * f.ppu * 0.2, 0, 1)
-    hair_col = _HAIR * (0.8 + 0.4 * lam[..., None])
-    _blend(img, hair_a, hair_col)
+    r_hair = np.sqrt((Uh / 0.6) ** 2 + ((Vh - 0.3) / 0.62) ** 2)
+    hair_a = np.zeros_like(U)
+    hair_a[h] = np.clip((1.0 - r_hair) * 0.6 * f.ppu, 0, 1) * np.clip((0.62 - Vh) * f.ppu * 0.2, 0, 1)
+    hair_col = _Shaded(_HAIR, (0.8 + 0.4 * lam)[..., None])
+    _blend(img, _Alpha(hair_a, f.box([[-0.6, -0.32], [0.6, -0.32], [-0.6, 0.62], [0.6, 0.62]], 0.01)), hair_col)
     for sgn in (-1, 1):
         ear = np.array([[sgn * 0.44, 0.36], [sgn * 0.53, 0.32], [sgn * 0.55, 0.45], [sgn * 0.5, 0.6], [sgn * 0.45, 0.62]])
         _blend(img, f.poly(ear), _SKIN * 0.8)
@@ -152,11 +192,13 @@ def _render_one(L: np.ndarray, c: np.ndarray, f: _Frame, background: np.ndarray)
     y0 = 0.5 * (L[0, 1] + L[16, 1])
     th = np.linspace(0, np.pi, 24)
     arc = np.stack([0.46 * np.cos(th) * (L[16, 0] - L[0, 0]) / 0.9, y0 - 0.5 * np.sin(th)], 1)
-    face_a = f.poly(np.concatenate([L[:17], arc[1:-1]]))
-    _blend(img, face_a, skin)
+    face = f.poly(np.concatenate([L[:17], arc[1:-1]]))
+    face_a = face.a
+    _blend(img, face, skin)
     # hairline fringe over the upper forehead
-    fringe = np.clip((-0.06 - V - 0.05 * np.cos(U * 9.0) + 0.35 * U**2) * f.ppu * 0.5, 0, 1) * face_a
-    _blend(img, fringe, hair_col)
+    fringe = np.zeros_like(U)
+    fringe[h] = np.clip((-0.06 - Vh - 0.05 * np.cos(Uh * 9.0) + 0.35 * Uh**2) * f.ppu * 0.5, 0, 1) * face_a[h]
+    _blend(img, _Alpha(fringe, face.s), hair_col)
 
     # cheeks: raised, brighter apples and a shadow below them with smiles
     for sgn in (-1, 1):
@@ -182,9 +224,7 @@ def _render_one(L: np.ndarray, c: np.ndarray, f: _Frame, background: np.ndarray)
         p2 = L[corner_i] + [sgn * 0.03, 0.07]
         p1 = 0.5 * (p0 + p2) + [sgn * 0.045, -0.01]
         fold = f.line(_bezier(p0, p1, p2), 0.010, blur=0.006)
-        s = _bbox(fold)
-        if s is not None:
-            img[s] *= 1.0 - ((0.04 + 0.30 * smile) * fold[s])[..., None]
+        img[fold.s] *= 1.0 - ((0.04 + 0.30 * smile) * fold.a[fold.s])[..., None]
 
     # nose: side shadows, tip highlight, nostrils, shadow below
     for sgn in (-1, 1):
@@ -194,18 +234,18 @@ def _render_one(L: np.ndarray, c: np.ndarray, f: _Frame, background: np.ndarray)
     for a_i, b_i in ((31, 32), (34, 35)):
         m_ = 0.5 * (L[a_i] + L[b_i]) + [0, -0.012]
         nos = m_ + np.stack([0.022 * np.cos(t), 0.011 * np.sin(t)], 1)
-        _blend(img, 0.85 * f.poly(nos), np.array([0.30, 0.15, 0.13], np.float32))
+        _blend(img, f.poly(nos), np.array([0.30, 0.15, 0.13], np.float32), 0.85)
     f.shade_blob(img, 0.12, L[33, 0], L[33, 1] + 0.035, 0.05, 0.015)
     ala = _bezier(L[31] + [-0.02, -0.035], L[33] + [0.0, 0.02], L[35] + [0.02, -0.035])
-    _blend(img, 0.25 * f.line(ala, 0.008, blur=0.004), _SKIN * 0.5)
+    _blend(img, f.line(ala, 0.008, blur=0.004), _SKIN * 0.5, 0.25)
 
     # eyes: sclera, iris clipped by the lids, upper-lid skin, lashes, crease
     for idx in (np.arange(36, 42), np.arange(42, 48)):
         e = L[idx]
-        eye_a = f.poly(e)
-        _blend(img, eye_a, _SCLERA)
+        eye = f.poly(e)
+        _blend(img, eye, _SCLERA)
         s = f.box(e, 0.01)
-        ea = eye_a[s]
+        ea = eye.a[s]
         w = e[3, 0] - e[0, 0]
         ctr = np.array([0.5 * (e[0, 0] + e[3, 0]), 0.5 * (e[0, 1] + e[3, 1]) + 0.002])
         r = np.hypot(U[s] - ctr[0], V[s] - ctr[1]) * f.ppu
@@ -220,26 +260,26 @@ def _render_one(L: np.ndarray, c: np.ndarray, f: _Frame, background: np.ndarray)
         crease = MEAN_SHAPE[idx[[3, 2, 1, 0]]] + np.array([[0.0, -0.028], [0.0, -0.035], [0.0, -0.035], [0.0, -0.028]])
         crease[:, 0] += L[idx[0], 0] - MEAN_SHAPE[idx[0], 0]
         crease[:, 1] += L[idx[0], 1] - MEAN_SHAPE[idx[0], 1]
-        _blend(img, f.poly(np.concatenate([e[:4], crease])), skin * 0.86)
-        _blend(img, 0.35 * f.line(crease, 0.006, blur=0.004), _SKIN * 0.55)
-        _blend(img, 0.95 * f.line(e[:4], 0.014), np.array([0.12, 0.08, 0.07], np.float32))
-        _blend(img, 0.35 * f.line(e[[3, 4, 5, 0]], 0.006), np.array([0.45, 0.3, 0.28], np.float32))
+        _blend(img, f.poly(np.concatenate([e[:4], crease])), _Shaded(_SKIN * 0.86, shade))
+        _blend(img, f.line(crease, 0.006, blur=0.004), _SKIN * 0.55, 0.35)
+        _blend(img, f.line(e[:4], 0.014), np.array([0.12, 0.08, 0.07], np.float32), 0.95)
+        _blend(img, f.line(e[[3, 4, 5, 0]], 0.006), np.array([0.45, 0.3, 0.28], np.float32), 0.35)
 
     # brows: tapered filled bands around the brow points
     for idx in (np.arange(17, 22), np.arange(22, 27)):
         b = L[idx]
         thick = np.linspace(0.010, 0.019, 5) if idx[0] == 17 else np.linspace(0.019, 0.010, 5)
         off = np.stack([0 * thick, thick], 1)
-        _blend(img, 0.92 * f.poly(np.concatenate([b - off, (b + off)[::-1]])), _BROW)
+        _blend(img, f.poly(np.concatenate([b - off, (b + off)[::-1]])), _BROW, 0.92)
 
     # mouth: lips, dark interior, upper and lower teeth, lip line
-    _blend(img, f.poly(L[48:60]), _LIP * shade)
+    _blend(img, f.poly(L[48:60]), _Shaded(_LIP, shade))
     upper = np.concatenate([L[48:55], L[[64, 63, 62, 61, 60]]])
-    _blend(img, f.poly(upper), _LIP * 0.85 * shade)
-    inner_a = f.poly(L[60:68])
-    _blend(img, inner_a, _MOUTH)
-    if jaw_open > 0.005 and (s := _bbox(inner_a)) is not None:
-        Us, Vs, ia, sub = U[s], V[s], inner_a[s], img[s]
+    _blend(img, f.poly(upper), _Shaded(_LIP * 0.85, shade))
+    inner = f.poly(L[60:68])
+    _blend(img, inner, _MOUTH)
+    if jaw_open > 0.005 and (s := _bbox(inner.a)) is not None:
+        Us, Vs, ia, sub = U[s], V[s], inner.a[s], img[s]
         y_up = np.interp(Us, L[60:65, 0], L[60:65, 1])
         y_lo = np.interp(Us, L[[60, 67, 66, 65, 64], 0], L[[60, 67, 66, 65, 64], 1])
         half = 0.5 * (L[64, 0] - L[60, 0]) + 1e-6
@@ -251,7 +291,7 @@ def _render_one(L: np.ndarray, c: np.ndarray, f: _Frame, background: np.ndarray)
         sub += t_up[..., None] * (_TEETH * tone * gaps[..., None] - sub)
         t_lo = np.clip((np.minimum(0.016, 0.15 * gap) - (y_lo - Vs)) * f.ppu, 0, 1) * np.clip((0.5 - du) * 6.0, 0, 1) * ia * (1 - t_up)
         sub += t_lo[..., None] * (_TEETH * 0.8 * tone - sub)
-    _blend(img, 0.6 * f.line(L[60:65], 0.009), np.array([0.33, 0.12, 0.12], np.float32))
+    _blend(img, f.line(L[60:65], 0.009), np.array([0.33, 0.12, 0.12], np.float32), 0.6)
     return img
 
 
@@ -290,7 +330,7 @@ def render_faces(landmarks: np.ndarray, size: int = 256, seed: int = 0, noise_si
         img = _render_one(local[t], controls[t], _Frame(size, m[t], grid), background)
         img *= 255.0
         if noise_sigma > 0:
-            img += rng.normal(0.0, noise_sigma, img.shape).astype(np.float32)
+            img += rng.standard_normal(img.shape, dtype=np.float32) * np.float32(noise_sigma)
         np.clip(img + 0.5, 0, 255, out=img)
         out[t] = img.astype(np.uint8)
     return out
