@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import resource
 import shutil
 import sys
@@ -70,9 +71,10 @@ def _run(tmp: Path) -> int:
     t0 = time.perf_counter()
     detector = LandmarkDetector()
     load_s = time.perf_counter() - t0
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     ingest_video(video, tmp / "out", every=args.every, max_frames=args.max_frames, detector=detector)
     total_s = time.perf_counter() - t0
+    cpu_s = time.process_time() - c0
     meta = json.loads((tmp / "out" / "meta.json").read_text())
     st = meta["stats"]
     lm = np.load(tmp / "out" / "landmarks.npy")
@@ -85,6 +87,9 @@ def _run(tmp: Path) -> int:
         "detector_load_s": round(load_s, 3),
         "ingest_s": round(total_s, 3),
         "frames_per_s": round(st["frames_processed"] / total_s, 2),
+        "ingest_cpu_s": round(cpu_s, 3),
+        "frames_per_cpu_s": round(st["frames_processed"] / cpu_s, 2),
+        "load_avg_1min": round(os.getloadavg()[0], 2),
         "ms_per_frame": {k: round(v, 2) for k, v in st["timing_ms_per_frame"].items()},
         "detection_rate": st["detection_rate"],
         "det_source_counts": st["det_source_counts"],
