@@ -215,7 +215,10 @@ def detect_landmarks(
     nan_lm = np.full((68, 2), np.nan, np.float32)
     for i, rgb in enumerate(frames):
         if rgb is None:
-            lms.append(nan_lm), boxes.append(np.full(4, np.nan)), sources.append("skipped"), n_faces.append(0)
+            lms.append(nan_lm)
+            boxes.append(np.full(4, np.nan))
+            sources.append("skipped")
+            n_faces.append(0)
             continue
         if rgb.ndim != 3 or rgb.shape[2] != 3 or rgb.dtype != np.uint8:
             raise FacesynthError(f"frame {i}: expected uint8 RGB (H, W, 3), got {rgb.dtype} {rgb.shape}")

@@ -18,7 +18,8 @@ well posed and testable without any data download:
 
 Rendering is vectorised numpy/OpenCV: anti-aliased filled polygons (sub-pixel,
 ``cv2.LINE_AA``) from the landmarks, smooth shading and wrinkle line patterns computed
-per pixel in face coordinates. 300 frames at 256 x 256 take about a second or two.
+per pixel in face coordinates, on bounding boxes only. 300 frames at 256 x 256 take about
+3 s of CPU time.
 """
 
 from __future__ import annotations
@@ -303,7 +304,9 @@ def render_faces(landmarks: np.ndarray, size: int = 256, seed: int = 0, noise_si
     landmarks : np.ndarray
         (T, 68, 2) or (68, 2) image landmarks (x, y pixels, 0-based iBUG), as produced
         by :func:`synthetic_landmarks`. Pose and expression are recovered from them, so
-        the image is a deterministic function of the landmarks (plus noise).
+        the image is a deterministic function of the landmarks (plus noise). Other
+        shapes (e.g. noisy landmarks) are projected on the model by least squares:
+        similarity from the rigid points, controls clipped to [0, 1].
     size : int
         Image side in pixels (square images).
     seed : int
