@@ -24,13 +24,11 @@ per pixel in face coordinates, on bounding boxes only. 300 frames at 256 x 256 t
 
 from __future__ import annotations
 
-from typing import NamedTuple
-
-import cv2
 import numpy as np
 
 from facesynth.data.frames import ArrayFrames
 from facesynth.data.sequence import FaceSequence, validate_landmarks
+from facesynth.data.synthetic_draw import Alpha, DrawFrame, Shaded, bbox, bezier, blend
 from facesynth.data.synthetic_shape import (
     CONTROL_NAMES, MEAN_SHAPE, apply_similarity, estimate_pose_and_controls, invert_similarity,
     pose_matrices, shapes_from_controls, smooth_controls, smooth_head_motion,
@@ -48,121 +46,9 @@ _TEETH = np.array([0.86, 0.84, 0.78], np.float32)  # in the mouth's shade
 _SCLERA = np.array([0.93, 0.91, 0.88], np.float32)
 _IRIS = np.array([0.36, 0.24, 0.13], np.float32)
 _LIGHT = np.array([-0.35, -0.45, 0.82], np.float32) / np.linalg.norm([-0.35, -0.45, 0.82])
-_SS = 16  # sub-pixel factor for cv2 drawing (shift=4)
-_HEAD_BOX = [[-0.62, -0.36], [0.62, -0.36], [-0.62, 1.32], [0.62, 1.32]]  # face units: hair, ears, face, jaw open
 
 
-def _bbox(alpha: np.ndarray) -> tuple[slice, slice] | None:
-    rows = np.flatnonzero(alpha.any(1))
-    if not len(rows):
-        return None
-    cols = np.flatnonzero(alpha.any(0))
-    return slice(rows[0], rows[-1] + 1), slice(cols[0], cols[-1] + 1)
-
-
-class _Alpha(NamedTuple):
-    """Coverage (H, W) float32 in [0, 1], zero outside the slices ``s``."""
-
-    a: np.ndarray
-    s: tuple[slice, slice]
-
-
-class _Shaded(NamedTuple):
-    """A colour (3,) times a shading map (H, W, 1), evaluated only where it is drawn."""
-
-    rgb: np.ndarray
-    shade: np.ndarray
-
-
-def _blend(img: np.ndarray, alpha: _Alpha | np.ndarray, color, k: float = 1.0) -> None:
-    """img <- img + k alpha (color - img) in place, on alpha's bounding box only.
-
-    alpha: an ``_Alpha`` or an (H, W) array; color (3,) or (H, W, 3)."""
-    if isinstance(alpha, _Alpha):
-        s, a = alpha.s, alpha.a[alpha.s]
-    else:
-        s = _bbox(alpha)
-        if s is None:
-            return
-        a = alpha[s]
-    if a.size == 0:
-        return
-    if isinstance(color, _Shaded):
-        col = color.rgb * color.shade[s]
-    else:
-        col = color[s] if np.ndim(color) == 3 else color
-    sub = img[s]
-    sub += (a * k)[..., None] * (col - sub)
-
-
-class _Frame:
-    """Per-frame drawing context: image-space canvas plus face coordinates per pixel."""
-
-    def __init__(self, size: int, m: np.ndarray, grid: np.ndarray):
-        self.size = size
-        self.m = m
-        self.ppu = float(np.hypot(m[0, 0], m[1, 0]))  # pixels per face unit
-        self.angle = float(np.arctan2(m[1, 0], m[0, 0]))
-        # face coordinates of each pixel, computed on the head's box only (zero elsewhere)
-        self.head = self.box(_HEAD_BOX, 0.02)
-        inv = invert_similarity(m[None])[0]
-        self.U = np.zeros((size, size), np.float32)
-        self.V = np.zeros((size, size), np.float32)
-        gx, gy = grid[0][self.head], grid[1][self.head]
-        self.U[self.head] = inv[0, 0] * gx + inv[0, 1] * gy + inv[0, 2]
-        self.V[self.head] = inv[1, 0] * gx + inv[1, 1] * gy + inv[1, 2]
-
-    def to_img(self, pts: np.ndarray) -> np.ndarray:
-        return pts @ self.m[:, :2].T + self.m[:, 2]
-
-    def box(self, pts_local, margin: float) -> tuple[slice, slice]:
-        """Image slices covering points given in face units, plus a margin (face units)."""
-        p = self.to_img(np.atleast_2d(np.asarray(pts_local, dtype=np.float64)))
-        lo = np.floor(p.min(0) - margin * self.ppu - 1).astype(int).clip(0, self.size)
-        hi = np.ceil(p.max(0) + margin * self.ppu + 2).astype(int).clip(0, self.size)
-        return slice(lo[1], hi[1]), slice(lo[0], hi[0])
-
-    def _alpha(self, mask: np.ndarray, s: tuple[slice, slice]) -> _Alpha:
-        out = np.zeros((self.size, self.size), np.float32)
-        out[s] = mask[s] * np.float32(1.0 / 255.0)
-        return _Alpha(out, s)
-
-    def poly(self, pts_local: np.ndarray) -> _Alpha:
-        """Anti-aliased coverage of a filled polygon given in face units."""
-        mask = np.zeros((self.size, self.size), np.uint8)
-        p = np.round(self.to_img(pts_local) * _SS).astype(np.int32)
-        cv2.fillPoly(mask, [p], 255, cv2.LINE_AA, shift=4)
-        return self._alpha(mask, self.box(pts_local, 0.0))
-
-    def line(self, pts_local: np.ndarray, width_units: float, blur: float = 0.0) -> _Alpha:
-        """Anti-aliased coverage of an open polyline (width in face units), optionally blurred."""
-        mask = np.zeros((self.size, self.size), np.uint8)
-        p = np.round(self.to_img(pts_local) * _SS).astype(np.int32)
-        cv2.polylines(mask, [p], False, 255, max(1, int(round(width_units * self.ppu))), cv2.LINE_AA, shift=4)
-        s = self.box(pts_local, width_units + 3.5 * blur)
-        out = self._alpha(mask, s)
-        if blur > 0:
-            out.a[s] = cv2.GaussianBlur(out.a[s], (0, 0), blur * self.ppu, borderType=cv2.BORDER_CONSTANT)
-        return out
-
-    def shade_blob(self, img: np.ndarray, amount: float, cx: float, cy: float, sx: float, sy: float | None = None,
-                   mask: np.ndarray | None = None) -> None:
-        """Multiply ``img`` by (1 - amount * Gaussian blob) (negative amount brightens), within 3 sigma."""
-        sy = sx if sy is None else sy
-        s = self.box([[cx - 3 * sx, cy - 3 * sy], [cx + 3 * sx, cy + 3 * sy], [cx - 3 * sx, cy + 3 * sy],
-                      [cx + 3 * sx, cy - 3 * sy]], 0.0)
-        b = np.exp(-0.5 * (((self.U[s] - cx) / sx) ** 2 + ((self.V[s] - cy) / sy) ** 2))
-        if mask is not None:
-            b *= mask[s]
-        img[s] *= (1.0 - amount * b)[..., None]
-
-
-def _bezier(p0, p1, p2, n: int = 16) -> np.ndarray:
-    t = np.linspace(0, 1, n)[:, None]
-    return (1 - t) ** 2 * p0 + 2 * (1 - t) * t * p1 + t**2 * p2
-
-
-def _render_one(L: np.ndarray, c: np.ndarray, f: _Frame, background: np.ndarray) -> np.ndarray:
+def _render_one(L: np.ndarray, c: np.ndarray, f: DrawFrame, background: np.ndarray) -> np.ndarray:
     """Draw one face. L: (68, 2) landmarks in face units; c: (K,) controls in [0, 1]."""
     jaw_open, smile, brow, eye_close = c
     U, V, h = f.U, f.V, f.head
@@ -175,19 +61,19 @@ def _render_one(L: np.ndarray, c: np.ndarray, f: _Frame, background: np.ndarray)
     lam = np.full(U.shape, 0.5, np.float32)
     lam[h] = np.clip((ca * nx - sa * ny) * _LIGHT[0] + (sa * nx + ca * ny) * _LIGHT[1] + nz * _LIGHT[2], 0, 1)
     shade = (0.5 + 0.55 * lam)[..., None]
-    skin = _Shaded(_SKIN, shade)
+    skin = Shaded(_SKIN, shade)
 
     # hair behind the head, ears, neck
     r_hair = np.sqrt((Uh / 0.6) ** 2 + ((Vh - 0.3) / 0.62) ** 2)
     hair_a = np.zeros_like(U)
     hair_a[h] = np.clip((1.0 - r_hair) * 0.6 * f.ppu, 0, 1) * np.clip((0.62 - Vh) * f.ppu * 0.2, 0, 1)
-    hair_col = _Shaded(_HAIR, (0.8 + 0.4 * lam)[..., None])
-    _blend(img, _Alpha(hair_a, f.box([[-0.6, -0.32], [0.6, -0.32], [-0.6, 0.62], [0.6, 0.62]], 0.01)), hair_col)
+    hair_col = Shaded(_HAIR, (0.8 + 0.4 * lam)[..., None])
+    blend(img, Alpha(hair_a, f.box([[-0.6, -0.32], [0.6, -0.32], [-0.6, 0.62], [0.6, 0.62]], 0.01)), hair_col)
     for sgn in (-1, 1):
         ear = np.array([[sgn * 0.44, 0.36], [sgn * 0.53, 0.32], [sgn * 0.55, 0.45], [sgn * 0.5, 0.6], [sgn * 0.45, 0.62]])
-        _blend(img, f.poly(ear), _SKIN * 0.8)
+        blend(img, f.poly(ear), _SKIN * 0.8)
     neck = np.array([[-0.25, 0.8], [0.25, 0.8], [0.3, 1.8], [-0.3, 1.8]])
-    _blend(img, f.poly(neck), _SKIN * 0.68)
+    blend(img, f.poly(neck), _SKIN * 0.68)
 
     # face: jaw contour closed by a forehead arc
     y0 = 0.5 * (L[0, 1] + L[16, 1])
@@ -195,11 +81,11 @@ def _render_one(L: np.ndarray, c: np.ndarray, f: _Frame, background: np.ndarray)
     arc = np.stack([0.46 * np.cos(th) * (L[16, 0] - L[0, 0]) / 0.9, y0 - 0.5 * np.sin(th)], 1)
     face = f.poly(np.concatenate([L[:17], arc[1:-1]]))
     face_a = face.a
-    _blend(img, face, skin)
+    blend(img, face, skin)
     # hairline fringe over the upper forehead
     fringe = np.zeros_like(U)
     fringe[h] = np.clip((-0.06 - Vh - 0.05 * np.cos(Uh * 9.0) + 0.35 * Uh**2) * f.ppu * 0.5, 0, 1) * face_a[h]
-    _blend(img, _Alpha(fringe, face.s), hair_col)
+    blend(img, Alpha(fringe, face.s), hair_col)
 
     # cheeks: raised, brighter apples and a shadow below them with smiles
     for sgn in (-1, 1):
@@ -224,7 +110,7 @@ def _render_one(L: np.ndarray, c: np.ndarray, f: _Frame, background: np.ndarray)
         p0 = L[nose_i] + [sgn * 0.03, -0.02]
         p2 = L[corner_i] + [sgn * 0.03, 0.07]
         p1 = 0.5 * (p0 + p2) + [sgn * 0.045, -0.01]
-        fold = f.line(_bezier(p0, p1, p2), 0.010, blur=0.006)
+        fold = f.line(bezier(p0, p1, p2), 0.010, blur=0.006)
         img[fold.s] *= 1.0 - ((0.04 + 0.30 * smile) * fold.a[fold.s])[..., None]
 
     # nose: side shadows, tip highlight, nostrils, shadow below
@@ -235,16 +121,16 @@ def _render_one(L: np.ndarray, c: np.ndarray, f: _Frame, background: np.ndarray)
     for a_i, b_i in ((31, 32), (34, 35)):
         m_ = 0.5 * (L[a_i] + L[b_i]) + [0, -0.012]
         nos = m_ + np.stack([0.022 * np.cos(t), 0.011 * np.sin(t)], 1)
-        _blend(img, f.poly(nos), np.array([0.30, 0.15, 0.13], np.float32), 0.85)
+        blend(img, f.poly(nos), np.array([0.30, 0.15, 0.13], np.float32), 0.85)
     f.shade_blob(img, 0.12, L[33, 0], L[33, 1] + 0.035, 0.05, 0.015)
-    ala = _bezier(L[31] + [-0.02, -0.035], L[33] + [0.0, 0.02], L[35] + [0.02, -0.035])
-    _blend(img, f.line(ala, 0.008, blur=0.004), _SKIN * 0.5, 0.25)
+    ala = bezier(L[31] + [-0.02, -0.035], L[33] + [0.0, 0.02], L[35] + [0.02, -0.035])
+    blend(img, f.line(ala, 0.008, blur=0.004), _SKIN * 0.5, 0.25)
 
     # eyes: sclera, iris clipped by the lids, upper-lid skin, lashes, crease
     for idx in (np.arange(36, 42), np.arange(42, 48)):
         e = L[idx]
         eye = f.poly(e)
-        _blend(img, eye, _SCLERA)
+        blend(img, eye, _SCLERA)
         s = f.box(e, 0.01)
         ea = eye.a[s]
         w = e[3, 0] - e[0, 0]
@@ -261,25 +147,25 @@ def _render_one(L: np.ndarray, c: np.ndarray, f: _Frame, background: np.ndarray)
         crease = MEAN_SHAPE[idx[[3, 2, 1, 0]]] + np.array([[0.0, -0.028], [0.0, -0.035], [0.0, -0.035], [0.0, -0.028]])
         crease[:, 0] += L[idx[0], 0] - MEAN_SHAPE[idx[0], 0]
         crease[:, 1] += L[idx[0], 1] - MEAN_SHAPE[idx[0], 1]
-        _blend(img, f.poly(np.concatenate([e[:4], crease])), _Shaded(_SKIN * 0.86, shade))
-        _blend(img, f.line(crease, 0.006, blur=0.004), _SKIN * 0.55, 0.35)
-        _blend(img, f.line(e[:4], 0.014), np.array([0.12, 0.08, 0.07], np.float32), 0.95)
-        _blend(img, f.line(e[[3, 4, 5, 0]], 0.006), np.array([0.45, 0.3, 0.28], np.float32), 0.35)
+        blend(img, f.poly(np.concatenate([e[:4], crease])), Shaded(_SKIN * 0.86, shade))
+        blend(img, f.line(crease, 0.006, blur=0.004), _SKIN * 0.55, 0.35)
+        blend(img, f.line(e[:4], 0.014), np.array([0.12, 0.08, 0.07], np.float32), 0.95)
+        blend(img, f.line(e[[3, 4, 5, 0]], 0.006), np.array([0.45, 0.3, 0.28], np.float32), 0.35)
 
     # brows: tapered filled bands around the brow points
     for idx in (np.arange(17, 22), np.arange(22, 27)):
         b = L[idx]
         thick = np.linspace(0.010, 0.019, 5) if idx[0] == 17 else np.linspace(0.019, 0.010, 5)
         off = np.stack([0 * thick, thick], 1)
-        _blend(img, f.poly(np.concatenate([b - off, (b + off)[::-1]])), _BROW, 0.92)
+        blend(img, f.poly(np.concatenate([b - off, (b + off)[::-1]])), _BROW, 0.92)
 
     # mouth: lips, dark interior, upper and lower teeth, lip line
-    _blend(img, f.poly(L[48:60]), _Shaded(_LIP, shade))
+    blend(img, f.poly(L[48:60]), Shaded(_LIP, shade))
     upper = np.concatenate([L[48:55], L[[64, 63, 62, 61, 60]]])
-    _blend(img, f.poly(upper), _Shaded(_LIP * 0.85, shade))
+    blend(img, f.poly(upper), Shaded(_LIP * 0.85, shade))
     inner = f.poly(L[60:68])
-    _blend(img, inner, _MOUTH)
-    if jaw_open > 0.005 and (s := _bbox(inner.a)) is not None:
+    blend(img, inner, _MOUTH)
+    if jaw_open > 0.005 and (s := bbox(inner.a)) is not None:
         Us, Vs, ia, sub = U[s], V[s], inner.a[s], img[s]
         y_up = np.interp(Us, L[60:65, 0], L[60:65, 1])
         y_lo = np.interp(Us, L[[60, 67, 66, 65, 64], 0], L[[60, 67, 66, 65, 64], 1])
@@ -292,7 +178,7 @@ def _render_one(L: np.ndarray, c: np.ndarray, f: _Frame, background: np.ndarray)
         sub += t_up[..., None] * (_TEETH * tone * gaps[..., None] - sub)
         t_lo = np.clip((np.minimum(0.016, 0.15 * gap) - (y_lo - Vs)) * f.ppu, 0, 1) * np.clip((0.5 - du) * 6.0, 0, 1) * ia * (1 - t_up)
         sub += t_lo[..., None] * (_TEETH * 0.8 * tone - sub)
-    _blend(img, f.line(L[60:65], 0.009), np.array([0.33, 0.12, 0.12], np.float32), 0.6)
+    blend(img, f.line(L[60:65], 0.009), np.array([0.33, 0.12, 0.12], np.float32), 0.6)
     return img
 
 
@@ -330,7 +216,7 @@ def render_faces(landmarks: np.ndarray, size: int = 256, seed: int = 0, noise_si
     rng = np.random.default_rng([seed, 7919])
     out = np.empty((len(lm), size, size, 3), np.uint8)
     for t in range(len(lm)):
-        img = _render_one(local[t], controls[t], _Frame(size, m[t], grid), background)
+        img = _render_one(local[t], controls[t], DrawFrame(size, m[t], grid), background)
         img *= 255.0
         if noise_sigma > 0:
             img += rng.standard_normal(img.shape, dtype=np.float32) * np.float32(noise_sigma)
