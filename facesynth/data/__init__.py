@@ -6,9 +6,10 @@ from facesynth.data.readers import load_landmarks, load_sequence, register_reade
 from facesynth.data.sequence import N_LANDMARKS, FaceSequence, validate_landmarks
 from facesynth.data.shared import shared_clip, shared_data_dir, shared_mesh_dir
 from facesynth.data.splits import temporal_split
+from facesynth.data.synthetic import make_synthetic_sequence
 
 __all__ = [
     "N_LANDMARKS", "FaceSequence", "load_landmarks", "load_sequence", "read_pts", "register_reader",
-    "register_writer", "save_landmarks", "shared_clip", "shared_data_dir", "shared_mesh_dir",
+    "register_writer", "save_landmarks", "shared_clip", "shared_data_dir", "shared_mesh_dir", "make_synthetic_sequence",
     "temporal_split", "validate_landmarks", "write_pts",
 ]

@@ -1,0 +1,254 @@
+"""Video ingest: a real video becomes a training folder (``landmarks.npy`` + ``meta.json``).
+
+The folder has the layout of ``shared/data/faces/<clip>`` and is read back by
+:func:`facesynth.data.load_sequence`:
+
+* ``landmarks.npy``: float32 (T, 68, 2), (x, y) 0-based pixels of the decoded frame,
+  iBUG 300-W order, NaN rows where no face was found (or the frame was skipped by
+  ``every``); row t is frame t of the video (OpenCV decode order);
+* ``meta.json``: the video (path or copied file, resolution, fps, frame count,
+  SHA-256), the landmark array description and detector, statistics (detection rate,
+  how each box was found, timing), detector and package versions;
+* optionally ``video.mp4`` (a copy, ``copy=True``) and ``pts/<frame>.pts`` (one iBUG
+  ``.pts`` file per frame with a face, 1-based coordinates as the format requires).
+
+Detection and landmarks: :mod:`facesynth.data.detect` (dlib HOG + 68-point shape
+predictor, the optional ``ingest`` extra). Every file is written atomically and only
+after all frames are processed; ``meta.json`` is written last.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import shutil
+import time
+from pathlib import Path
+from typing import Iterator
+
+import cv2
+import numpy as np
+
+from facesynth import __version__
+from facesynth.data.detect import Detections, LandmarkDetector, check_extra, detect_landmarks, detector_versions
+from facesynth.data.pts import write_pts
+from facesynth.data.readers import load_sequence
+from facesynth.data.sequence import FaceSequence
+from facesynth.errors import FacesynthError
+from facesynth.io import atomic_path, write_json
+from facesynth.provenance import file_sha256, package_versions
+
+log = logging.getLogger(__name__)
+
+MARKUP = "iBUG 300-W 68 points, 0-based (0-16 jaw, 17-26 brows, 27-35 nose, 36-47 eyes, 48-67 mouth)"
+
+
+class _Video:
+    """An opened video: header facts plus a forward frame iterator with decode timing."""
+
+    def __init__(self, path: Path):
+        self.path = path
+        if not path.is_file():
+            raise FacesynthError(f"{path}: video file not found")
+        cap = cv2.VideoCapture(str(path))
+        ok, first = cap.read() if cap.isOpened() else (False, None)
+        if not ok or first is None:
+            cap.release()
+            raise FacesynthError(f"{path}: unreadable video (OpenCV could not decode a frame)")
+        self.height, self.width = first.shape[:2]
+        self.fps = float(cap.get(cv2.CAP_PROP_FPS) or 0.0)
+        self.header_frames = int(cap.get(cv2.CAP_PROP_FRAME_COUNT) or 0)
+        cap.release()
+        self.decoded = 0
+        self.decode_s = 0.0
+        self.reached_end = False
+
+    def frames(self, every: int, max_frames: int | None) -> Iterator[np.ndarray | None]:
+        """Yield RGB frames (``None`` for frames skipped by ``every``), at most ``max_frames``."""
+        cap = cv2.VideoCapture(str(self.path))
+        try:
+            i = 0
+            while max_frames is None or i < max_frames:
+                t0 = time.perf_counter()
+                if i % every == 0:
+                    ok, bgr = cap.read()
+                    rgb = cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB) if ok else None
+                else:
+                    ok, rgb = cap.grab(), None
+                self.decode_s += time.perf_counter() - t0
+                if not ok:
+                    self.reached_end = True
+                    return
+                self.decoded += 1
+                yield rgb
+                i += 1
+        finally:
+            cap.release()
+
+
+def _progress(total: int | None, enabled: bool):
+    from tqdm.auto import tqdm
+
+    return tqdm(total=total, unit="frame", desc="ingest", disable=not enabled, dynamic_ncols=True, leave=True)
+
+
+def _stats(det: Detections, video: _Video, wall_s: float) -> dict:
+    n_proc = det.n_processed
+    counts = det.counts()
+    lm = det.landmarks
+    ok = np.isfinite(lm[:, 0, 0])
+    stats = {
+        "frames_processed": n_proc,
+        "detection_rate": round(det.detection_rate, 6),
+        "det_source_counts": counts,
+        "frames_with_multiple_faces": int((det.n_faces > 1).sum()),
+        "timing_ms_per_frame": {
+            "decode": 1000 * video.decode_s / max(video.decoded, 1),
+            "detect": 1000 * det.timing_s["detect"] / max(n_proc, 1),
+            "landmarks": 1000 * det.timing_s["landmarks"] / max(n_proc, 1),
+        },
+        "wall_s": wall_s,
+        "frames_per_s": n_proc / wall_s if wall_s > 0 else None,
+    }
+    if ok.any():
+        iod = np.linalg.norm(lm[ok, 45] - lm[ok, 36], axis=1)
+        stats["iod_px"] = {"p5": float(np.percentile(iod, 5)), "p50": float(np.median(iod)), "p95": float(np.percentile(iod, 95))}
+    return stats
+
+
+def ingest_video(
+    video_path: str | os.PathLike,
+    out_dir: str | os.PathLike,
+    *,
+    every: int = 1,
+    max_frames: int | None = None,
+    copy: bool = False,
+    export_pts: bool = False,
+    progress: bool = False,
+    detector: LandmarkDetector | None = None,
+    max_side: int = 640,
+    reuse_limit: int = 15,
+) -> FaceSequence:
+    """Detect the face and fit 68 landmarks in every frame of a video; write a training folder.
+
+    Parameters
+    ----------
+    video_path : path-like
+        Any video OpenCV decodes.
+    out_dir : path-like
+        Output folder (created; files written atomically once all frames are done).
+    every : int
+        Process every ``every``-th frame; the others get NaN rows (and are dropped on loading).
+    max_frames : int, optional
+        Only the first ``max_frames`` frames of the video (``landmarks.npy`` has that many rows).
+    copy : bool
+        Copy the video into ``out_dir/video<ext>`` (``meta['video']['file']``) instead of
+        referencing its absolute path (``meta['video']['path']``).
+    export_pts : bool
+        Also write ``out_dir/pts/<frame>.pts`` for each frame with a face (1-based coordinates).
+    progress : bool
+        Show a tqdm progress bar (frames/s).
+    detector : LandmarkDetector, optional
+        A loaded detector to reuse; by default one is made with ``max_side`` and ``reuse_limit``.
+    max_side, reuse_limit : int
+        See :class:`facesynth.data.detect.LandmarkDetector`.
+
+    Returns
+    -------
+    FaceSequence
+        The written folder read back with :func:`facesynth.data.load_sequence` (frames
+        decoded lazily from the video; NaN frames dropped).
+
+    Raises
+    ------
+    FacesynthError
+        Unreadable video, no face in any processed frame, bad arguments.
+    MissingExtraError
+        dlib or face_recognition_models is not installed (``pip install 'facesynth[ingest]'``).
+    """
+    video_path, out_dir = Path(video_path), Path(out_dir)
+    if every < 1:
+        raise FacesynthError(f"every must be >= 1, got {every}")
+    if max_frames is not None and max_frames < 1:
+        raise FacesynthError(f"max_frames must be >= 1, got {max_frames}")
+    if out_dir.exists() and not out_dir.is_dir():
+        raise FacesynthError(f"{out_dir}: output exists and is not a folder")
+    if detector is None:
+        check_extra()  # a missing extra is reported before anything else
+    video = _Video(video_path)
+    det = detector or LandmarkDetector(max_side=max_side, reuse_limit=reuse_limit)
+    det.reset()
+    total = video.header_frames or None
+    if max_frames is not None:
+        total = min(total, max_frames) if total else max_frames
+
+    t0 = time.perf_counter()
+    with _progress(total, progress) as bar:
+        def on_frame(i: int, source: str) -> None:
+            bar.update(i + 1 - bar.n)
+
+        result = detect_landmarks(video.frames(every, max_frames), det, on_frame=on_frame)
+        bar.update(video.decoded - bar.n)
+    wall = time.perf_counter() - t0
+    n_found = int(np.isfinite(result.landmarks[:, 0, 0]).sum())
+    if n_found == 0:
+        raise FacesynthError(f"{video_path}: no face found in any of the {result.n_processed} frames processed")
+
+    stats = _stats(result, video, wall)
+    n_video = video.decoded if video.reached_end else max(video.header_frames, video.decoded)
+    vmeta = {
+        "width": video.width, "height": video.height, "fps": video.fps, "frames": n_video,
+        "duration_s": n_video / video.fps if video.fps else None, "sha256": file_sha256(video_path),
+    }
+    src_abs = video_path.resolve()
+    if copy:
+        vmeta["file"] = "video" + (video_path.suffix.lower() or ".mp4")
+        vmeta["original_path"] = str(src_abs)
+    else:
+        vmeta["path"] = str(src_abs)
+    meta = {
+        "name": out_dir.name,
+        "source": {"path": str(src_abs)},
+        "video": vmeta,
+        "landmarks": {
+            "file": "landmarks.npy",
+            "shape": list(result.landmarks.shape),
+            "dtype": "float32",
+            "markup": MARKUP,
+            "coords": "x,y in pixels of the original frame (OpenCV decode order)",
+            "missing": "NaN rows (no face" + (f", or skipped: only every {every}th frame processed)" if every > 1 else ")"),
+            "precision": "integer-valued: dlib shape_predictor returns integer pixel coordinates",
+            "detector": det.describe(),
+            "every": every,
+            "max_frames": max_frames,
+            "pts_dir": "pts" if export_pts else None,
+            "frames_not_hog_up0": [i for i, s in enumerate(result.sources) if s not in ("hog_up0", "skipped")],
+        },
+        "stats": stats,
+        "detector_versions": detector_versions(),
+        "versions": package_versions(),
+        "facesynth_version": __version__,
+        "created_by": "facesynth ingest",
+    }
+
+    # All work is done: write the folder (each file atomically, meta.json last).
+    out_dir.mkdir(parents=True, exist_ok=True)
+    if copy:
+        dst = out_dir / vmeta["file"]
+        if not (dst.exists() and dst.resolve() == src_abs):
+            with atomic_path(dst) as tmp:
+                shutil.copyfile(video_path, tmp)
+    with atomic_path(out_dir / "landmarks.npy") as tmp:
+        with open(tmp, "wb") as f:
+            np.save(f, result.landmarks)
+    if export_pts:
+        width = max(6, len(str(len(result.landmarks))))
+        for i, frame in enumerate(result.landmarks):
+            if np.isfinite(frame).all():
+                write_pts(out_dir / "pts" / f"{i:0{width}d}.pts", frame)
+    write_json(out_dir / "meta.json", meta)
+    log.info(
+        "%s: %d frames processed in %.1f s (%.1f frames/s), detection rate %.3f -> %s",
+        video_path, result.n_processed, wall, stats["frames_per_s"] or 0.0, stats["detection_rate"], out_dir,
+    )
+    return load_sequence(out_dir)

@@ -1,0 +1,69 @@
+"""``facesynth ingest VIDEO --out DIR``: detect faces and fit 68 landmarks in a video."""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.description = (
+        "Decode VIDEO with OpenCV, find the face in each frame with dlib's HOG detector "
+        "(retry upsampled, then reuse the previous box), fit dlib's 68 iBUG landmarks, and write "
+        "DIR/landmarks.npy (float32 T x 68 x 2, NaN rows where no face) and DIR/meta.json "
+        "(the layout of shared/data/faces/<clip>, readable by facesynth.data.load_sequence). "
+        "Needs the 'ingest' extra: pip install 'facesynth[ingest]'."
+    )
+    parser.add_argument("video", help="input video file (any format OpenCV decodes)")
+    parser.add_argument("--out", required=True, metavar="DIR", help="output folder")
+    parser.add_argument("--every", type=int, default=1, metavar="N",
+                        help="process every N-th frame (others get NaN rows); default 1")
+    parser.add_argument("--max-frames", type=int, default=None, metavar="N",
+                        help="only the first N frames of the video")
+    parser.add_argument("--copy", action="store_true",
+                        help="copy the video into DIR (default: reference it by absolute path)")
+    parser.add_argument("--export-pts", action="store_true",
+                        help="also write DIR/pts/<frame>.pts per frame with a face (iBUG .pts, 1-based)")
+    parser.add_argument("--max-side", type=int, default=640, metavar="PX",
+                        help="downscale frames to this longer side for detection (default 640)")
+    parser.add_argument("--reuse-limit", type=int, default=15, metavar="N",
+                        help="reuse the previous frame's box for at most N consecutive misses (default 15)")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    parser.add_argument("--json", action="store_true", help="print the summary as one JSON line")
+
+
+def run(args: argparse.Namespace) -> int:
+    from facesynth.data.ingest import ingest_video
+    from facesynth.errors import FacesynthError
+
+    if args.max_side < 32:
+        raise FacesynthError(f"--max-side must be >= 32, got {args.max_side}")
+    seq = ingest_video(
+        args.video, args.out, every=args.every, max_frames=args.max_frames, copy=args.copy,
+        export_pts=args.export_pts, progress=not args.no_progress, max_side=args.max_side,
+        reuse_limit=args.reuse_limit,
+    )
+    st = seq.meta["stats"]
+    summary = {
+        "out": str(args.out),
+        "frames": seq.meta["landmarks"]["shape"][0],
+        "frames_processed": st["frames_processed"],
+        "frames_with_face": len(seq),
+        "detection_rate": st["detection_rate"],
+        "det_source_counts": st["det_source_counts"],
+        "seconds": round(st["wall_s"], 3),
+        "frames_per_s": round(st["frames_per_s"], 2),
+        "ms_per_frame": {k: round(v, 2) for k, v in st["timing_ms_per_frame"].items()},
+    }
+    if args.json:
+        print(json.dumps(summary))
+    else:
+        print(
+            f"ingested {summary['frames_processed']} frames of {args.video} in {summary['seconds']:.1f} s "
+            f"({summary['frames_per_s']:.1f} frames/s; decode/detect/landmarks "
+            f"{summary['ms_per_frame']['decode']:.1f}/{summary['ms_per_frame']['detect']:.1f}/"
+            f"{summary['ms_per_frame']['landmarks']:.1f} ms per frame)\n"
+            f"detection rate {summary['detection_rate']:.3f} {summary['det_source_counts']}; "
+            f"wrote {args.out}/landmarks.npy and meta.json"
+        )
+    return 0
