@@ -41,6 +41,7 @@ class FaceModelConfig:
     reference_width: int = 128
     margin: float = 0.1
     grey: bool = False
+    antialias: bool = True  # Gaussian prefilter sigma = scale / 2 when the face is larger than the reference
     clamp_k: float = 3.0
     span_safety: float = 1.3
     batch_size: int = 32
@@ -77,6 +78,13 @@ class FaceModel:
     @classmethod
     def fit(cls, seq: FaceSequence, config: FaceModelConfig | None = None, rows=None, progress: bool = True) -> "FaceModel":
         """Fit shape and appearance models on ``seq`` (rows: training rows, default all)."""
+        return cls.fit_with_textures(seq, config, rows, progress)[0]
+
+    @classmethod
+    def fit_with_textures(
+        cls, seq: FaceSequence, config: FaceModelConfig | None = None, rows=None, progress: bool = True
+    ) -> tuple["FaceModel", np.ndarray]:
+        """:meth:`fit`, also returning the training textures (len(rows), C * M) it sampled."""
         cfg = config or FaceModelConfig()
         rows = np.arange(len(seq)) if rows is None else np.asarray(rows)
         if len(rows) < 3:
@@ -105,7 +113,7 @@ class FaceModel:
             shape_pca.n_components, model.appearance_pca.n_components, 100 * shape_pca.explained_variance_ratio,
             100 * model.appearance_pca.explained_variance_ratio, model.n_pixels,
         )
-        return model
+        return model, textures
 
     # --------------------------------------------------------------- geometry
     @property
@@ -188,14 +196,35 @@ class FaceModel:
         return out
 
     def textures_from_images(self, images: np.ndarray, landmarks: np.ndarray, sampler: ToReference | None = None) -> np.ndarray:
-        """uint8 (B, H, W, 3) images + (B, 68, 2) landmarks -> (B, C * M) float32 textures."""
+        """uint8 (B, H, W, 3) images + (B, 68, 2) landmarks -> (B, C * M) float32 textures.
+
+        With ``config.antialias`` each image is low-pass filtered before sampling, with a
+        Gaussian of sigma = s / 2 where s (> 1) is frame pixels per reference pixel: point
+        sampling a face larger than the reference would alias hair, lashes and pores into
+        noise that moves with sub-pixel landmark jitter.
+        """
         sampler = sampler or self.sampler()
+        if self.config.antialias:
+            images = self._prefilter(images, landmarks)
         x = torch.from_numpy(np.ascontiguousarray(images)).permute(0, 3, 1, 2).float().div_(255.0)
         if self.config.grey:
             x = (x * torch.tensor([0.299, 0.587, 0.114]).view(1, 3, 1, 1)).sum(1, keepdim=True)
         with torch.no_grad():
             tex = sampler(x, torch.from_numpy(np.asarray(landmarks, np.float32)))
         return tex.reshape(len(images), -1).numpy()
+
+    def frame_scale(self, landmarks: np.ndarray) -> np.ndarray:
+        """Frame pixels per reference pixel for (B, 68, 2) landmarks -> (B,)."""
+        _, m = self.to_canvas(landmarks)
+        return 1.0 / np.sqrt(np.abs(np.linalg.det(m[:, :, :2])))
+
+    def _prefilter(self, images: np.ndarray, landmarks: np.ndarray) -> np.ndarray:
+        import cv2
+
+        out = np.empty_like(images)
+        for i, (img, s) in enumerate(zip(images, self.frame_scale(landmarks))):
+            out[i] = cv2.GaussianBlur(img, (0, 0), s / 2) if s > 1 else img
+        return out
 
     def appearance_params(self, textures: np.ndarray, clamp: bool = False) -> np.ndarray:
         """(N, C * M) textures -> (N, K_g) b_g."""

@@ -1,0 +1,207 @@
+"""Fitting a shape-appearance dependence mapping (SADM) on a face model, and the run
+directory layout that training, evaluation and export share::
+
+    RUN/face_model/         the face model artifact (facesynth.model.save_face_model)
+    RUN/sadm/sadm.json      regressor name + hyper-parameters, SADM settings, provenance
+    RUN/sadm/regressor.safetensors
+
+References
+----------
+The linear SADM (A = G S^T (S S^T)^-1) is Eq. 5 of the shape-appearance dependence paper
+this project builds on; the other regressors replace that map.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+from safetensors.torch import load_file, save_file
+
+from facesynth import __version__
+from facesynth.data.sequence import FaceSequence
+from facesynth.errors import FacesynthError
+from facesynth.io import atomic_path, write_json
+from facesynth.model.artifact import load_face_model, save_face_model
+from facesynth.model.face_model import FaceModel
+from facesynth.provenance import package_versions
+from facesynth.sadm.regressors import REGISTRY, Regressor
+from facesynth.sadm.synthesis import GlobalAppearance, ShapeFeatures, Synthesizer
+
+log = logging.getLogger(__name__)
+SADM_FORMAT_VERSION = 1
+
+
+@dataclass
+class SADMConfig:
+    """How the mapping is trained (the Hydra ``sadm`` node).
+
+    features : 'bs' (the paper), 'landmarks' (aligned coordinates) or 'bs+landmarks'
+    augment_sigma : std (frame pixels) of Gaussian noise added to copies of the
+        training landmarks, targets unchanged: trains robustness to landmark noise
+    augment_copies : number of noisy copies (0: no augmentation)
+    search : grid-search the regressor's hyper-parameters on the validation slice
+    val_fraction : the last fraction of the training segment used as validation
+    clamp_shape : clamp b_s to +-k sqrt(lambda) before the regressor
+    """
+
+    features: str = "landmarks"
+    augment_sigma: float = 1.0
+    augment_copies: int = 2
+    search: bool = False
+    val_fraction: float = 0.15
+    clamp_shape: bool = True
+
+
+@dataclass
+class SADM:
+    """A fitted mapping: ``regressor`` maps shape features to b_g of ``model``."""
+
+    model: FaceModel
+    regressor: Regressor
+    name: str
+    config: SADMConfig
+    regressor_config: dict = field(default_factory=dict)
+    search_table: list = field(default_factory=list)
+
+    def appearance(self) -> GlobalAppearance:
+        return GlobalAppearance(self.model, self.regressor, self.config.features)
+
+    def synthesizer(self) -> Synthesizer:
+        """The whole landmarks -> face graph (eval mode)."""
+        return Synthesizer(self.model, self.appearance(), self.config.clamp_shape).eval()
+
+    def features(self, landmarks: np.ndarray) -> np.ndarray:
+        """(N, 68, 2) frame landmarks -> (N, F) regressor inputs."""
+        return ShapeFeatures.numpy(self.model, landmarks, self.config.features)
+
+    def predict_params(self, landmarks: np.ndarray) -> np.ndarray:
+        """(N, 68, 2) -> predicted b_g (N, K_g), clamped."""
+        app = self.appearance().eval()
+        with torch.no_grad():
+            x = torch.from_numpy(np.asarray(landmarks, np.float32))
+            enc = self.synthesizer().encoder
+            return app.params(*enc(x)).numpy()
+
+
+def _make_config(name: str, params: dict):
+    cls = REGISTRY[name]
+    cfg_cls = getattr(cls, "config_class", None)
+    if cfg_cls is None:
+        import importlib
+
+        mod = importlib.import_module(cls.__module__)
+        cfg_cls = next((v for k, v in vars(mod).items() if k.endswith("Config") and isinstance(v, type)), None)
+    if cfg_cls is None:
+        return params
+    try:
+        return cfg_cls(**params)
+    except TypeError as exc:
+        raise FacesynthError(f"regressor '{name}': bad hyper-parameters {params}: {exc}") from None
+
+
+def fit_sadm(
+    model: FaceModel,
+    seq: FaceSequence,
+    rows: np.ndarray,
+    textures: np.ndarray,
+    name: str = "linear",
+    params: dict | None = None,
+    config: SADMConfig | None = None,
+    seed: int = 0,
+) -> SADM:
+    """Fit the mapping on training ``rows`` of ``seq``.
+
+    Parameters
+    ----------
+    textures : (len(rows), C * M) float32 training textures (as from model.sample_textures)
+    name, params : regressor name in the registry and its hyper-parameters
+    """
+    cfg = config or SADMConfig()
+    if name not in REGISTRY:
+        raise FacesynthError(f"unknown regressor '{name}' (available: {', '.join(sorted(REGISTRY))})")
+    params = dict(params or {})
+    rows = np.asarray(rows)
+    lm = seq.landmarks[rows]
+    y = model.appearance_params(textures)
+    probe = SADM(model, None, name, cfg)  # type: ignore[arg-type]
+    n_val = int(round(len(rows) * cfg.val_fraction))
+    fit_idx, val_idx = np.arange(len(rows) - n_val), np.arange(len(rows) - n_val, len(rows))
+    rng = np.random.default_rng(seed)
+
+    def design(idx):
+        lms, ys = [lm[idx]], [y[idx]]
+        for _ in range(cfg.augment_copies if cfg.augment_sigma > 0 else 0):
+            lms.append(lm[idx] + rng.normal(0, cfg.augment_sigma, lm[idx].shape).astype(np.float32))
+            ys.append(y[idx])
+        return probe.features(np.concatenate(lms)), np.concatenate(ys)
+
+    table: list = []
+    if cfg.search:
+        from facesynth.sadm.regressors.search import DEFAULT_GRIDS, search
+
+        if n_val < 2:
+            raise FacesynthError("search needs a validation slice: raise sadm.val_fraction")
+        x_fit, y_fit = design(fit_idx)
+        best, table = search(name, x_fit, y_fit, probe.features(lm[val_idx]), y[val_idx],
+                             DEFAULT_GRIDS.get(name, {}), _make_config(name, params), seed)
+        params = {**params, **(asdict(best) if hasattr(best, "__dataclass_fields__") else dict(best))}
+        log.info("search for %s picked %s", name, params)
+    x, yy = design(np.arange(len(rows)))
+    torch.manual_seed(seed)
+    x_val = probe.features(lm[val_idx]) if n_val else None
+    reg = REGISTRY[name].fit(x, yy, _make_config(name, params), x_val, y[val_idx] if n_val else None, seed=seed)
+    return SADM(model, reg.eval(), name, cfg, reg.config_dict(), table)
+
+
+def save_sadm(sadm: SADM, run_dir: str | os.PathLike, extra: dict | None = None) -> Path:
+    """Write the face model and the mapping into ``run_dir`` (atomic per file)."""
+    d = Path(run_dir)
+    save_face_model(sadm.model, d / "face_model")
+    (d / "sadm").mkdir(parents=True, exist_ok=True)
+    with atomic_path(d / "sadm" / "regressor.safetensors") as tmp:
+        save_file({k: v.contiguous() for k, v in sadm.regressor.state_dict().items()}, str(tmp))
+    write_json(d / "sadm" / "sadm.json", {
+        "format_version": SADM_FORMAT_VERSION,
+        "facesynth_version": __version__,
+        "regressor": sadm.name,
+        "regressor_config": sadm.regressor_config,
+        "regressor_summary": sadm.regressor.summary(),
+        "sadm": asdict(sadm.config),
+        "search_table": sadm.search_table,
+        "data_fingerprint": sadm.model.fingerprint,
+        "packages": package_versions(),
+        **(extra or {}),
+    })
+    return d
+
+
+def load_sadm(run_dir: str | os.PathLike) -> SADM:
+    """Load a run written by :func:`save_sadm` (or by ``train.py``)."""
+    d = Path(run_dir)
+    meta_path = d / "sadm" / "sadm.json"
+    if not meta_path.is_file():
+        raise FacesynthError(f"{d}: not a training run (sadm/sadm.json missing)")
+    meta = json.loads(meta_path.read_text())
+    if meta.get("format_version") != SADM_FORMAT_VERSION:
+        raise FacesynthError(
+            f"{meta_path}: SADM format version {meta.get('format_version')} is not supported by facesynth "
+            f"{__version__} (reads version {SADM_FORMAT_VERSION}); retrain the run"
+        )
+    name = meta["regressor"]
+    if name not in REGISTRY:
+        raise FacesynthError(f"{meta_path}: regressor '{name}' is not available in this build")
+    model = load_face_model(d / "face_model")
+    reg = REGISTRY[name].from_state(meta["regressor_config"], load_file(str(d / "sadm" / "regressor.safetensors")))
+    cfg = SADMConfig(**{k: v for k, v in meta["sadm"].items() if k in SADMConfig.__dataclass_fields__})
+    return SADM(model, reg.eval(), name, cfg, meta["regressor_config"], meta.get("search_table", []))
+
+
+def load_synthesizer(run_dir: str | os.PathLike) -> Synthesizer:
+    """The synthesis graph of a saved run (used by ONNX export)."""
+    return load_sadm(run_dir).synthesizer()
