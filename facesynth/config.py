@@ -30,7 +30,7 @@ class DataConf:
     kind: str = "synthetic"
     path: Optional[str] = None
     n_frames: int = 240
-    size: int = 192
+    size: int = 256
     max_frames: Optional[int] = None
     train_fraction: float = 0.75
     gap: int = 0

@@ -51,8 +51,8 @@ class SADMConfig:
     """
 
     features: str = "landmarks"
-    augment_sigma: float = 1.0
-    augment_copies: int = 2
+    augment_sigma: float = 2.0
+    augment_copies: int = 4
     search: bool = False
     val_fraction: float = 0.15
     clamp_shape: bool = True
