@@ -82,7 +82,7 @@ def test_poly2_equals_sklearn_pipeline(n, d_in, ridge):
     from sklearn.preprocessing import PolynomialFeatures, StandardScaler
 
     x, y = smooth_problem(n=n, d_in=d_in)
-    reg = Poly2Regressor.fit(x, y, Poly2Config(ridge=ridge))
+    reg = Poly2Regressor.fit(x, y, Poly2Config(ridge=ridge, relative_ridge=False))
     ref = make_pipeline(StandardScaler(), PolynomialFeatures(2, include_bias=False), Ridge(alpha=ridge)).fit(x, y)
     x_new = smooth_problem(n=50, d_in=d_in, seed=1)[0]
     np.testing.assert_allclose(reg.predict(x_new), ref.predict(x_new), atol=1e-4 * y.std(0).max())
@@ -93,10 +93,22 @@ def test_poly2_without_standardise_or_linear_terms():
     from sklearn.preprocessing import PolynomialFeatures
 
     x, y = smooth_problem(n=150, d_in=3)
-    reg = Poly2Regressor.fit(x, y, {"ridge": 0.2, "standardise": False, "include_linear": False})
+    reg = Poly2Regressor.fit(x, y, {"ridge": 0.2, "relative_ridge": False, "standardise": False, "include_linear": False})
     quad = PolynomialFeatures(2, include_bias=False).fit_transform(x)[:, 3:]  # drop the linear block
     ref = Ridge(alpha=0.2).fit(quad, y)
     np.testing.assert_allclose(reg.predict(x), ref.predict(quad), atol=1e-4 * y.std(0).max())
+
+
+def test_poly2_relative_ridge_scales_by_mean_feature_energy():
+    from sklearn.preprocessing import PolynomialFeatures, StandardScaler
+
+    x, y = smooth_problem(n=120, d_in=4)
+    rel = Poly2Regressor.fit(x, y, {"ridge": 0.5})  # relative_ridge=True is the default
+    phi = PolynomialFeatures(2, include_bias=False).fit_transform(StandardScaler().fit_transform(x))
+    unit = ((phi - phi.mean(0)) ** 2).sum() / len(x)  # trace(Phi_c^T Phi_c) / N
+    assert rel.lam == pytest.approx(0.5 * unit)
+    ab = Poly2Regressor.fit(x, y, {"ridge": 0.5 * unit, "relative_ridge": False})
+    np.testing.assert_allclose(rel.predict(x), ab.predict(x), atol=1e-5 * y.std())
 
 
 # ------------------------------------------------------------------ SVR
@@ -303,3 +315,14 @@ def test_search_rejects_bad_grid():
         search("poly2", x[:40], y[:40], x[40:], y[40:], {"gamma_mult": [1.0]})
     with pytest.raises(FacesynthError, match="unknown regressor"):
         search("forest", x[:40], y[:40], x[40:], y[40:], {})
+
+
+def test_search_poly2_relative_ridge_is_passed_through():
+    x, y = smooth_problem(n=120, d_in=3)
+    best, table = search("poly2", x[:90], y[:90], x[90:], y[90:], {"ridge_rel": [0.1, 10.0]})
+    assert [r["config"]["ridge"] for r in table] == [0.1, 10.0]
+    assert all(r["config"]["relative_ridge"] for r in table)
+    # the same settings with absolute ridge give the same scores
+    _, table_abs = search("poly2", x[:90], y[:90], x[90:], y[90:], {"ridge_rel": [0.1, 10.0]}, {"relative_ridge": False})
+    for a, b in zip(table, table_abs):
+        assert a["val_mse"] == pytest.approx(b["val_mse"], rel=1e-5)

@@ -23,6 +23,7 @@ from facesynth.sadm.regressors.base import Regressor, register
 @dataclass
 class Poly2Config:
     ridge: float = 1.0  # lambda of ||W||^2 on the polynomial features (bias not penalised)
+    relative_ridge: bool = True  # lambda = ridge * trace(Phi_c^T Phi_c) / N (scale-free); else absolute
     include_linear: bool = True  # keep the D linear terms next to the D(D+1)/2 products
     standardise: bool = True  # z-score the inputs before forming products
 
@@ -89,6 +90,7 @@ class Poly2Regressor(Regressor):
         self.register_buffer("triu", torch.from_numpy(triu_flat_index(d)))
         self.register_buffer("weight", torch.as_tensor(weight).float())
         self.register_buffer("bias", torch.as_tensor(bias).float())
+        self.lam = float("nan")  # the absolute lambda used by fit
 
     @classmethod
     def fit(cls, x, y, config=None, x_val=None, y_val=None, seed=0):
@@ -99,8 +101,11 @@ class Poly2Regressor(Regressor):
         else:
             mu, sd = np.zeros(x.shape[1]), np.ones(x.shape[1])
         phi = poly2_features((x - mu) / sd, cfg.include_linear)
-        w, b = ridge_closed_form(phi, y, float(cfg.ridge))
-        return cls(torch.from_numpy(mu), torch.from_numpy(sd), torch.from_numpy(w), torch.from_numpy(b), cfg)
+        lam = float(cfg.ridge) * (float(phi.var(0).sum()) if cfg.relative_ridge else 1.0)
+        w, b = ridge_closed_form(phi, y, lam)
+        reg = cls(torch.from_numpy(mu), torch.from_numpy(sd), torch.from_numpy(w), torch.from_numpy(b), cfg)
+        reg.lam = lam
+        return reg
 
     def features(self, x: torch.Tensor) -> torch.Tensor:
         """(B, D) -> (B, F) polynomial features (torch)."""
@@ -115,14 +120,20 @@ class Poly2Regressor(Regressor):
     def config_dict(self) -> dict:
         return {
             "ridge": float(self.config.ridge),
+            "relative_ridge": bool(self.config.relative_ridge),
+            "lambda": self.lam,
             "include_linear": bool(self.config.include_linear),
             "standardise": bool(self.config.standardise),
         }
 
     @classmethod
     def from_state(cls, config, tensors):
-        cfg = as_config(Poly2Config, config, "regressor poly2")
-        return cls(tensors["x_mean"], tensors["x_scale"], tensors["weight"], tensors["bias"], cfg)
+        config = dict(config)
+        lam = config.pop("lambda", float("nan"))
+        reg = cls(tensors["x_mean"], tensors["x_scale"], tensors["weight"], tensors["bias"],
+                  as_config(Poly2Config, config, "regressor poly2"))
+        reg.lam = float(lam)
+        return reg
 
     def summary(self) -> dict:
-        return {"n_features": int(self.weight.shape[1]), "ridge": float(self.config.ridge)}
+        return {"n_features": int(self.weight.shape[1]), "ridge": float(self.config.ridge), "lambda": self.lam}

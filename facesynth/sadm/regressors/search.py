@@ -8,7 +8,8 @@ Two grid keys are relative and resolved on the training inputs before fitting:
 
 - ``ridge_rel`` (linear, poly2): ``ridge = ridge_rel * trace(Phi_c^T Phi_c) / N`` where
   Phi_c are the centred regression features (raw inputs for linear, the standardised
-  quadratic features for poly2), so one grid fits any input scale and dimension;
+  quadratic features for poly2), so one grid fits any input scale and dimension
+  (poly2 with ``relative_ridge=True``, its default, applies that scaling itself);
 - ``gamma_mult`` (svr, RBF): ``gamma = gamma_mult * 1 / (D var(z))`` (scikit-learn's
   'scale' rule on the standardised inputs z).
 """
@@ -79,7 +80,11 @@ def resolve(name: str, params: dict[str, Any], x: np.ndarray, base) -> Any:
     if "ridge_rel" in params:
         if name not in ("linear", "poly2"):
             raise FacesynthError(f"grid key 'ridge_rel' applies to linear/poly2, not {name!r}")
-        cfg = dataclasses.replace(cfg, ridge=float(params["ridge_rel"]) * _ridge_unit(name, x, cfg))
+        rel = float(params["ridge_rel"])
+        if getattr(cfg, "relative_ridge", False):  # poly2 already scales its ridge
+            cfg = dataclasses.replace(cfg, ridge=rel)
+        else:
+            cfg = dataclasses.replace(cfg, ridge=rel * _ridge_unit(name, x, cfg))
     if "gamma_mult" in params:
         if name != "svr":
             raise FacesynthError(f"grid key 'gamma_mult' applies to svr, not {name!r}")
