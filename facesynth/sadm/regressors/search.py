@@ -4,14 +4,12 @@ The validation slice must be the later part of the TRAINING segment (never the t
 frames). Score: mean squared error of the predicted outputs, optionally weighted per
 output, ``mean_n mean_j w_j (y_hat_nj - y_nj)^2``; lower is better, ties keep the first.
 
-Two grid keys are relative and resolved on the training inputs before fitting:
-
-- ``ridge_rel`` (linear, poly2): ``ridge = ridge_rel * trace(Phi_c^T Phi_c) / N`` where
+The grid key ``ridge_rel`` (linear, poly2) is relative and resolved on the training
+inputs before fitting: ``ridge = ridge_rel * trace(Phi_c^T Phi_c) / N`` where
   Phi_c are the centred regression features (raw inputs for linear, the standardised
   quadratic features for poly2), so one grid fits any input scale and dimension
-  (poly2 with ``relative_ridge=True``, its default, applies that scaling itself);
-- ``gamma_mult`` (svr, RBF): ``gamma = gamma_mult * 1 / (D var(z))`` (scikit-learn's
-  'scale' rule on the standardised inputs z).
+  (poly2 with ``relative_ridge=True``, its default, applies that scaling itself).
+For the SVR, ``gamma_mult`` is a config field: gamma = gamma_mult * 'scale' (1 / (D var(z))).
 """
 
 from __future__ import annotations
@@ -34,8 +32,10 @@ _LOG_RIDGE = [1e-3, 1e-2, 1e-1, 1.0, 10.0, 100.0, 1e3]
 DEFAULT_GRIDS: dict[str, dict[str, list]] = {
     "linear": {"ridge_rel": list(_LOG_RIDGE)},
     "poly2": {"ridge_rel": list(_LOG_RIDGE)},
-    "svr": {"C": [0.01, 0.03, 0.1, 0.3, 1.0, 3.0, 10.0], "gamma_mult": [0.25, 0.5, 1.0, 2.0]},
-    "mlp": {"weight_decay": [1e-3, 1e-2, 1e-1], "hidden": [[64], [128, 128], [256, 256]]},
+    # gamma_mult reaches below 0.25: on lp_d6 the best value WAS 0.25 = the low edge of {0.25..2}
+    "svr": {"C": [0.01, 0.03, 0.1, 0.3, 1.0, 3.0, 10.0], "gamma_mult": [0.0625, 0.125, 0.25, 0.5, 1.0, 2.0]},
+    # on lp_d6 dropout 0.2 and weight decay 1 helped most; the width hardly mattered
+    "mlp": {"weight_decay": [1e-2, 1e-1, 1.0], "dropout": [0.0, 0.2], "hidden": [[128, 128], [256, 256]]},
 }
 
 
@@ -65,18 +65,15 @@ def _ridge_unit(name: str, x: np.ndarray, cfg) -> float:
     return float(phi.var(0).sum())
 
 
-def _gamma_unit(x: np.ndarray, cfg) -> float:
-    from facesynth.sadm.regressors.svr import SVRRegressor, resolve_gamma
-
-    mx, sx = SVRRegressor.standardise(x, cfg)
-    return resolve_gamma("scale", (x - mx) / sx)
-
-
 def resolve(name: str, params: dict[str, Any], x: np.ndarray, base) -> Any:
-    """A config of regressor ``name`` from ``base`` with ``params`` applied (relative keys
-    ``ridge_rel`` / ``gamma_mult`` turned into absolute ``ridge`` / ``gamma`` on ``x``)."""
+    """A config of regressor ``name`` from ``base`` with ``params`` applied (the relative
+    key ``ridge_rel`` turned into ``ridge`` on ``x``)."""
     params = dict(params)
-    cfg = dataclasses.replace(base, **{k: v for k, v in params.items() if k not in ("ridge_rel", "gamma_mult")})
+    fields = {f.name for f in dataclasses.fields(base)} | {"ridge_rel"}
+    unknown = sorted(set(params) - fields)
+    if unknown:
+        raise FacesynthError(f"search {name}: unknown grid key(s) {unknown}; expected some of {sorted(fields)}")
+    cfg = dataclasses.replace(base, **{k: v for k, v in params.items() if k != "ridge_rel"})
     if "ridge_rel" in params:
         if name not in ("linear", "poly2"):
             raise FacesynthError(f"grid key 'ridge_rel' applies to linear/poly2, not {name!r}")
@@ -85,10 +82,6 @@ def resolve(name: str, params: dict[str, Any], x: np.ndarray, base) -> Any:
             cfg = dataclasses.replace(cfg, ridge=rel)
         else:
             cfg = dataclasses.replace(cfg, ridge=rel * _ridge_unit(name, x, cfg))
-    if "gamma_mult" in params:
-        if name != "svr":
-            raise FacesynthError(f"grid key 'gamma_mult' applies to svr, not {name!r}")
-        cfg = dataclasses.replace(cfg, gamma=float(params["gamma_mult"]) * _gamma_unit(x, cfg))
     return cfg
 
 
@@ -118,7 +111,7 @@ def search(
     ----------
     x_tr, y_tr : (N, D_in), (N, D_out) training rows.
     x_val, y_val : (M, D_in), (M, D_out) validation rows (later in time than x_tr).
-    grid : mapping key -> list of values (config fields, or ``ridge_rel`` / ``gamma_mult``).
+    grid : mapping key -> list of values (config fields, or ``ridge_rel``).
     base_config : config of the other fields (dataclass or mapping; default: defaults).
     weights : optional (D_out,) per-output weights of the score.
 
