@@ -7,6 +7,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from facesynth.sadm.regressors._common import as_config
 from facesynth.sadm.regressors.base import Regressor, register
 
 
@@ -27,8 +28,8 @@ class LinearRegressor(Regressor):
 
     @classmethod
     def fit(cls, x, y, config=None, x_val=None, y_val=None, seed=0):
-        cfg = config or LinearConfig()
-        ridge = float(getattr(cfg, "ridge", 0.0))
+        cfg = as_config(LinearConfig, config, "regressor linear")  # also mappings / DictConfig
+        ridge = float(cfg.ridge)
         x = np.asarray(x, np.float64)
         y = np.asarray(y, np.float64)
         mx, my = x.mean(0), y.mean(0)
