@@ -77,6 +77,23 @@ def boundary_vertices(F: np.ndarray, n_vertices: int) -> np.ndarray:
     return out
 
 
+def boundary_loops(F: np.ndarray, n_vertices: int) -> list[np.ndarray]:
+    """Vertex sets (sorted int arrays) of the boundary loops (connected components of the
+    boundary edges), largest first."""
+    from scipy.sparse.csgraph import connected_components
+
+    e = np.sort(np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]]), axis=1)
+    uniq, count = np.unique(e, axis=0, return_counts=True)
+    be = uniq[count == 1]
+    if len(be) == 0:
+        return []
+    A = sp.coo_matrix((np.ones(len(be)), (be[:, 0], be[:, 1])), shape=(n_vertices, n_vertices))
+    _, lab = connected_components(A, directed=False)
+    bv = np.unique(be)
+    loops = [bv[lab[bv] == k] for k in np.unique(lab[bv])]
+    return sorted(loops, key=len, reverse=True)
+
+
 def face_adjacency(F: np.ndarray) -> sp.csr_matrix:
     """Dual graph (F, F): 1 where two triangles share an edge (valence <= 3)."""
     e = np.sort(np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]]), axis=1)
