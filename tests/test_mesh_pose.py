@@ -64,10 +64,11 @@ def test_epnp_close_to_opencv_under_noise():
         errs.append(rotation_angle_deg(Re, Rc))
         err = lambda R_, t_: np.linalg.norm(project(projection_matrix(K, R_, t_), X) - x, axis=1).mean()
         rep.append(err(Re, te) / err(Rc, tvec.ravel()))
-    # Under noise the two implementations differ by a fraction of a degree (OpenCV 5's
-    # EPnP is not bit-identical to the reference code) with the same reprojection error.
-    assert np.median(errs) < 0.5
-    assert 0.9 < np.median(rep) < 1.1
+    # Under noise both follow the reference algorithm but are not bit-identical (on these
+    # generic 3D clouds they differ by ~0.1-0.3 deg; on the ICT face landmarks of
+    # bench_pose.py by ~0.003 deg); the reprojection error stays the same.
+    assert np.median(errs) < 0.3
+    assert 0.95 < np.median(rep) < 1.05 and max(rep) < 1.1
 
 
 @pytest.mark.parametrize("fn", [dlt, normalised_dlt])

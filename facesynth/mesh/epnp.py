@@ -89,24 +89,27 @@ def _betas_n1(V: np.ndarray, Cw: np.ndarray) -> np.ndarray:
 
 
 def _betas_n2(L: np.ndarray, rho: np.ndarray) -> np.ndarray:
+    # Sign handling as in the authors' reference code (and OpenCV): the sign of b12 sets
+    # the sign of beta1, whatever the sign of b11.
     b = np.linalg.lstsq(L[:, [0, 1, 2]], rho, rcond=None)[0]  # b11, b12, b22
-    s = -1.0 if b[0] < 0 else 1.0
-    b1 = np.sqrt(abs(b[0]))
-    b2 = np.sqrt(abs(b[2])) if s * b[2] > 0 else 0.0
-    if s * b[1] < 0:
+    if b[0] < 0:
+        b1, b2 = np.sqrt(-b[0]), (np.sqrt(-b[2]) if b[2] < 0 else 0.0)
+    else:
+        b1, b2 = np.sqrt(b[0]), (np.sqrt(b[2]) if b[2] > 0 else 0.0)
+    if b[1] < 0:
         b1 = -b1
     return np.array([b1, b2, 0.0, 0.0])
 
 
 def _betas_n3(L: np.ndarray, rho: np.ndarray) -> np.ndarray:
     b = np.linalg.lstsq(L[:, [0, 1, 2, 3, 4]], rho, rcond=None)[0]  # b11, b12, b22, b13, b23
-    s = -1.0 if b[0] < 0 else 1.0
-    b1 = np.sqrt(abs(b[0]))
-    b2 = np.sqrt(abs(b[2])) if s * b[2] > 0 else 0.0
-    if s * b[1] < 0:
+    if b[0] < 0:
+        b1, b2 = np.sqrt(-b[0]), (np.sqrt(-b[2]) if b[2] < 0 else 0.0)
+    else:
+        b1, b2 = np.sqrt(b[0]), (np.sqrt(b[2]) if b[2] > 0 else 0.0)
+    if b[1] < 0:
         b1 = -b1
-    b3 = s * b[3] / b1 if b1 != 0 else 0.0
-    return np.array([b1, b2, b3, 0.0])
+    return np.array([b1, b2, b[3] / b1 if b1 != 0 else 0.0, 0.0])
 
 
 def _betas_n4(L: np.ndarray, rho: np.ndarray) -> np.ndarray:
@@ -127,11 +130,21 @@ def absolute_orientation(A: np.ndarray, B: np.ndarray) -> tuple[np.ndarray, np.n
 
 
 def _pose_from_betas(beta, V, alpha, X):
+    """R, t aligning the world points to the camera-frame points given by the betas.
+
+    When the best orthogonal map is a reflection (noisy, nearly planar points whose depth
+    came out mirrored), the camera z row is negated, as in the authors' reference code:
+    this undoes the depth reversal instead of forcing the nearest proper rotation."""
     cc = sum(beta[k] * V[k] for k in range(4)).reshape(4, 3)
     Xc = alpha @ cc
     if np.median(Xc[:, 2]) < 0:  # the sign of the null-space combination is free
         Xc = -Xc
-    return absolute_orientation(X, Xc)
+    ca, cb = X.mean(axis=0), Xc.mean(axis=0)
+    U, _, Vt = np.linalg.svd((Xc - cb).T @ (X - ca))
+    R = U @ Vt
+    if np.linalg.det(R) < 0:
+        R[2] = -R[2]
+    return R, cb - R @ ca
 
 
 def _reprojection(R, t, K, X, x) -> float:
