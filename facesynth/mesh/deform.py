@@ -9,16 +9,14 @@ handle set (``scipy.sparse.linalg.splu``); a frame is then one sparse product an
 triangular solve for all three coordinates.
 
 Iterative (Au et al.): the rest Laplacian coordinates do not rotate with the surface,
-so large edits shear. Each coordinate is stored in a local frame (normal, tangent,
-bitangent) of the rest mesh; after each solve the frames of the current mesh are
-recomputed and delta rebuilt from the same coefficients (its length is kept and its
-normal part follows the current normal), then the system is solved again, until the
+so large edits shear. The coordinates are encoded rotation-invariantly
+(:mod:`facesynth.mesh.dual`): after each solve they are rebuilt on the current mesh
+(original length, along the current normal) and the system is solved again, until the
 relative change ``||V_k+1 - V_k|| / ||V_k+1 - V_rest||`` falls below ``tol``.
 
-Dual: the same on the dual mesh (vertices = triangle centroids ``D V``, valence 3, the
-umbrella Laplacian ``L_d``), written with the primal vertices as unknowns so that the
-handles stay primal vertices: ``min ||L_d D V' - delta_d||^2``; dual normals are the face
-normals.
+Dual: the same on the dual mesh (vertices = triangle centroids ``D V``, valence 3), with
+the primal vertices as unknowns so that the handles stay primal vertices:
+``min ||L_d D V' - delta_d(V)||^2``.
 """
 
 from __future__ import annotations
@@ -30,9 +28,8 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from facesynth.errors import FacesynthError
-from facesynth.mesh.laplacian import (
-    cotangent_laplacian, face_adjacency, face_centroid_operator, face_normals, uniform_laplacian, vertex_normals,
-)
+from facesynth.mesh.dual import DualCoordinates, PrimalCoordinates
+from facesynth.mesh.laplacian import cotangent_laplacian
 
 DEFORM_METHODS = ("plain", "iterative", "dual")
 
@@ -87,14 +84,6 @@ class LaplacianSystem:
         return self.lu.solve(np.asarray(self.At @ delta + self.wSt @ targets))
 
 
-def _frames(normals: np.ndarray, ref: np.ndarray) -> np.ndarray:
-    """Orthonormal frames (K, 3, 3), rows (tangent, bitangent, normal); the tangent is
-    ``ref`` (K, 3) projected on the plane normal to ``normals``."""
-    t = ref - np.einsum("ij,ij->i", ref, normals)[:, None] * normals
-    t /= np.maximum(np.linalg.norm(t, axis=1, keepdims=True), 1e-300)
-    return np.stack([t, np.cross(normals, t), normals], axis=1)
-
-
 @dataclass
 class DeformInfo:
     """What one deformation did: iterations (1 for plain), converged, last relative change."""
@@ -124,27 +113,15 @@ class LaplacianDeformer:
         self.V0 = np.asarray(V0, float)
         self.F = np.asarray(F, np.int64)
         self.method, self.tol, self.max_iter = method, tol, max_iter
-        n = len(self.V0)
-        if method == "dual":
-            self.D = face_centroid_operator(self.F, n)
-            op = uniform_laplacian(face_adjacency(self.F)) @ self.D
+        if method == "plain":
+            self.coords = None
+            self.op = cotangent_laplacian(self.V0, self.F)
+            self.delta0 = np.asarray(self.op @ self.V0)
         else:
-            op = cotangent_laplacian(self.V0, self.F)
-            # reference neighbour of each vertex for its tangent direction
-            adj = sp.csr_matrix(op)
-            self.ref_nb = adj.indices[adj.indptr[:-1]]
-            self.ref_nb = np.where(self.ref_nb == np.arange(n), adj.indices[np.minimum(adj.indptr[:-1] + 1, adj.nnz - 1)], self.ref_nb)
-        self.op = sp.csr_matrix(op)
-        self.delta0 = np.asarray(self.op @ self.V0)
+            self.coords = (DualCoordinates if method == "dual" else PrimalCoordinates)(self.V0, self.F)
+            self.op, self.delta0 = self.coords.op, self.coords.delta0
         self.system = LaplacianSystem(self.op, handles, constraints, weight)
         self.handles = self.system.handles
-        if method != "plain":
-            self.coef0 = np.einsum("kij,kj->ki", self._local_frames(self.V0), self.delta0)
-
-    def _local_frames(self, V: np.ndarray) -> np.ndarray:
-        if self.method == "dual":
-            return _frames(face_normals(V, self.F), V[self.F[:, 0]] - np.asarray(self.D @ V))
-        return _frames(vertex_normals(V, self.F), V[self.ref_nb] - V)
 
     def deform(self, targets: np.ndarray, return_info: bool = False):
         """Deformed vertices (N, 3) with ``V[handles]`` on ``targets`` (H, 3) (exactly for
@@ -158,8 +135,7 @@ class LaplacianDeformer:
             info.converged = False
             floor = 1e-8 * np.linalg.norm(self.V0 - self.V0.mean(axis=0))  # "no deformation" level
             for k in range(self.max_iter):
-                delta = np.einsum("kij,ki->kj", self._local_frames(V), self.coef0)
-                V_new = self.system.solve(delta, targets)
+                V_new = self.system.solve(self.coords.delta(V), targets)
                 rel = float(np.linalg.norm(V_new - V) / max(np.linalg.norm(V_new - self.V0), floor))
                 V = V_new
                 info.rel_change.append(rel)
