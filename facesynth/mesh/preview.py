@@ -30,11 +30,14 @@ def expression_stats(lm: np.ndarray) -> dict[str, np.ndarray]:
 
 
 def pick_sheet_frames(lm: np.ndarray, neutral: int) -> list[tuple[int, str]]:
-    """Rows to show: the neutral frame and the extremes of jaw opening, brow raise,
-    mouth width (narrow and wide) and sideways lips (rows of ``lm`` (T, 68, 2), finite)."""
+    """Rows to show: the neutral frame and the extremes of jaw opening, brow raise (among
+    frames with the mouth at most half open), brow lowering, mouth width (narrow and
+    wide) and sideways lips (rows of ``lm`` (T, 68, 2), finite)."""
     s = expression_stats(lm)
+    closed = s["mouth_open"] <= np.median(s["mouth_open"])  # brow raise without a wide-open jaw
+    brow = np.where(closed, s["brow_height"], -np.inf)
     picks = [(neutral, "neutral ref"), (int(np.argmax(s["mouth_open"])), "jaw open"),
-             (int(np.argmax(s["brow_height"])), "brows raised"), (int(np.argmin(s["mouth_width"])), "narrow lips"),
+             (int(np.argmax(brow)), "brows raised"), (int(np.argmin(s["brow_height"])), "brows lowered"), (int(np.argmin(s["mouth_width"])), "narrow lips"),
              (int(np.argmax(s["mouth_width"])), "wide lips"), (int(np.argmax(np.abs(s["mouth_side"] - s["mouth_side"][neutral]))), "lips sideways")]
     out, seen = [], set()
     for r, name in picks:
