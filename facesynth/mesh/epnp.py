@@ -77,7 +77,10 @@ def _gauss_newton(L: np.ndarray, rho: np.ndarray, beta: np.ndarray, iters: int =
             b1 * L[:, 6] + b2 * L[:, 7] + b3 * L[:, 8] + 2 * b4 * L[:, 9],
         ])
         r = rho - L @ _b_vector(beta)
-        beta += np.linalg.lstsq(J, r, rcond=None)[0]
+        try:
+            beta += np.linalg.solve(J.T @ J, J.T @ r)
+        except np.linalg.LinAlgError:
+            beta += np.linalg.lstsq(J, r, rcond=None)[0]
     return beta
 
 
