@@ -100,12 +100,16 @@ class PreviewWriter:
 
 
 def contact_sheet(rows: list[np.ndarray], labels: list[str], path: str | os.PathLike, tile: int = 300) -> np.ndarray:
-    """Columns of [video; posed overlay; frontal] for each picked frame, written as PNG."""
+    """Columns of [video; posed overlay; frontal; frontal zoomed on brows and eyes] for
+    each picked frame, written as PNG."""
     cols = []
     for row, text in zip(rows, labels):
         h, w3 = row.shape[:2]
         w = w3 // 3
         parts = [cv2.resize(row[:, i * w:(i + 1) * w], (tile, tile * h // w), interpolation=cv2.INTER_AREA) for i in range(3)]
+        front = row[:, 2 * w:]
+        zoom = front[int(0.2 * h):int(0.5 * h), int(0.28 * w):int(0.72 * w)]
+        parts.append(cv2.resize(zoom, (tile, tile * zoom.shape[0] // zoom.shape[1]), interpolation=cv2.INTER_CUBIC))
         parts[0] = _label(parts[0], text)
         cols.append(np.vstack(parts))
     sheet = np.hstack(cols)
