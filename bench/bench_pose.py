@@ -96,6 +96,42 @@ def run(args) -> dict:
     }
 
 
+def smoothing(args) -> dict:
+    """Pose of a real clip per frame (EPnP, 17 rigid landmarks), raw and One Euro smoothed:
+    median frame-to-frame rotation change (jitter) and largest deviation of the smoothed
+    from the raw rotation (lag on real motion)."""
+    from facesynth.data import load_landmarks
+    from facesynth.data.shared import shared_clip
+    from facesynth.mesh.camera import default_intrinsics
+    from facesynth.mesh.smoothing import PoseFilter
+
+    path = shared_clip(args.clip)
+    if path is None:
+        return {}
+    mesh_dir = shared_mesh_dir()
+    mesh = load_mesh(mesh_dir / "ict_face_9409_neutral.obj")
+    lmap = load_landmark_map(mesh_dir / "ict_face_9409_ibug68_map.json", len(mesh.vertices))
+    meta = json.loads((path / "meta.json").read_text())["video"]
+    K = default_intrinsics(meta["width"], meta["height"])
+    lm = load_landmarks(path)
+    X = mesh.vertices[lmap[POSE_LANDMARKS]]
+    f = PoseFilter()
+    raw, smooth = [], []
+    for i, q in enumerate(lm):
+        if not np.isfinite(q).all():
+            continue
+        p = solve_pose(X, q[POSE_LANDMARKS], K, "epnp")
+        raw.append((p.R, p.t))
+        smooth.append(f(p.R, p.t, i / meta["fps"]))
+    step = lambda seq: np.median([rotation_angle_deg(a[0], b[0]) for a, b in zip(seq[:-1], seq[1:])])  # noqa: E731
+    tstep = lambda seq: np.median([np.linalg.norm(a[1] - b[1]) for a, b in zip(seq[:-1], seq[1:])])  # noqa: E731
+    dev = [rotation_angle_deg(a[0], b[0]) for a, b in zip(raw, smooth)]
+    return {"clip": args.clip, "frames": len(raw), "rot_step_deg_median_raw": float(step(raw)),
+            "rot_step_deg_median_smoothed": float(step(smooth)), "trans_step_cm_median_raw": float(tstep(raw)),
+            "trans_step_cm_median_smoothed": float(tstep(smooth)), "smoothed_vs_raw_deg_p95": float(np.percentile(dev, 95)),
+            "smoothed_vs_raw_deg_max": float(np.max(dev))}
+
+
 def markdown(out: dict) -> str:
     lines = [
         f"Pose methods on {out['cameras']} random cameras x {out['draws']} noise draws, "
@@ -120,8 +156,11 @@ def main() -> None:
     ap.add_argument("--mesh-dir", default=None, help="folder with the ICT mesh and map (default: shared data)")
     ap.add_argument("--json", default=None, help="also write the full results here")
     ap.add_argument("--markdown", default=None, help="write the table as Markdown here")
+    ap.add_argument("--clip", default=None, help="also measure pose jitter with/without One Euro smoothing on this shared clip")
     args = ap.parse_args()
     out = run(args)
+    if args.clip:
+        out["smoothing"] = smoothing(args)
     out["packages"] = package_versions()
     if args.json:
         write_json(args.json, out)
