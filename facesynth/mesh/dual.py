@@ -5,7 +5,8 @@ coordinates ``delta0 = op V0`` (M, 3), and ``delta(V)``: the rest coordinates re
 on the current mesh V (rotation-invariant encoding, Au et al. 2006).
 
 - :class:`PrimalCoordinates`: cotangent Laplacian; each delta is stored in the local frame
-  (tangent to a reference neighbour, bitangent, area-weighted vertex normal) of its vertex.
+  (tangent towards the farthest neighbour, bitangent, area-weighted vertex normal) of its
+  vertex, so its length is kept and its normal part follows the current normal.
 - :class:`DualCoordinates`: dual mesh (vertices = triangle centroids ``q = D V``). A dual
   vertex with three neighbours q_a, q_b, q_c (an interior triangle) is encoded as in Au,
   Tai, Liu & Fu, "Dual Laplacian Editing for Meshes" (TVCG 2006): its projection on the
@@ -21,7 +22,9 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
-from facesynth.mesh.laplacian import cotangent_laplacian, face_adjacency, face_centroid_operator, face_normals, vertex_normals
+from facesynth.mesh.laplacian import (
+    cotangent_laplacian, edges, face_adjacency, face_centroid_operator, face_normals, vertex_normals,
+)
 
 
 def frames(normals: np.ndarray, ref: np.ndarray) -> np.ndarray:
@@ -32,17 +35,28 @@ def frames(normals: np.ndarray, ref: np.ndarray) -> np.ndarray:
     return np.stack([t, np.cross(normals, t), normals], axis=1)
 
 
+def farthest_neighbour(V: np.ndarray, F: np.ndarray) -> np.ndarray:
+    """For each vertex, the 1-ring neighbour at the longest edge (N,): the best-conditioned
+    tangent reference (a very short edge at a fold would make the frame jitter)."""
+    E = edges(F)
+    length = np.linalg.norm(V[E[:, 0]] - V[E[:, 1]], axis=1)
+    i, j, ll = np.concatenate([E[:, 0], E[:, 1]]), np.concatenate([E[:, 1], E[:, 0]]), np.concatenate([length, length])
+    order = np.lexsort((-ll, i))
+    i, j = i[order], j[order]
+    first = np.r_[True, i[1:] != i[:-1]]
+    out = np.zeros(len(V), np.int64)
+    out[i[first]] = j[first]
+    return out
+
+
 class PrimalCoordinates:
-    """Cotangent Laplacian coordinates in per-vertex local frames."""
+    """Cotangent Laplacian coordinates in per-vertex local frames (normal: area-weighted
+    vertex normal; tangent: towards the farthest 1-ring neighbour)."""
 
     def __init__(self, V0: np.ndarray, F: np.ndarray):
         self.F = F
-        n = len(V0)
         self.op = cotangent_laplacian(V0, F)
-        adj = self.op
-        first = adj.indices[adj.indptr[:-1]]
-        second = adj.indices[np.minimum(adj.indptr[:-1] + 1, adj.nnz - 1)]
-        self.ref_nb = np.where(first == np.arange(n), second, first)  # a neighbour, not the vertex itself
+        self.ref_nb = farthest_neighbour(V0, F)
         self.delta0 = np.asarray(self.op @ V0)
         self.coef0 = np.einsum("kij,kj->ki", self._frames(V0), self.delta0)
 
