@@ -9,7 +9,6 @@ import trimesh
 from scipy.spatial.transform import Rotation
 
 from facesynth.cli import main
-from facesynth.errors import FacesynthError
 from facesynth.mesh.camera import MESH_TO_CAMERA, default_intrinsics, project, projection_matrix, rotation_angle_deg
 from facesynth.mesh.io import FaceMesh
 from facesynth.mesh.preview import expression_stats, pick_sheet_frames

@@ -36,9 +36,13 @@ def pick_sheet_frames(lm: np.ndarray, neutral: int) -> list[tuple[int, str]]:
     s = expression_stats(lm)
     closed = s["mouth_open"] <= np.median(s["mouth_open"])  # brow raise without a wide-open jaw
     brow = np.where(closed, s["brow_height"], -np.inf)
-    picks = [(neutral, "neutral ref"), (int(np.argmax(s["mouth_open"])), "jaw open"),
-             (int(np.argmax(brow)), "brows raised"), (int(np.argmin(s["brow_height"])), "brows lowered"), (int(np.argmin(s["mouth_width"])), "narrow lips"),
-             (int(np.argmax(s["mouth_width"])), "wide lips"), (int(np.argmax(np.abs(s["mouth_side"] - s["mouth_side"][neutral]))), "lips sideways")]
+    side = np.abs(s["mouth_side"] - s["mouth_side"][neutral])
+    picks = [
+        (neutral, "neutral ref"), (int(np.argmax(s["mouth_open"])), "jaw open"),
+        (int(np.argmax(brow)), "brows raised"), (int(np.argmin(s["brow_height"])), "brows lowered"),
+        (int(np.argmin(s["mouth_width"])), "narrow lips"), (int(np.argmax(s["mouth_width"])), "wide lips"),
+        (int(np.argmax(side)), "lips sideways"),
+    ]
     out, seen = [], set()
     for r, name in picks:
         if r not in seen:

@@ -121,8 +121,10 @@ class Transfer:
             raise FacesynthError(f"transfer: anchors must be 'rim' or 'none', got {self.cfg.anchors!r}")
         loops = boundary_loops(mesh.faces, len(mesh.vertices)) if self.cfg.anchors == "rim" else []
         self.anchors = np.setdiff1d(loops[0], self.handles) if loops else np.zeros(0, np.int64)
-        self.deformer = LaplacianDeformer(mesh.vertices, mesh.faces, np.concatenate([self.handles, self.anchors]), self.cfg.method, self.cfg.constraints,
-                                          self.cfg.weight, self.cfg.tol, self.cfg.max_iter)
+        self.deformer = LaplacianDeformer(
+            mesh.vertices, mesh.faces, np.concatenate([self.handles, self.anchors]), self.cfg.method,
+            self.cfg.constraints, self.cfg.weight, self.cfg.tol, self.cfg.max_iter,
+        )
         self.pose_filter = pose_filter
         self.Q0: np.ndarray | None = None
         self.p0: np.ndarray | None = None
