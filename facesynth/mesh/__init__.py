@@ -1,1 +1,8 @@
-"""facesynth.mesh"""
+"""3D transfer: head pose from 2D landmarks and Laplacian deformation of a face mesh.
+
+Modules: :mod:`~facesynth.mesh.camera` (conventions), :mod:`~facesynth.mesh.pose`
+(DLT, normalised DLT, K/R/C, solver dispatch), :mod:`~facesynth.mesh.epnp`,
+:mod:`~facesynth.mesh.io` (meshes, landmark maps), :mod:`~facesynth.mesh.laplacian`,
+:mod:`~facesynth.mesh.deform`, :mod:`~facesynth.mesh.transfer`,
+:mod:`~facesynth.mesh.render`, :mod:`~facesynth.mesh.smoothing`, :mod:`~facesynth.mesh.cli`.
+"""

@@ -1,0 +1,168 @@
+"""``facesynth transfer3d``: drive a 3D face mesh with the head pose and expressions of
+landmarks (and optionally render a preview video and a contact sheet)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import time
+from pathlib import Path
+
+import numpy as np
+
+from facesynth.errors import FacesynthError
+
+log = logging.getLogger(__name__)
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--mesh", required=True, help="neutral face mesh (OBJ/PLY/...; read with trimesh, vertex order kept)")
+    p.add_argument("--landmark-map", required=True, help="JSON {'map': {'1'..'68': vertex}} (1-based iBUG -> 0-based vertex)")
+    p.add_argument("--landmarks", required=True, help="landmarks: a clip folder (landmarks.npy [+ video.mp4]), .npy, .npz or .pts folder")
+    p.add_argument("--out", required=True, help="output .npz: vertices (T,V,3), faces, uvs, R, t, K, frame_index, ...")
+    p.add_argument("--method", choices=("plain", "iterative", "dual"), default="plain",
+                   help="Laplacian deformation: plain cotangent solve, iterative (Au et al.) or dual Laplacian")
+    p.add_argument("--constraints", choices=("hard", "soft"), default="hard", help="handle constraints")
+    p.add_argument("--weight", type=float, default=1.0, help="soft-constraint weight")
+    p.add_argument("--anchors", choices=("rim", "none"), default="rim",
+                   help="also fix the mesh's outer boundary loop (back of head, neck) at rest (default), or landmarks only")
+    p.add_argument("--pose-method", default="epnp", choices=("dlt", "ndlt", "epnp", "cv-epnp", "cv-sqpnp", "cv-iterative"))
+    p.add_argument("--movement", choices=("transformation", "projection"), default="transformation",
+                   help="movement vectors: similarity-aligned neutral frame (default) or residual to the projected model")
+    p.add_argument("--fov", type=float, default=40.0, help="assumed horizontal field of view of the video camera, degrees")
+    p.add_argument("--neutral-frame", type=int, default=None, help="row of the neutral reference frame (default: first finite)")
+    p.add_argument("--smooth", action="store_true", help="One Euro smoothing of the pose over time (off by default)")
+    p.add_argument("--smooth-min-cutoff", type=float, default=1.0, help="One Euro min cutoff, Hz")
+    p.add_argument("--smooth-beta", type=float, default=0.5, help="One Euro speed coefficient (rotation, per rad/s)")
+    p.add_argument("--max-frames", type=int, default=None, help="process at most this many frames")
+    p.add_argument("--stride", type=int, default=1, help="process every STRIDE-th frame")
+    p.add_argument("--tol", type=float, default=1e-3, help="relative-change threshold of the iterative methods")
+    p.add_argument("--max-iter", type=int, default=30, help="iteration cap of the iterative methods")
+    p.add_argument("--render", default=None, help="write a shaded preview video (.mp4): video | posed mesh | frontal")
+    p.add_argument("--video", default=None, help="source video for the preview (default: video.mp4 beside the landmarks)")
+    p.add_argument("--contact-sheet", default=None, help="write a PNG of characteristic frames (jaw, lips, brows)")
+
+
+def _video_frames(args, n_rows: int):
+    from facesynth.data.frames import VideoFrames
+
+    video = Path(args.video) if args.video else None
+    if video is None:
+        lp = Path(args.landmarks)
+        cand = lp / "video.mp4" if lp.is_dir() else lp.with_name("video.mp4")
+        video = cand if cand.is_file() else None
+    return VideoFrames(video) if video is not None else None
+
+
+def _image_size(args, frames, lm) -> tuple[int, int]:
+    if frames is not None:
+        h, w = frames.size
+        return w, h
+    meta = Path(args.landmarks) / "meta.json"
+    if meta.is_file():
+        v = json.loads(meta.read_text()).get("video", {})
+        if v.get("width") and v.get("height"):
+            return int(v["width"]), int(v["height"])
+    finite = lm[np.isfinite(lm).all(axis=(1, 2))]
+    return int(np.ceil(finite[..., 0].max() * 1.2)), int(np.ceil(finite[..., 1].max() * 1.2))
+
+
+def run(args: argparse.Namespace) -> int:
+    from facesynth.data import load_landmarks
+    from facesynth.io import atomic_path
+    from facesynth.mesh.io import load_landmark_map, load_mesh
+    from facesynth.mesh.preview import PreviewWriter, contact_sheet, panel, pick_sheet_frames
+    from facesynth.mesh.smoothing import PoseFilter
+    from facesynth.mesh.transfer import Transfer, TransferConfig
+    from facesynth.provenance import array_fingerprint, file_sha256, package_versions
+
+    if not str(args.out).endswith(".npz"):
+        raise FacesynthError(f"--out {args.out}: the mesh sequence is written as .npz")
+    if args.stride < 1:
+        raise FacesynthError("--stride must be >= 1")
+    mesh = load_mesh(args.mesh)
+    lmap = load_landmark_map(args.landmark_map, len(mesh.vertices))
+    lm = load_landmarks(args.landmarks)
+    rows = np.arange(0, len(lm), args.stride)
+    if args.max_frames is not None:
+        rows = rows[: args.max_frames]
+    finite = np.isfinite(lm).all(axis=(1, 2))
+    skipped = [int(r) for r in rows if not finite[r]]
+    rows = np.array([r for r in rows if finite[r]], np.int64)
+    if skipped:
+        log.warning("%d frames with NaN landmarks skipped (first: %d)", len(skipped), skipped[0])
+    if len(rows) == 0:
+        raise FacesynthError(f"{args.landmarks}: no frame with finite landmarks to transfer")
+    neutral = int(np.flatnonzero(finite)[0]) if args.neutral_frame is None else args.neutral_frame
+    if not 0 <= neutral < len(lm) or not finite[neutral]:
+        raise FacesynthError(f"--neutral-frame {neutral}: not a frame with finite landmarks (0..{len(lm) - 1})")
+
+    frames = _video_frames(args, len(lm)) if (args.render or args.contact_sheet) else None
+    size = _image_size(args, frames, lm)
+    fps = frames.fps if frames is not None and frames.fps else 30.0
+    cfg = TransferConfig(method=args.method, constraints=args.constraints, weight=args.weight, pose_method=args.pose_method,
+                         fov_deg=args.fov, movement=args.movement, tol=args.tol, max_iter=args.max_iter,
+                         anchors=args.anchors)
+    pf = PoseFilter(args.smooth_min_cutoff, beta_r=args.smooth_beta) if args.smooth else None
+    t0 = time.perf_counter()
+    tr = Transfer(mesh, lmap, size, cfg, pose_filter=pf)
+    t_factor = time.perf_counter() - t0
+    tr.set_reference(lm[neutral])
+
+    T, n = len(rows), len(mesh.vertices)
+    verts = np.empty((T, n, 3), np.float32)
+    Rs, ts, Ks = np.empty((T, 3, 3)), np.empty((T, 3)), np.empty((T, 3, 3))
+    iters, conv, reproj = np.empty(T, np.int32), np.empty(T, bool), np.empty(T)
+    sheet = dict(pick_sheet_frames(lm[rows], int(np.searchsorted(rows, neutral)) if neutral in rows else 0))
+    sheet_rows, sheet_labels = {}, {}
+    writer = PreviewWriter(args.render, fps / args.stride) if args.render else None
+    frame_iter = frames.read(rows) if frames is not None else None
+    t_solve = 0.0
+    ok = False
+    try:
+        for k, r in enumerate(rows):
+            t1 = time.perf_counter()
+            res = tr.frame(lm[r], t_s=r / fps)
+            t_solve += time.perf_counter() - t1
+            verts[k], Rs[k], ts[k], Ks[k] = res.vertices, res.pose.R, res.pose.t, res.pose.K
+            iters[k], conv[k] = res.info.iterations, res.info.converged
+            reproj[k] = res.pose.reprojection_error(mesh.vertices[lmap[tr.pose_idx]], lm[r][tr.pose_idx])
+            img = next(frame_iter) if frame_iter is not None else None
+            if writer is not None or k in sheet:
+                row = panel(img, res.vertices, mesh.faces, res.pose.R, res.pose.t, res.pose.K, size, mesh.vertices, lm[r])
+                if writer is not None:
+                    writer.write(row)
+                if k in sheet:
+                    sheet_rows[k], sheet_labels[k] = row, f"#{int(r)} {sheet[k]}"
+            if (k + 1) % 100 == 0:
+                log.info("%d/%d frames", k + 1, T)
+        ok = True
+    finally:
+        if writer is not None:
+            writer.close(ok)
+    if args.contact_sheet:
+        keys = [k for k in sheet if k in sheet_rows]
+        contact_sheet([sheet_rows[k] for k in keys], [sheet_labels[k] for k in keys], args.contact_sheet)
+
+    summary = {
+        "frames": T, "skipped_nan_frames": len(skipped), "neutral_frame": neutral, "method": args.method,
+        "factorisation_s": round(t_factor, 4), "ms_per_frame_transfer": round(1e3 * t_solve / T, 3),
+        "iterations_mean": float(iters.mean()), "converged_fraction": float(conv.mean()),
+        "pose_reprojection_px_mean": float(reproj.mean()),
+    }
+    meta = {
+        "config": {k: v for k, v in vars(args).items() if k != "func"}, "summary": summary,
+        "mesh_sha256": file_sha256(args.mesh), "landmarks_fingerprint": array_fingerprint(np.nan_to_num(lm)),
+        "packages": package_versions(),
+        "conventions": "vertices in the mesh frame (y up, +z to viewer); camera X_c = R X + t (y down, z forward); pixels = K X_c",
+    }
+    with atomic_path(args.out) as tmp, open(tmp, "wb") as f:
+        np.savez(
+            f, vertices=verts, faces=mesh.faces.astype(np.int32),
+            uvs=mesh.uvs if mesh.uvs is not None else np.zeros((0, 2), np.float32),
+            R=Rs, t=ts, K=Ks, frame_index=rows, handles=tr.handles, iterations=iters, converged=conv,
+            pose_reprojection_px=reproj, skipped_frames=np.array(skipped, np.int64), meta=json.dumps(meta, default=str),
+        )
+    print(json.dumps(summary))
+    return 0

@@ -1,0 +1,123 @@
+"""Preview video and contact sheet of a transferred sequence: the video frame, the posed
+mesh rendered over it, and a frontal render of the deformed mesh, side by side."""
+
+from __future__ import annotations
+
+import os
+
+import cv2
+import numpy as np
+
+from facesynth.errors import FacesynthError
+from facesynth.io import atomic_path
+from facesynth.mesh.render import render_frontal, render_posed
+
+
+def expression_stats(lm: np.ndarray) -> dict[str, np.ndarray]:
+    """Per-frame expression measures from landmarks (T, 68, 2), in inter-ocular distances:
+    inner-lip gap, mouth width, brow height above the eye-corner line, and the sideways
+    offset of the mouth centre from the nose tip along the eye axis."""
+    iod = np.linalg.norm(lm[:, 36] - lm[:, 45], axis=1)
+    axis = (lm[:, 45] - lm[:, 36]) / iod[:, None]
+    up = np.stack([axis[:, 1], -axis[:, 0]], axis=1)  # perpendicular, pointing up in the image
+    gap = np.mean([np.linalg.norm(lm[:, a] - lm[:, b], axis=1) for a, b in ((61, 67), (62, 66), (63, 65))], axis=0)
+    mid = (lm[:, 36] + lm[:, 45]) / 2
+    brow = np.einsum("tkj,tj->tk", lm[:, 17:27] - mid[:, None], up).mean(axis=1)
+    mouth_c = lm[:, [48, 54]].mean(axis=1)
+    side = np.einsum("tj,tj->t", mouth_c - lm[:, 30], axis)
+    return {"mouth_open": gap / iod, "mouth_width": np.linalg.norm(lm[:, 48] - lm[:, 54], axis=1) / iod,
+            "brow_height": brow / iod, "mouth_side": side / iod}
+
+
+def pick_sheet_frames(lm: np.ndarray, neutral: int) -> list[tuple[int, str]]:
+    """Rows to show: the neutral frame and the extremes of jaw opening, brow raise (among
+    frames with the mouth at most half open), brow lowering, mouth width (narrow and
+    wide) and sideways lips (rows of ``lm`` (T, 68, 2), finite)."""
+    s = expression_stats(lm)
+    closed = s["mouth_open"] <= np.median(s["mouth_open"])  # brow raise without a wide-open jaw
+    brow = np.where(closed, s["brow_height"], -np.inf)
+    side = np.abs(s["mouth_side"] - s["mouth_side"][neutral])
+    picks = [
+        (neutral, "neutral ref"), (int(np.argmax(s["mouth_open"])), "jaw open"),
+        (int(np.argmax(brow)), "brows raised"), (int(np.argmin(s["brow_height"])), "brows lowered"),
+        (int(np.argmin(s["mouth_width"])), "narrow lips"), (int(np.argmax(s["mouth_width"])), "wide lips"),
+        (int(np.argmax(side)), "lips sideways"),
+    ]
+    out, seen = [], set()
+    for r, name in picks:
+        if r not in seen:
+            seen.add(r)
+            out.append((r, name))
+    return out
+
+
+def _label(img: np.ndarray, text: str) -> np.ndarray:
+    img = img.copy()
+    cv2.putText(img, text, (8, 26), cv2.FONT_HERSHEY_SIMPLEX, 0.75, (0, 0, 0), 4, cv2.LINE_AA)
+    cv2.putText(img, text, (8, 26), cv2.FONT_HERSHEY_SIMPLEX, 0.75, (255, 255, 255), 2, cv2.LINE_AA)
+    return img
+
+
+def panel(frame: np.ndarray | None, V: np.ndarray, F: np.ndarray, R, t, K, size: tuple[int, int], ref: np.ndarray,
+          landmarks: np.ndarray | None = None) -> np.ndarray:
+    """One row (H, 3W, 3) uint8: [video frame with landmarks | posed overlay | frontal]."""
+    w, h = size
+    if frame is None:
+        frame = np.full((h, w, 3), 90, np.uint8)
+    elif frame.shape[:2] != (h, w):
+        raise FacesynthError(f"preview: video frames are {frame.shape[1]}x{frame.shape[0]}, landmarks expect {w}x{h}")
+    video = frame.copy()
+    if landmarks is not None:
+        for x, y in np.round(landmarks).astype(int):
+            cv2.circle(video, (int(x), int(y)), 2, (0, 255, 0), -1, cv2.LINE_AA)
+    over = render_posed(V, F, R, t, K, w, h, background=frame, alpha=0.75)
+    front = cv2.resize(render_frontal(V, F, size=min(w, h), ref=ref), (w, h)) if w != h else \
+        render_frontal(V, F, size=w, ref=ref)
+    return np.hstack([video, over, front])
+
+
+class PreviewWriter:
+    """Writes rows from :func:`panel` to an .mp4 (OpenCV ``mp4v``), atomically."""
+
+    def __init__(self, path: str | os.PathLike, fps: float):
+        self.path, self.fps = path, fps
+        self._ctx = None
+        self._vw = None
+
+    def write(self, row: np.ndarray) -> None:
+        if self._vw is None:
+            self._ctx = atomic_path(self.path)
+            tmp = self._ctx.__enter__()
+            self._vw = cv2.VideoWriter(str(tmp), cv2.VideoWriter_fourcc(*"mp4v"), self.fps, (row.shape[1], row.shape[0]))
+            if not self._vw.isOpened():
+                self._ctx.__exit__(FacesynthError, None, None)
+                raise FacesynthError(f"{self.path}: OpenCV cannot write this video (use a .mp4 or .avi name)")
+        self._vw.write(cv2.cvtColor(row, cv2.COLOR_RGB2BGR))
+
+    def close(self, ok: bool = True) -> None:
+        if self._vw is not None:
+            self._vw.release()
+            if ok:
+                self._ctx.__exit__(None, None, None)
+            else:
+                self._ctx.__exit__(RuntimeError, RuntimeError("aborted"), None)
+
+
+def contact_sheet(rows: list[np.ndarray], labels: list[str], path: str | os.PathLike, tile: int = 300) -> np.ndarray:
+    """Columns of [video; posed overlay; frontal; frontal zoomed on brows and eyes] for
+    each picked frame, written as PNG."""
+    cols = []
+    for row, text in zip(rows, labels):
+        h, w3 = row.shape[:2]
+        w = w3 // 3
+        parts = [cv2.resize(row[:, i * w:(i + 1) * w], (tile, tile * h // w), interpolation=cv2.INTER_AREA) for i in range(3)]
+        front = row[:, 2 * w:]
+        zoom = front[int(0.2 * h):int(0.5 * h), int(0.28 * w):int(0.72 * w)]
+        parts.append(cv2.resize(zoom, (tile, tile * zoom.shape[0] // zoom.shape[1]), interpolation=cv2.INTER_CUBIC))
+        parts[0] = _label(parts[0], text)
+        cols.append(np.vstack(parts))
+    sheet = np.hstack(cols)
+    with atomic_path(path) as tmp:
+        if not cv2.imwrite(str(tmp), cv2.cvtColor(sheet, cv2.COLOR_RGB2BGR)):
+            raise FacesynthError(f"{path}: could not write the contact sheet image")
+    return sheet
