@@ -118,10 +118,17 @@ def wave_predictions(buf: np.ndarray, g: Grid, ids: np.ndarray, ms: ModeSet,
     Returns (C, b, n_predictive, N*N) int64 in [0, 65535].
     """
     nb = buf[:, g.nb_idx[ids]]
-    pred = intra.spatial_predictions(nb, g.n, ms.pdp)
+    raw = intra.apply_matrices(nb, "hip+pdp" if (ms.pdp or ms.pvm) else "hip", g.n)
+    nh = 3 if g.n == 16 else 9
+    parts = [raw[:, :, :nh]]
+    if g.n == 16:
+        parts.append(intra.plane16(nb)[:, :, None])
+    if ms.pdp:
+        parts.append(raw[:, :, nh:])
     if ms.pvm:
-        pred = np.concatenate([pred, intra.pvm_predictions(nb, maps[:, ids], g.n)], 2)
-    return pred
+        parts.append(raw[:, :, nh:] + maps[:, ids])
+    pred = np.concatenate(parts, 2) if len(parts) > 1 else parts[0]
+    return np.clip(pred, 0, 65535, out=pred)
 
 
 def prev_maps(prev_buf: np.ndarray, g: Grid) -> np.ndarray:
@@ -135,14 +142,16 @@ def motion_search(cur: np.ndarray, prev: np.ndarray, n: int, rng: int) -> np.nda
     cur, prev : (C, H, W). Returns (C, nblk, 2) int64 displacements (dy, dx) in [-rng, rng].
     """
     c, h, w = cur.shape
-    pp = np.pad(prev.astype(np.int64), ((0, 0), (rng, rng), (rng, rng)), mode="edge")
+    pp = np.pad(prev.astype(np.float32), ((0, 0), (rng, rng), (rng, rng)), mode="edge")
     cands = sorted(((dy, dx) for dy in range(-rng, rng + 1) for dx in range(-rng, rng + 1)),
                    key=lambda d: (abs(d[0]) + abs(d[1]), d))
-    sads = np.empty((len(cands), c, (h // n) * (w // n)), np.int64)
-    cur = cur.astype(np.int64)
+    rows = (np.arange(h)[None, :] // n == np.arange(h // n)[:, None]).astype(np.float32)  # (nby, H)
+    cols = (np.arange(w)[:, None] // n == np.arange(w // n)[None, :]).astype(np.float32)  # (W, nbx)
+    cur = cur.astype(np.float32)
+    sads = np.empty((len(cands), c, (h // n) * (w // n)), np.float64)
     for i, (dy, dx) in enumerate(cands):
         d = np.abs(cur - pp[:, rng + dy:rng + dy + h, rng + dx:rng + dx + w])
-        sads[i] = d.reshape(c, h // n, n, w // n, n).sum((2, 4)).reshape(c, -1)
+        sads[i] = (rows @ d @ cols).reshape(c, -1)  # block sums as two matrix products
     best = np.argmin(sads, 0)
     return np.asarray(cands, np.int64)[best]
 

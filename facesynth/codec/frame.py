@@ -17,7 +17,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from facesynth.codec import entropy
+from facesynth.codec import entropy, intra
+from facesynth.codec.intra import n_neighbours
 from facesynth.codec.blocks import (
     MID, ModeSet, grid, motion_compensate, motion_search, padded, prev_maps, unpadded, wave_predictions,
 )
@@ -31,7 +32,8 @@ class CodecConfig:
     qp : int or None (lossless); pdp : spatial PDP modes; pvm : temporal PDP (PVM) modes
     in P-frames; inter : motion-compensated prediction in P-frames; gop : frames per
     group (1 = all intra); block_sizes : candidate N per frame; mv_range : full-search
-    range in pixels; outside_weight : weight of pixels outside the mask in D.
+    range in pixels; outside_weight : weight of pixels outside the mask in D;
+    rd_candidates : full RD test only for this many modes of least SAD (0 = all).
     """
 
     qp: int | None = 30
@@ -39,9 +41,10 @@ class CodecConfig:
     pvm: bool = True
     inter: bool = True
     gop: int = 1
-    block_sizes: tuple[int, ...] = (4, 8, 16)
+    block_sizes: tuple[int, ...] = (4,)
     mv_range: int = 4
     outside_weight: float = 0.05
+    rd_candidates: int = 3
 
 
 @dataclass
@@ -103,50 +106,96 @@ def _encode_n(x, prev, cfg, weight, n):
         j_i = (((xb - rec_i) ** 2) * wb).sum(-1) + lam * (_est_bits(lev_i) + mvbits)
     total = 0.0
     mp = ms.n_predictive
+    kk = mp if not cfg.rd_candidates else min(cfg.rd_candidates, mp)
+    ones = np.ones(n * n)
     for ids in g.waves:
         pred = wave_predictions(buf, g, ids, ms, maps)
         xi = xb[:, ids, None, :]
+        wi = wb[ids][None, :, None, :]
+        if kk < mp:  # prune to the kk modes of least weighted SAD before the full RD test
+            sad = (np.abs(xi - pred) * wi) @ ones
+            cand = np.argpartition(sad, kk - 1, axis=-1)[..., :kk]
+            pred = np.take_along_axis(pred, cand[..., None], 2)
+        else:
+            cand = np.broadcast_to(np.arange(mp), pred.shape[:3])
         lev, rres = code_residual(xi - pred, n, qp)
         rec = np.clip(pred + rres, 0, 65535)
-        j = (((xi - rec) ** 2) * wb[ids][None, :, None, :]).sum(-1) + lam * _est_bits(lev)
+        j = (((xi - rec) ** 2) * wi) @ ones + lam * _est_bits(lev)
         if ms.inter:
             j = np.concatenate([j, j_i[:, ids, None]], -1)
-        b = np.argmin(j, -1)
-        bi = np.minimum(b, mp - 1)
+        bl = np.argmin(j, -1)
+        bi = np.minimum(bl, kk - 1)
+        b = np.take_along_axis(cand, bi[..., None], -1)[..., 0]
         r = np.take_along_axis(rec, bi[..., None, None], 2)[:, :, 0]
         lv = np.take_along_axis(lev, bi[..., None, None, None], 2)[:, :, 0]
         if ms.inter:
-            is_i = (b == mp)
+            is_i = (bl == kk)
+            b = np.where(is_i, mp, b)
             r = np.where(is_i[..., None], rec_i[:, ids], r)
             lv = np.where(is_i[..., None, None], lev_i[:, ids], lv)
             mvs[:, ids] = np.where(is_i[..., None], mvs_all[:, ids], 0)
         buf[:, g.pix_idx[ids]] = r
         modes[:, ids] = b
         levels[:, ids] = lv
-        total += float(np.take_along_axis(j, b[..., None], -1).sum())
+        total += float(np.take_along_axis(j, bl[..., None], -1).sum())
     return FrameCode(n, prev is not None, modes, levels, mvs), unpadded(buf, h, w).copy(), total
 
 
 def decode_frame(code: FrameCode, prev: np.ndarray | None, qp: int | None, flags: tuple[bool, bool, bool],
                  mv_range: int, shape: tuple[int, int, int]) -> np.ndarray:
-    """Reconstruct one frame (C, H, W) int64 from its code (same arithmetic as the encoder)."""
+    """Reconstruct one frame (C, H, W) int64 from its code.
+
+    Each block's mode is turned into one row of a weight bank (HIP, PDP, or zeros for
+    inter) plus an additive term (PVM map or motion-compensated block), so a wavefront
+    step is one batched product for the chosen modes only. The arithmetic (float64 sums
+    of integers, exact; floor; clips) is the encoder's, so the output is bit-exact.
+    """
     c, h, w = shape
     n = code.n
     g = grid(n, h, w)
     ms = mode_set(*flags, n, code.p_frame)
-    rres = decode_residual(code.levels, n, qp)
-    buf = padded(np.full(shape, MID, np.int64))
-    maps = prev_maps(padded(prev), g) if ms.pvm else None
-    mp = ms.n_predictive
-    pi = motion_compensate(prev, code.mvs, n, mv_range) if ms.inter else None
+    nh = 3 if n == 16 else 9
+    bank = np.concatenate([intra.hip_matrices(n), intra.pdp_matrices(n),
+                           np.zeros((1, n * n, n_neighbours(n)), np.int64)], 0)
+    bank = np.ascontiguousarray(np.swapaxes(bank, 1, 2).astype(np.float64))  # (modes, K, N*N)
+    modes = code.modes
+    lin = modes.copy()
+    plane = np.zeros_like(modes, bool)
+    add = np.zeros((c, g.n_blocks, n * n))
+    if n == 16:
+        plane = modes == 3
+        lin = np.where(modes > 3, modes - 1, np.where(plane, 0, modes))
+    first_pvm = ms.n_spatial
+    if ms.pvm:
+        maps = prev_maps(padded(prev), g)
+        is_pvm = (modes >= first_pvm) & (modes < first_pvm + 4)
+        d = np.clip(modes - first_pvm, 0, 3)
+        add += np.where(is_pvm[..., None], np.take_along_axis(maps, d[..., None, None], 2)[:, :, 0], 0)
+        lin = np.where(is_pvm, nh + d, lin)
+    if ms.inter:
+        is_i = modes == ms.inter_mode
+        pi = motion_compensate(prev, code.mvs, n, mv_range)
+        add += np.where(is_i[..., None], pi, 0)
+        lin = np.where(is_i, nh + 4, lin)
+    res = decode_residual(code.levels, n, qp).astype(np.float64)
+    buf = padded(np.full(shape, MID, np.int64)).astype(np.float64)
+    any_plane = plane.any()
     for ids in g.waves:
-        pred = wave_predictions(buf, g, ids, ms, maps)
-        m = code.modes[:, ids]
-        p = np.take_along_axis(pred, np.minimum(m, mp - 1)[..., None, None], 2)[:, :, 0]
-        if ms.inter:
-            p = np.where((m == mp)[..., None], pi[:, ids], p)
-        buf[:, g.pix_idx[ids]] = np.clip(p + rres[:, ids], 0, 65535)
-    return unpadded(buf, h, w).copy()
+        nbv = buf[:, g.nb_idx[ids]]
+        acc = np.matmul(nbv[:, :, None, :], bank[lin[:, ids]])[:, :, 0]
+        acc += 2.0 ** (intra.SHIFT - 1)
+        acc *= 2.0 ** -intra.SHIFT
+        np.floor(acc, out=acc)
+        acc += add[:, ids]
+        if any_plane:
+            sel = plane[:, ids]
+            if sel.any():
+                acc[sel] = intra.plane16(nbv[sel].astype(np.int64))
+        np.clip(acc, 0, 65535, out=acc)
+        acc += res[:, ids]
+        np.clip(acc, 0, 65535, out=acc)
+        buf[:, g.pix_idx[ids]] = acc
+    return unpadded(buf, h, w).astype(np.int64)
 
 
 _FRAME_HDR = struct.Struct("<BBB")

@@ -161,16 +161,32 @@ def pdp_matrices(n: int) -> np.ndarray:
     return out.astype(np.int64)
 
 
-def apply_matrices(nb: np.ndarray, w: np.ndarray) -> np.ndarray:
+@lru_cache(maxsize=None)
+def _float_weights(n: int, which: str) -> np.ndarray:
+    """Cached (K, modes * N*N) float64 transposed weights: 'hip', 'pdp' or 'hip+pdp'."""
+    parts = {"hip": [hip_matrices(n)], "pdp": [pdp_matrices(n)], "hip+pdp": [hip_matrices(n), pdp_matrices(n)]}
+    w = np.concatenate(parts[which], 0)
+    return np.ascontiguousarray(w.reshape(-1, n_neighbours(n)).T.astype(np.float64))
+
+
+def apply_matrices(nb: np.ndarray, w: np.ndarray | str, n: int | None = None) -> np.ndarray:
     """``(W @ nb + 2**(S-1)) >> S`` for neighbour vectors (..., K) -> (..., modes, N*N) int64.
 
+    ``w`` is an integer array (modes, N*N, K) or the name of a cached set (with ``n``).
     Computed as one float64 BLAS product; exact because every partial sum stays below
     2**53 (|nb| < 2**16, |weights| < 2**15, K <= 49).
     """
     k = nb.shape[-1]
-    acc = nb.reshape(-1, k).astype(np.float64) @ w.reshape(-1, k).T.astype(np.float64)
-    acc = np.floor((acc + 2.0 ** (SHIFT - 1)) * 2.0**-SHIFT)
-    return acc.astype(np.int64).reshape(*nb.shape[:-1], w.shape[0], w.shape[1])
+    if isinstance(w, str):
+        wt = _float_weights(n, w)
+    else:
+        wt = w.reshape(-1, k).T.astype(np.float64)
+    acc = nb.reshape(-1, k).astype(np.float64) @ wt
+    acc += 2.0 ** (SHIFT - 1)
+    acc *= 2.0**-SHIFT
+    np.floor(acc, out=acc)
+    nn = (n or int(round(np.sqrt(w.shape[1])))) ** 2
+    return acc.astype(np.int64).reshape(*nb.shape[:-1], -1, nn)
 
 
 def plane16(nb: np.ndarray) -> np.ndarray:
@@ -190,9 +206,7 @@ def plane16(nb: np.ndarray) -> np.ndarray:
 
 def spatial_predictions(nb: np.ndarray, n: int, pdp: bool) -> np.ndarray:
     """All spatial predictions (HIP then PDP) for nb (..., K) -> (..., modes, N*N), clipped."""
-    ws = [hip_matrices(n)] + ([pdp_matrices(n)] if pdp else [])
-    w = np.concatenate(ws, 0)
-    pred = apply_matrices(nb, w)
+    pred = apply_matrices(nb, "hip+pdp" if pdp else "hip", n)
     if n == 16:
         hip = pred[..., :3, :]
         rest = pred[..., 3:, :]
@@ -206,9 +220,9 @@ def n_hip_modes(n: int) -> int:
 
 def pvm_maps(prev_blocks: np.ndarray, prev_nb: np.ndarray, n: int) -> np.ndarray:
     """Pixel-varying maps of the previous frame: ``prev - PDP_d(prev_nb)`` -> (..., 4, N*N)."""
-    return prev_blocks[..., None, :].astype(np.int64) - apply_matrices(prev_nb, pdp_matrices(n))
+    return prev_blocks[..., None, :].astype(np.int64) - apply_matrices(prev_nb, "pdp", n)
 
 
 def pvm_predictions(nb: np.ndarray, maps: np.ndarray, n: int) -> np.ndarray:
     """Temporal PDP: ``clip(PDP_d(nb) + map_d)`` for nb (..., K), maps (..., 4, N*N)."""
-    return np.clip(apply_matrices(nb, pdp_matrices(n)) + maps, 0, 65535)
+    return np.clip(apply_matrices(nb, "pdp", n) + maps, 0, 65535)

@@ -51,9 +51,15 @@ def from_sub4(sub: np.ndarray, n: int) -> np.ndarray:
     return x.reshape(*sub.shape[:-3], n * n)
 
 
+def _fwd_butterfly(x: np.ndarray, axis: int) -> np.ndarray:
+    x0, x1, x2, x3 = (np.take(x, i, axis=axis) for i in range(4))
+    s0, s1, d0, d1 = x0 + x3, x1 + x2, x0 - x3, x1 - x2
+    return np.stack([s0 + s1, 2 * d0 + d1, s0 - s1, d0 - 2 * d1], axis=axis)
+
+
 def forward4(x: np.ndarray) -> np.ndarray:
-    """Core transform of (..., 4, 4) int64 blocks: ``Cf X Cf^T``."""
-    return np.einsum("ij,...jk,lk->...il", CF, x.astype(np.int64), CF)
+    """Core transform of (..., 4, 4) int64 blocks: ``Cf X Cf^T`` (as butterflies)."""
+    return _fwd_butterfly(_fwd_butterfly(x.astype(np.int64), -1), -2)
 
 
 def _butterfly(d: np.ndarray, axis: int) -> np.ndarray:
