@@ -41,7 +41,7 @@ class CodecConfig:
     pvm: bool = True
     inter: bool = True
     gop: int = 1
-    block_sizes: tuple[int, ...] = (4,)
+    block_sizes: tuple[int, ...] = (4, 8)
     mv_range: int = 4
     outside_weight: float = 0.05
     rd_candidates: int = 3
@@ -59,6 +59,9 @@ class FrameCode:
 
 def mode_set(cfg_pdp: bool, cfg_pvm: bool, cfg_inter: bool, n: int, p_frame: bool) -> ModeSet:
     return ModeSet(n, cfg_pdp, cfg_pvm and p_frame, cfg_inter and p_frame)
+
+
+MODE_BITS = 2.5  # typical adaptive cost of a block's mode; enters the per-frame block-size choice
 
 
 def _est_bits(lev: np.ndarray) -> np.ndarray:
@@ -137,7 +140,7 @@ def _encode_n(x, prev, cfg, weight, n):
         buf[:, g.pix_idx[ids]] = r
         modes[:, ids] = b
         levels[:, ids] = lv
-        total += float(np.take_along_axis(j, bl[..., None], -1).sum())
+        total += float(np.take_along_axis(j, bl[..., None], -1).sum()) + lam * MODE_BITS * bl.size
     return FrameCode(n, prev is not None, modes, levels, mvs), unpadded(buf, h, w).copy(), total
 
 
