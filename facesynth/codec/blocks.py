@@ -29,6 +29,8 @@ class Grid:
     nb_idx: np.ndarray  # (nblk, K) flat indices into the padded buffer
     pix_idx: np.ndarray  # (nblk, N*N) flat indices of each block's samples
     waves: tuple  # tuple of (b,) int arrays of block ids
+    order: np.ndarray  # (nblk,) block ids in wavefront order (waves concatenated)
+    bounds: tuple  # (start, end) of each wave in ``order``
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -57,7 +59,10 @@ def grid(n: int, height: int, width: int) -> Grid:
     pix_idx = (y0[:, None] + yy[None, :]) * wp + x0[:, None] + xx[None, :]
     t = bx + 2 * by
     waves = tuple(np.nonzero(t == k)[0] for k in range(int(t.max()) + 1))
-    return Grid(n, height, width, nb_idx, pix_idx, waves)
+    order = np.concatenate(waves)
+    ends = np.cumsum([len(wv) for wv in waves])
+    bounds = tuple(zip((ends - np.array([len(wv) for wv in waves])).tolist(), ends.tolist()))
+    return Grid(n, height, width, nb_idx, pix_idx, waves, order, bounds)
 
 
 def padded(frame: np.ndarray) -> np.ndarray:

@@ -180,24 +180,28 @@ def decode_frame(code: FrameCode, prev: np.ndarray | None, qp: int | None, flags
         pi = motion_compensate(prev, code.mvs, n, mv_range)
         add += np.where(is_i[..., None], pi, 0)
         lin = np.where(is_i, nh + 4, lin)
-    res = decode_residual(code.levels, n, qp).astype(np.float64)
+    o = g.order  # everything in wavefront order: each wave is a contiguous slice
+    res = decode_residual(code.levels[:, o], n, qp).astype(np.float64)
+    add, lin, plane = add[:, o], lin[:, o], plane[:, o]
+    nb_idx, pix_idx = g.nb_idx[o], g.pix_idx[o]
     buf = padded(np.full(shape, MID, np.int64)).astype(np.float64)
     any_plane = plane.any()
-    for ids in g.waves:
-        nbv = buf[:, g.nb_idx[ids]]
-        acc = np.matmul(nbv[:, :, None, :], bank[lin[:, ids]])[:, :, 0]
-        acc += 2.0 ** (intra.SHIFT - 1)
-        acc *= 2.0 ** -intra.SHIFT
+    half, scale = 2.0 ** (intra.SHIFT - 1), 2.0 ** -intra.SHIFT
+    for s, e in g.bounds:
+        nbv = buf[:, nb_idx[s:e]]
+        acc = np.matmul(nbv[:, :, None, :], bank[lin[:, s:e]])[:, :, 0]
+        acc += half
+        acc *= scale
         np.floor(acc, out=acc)
-        acc += add[:, ids]
+        acc += add[:, s:e]
         if any_plane:
-            sel = plane[:, ids]
+            sel = plane[:, s:e]
             if sel.any():
                 acc[sel] = intra.plane16(nbv[sel].astype(np.int64))
         np.clip(acc, 0, 65535, out=acc)
-        acc += res[:, ids]
+        acc += res[:, s:e]
         np.clip(acc, 0, 65535, out=acc)
-        buf[:, g.pix_idx[ids]] = acc
+        buf[:, pix_idx[s:e]] = acc
     return unpadded(buf, h, w).astype(np.int64)
 
 

@@ -51,8 +51,12 @@ def from_sub4(sub: np.ndarray, n: int) -> np.ndarray:
     return x.reshape(*sub.shape[:-3], n * n)
 
 
+def _parts(x: np.ndarray, axis: int):
+    return (x[..., i] for i in range(4)) if axis == -1 else (x[..., i, :] for i in range(4))
+
+
 def _fwd_butterfly(x: np.ndarray, axis: int) -> np.ndarray:
-    x0, x1, x2, x3 = (np.take(x, i, axis=axis) for i in range(4))
+    x0, x1, x2, x3 = _parts(x, axis)
     s0, s1, d0, d1 = x0 + x3, x1 + x2, x0 - x3, x1 - x2
     return np.stack([s0 + s1, 2 * d0 + d1, s0 - s1, d0 - 2 * d1], axis=axis)
 
@@ -63,7 +67,7 @@ def forward4(x: np.ndarray) -> np.ndarray:
 
 
 def _butterfly(d: np.ndarray, axis: int) -> np.ndarray:
-    d0, d1, d2, d3 = (np.take(d, i, axis=axis) for i in range(4))
+    d0, d1, d2, d3 = _parts(d, axis)
     e0, e1 = d0 + d2, d0 - d2
     e2, e3 = (d1 >> 1) - d3, d1 + (d3 >> 1)
     return np.stack([e0 + e3, e1 + e2, e1 - e2, e0 - e3], axis=axis)
@@ -109,5 +113,8 @@ def decode_residual(levels: np.ndarray, n: int, qp: int | None) -> np.ndarray:
     sub[..., ZIGZAG] = levels
     sub = sub.reshape(*levels.shape[:-1], 4, 4)
     if qp is not None:
-        sub = inverse4(dequantise(sub, qp))
+        nz = sub.any((-1, -2))  # all-zero sub-blocks stay zero: transform only the others
+        out = np.zeros_like(sub)
+        out[nz] = inverse4(dequantise(sub[nz], qp))
+        sub = out
     return from_sub4(sub, n)
