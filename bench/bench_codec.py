@@ -59,13 +59,13 @@ def geometry_figures(seq: dict, sizes=(256, 512)) -> dict:
 def speed(video_by_size: dict, qp: int) -> dict:
     out = {}
     for s, (vid, mask) in video_by_size.items():
-        for name in ("hip+pdp-intra", "hip+pdp+pvm-ippp"):
-            cfg = CodecConfig(qp=qp, **CONFIGS[name])
+        for name, sizes in (("hip+pdp-intra", (4, 8)), ("hip+pdp-intra", (4,)), ("hip+pdp+pvm-ippp", (4, 8))):
+            cfg = CodecConfig(qp=qp, block_sizes=sizes, **CONFIGS[name])
             data, rec, st = encode_video(vid, cfg, mask)
             t0 = time.perf_counter()
             dec, _, _ = decode_video(data)
             dt = time.perf_counter() - t0
-            out[f"{name}@{s}"] = {"frames": len(vid), "qp": qp, "encode_fps": len(vid) / st["encode_s"],
+            out[f"{name}@{s} blocks {','.join(map(str, sizes))}"] = {"frames": len(vid), "qp": qp, "encode_fps": len(vid) / st["encode_s"],
                                   "decode_fps": len(vid) / dt, "bit_exact": bool(np.array_equal(dec, rec))}
     return out
 

@@ -33,7 +33,8 @@ class CodecConfig:
     in P-frames; inter : motion-compensated prediction in P-frames; gop : frames per
     group (1 = all intra); block_sizes : candidate N per frame; mv_range : full-search
     range in pixels; outside_weight : weight of pixels outside the mask in D;
-    rd_candidates : full RD test only for this many modes of least SAD (0 = all).
+    rd_candidates : full RD test only for this many modes of least SAD (0 = all);
+    lambda_scale : multiplies the H.264 lambda(QP).
     """
 
     qp: int | None = 30
@@ -45,6 +46,7 @@ class CodecConfig:
     mv_range: int = 4
     outside_weight: float = 0.05
     rd_candidates: int = 3
+    lambda_scale: float = 1.0
 
 
 @dataclass
@@ -90,7 +92,7 @@ def _encode_n(x, prev, cfg, weight, n):
     g = grid(n, h, w)
     ms = mode_set(cfg.pdp, cfg.pvm, cfg.inter, n, prev is not None)
     qp = cfg.qp
-    lam = lagrangian(qp)
+    lam = lagrangian(qp) * cfg.lambda_scale
     xb = padded(x)[:, g.pix_idx]
     wt = np.ones((h, w)) if weight is None else np.where(weight, 1.0, cfg.outside_weight)
     wb = np.pad(wt, ((1, 0), (1, 0))).ravel()[g.pix_idx]
