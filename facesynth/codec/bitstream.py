@@ -1,0 +1,157 @@
+"""The ``.fsgv`` container and the sequence-level encoder/decoder.
+
+Layout (little-endian)::
+
+    header  : magic b"FSGV", version u8, flags u8 (1 lossless, 2 PDP, 4 PVM, 8 inter,
+              16 bbox present), channels u8, bit depth u8, height u16, width u16, QP u8,
+              GOP u16, MV range u8, frames u32, bbox lo[3] hi[3] f64, CRC32 of the above
+    frames  : per frame, payload length u32, CRC32 u32, payload (see frame.write_frame)
+
+Frames are padded to multiples of 16 by edge replication and cropped on decoding.
+Any truncation, corruption or trailing data raises :class:`FacesynthError`.
+"""
+
+from __future__ import annotations
+
+import struct
+import time
+import zlib
+from dataclasses import dataclass
+
+import numpy as np
+
+from facesynth.codec.frame import CodecConfig, FrameCode, decode_frame, encode_frame, read_frame, write_frame
+from facesynth.codec.transform import QP_MAX
+from facesynth.errors import FacesynthError
+
+MAGIC = b"FSGV"
+VERSION = 1
+_HDR = struct.Struct("<4sBBBBHHBHBI6d")
+_CHUNK = struct.Struct("<II")
+
+
+@dataclass
+class StreamInfo:
+    height: int
+    width: int
+    channels: int
+    qp: int | None
+    gop: int
+    mv_range: int
+    n_frames: int
+    flags: tuple[bool, bool, bool]  # pdp, pvm, inter
+    bbox: np.ndarray | None  # (2, 3) lo, hi
+
+
+def _pad16(frames: np.ndarray) -> np.ndarray:
+    t, h, w, c = frames.shape
+    ph, pw = -h % 16, -w % 16
+    return np.pad(frames, ((0, 0), (0, ph), (0, pw), (0, 0)), mode="edge") if ph or pw else frames
+
+
+def encode_video(frames: np.ndarray, cfg: CodecConfig, mask: np.ndarray | None = None,
+                 bbox: np.ndarray | None = None) -> tuple[bytes, np.ndarray, dict]:
+    """Encode a uint16 video (T, H, W, C) -> (bitstream, reconstruction (T, H, W, C), stats).
+
+    ``mask`` (H, W) bool weights the distortion (outside pixels count ``outside_weight``);
+    ``bbox`` (2, 3) (lo, hi of the quantiser) is stored for the decoder.
+    """
+    frames = np.asarray(frames)
+    if frames.ndim != 4 or frames.dtype != np.uint16:
+        raise FacesynthError(f"frames: expected uint16 (T, H, W, C), got {frames.dtype} {frames.shape}")
+    t, h, w, c = frames.shape
+    if t == 0 or h > 65535 or w > 65535 or c > 255:
+        raise FacesynthError(f"frames: unsupported shape {frames.shape}")
+    if cfg.qp is not None and not 0 <= cfg.qp <= QP_MAX:
+        raise FacesynthError(f"qp: expected 0..{QP_MAX}, got {cfg.qp}")
+    if cfg.gop < 1 or not 0 <= cfg.mv_range <= 32 or any(n not in (4, 8, 16) for n in cfg.block_sizes):
+        raise FacesynthError("codec config: gop >= 1, mv_range 0..32, block sizes from {4, 8, 16}")
+    flags = (cfg.pdp, cfg.pvm, cfg.inter)
+    fl = (cfg.qp is None) | 2 * cfg.pdp | 4 * cfg.pvm | 8 * cfg.inter | 16 * (bbox is not None)
+    bb = np.full(6, np.nan) if bbox is None else np.asarray(bbox, np.float64).reshape(6)
+    hdr = _HDR.pack(MAGIC, VERSION, fl, c, 16, h, w, 0 if cfg.qp is None else cfg.qp, cfg.gop,
+                    cfg.mv_range, t, *bb)
+    out = [hdr, struct.pack("<I", zlib.crc32(hdr))]
+    x = np.moveaxis(_pad16(frames), -1, 1).astype(np.int64)  # (T, C, Hp, Wp)
+    wmask = None
+    if mask is not None:
+        wmask = _pad16(np.asarray(mask, bool)[None, :, :, None])[0, :, :, 0]
+    recs, prev = [], None
+    mode_hist: dict[str, int] = {}
+    t0 = time.perf_counter()
+    for i in range(t):
+        p = prev if (i % cfg.gop) else None
+        code, rec = encode_frame(x[i], p, cfg, wmask)
+        payload = write_frame(code, flags, cfg.mv_range, x[i].shape)
+        out.append(_CHUNK.pack(len(payload), zlib.crc32(payload)))
+        out.append(payload)
+        _count_modes(mode_hist, code, flags)
+        recs.append(rec)
+        prev = rec
+    enc_s = time.perf_counter() - t0
+    rec = np.moveaxis(np.stack(recs), 1, -1)[:, :h, :w].astype(np.uint16)
+    data = b"".join(out)
+    stats = {"bytes": len(data), "bits_per_frame": 8 * len(data) / t, "encode_s": enc_s, "modes": mode_hist}
+    return data, rec, stats
+
+
+def _count_modes(hist: dict, code: FrameCode, flags) -> None:
+    from facesynth.codec.frame import mode_set
+
+    names = mode_set(*flags, code.n, code.p_frame).names()
+    cnt = np.bincount(code.modes.ravel(), minlength=len(names))
+    for name, k in zip(names, cnt):
+        key = f"{name}@{code.n}" if name.startswith("HIP") else name
+        hist[key] = hist.get(key, 0) + int(k) * code.n * code.n  # in pixels
+
+
+def read_header(data: bytes) -> tuple[StreamInfo, int]:
+    """Parse and check the stream header -> (info, offset of the first frame chunk)."""
+    if len(data) < _HDR.size + 4:
+        raise FacesynthError(f"bitstream: truncated header ({len(data)} bytes)")
+    if data[:4] != MAGIC:
+        raise FacesynthError("bitstream: not an FSGV stream (bad magic)")
+    (crc,) = struct.unpack_from("<I", data, _HDR.size)
+    if zlib.crc32(data[:_HDR.size]) != crc:
+        raise FacesynthError("bitstream: header CRC32 mismatch (corrupt stream)")
+    _, ver, fl, c, depth, h, w, qp, gop, mvr, t, *bb = _HDR.unpack_from(data)
+    if ver != VERSION or depth != 16 or c < 1 or h < 1 or w < 1 or gop < 1 or t < 1 or qp > QP_MAX:
+        raise FacesynthError(f"bitstream: unsupported header (version {ver}, depth {depth}, {h}x{w}x{c})")
+    bbox = np.asarray(bb).reshape(2, 3) if fl & 16 else None
+    info = StreamInfo(h, w, c, None if fl & 1 else qp, gop, mvr, t, (bool(fl & 2), bool(fl & 4), bool(fl & 8)), bbox)
+    return info, _HDR.size + 4
+
+
+def decode_video(data: bytes) -> tuple[np.ndarray, StreamInfo, dict]:
+    """Decode an ``.fsgv`` stream -> (uint16 frames (T, H, W, C), info, timing stats)."""
+    info, off = read_header(data)
+    hp, wp = info.height + (-info.height % 16), info.width + (-info.width % 16)
+    shape = (info.channels, hp, wp)
+    out = np.empty((info.n_frames, info.height, info.width, info.channels), np.uint16)
+    prev = None
+    t0 = time.perf_counter()
+    for i in range(info.n_frames):
+        if len(data) < off + _CHUNK.size:
+            raise FacesynthError(f"bitstream: truncated at frame {i} of {info.n_frames} (chunk header)")
+        ln, crc = _CHUNK.unpack_from(data, off)
+        off += _CHUNK.size
+        payload = data[off:off + ln]
+        if len(payload) != ln:
+            raise FacesynthError(f"bitstream: truncated at frame {i} of {info.n_frames} "
+                                 f"({len(payload)} of {ln} payload bytes)")
+        if zlib.crc32(payload) != crc:
+            raise FacesynthError(f"bitstream: CRC32 mismatch in frame {i} (corrupt stream)")
+        off += ln
+        try:
+            code, mvr = read_frame(payload, info.flags, shape)
+            if code.p_frame != bool(i % info.gop) or mvr != info.mv_range:
+                raise ValueError("frame type or motion range disagrees with the header")
+            rec = decode_frame(code, prev if code.p_frame else None, info.qp, info.flags, mvr, shape)
+        except (ValueError, IndexError, RuntimeError, OverflowError) as exc:
+            raise FacesynthError(f"bitstream: frame {i} is malformed ({exc})") from None
+        out[i] = np.moveaxis(rec, 0, -1)[:info.height, :info.width]
+        prev = rec
+    dec_s = time.perf_counter() - t0
+    if off != len(data):
+        raise FacesynthError(f"bitstream: {len(data) - off} unexpected bytes after the last frame")
+    return out, info, {"decode_s": dec_s}

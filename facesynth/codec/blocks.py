@@ -1,0 +1,173 @@
+"""Block grids, wavefront schedules and the prediction/reconstruction steps shared by the
+encoder and the decoder (so that both run the very same integer arithmetic).
+
+A frame of C channels, H x W (multiples of 16), is cut into N x N blocks. Reconstructed
+samples live in a padded buffer (C, H+1, W+1) whose first row and column hold the
+constant ``2**15`` (unavailable neighbours). Block (by, bx) needs its left, top-left,
+top and top-right neighbours, so all blocks with the same ``bx + 2 by`` (a wavefront)
+are independent and are predicted together, batched over the channels too.
+Above-right samples beyond the right edge repeat ``T[N-1]``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import lru_cache
+
+import numpy as np
+
+from facesynth.codec import intra
+
+MID = 1 << 15
+
+
+@dataclass(frozen=True)
+class Grid:
+    n: int
+    height: int
+    width: int
+    nb_idx: np.ndarray  # (nblk, K) flat indices into the padded buffer
+    pix_idx: np.ndarray  # (nblk, N*N) flat indices of each block's samples
+    waves: tuple  # tuple of (b,) int arrays of block ids
+    order: np.ndarray  # (nblk,) block ids in wavefront order (waves concatenated)
+    bounds: tuple  # (start, end) of each wave in ``order``
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.height // self.n, self.width // self.n
+
+    @property
+    def n_blocks(self) -> int:
+        return self.nb_idx.shape[0]
+
+
+@lru_cache(maxsize=16)
+def grid(n: int, height: int, width: int) -> Grid:
+    """Block grid of size ``n`` over an ``height x width`` frame (multiples of 16)."""
+    nby, nbx = height // n, width // n
+    wp = width + 1
+    by, bx = np.divmod(np.arange(nby * nbx), nbx)
+    y0, x0 = by * n + 1, bx * n + 1  # block origin in the padded buffer
+    i = np.arange(2 * n)
+    tcol = x0[:, None] + i[None, :]
+    tcol = np.where(tcol > width, x0[:, None] + n - 1, tcol)  # repeat T[N-1] past the edge
+    t_idx = (y0 - 1)[:, None] * wp + tcol
+    l_idx = (y0[:, None] + np.arange(n)[None, :]) * wp + (x0 - 1)[:, None]
+    m_idx = ((y0 - 1) * wp + x0 - 1)[:, None]
+    nb_idx = np.concatenate([m_idx, t_idx, l_idx], 1)
+    yy, xx = np.divmod(np.arange(n * n), n)
+    pix_idx = (y0[:, None] + yy[None, :]) * wp + x0[:, None] + xx[None, :]
+    t = bx + 2 * by
+    waves = tuple(np.nonzero(t == k)[0] for k in range(int(t.max()) + 1))
+    order = np.concatenate(waves)
+    ends = np.cumsum([len(wv) for wv in waves])
+    bounds = tuple(zip((ends - np.array([len(wv) for wv in waves])).tolist(), ends.tolist()))
+    return Grid(n, height, width, nb_idx, pix_idx, waves, order, bounds)
+
+
+def padded(frame: np.ndarray) -> np.ndarray:
+    """(C, H, W) -> (C, (H+1)*(W+1)) int64 with the constant border."""
+    c, h, w = frame.shape
+    out = np.full((c, h + 1, w + 1), MID, np.int64)
+    out[:, 1:, 1:] = frame
+    return out.reshape(c, -1)
+
+
+def unpadded(buf: np.ndarray, height: int, width: int) -> np.ndarray:
+    return buf.reshape(-1, height + 1, width + 1)[:, 1:, 1:]
+
+
+@dataclass(frozen=True)
+class ModeSet:
+    """Which candidate predictors a frame offers, in index order:
+    HIP (9 or 4), PDP spatial (4), PVM temporal (4), inter (1)."""
+
+    n: int
+    pdp: bool
+    pvm: bool
+    inter: bool
+
+    @property
+    def n_hip(self) -> int:
+        return intra.n_hip_modes(self.n)
+
+    @property
+    def n_spatial(self) -> int:
+        return self.n_hip + (4 if self.pdp else 0)
+
+    @property
+    def n_predictive(self) -> int:  # modes whose prediction depends on the current frame
+        return self.n_spatial + (4 if self.pvm else 0)
+
+    @property
+    def n_modes(self) -> int:
+        return self.n_predictive + (1 if self.inter else 0)
+
+    @property
+    def inter_mode(self) -> int:
+        return self.n_predictive if self.inter else -1
+
+    def names(self) -> list[str]:
+        hip = intra.HIP16_NAMES if self.n == 16 else intra.HIP4_NAMES
+        out = [f"HIP-{m}" for m in hip]
+        out += list(intra.PDP_NAMES) if self.pdp else []
+        out += [f"PVM-{m[4:]}" for m in intra.PDP_NAMES] if self.pvm else []
+        return out + (["INTER"] if self.inter else [])
+
+
+def wave_predictions(buf: np.ndarray, g: Grid, ids: np.ndarray, ms: ModeSet,
+                     maps: np.ndarray | None) -> np.ndarray:
+    """Predictions of all current-frame-dependent modes for blocks ``ids``.
+
+    buf : (C, (H+1)(W+1)) reconstructed samples so far; maps : (C, nblk, 4, N*N) PVM maps.
+    Returns (C, b, n_predictive, N*N) int64 in [0, 65535].
+    """
+    nb = buf[:, g.nb_idx[ids]]
+    raw = intra.apply_matrices(nb, "hip+pdp" if (ms.pdp or ms.pvm) else "hip", g.n)
+    nh = 3 if g.n == 16 else 9
+    parts = [raw[:, :, :nh]]
+    if g.n == 16:
+        parts.append(intra.plane16(nb)[:, :, None])
+    if ms.pdp:
+        parts.append(raw[:, :, nh:])
+    if ms.pvm:
+        parts.append(raw[:, :, nh:] + maps[:, ids])
+    pred = np.concatenate(parts, 2) if len(parts) > 1 else parts[0]
+    return np.clip(pred, 0, 65535, out=pred)
+
+
+def prev_maps(prev_buf: np.ndarray, g: Grid) -> np.ndarray:
+    """PVM maps of the previous reconstructed frame for every block: (C, nblk, 4, N*N)."""
+    return intra.pvm_maps(prev_buf[:, g.pix_idx], prev_buf[:, g.nb_idx], g.n)
+
+
+def motion_search(cur: np.ndarray, prev: np.ndarray, n: int, rng: int) -> np.ndarray:
+    """Full-search block motion estimation (integer pel, SAD; ties -> smaller |mv|).
+
+    cur, prev : (C, H, W). Returns (C, nblk, 2) int64 displacements (dy, dx) in [-rng, rng].
+    """
+    c, h, w = cur.shape
+    pp = np.pad(prev.astype(np.float32), ((0, 0), (rng, rng), (rng, rng)), mode="edge")
+    cands = sorted(((dy, dx) for dy in range(-rng, rng + 1) for dx in range(-rng, rng + 1)),
+                   key=lambda d: (abs(d[0]) + abs(d[1]), d))
+    rows = (np.arange(h)[None, :] // n == np.arange(h // n)[:, None]).astype(np.float32)  # (nby, H)
+    cols = (np.arange(w)[:, None] // n == np.arange(w // n)[None, :]).astype(np.float32)  # (W, nbx)
+    cur = cur.astype(np.float32)
+    sads = np.empty((len(cands), c, (h // n) * (w // n)), np.float64)
+    for i, (dy, dx) in enumerate(cands):
+        d = np.abs(cur - pp[:, rng + dy:rng + dy + h, rng + dx:rng + dx + w])
+        sads[i] = (rows @ d @ cols).reshape(c, -1)  # block sums as two matrix products
+    best = np.argmin(sads, 0)
+    return np.asarray(cands, np.int64)[best]
+
+
+def motion_compensate(prev: np.ndarray, mvs: np.ndarray, n: int, rng: int) -> np.ndarray:
+    """Blocks of ``prev`` (C, H, W) displaced by ``mvs`` (C, nblk, 2) -> (C, nblk, N*N)."""
+    c, h, w = prev.shape
+    pp = np.pad(prev.astype(np.int64), ((0, 0), (rng, rng), (rng, rng)), mode="edge")
+    nbx = w // n
+    by, bx = np.divmod(np.arange((h // n) * nbx), nbx)
+    yy, xx = np.divmod(np.arange(n * n), n)
+    rows = rng + by[None, :, None] * n + mvs[..., 0:1] + yy
+    cols = rng + bx[None, :, None] * n + mvs[..., 1:2] + xx
+    return pp[np.arange(c)[:, None, None], rows, cols]

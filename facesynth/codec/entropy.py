@@ -1,0 +1,216 @@
+"""Adaptive, context-modelled entropy coding of a frame's symbols with ``constriction``.
+
+``constriction``'s range coder (queue, FIFO) does the arithmetic; the models are ours:
+integer frequency tables per context, initialised flat, updated after every chunk of
+symbols (so encoder and decoder adapt identically without per-symbol Python loops) and
+halved when a context's total passes :data:`LIMIT` (aging). Contexts only ever depend
+on symbols decoded in earlier chunks, so the decoder can decode a whole frame before
+reconstructing it.
+
+Chunks grow 32, 64, ... up to 4096 symbols.
+
+Levels of one 4x4 transform block are coded HEVC-style: first ``last`` (1 + position
+of the last non-zero coefficient in zigzag order, 0 for an empty block), then
+coefficient planes k = 0..15 over the blocks with ``last > k``: ``min(|v|, 15)`` in a
+context of (k, non-zeros so far, |previous level|, is-last), the signs as raw bits, and
+escapes ``|v| - 15`` as Exp-Golomb (adaptive length class + raw bits).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import constriction
+
+Categorical = constriction.stream.model.Categorical
+Uniform = constriction.stream.model.Uniform
+RangeEncoder = constriction.stream.queue.RangeEncoder
+RangeDecoder = constriction.stream.queue.RangeDecoder
+
+LIMIT = 1 << 16
+CHUNK = 4096
+ESC = 15
+_CAT = Categorical(perfect=False)
+_UNI = Uniform()
+
+
+class AdaptiveModel:
+    """Frequency counts (contexts, symbols), flat at start, updated per chunk."""
+
+    def __init__(self, n_ctx: int, n_sym: int):
+        self.counts = np.ones((n_ctx, n_sym), np.int64)
+        self.n_sym = n_sym
+
+    def probs(self, ctx: np.ndarray) -> np.ndarray:
+        return self.counts[ctx].astype(np.float32)
+
+    def update(self, ctx: np.ndarray, sym: np.ndarray) -> None:
+        flat = np.bincount(ctx * self.n_sym + sym, minlength=self.counts.size)
+        self.counts += (flat.reshape(self.counts.shape) * 4)
+        big = self.counts.sum(1) > LIMIT
+        if big.any():
+            self.counts[big] = (self.counts[big] + 1) >> 1
+
+
+def _chunks(n: int):
+    """Chunk bounds 32, 64, 128, ... up to :data:`CHUNK`: models adapt fast at first."""
+    s, size = 0, 32
+    while s < n:
+        yield s, min(n, s + size)
+        s, size = s + size, min(2 * size, CHUNK)
+
+
+def _enc_adaptive(enc: RangeEncoder, model: AdaptiveModel, ctx: np.ndarray, sym: np.ndarray) -> None:
+    for s, e in _chunks(len(sym)):
+        c, v = ctx[s:e], sym[s:e]
+        enc.encode(v.astype(np.int32), _CAT, model.probs(c))
+        model.update(c, v)
+
+
+def _dec_adaptive(dec: RangeDecoder, model: AdaptiveModel, ctx: np.ndarray) -> np.ndarray:
+    out = np.empty(len(ctx), np.int64)
+    for s, e in _chunks(len(ctx)):
+        c = ctx[s:e]
+        v = np.asarray(dec.decode(_CAT, model.probs(c)), np.int64)
+        model.update(c, v)
+        out[s:e] = v
+    return out
+
+
+def _enc_raw(enc: RangeEncoder, value: np.ndarray, nbits: np.ndarray) -> None:
+    """Raw ``nbits``-bit values (nbits <= 46), as up to two uniform symbols each."""
+    for lo_bits in (23, 0):
+        sel = nbits > lo_bits
+        if lo_bits == 23:
+            hi = nbits[sel] - 23
+            if sel.any():
+                enc.encode((value[sel] >> 23).astype(np.int32), _UNI, (1 << hi).astype(np.int32))
+        else:
+            b = np.minimum(nbits[sel], 23)
+            enc.encode((value[sel] & ((1 << b) - 1)).astype(np.int32), _UNI, (1 << b).astype(np.int32))
+
+
+def _dec_raw(dec: RangeDecoder, nbits: np.ndarray) -> np.ndarray:
+    out = np.zeros(len(nbits), np.int64)
+    sel = nbits > 23
+    if sel.any():
+        out[sel] = np.asarray(dec.decode(_UNI, (1 << (nbits[sel] - 23)).astype(np.int32)), np.int64) << 23
+    sel = nbits > 0
+    b = np.minimum(nbits[sel], 23)
+    if sel.any():
+        out[sel] |= np.asarray(dec.decode(_UNI, (1 << b).astype(np.int32)), np.int64)
+    return out
+
+
+class _LevelModels:
+    def __init__(self):
+        self.last = AdaptiveModel(1, 17)
+        self.level = AdaptiveModel(16 * 3 * 3 * 2, ESC + 1)
+        self.esc = AdaptiveModel(3, 48)
+
+
+def _level_ctx(k: int, nnz: np.ndarray, prev: np.ndarray, is_last: np.ndarray) -> np.ndarray:
+    return ((k * 3 + np.minimum(nnz, 2)) * 3 + np.minimum(prev, 2)) * 2 + is_last
+
+
+def encode_levels(enc: RangeEncoder, levels: np.ndarray) -> None:
+    """Encode levels (R, 16) int64 (zigzag order)."""
+    lv = levels.reshape(-1, 16).astype(np.int64)
+    nz = lv != 0
+    last = np.where(nz.any(1), 16 - np.argmax(nz[:, ::-1], 1), 0)
+    m = _LevelModels()
+    _enc_adaptive(enc, m.last, np.zeros(len(lv), np.int64), last)
+    nnz = np.zeros(len(lv), np.int64)
+    prev = np.zeros(len(lv), np.int64)
+    for k in range(16):
+        rows = np.nonzero(last > k)[0]
+        if rows.size == 0:
+            break
+        v = lv[rows, k]
+        a = np.abs(v)
+        s = np.minimum(a, ESC)
+        ctx = _level_ctx(k, nnz[rows], prev[rows], (last[rows] == k + 1).astype(np.int64))
+        _enc_adaptive(enc, m.level, ctx, s)
+        sg = v[v != 0]
+        if sg.size:
+            enc.encode((sg < 0).astype(np.int32), _UNI, np.full(sg.size, 2, np.int32))
+        e = a[a >= ESC] - ESC + 1
+        if e.size:
+            nb = np.floor(np.log2(e)).astype(np.int64)
+            ectx = np.full(e.size, 0 if k == 0 else (1 if k < 6 else 2), np.int64)
+            _enc_adaptive(enc, m.esc, ectx, nb)
+            _enc_raw(enc, e - (1 << nb), nb)
+        nnz[rows] += a > 0
+        prev[rows] = a
+
+
+def decode_levels(dec: RangeDecoder, n_rows: int) -> np.ndarray:
+    """Decode ``n_rows`` blocks of 16 levels written by :func:`encode_levels`."""
+    m = _LevelModels()
+    last = _dec_adaptive(dec, m.last, np.zeros(n_rows, np.int64))
+    lv = np.zeros((n_rows, 16), np.int64)
+    nnz = np.zeros(n_rows, np.int64)
+    prev = np.zeros(n_rows, np.int64)
+    for k in range(16):
+        rows = np.nonzero(last > k)[0]
+        if rows.size == 0:
+            break
+        ctx = _level_ctx(k, nnz[rows], prev[rows], (last[rows] == k + 1).astype(np.int64))
+        a = _dec_adaptive(dec, m.level, ctx)
+        nzi = np.nonzero(a)[0]
+        neg = np.zeros(a.size, bool)
+        if nzi.size:
+            neg[nzi] = np.asarray(dec.decode(_UNI, np.full(nzi.size, 2, np.int32))) == 1
+        esc = np.nonzero(a >= ESC)[0]
+        if esc.size:
+            ectx = np.full(esc.size, 0 if k == 0 else (1 if k < 6 else 2), np.int64)
+            nb = _dec_adaptive(dec, m.esc, ectx)
+            a[esc] = (1 << nb) + _dec_raw(dec, nb) + ESC - 1
+        lv[rows, k] = np.where(neg, -a, a)
+        nnz[rows] += a > 0
+        prev[rows] = a
+    return lv
+
+
+def encode_modes(enc: RangeEncoder, modes: np.ndarray, n_modes: int) -> None:
+    """Modes (C, BY, BX) coded row by row, context = (channel, mode of the block above)."""
+    c, by, bx = modes.shape
+    model = AdaptiveModel(c * (n_modes + 1), n_modes)
+    above = np.full((c, bx), n_modes, np.int64)
+    ch = np.repeat(np.arange(c), bx)
+    for r in range(by):
+        ctx = ch * (n_modes + 1) + above.ravel()
+        sym = modes[:, r].ravel().astype(np.int64)
+        enc.encode(sym.astype(np.int32), _CAT, model.probs(ctx))
+        model.update(ctx, sym)
+        above = modes[:, r].astype(np.int64)
+
+
+def decode_modes(dec: RangeDecoder, shape: tuple[int, int, int], n_modes: int) -> np.ndarray:
+    c, by, bx = shape
+    model = AdaptiveModel(c * (n_modes + 1), n_modes)
+    above = np.full((c, bx), n_modes, np.int64)
+    ch = np.repeat(np.arange(c), bx)
+    out = np.empty((c, by, bx), np.int64)
+    for r in range(by):
+        ctx = ch * (n_modes + 1) + above.ravel()
+        sym = np.asarray(dec.decode(_CAT, model.probs(ctx)), np.int64)
+        if sym.max(initial=0) >= n_modes:
+            raise ValueError("mode out of range")
+        model.update(ctx, sym)
+        out[:, r] = sym.reshape(c, bx)
+        above = out[:, r]
+    return out
+
+
+def encode_mvs(enc: RangeEncoder, mvs: np.ndarray, rng: int) -> None:
+    """Motion vectors (M, 2) in [-rng, rng], adaptive per component."""
+    model = AdaptiveModel(2, 2 * rng + 1)
+    sym = (mvs + rng).astype(np.int64)
+    ctx = np.broadcast_to(np.arange(2), sym.shape)
+    _enc_adaptive(enc, model, ctx.ravel().copy(), sym.ravel())
+
+
+def decode_mvs(dec: RangeDecoder, n: int, rng: int) -> np.ndarray:
+    model = AdaptiveModel(2, 2 * rng + 1)
+    ctx = np.tile(np.arange(2), n)
+    return _dec_adaptive(dec, model, ctx).reshape(n, 2) - rng

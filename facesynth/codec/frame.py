@@ -1,0 +1,246 @@
+"""Frame encoder and decoder: wavefront intra/inter prediction, residual coding, RD choice.
+
+For every wavefront (see :mod:`facesynth.codec.blocks`) the encoder forms all candidate
+predictions of all its blocks and channels at once, codes every candidate residual
+(transform, quantisation, reconstruction), and keeps per block and channel the mode of
+least ``J = D + lambda(QP) R`` (D: SSD weighted by the coverage mask, R: an estimate of
+the level bits). The block size is chosen per frame by the same cost. The decoder
+entropy-decodes the whole frame first, rebuilds all residuals in one pass, then runs
+the wavefront with the same prediction code, so its output equals the encoder's
+reconstruction bit for bit.
+"""
+
+from __future__ import annotations
+
+import struct
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from facesynth.codec import entropy, intra
+from facesynth.codec.intra import n_neighbours
+from facesynth.codec.blocks import (
+    MID, ModeSet, grid, motion_compensate, motion_search, padded, prev_maps, unpadded, wave_predictions,
+)
+from facesynth.codec.transform import code_residual, decode_residual, lagrangian
+
+
+@dataclass
+class CodecConfig:
+    """Encoder settings.
+
+    qp : int or None (lossless); pdp : spatial PDP modes; pvm : temporal PDP (PVM) modes
+    in P-frames; inter : motion-compensated prediction in P-frames; gop : frames per
+    group (1 = all intra); block_sizes : candidate N per frame; mv_range : full-search
+    range in pixels; outside_weight : weight of pixels outside the mask in D;
+    rd_candidates : full RD test only for this many modes of least SAD (0 = all);
+    lambda_scale : multiplies the H.264 lambda(QP).
+    """
+
+    qp: int | None = 30
+    pdp: bool = True
+    pvm: bool = True
+    inter: bool = True
+    gop: int = 1
+    block_sizes: tuple[int, ...] = (4, 8)
+    mv_range: int = 4
+    outside_weight: float = 0.05
+    rd_candidates: int = 3
+    lambda_scale: float = 1.0
+
+
+@dataclass
+class FrameCode:
+    n: int
+    p_frame: bool
+    modes: np.ndarray  # (C, nblk)
+    levels: np.ndarray  # (C, nblk, (N/4)^2, 16)
+    mvs: np.ndarray  # (C, nblk, 2)
+    stats: dict = field(default_factory=dict)
+
+
+def mode_set(cfg_pdp: bool, cfg_pvm: bool, cfg_inter: bool, n: int, p_frame: bool) -> ModeSet:
+    return ModeSet(n, cfg_pdp, cfg_pvm and p_frame, cfg_inter and p_frame)
+
+
+MODE_BITS = 2.5  # typical adaptive cost of a block's mode; enters the per-frame block-size choice
+
+
+def _est_bits(lev: np.ndarray) -> np.ndarray:
+    """Rough level bits (..., S, 16) -> (...): 2 + 2 log2(1 + |l|) per non-zero, 1 per sub-block."""
+    a = np.abs(lev)
+    b = np.where(a > 0, 2.0 + 2.0 * np.log2(1.0 + a), 0.0)
+    return b.sum((-1, -2)) + lev.shape[-2]
+
+
+def encode_frame(x: np.ndarray, prev: np.ndarray | None, cfg: CodecConfig,
+                 weight: np.ndarray | None = None) -> tuple[FrameCode, np.ndarray]:
+    """Encode one frame (C, H, W) int64; ``prev`` (C, H, W) makes it a P-frame.
+
+    Returns the frame's code and its reconstruction (C, H, W) int64.
+    """
+    best = None
+    for n in cfg.block_sizes:
+        code, rec, cost = _encode_n(x, prev, cfg, weight, n)
+        if best is None or cost < best[2]:
+            best = (code, rec, cost)
+    return best[0], best[1]
+
+
+def _encode_n(x, prev, cfg, weight, n):
+    c, h, w = x.shape
+    g = grid(n, h, w)
+    ms = mode_set(cfg.pdp, cfg.pvm, cfg.inter, n, prev is not None)
+    qp = cfg.qp
+    lam = lagrangian(qp) * cfg.lambda_scale
+    xb = padded(x)[:, g.pix_idx]
+    wt = np.ones((h, w)) if weight is None else np.where(weight, 1.0, cfg.outside_weight)
+    wb = np.pad(wt, ((1, 0), (1, 0))).ravel()[g.pix_idx]
+    buf = padded(np.full_like(x, MID))
+    maps = prev_maps(padded(prev), g) if ms.pvm else None
+    nsub = (n // 4) ** 2
+    modes = np.zeros((c, g.n_blocks), np.int64)
+    levels = np.zeros((c, g.n_blocks, nsub, 16), np.int64)
+    mvs = np.zeros((c, g.n_blocks, 2), np.int64)
+    if ms.inter:
+        mvs_all = motion_search(x, prev, n, cfg.mv_range)
+        pi = motion_compensate(prev, mvs_all, n, cfg.mv_range)
+        lev_i, rr = code_residual(xb - pi, n, qp, intra=False)
+        rec_i = np.clip(pi + rr, 0, 65535)
+        mvbits = 2.0 * (np.abs(mvs_all) > 0).sum(-1) + 1.0
+        j_i = (((xb - rec_i) ** 2) * wb).sum(-1) + lam * (_est_bits(lev_i) + mvbits)
+    total = 0.0
+    mp = ms.n_predictive
+    kk = mp if not cfg.rd_candidates else min(cfg.rd_candidates, mp)
+    ones = np.ones(n * n)
+    for ids in g.waves:
+        pred = wave_predictions(buf, g, ids, ms, maps)
+        xi = xb[:, ids, None, :]
+        wi = wb[ids][None, :, None, :]
+        if kk < mp:  # prune to the kk modes of least weighted SAD before the full RD test
+            sad = (np.abs(xi - pred) * wi) @ ones
+            cand = np.argpartition(sad, kk - 1, axis=-1)[..., :kk]
+            pred = np.take_along_axis(pred, cand[..., None], 2)
+        else:
+            cand = np.broadcast_to(np.arange(mp), pred.shape[:3])
+        lev, rres = code_residual(xi - pred, n, qp)
+        rec = np.clip(pred + rres, 0, 65535)
+        j = (((xi - rec) ** 2) * wi) @ ones + lam * _est_bits(lev)
+        if ms.inter:
+            j = np.concatenate([j, j_i[:, ids, None]], -1)
+        bl = np.argmin(j, -1)
+        bi = np.minimum(bl, kk - 1)
+        b = np.take_along_axis(cand, bi[..., None], -1)[..., 0]
+        r = np.take_along_axis(rec, bi[..., None, None], 2)[:, :, 0]
+        lv = np.take_along_axis(lev, bi[..., None, None, None], 2)[:, :, 0]
+        if ms.inter:
+            is_i = (bl == kk)
+            b = np.where(is_i, mp, b)
+            r = np.where(is_i[..., None], rec_i[:, ids], r)
+            lv = np.where(is_i[..., None, None], lev_i[:, ids], lv)
+            mvs[:, ids] = np.where(is_i[..., None], mvs_all[:, ids], 0)
+        buf[:, g.pix_idx[ids]] = r
+        modes[:, ids] = b
+        levels[:, ids] = lv
+        total += float(np.take_along_axis(j, bl[..., None], -1).sum()) + lam * MODE_BITS * bl.size
+    return FrameCode(n, prev is not None, modes, levels, mvs), unpadded(buf, h, w).copy(), total
+
+
+def decode_frame(code: FrameCode, prev: np.ndarray | None, qp: int | None, flags: tuple[bool, bool, bool],
+                 mv_range: int, shape: tuple[int, int, int]) -> np.ndarray:
+    """Reconstruct one frame (C, H, W) int64 from its code.
+
+    Each block's mode is turned into one row of a weight bank (HIP, PDP, or zeros for
+    inter) plus an additive term (PVM map or motion-compensated block), so a wavefront
+    step is one batched product for the chosen modes only. The arithmetic (float64 sums
+    of integers, exact; floor; clips) is the encoder's, so the output is bit-exact.
+    """
+    c, h, w = shape
+    n = code.n
+    g = grid(n, h, w)
+    ms = mode_set(*flags, n, code.p_frame)
+    nh = 3 if n == 16 else 9
+    bank = np.concatenate([intra.hip_matrices(n), intra.pdp_matrices(n),
+                           np.zeros((1, n * n, n_neighbours(n)), np.int64)], 0)
+    bank = np.ascontiguousarray(np.swapaxes(bank, 1, 2).astype(np.float64))  # (modes, K, N*N)
+    modes = code.modes
+    lin = modes.copy()
+    plane = np.zeros_like(modes, bool)
+    add = np.zeros((c, g.n_blocks, n * n))
+    if n == 16:
+        plane = modes == 3
+        lin = np.where(modes > 3, modes - 1, np.where(plane, 0, modes))
+    first_pvm = ms.n_spatial
+    if ms.pvm:
+        maps = prev_maps(padded(prev), g)
+        is_pvm = (modes >= first_pvm) & (modes < first_pvm + 4)
+        d = np.clip(modes - first_pvm, 0, 3)
+        add += np.where(is_pvm[..., None], np.take_along_axis(maps, d[..., None, None], 2)[:, :, 0], 0)
+        lin = np.where(is_pvm, nh + d, lin)
+    if ms.inter:
+        is_i = modes == ms.inter_mode
+        pi = motion_compensate(prev, code.mvs, n, mv_range)
+        add += np.where(is_i[..., None], pi, 0)
+        lin = np.where(is_i, nh + 4, lin)
+    o = g.order  # everything in wavefront order: each wave is a contiguous slice
+    res = decode_residual(code.levels[:, o], n, qp).astype(np.float64)
+    add, lin, plane = add[:, o], lin[:, o], plane[:, o]
+    nb_idx, pix_idx = g.nb_idx[o], g.pix_idx[o]
+    buf = padded(np.full(shape, MID, np.int64)).astype(np.float64)
+    any_plane = plane.any()
+    half, scale = 2.0 ** (intra.SHIFT - 1), 2.0 ** -intra.SHIFT
+    for s, e in g.bounds:
+        nbv = buf[:, nb_idx[s:e]]
+        acc = np.matmul(nbv[:, :, None, :], bank[lin[:, s:e]])[:, :, 0]
+        acc += half
+        acc *= scale
+        np.floor(acc, out=acc)
+        acc += add[:, s:e]
+        if any_plane:
+            sel = plane[:, s:e]
+            if sel.any():
+                acc[sel] = intra.plane16(nbv[sel].astype(np.int64))
+        np.clip(acc, 0, 65535, out=acc)
+        acc += res[:, s:e]
+        np.clip(acc, 0, 65535, out=acc)
+        buf[:, pix_idx[s:e]] = acc
+    return unpadded(buf, h, w).astype(np.int64)
+
+
+_FRAME_HDR = struct.Struct("<BBB")
+
+
+def write_frame(code: FrameCode, flags: tuple[bool, bool, bool], mv_range: int, shape) -> bytes:
+    """Serialise a frame's symbols: 3-byte header + range-coder words."""
+    c, h, w = shape
+    ms = mode_set(*flags, code.n, code.p_frame)
+    g = grid(code.n, h, w)
+    enc = entropy.RangeEncoder()
+    entropy.encode_modes(enc, code.modes.reshape(c, *g.shape), ms.n_modes)
+    if ms.inter:
+        entropy.encode_mvs(enc, code.mvs[code.modes == ms.inter_mode], mv_range)
+    entropy.encode_levels(enc, code.levels.reshape(-1, 16))
+    words = enc.get_compressed()
+    return _FRAME_HDR.pack(int(code.p_frame), code.n, mv_range) + words.astype("<u4").tobytes()
+
+
+def read_frame(payload: bytes, flags: tuple[bool, bool, bool], shape) -> tuple[FrameCode, int]:
+    """Parse :func:`write_frame` output -> (FrameCode, mv_range). Raises ValueError if malformed."""
+    c, h, w = shape
+    if len(payload) < _FRAME_HDR.size or (len(payload) - _FRAME_HDR.size) % 4:
+        raise ValueError("frame payload has a bad length")
+    p, n, mv_range = _FRAME_HDR.unpack_from(payload)
+    if p not in (0, 1) or n not in (4, 8, 16) or h % n or w % n:
+        raise ValueError(f"bad frame header (type {p}, block size {n})")
+    ms = mode_set(*flags, n, bool(p))
+    g = grid(n, h, w)
+    words = np.frombuffer(payload, "<u4", offset=_FRAME_HDR.size).astype(np.uint32)
+    dec = entropy.RangeDecoder(words)
+    modes = entropy.decode_modes(dec, (c, *g.shape), ms.n_modes).reshape(c, -1)
+    mvs = np.zeros((c, g.n_blocks, 2), np.int64)
+    if ms.inter:
+        sel = modes == ms.inter_mode
+        mvs[sel] = entropy.decode_mvs(dec, int(sel.sum()), mv_range)
+    nsub = (n // 4) ** 2
+    levels = entropy.decode_levels(dec, c * g.n_blocks * nsub).reshape(c, g.n_blocks, nsub, 16)
+    return FrameCode(n, bool(p), modes, levels, mvs), mv_range
