@@ -90,17 +90,11 @@ class SADM:
 
 
 def _make_config(name: str, params: dict):
-    cls = REGISTRY[name]
-    cfg_cls = getattr(cls, "config_class", None)
-    if cfg_cls is None:
-        import importlib
+    """The config dataclass of regressor ``name`` filled with ``params``."""
+    from facesynth.sadm.regressors import CONFIGS
 
-        mod = importlib.import_module(cls.__module__)
-        cfg_cls = next((v for k, v in vars(mod).items() if k.endswith("Config") and isinstance(v, type)), None)
-    if cfg_cls is None:
-        return params
     try:
-        return cfg_cls(**params)
+        return CONFIGS[name](**params)
     except TypeError as exc:
         raise FacesynthError(f"regressor '{name}': bad hyper-parameters {params}: {exc}") from None
 
