@@ -207,3 +207,22 @@ def test_transfer_on_real_clip_moves_the_jaw(shared_mesh, shared_clip_dir):
     drop = (mesh.vertices[chin, 1] - out.vertices[chin, 1]) - (mesh.vertices[upper, 1] - out.vertices[upper, 1])
     assert drop > 1.0  # cm: the chin drops against the upper lip when the mouth opens wide
     np.testing.assert_array_equal(out.vertices[tr.handles], out.targets)
+
+
+def test_cli_on_real_clip_with_video(shared_mesh, shared_clip_dir, tmp_path, capsys):
+    clip = shared_clip_dir("lp_d6")
+    rc = main(["transfer3d", "--mesh", str(shared_mesh / "ict_face_9409_neutral.obj"),
+               "--landmark-map", str(shared_mesh / "ict_face_9409_ibug68_map.json"), "--landmarks", str(clip),
+               "--out", str(tmp_path / "s.npz"), "--stride", "200", "--render", str(tmp_path / "p.mp4"),
+               "--contact-sheet", str(tmp_path / "c.png")])
+    assert rc == 0
+    z = np.load(tmp_path / "s.npz")
+    assert z["vertices"].shape == (6, 9409, 3) and z["uvs"].shape == (9409, 2)
+    assert list(z["frame_index"]) == [0, 200, 400, 600, 800, 1000]
+    meta = json.loads(str(z["meta"]))
+    assert meta["summary"]["pose_reprojection_px_mean"] < 10
+    cap = cv2.VideoCapture(str(tmp_path / "p.mp4"))
+    ok, first = cap.read()
+    assert ok and first.shape == (480, 3 * 480, 3)
+    sheet = cv2.imread(str(tmp_path / "c.png"))
+    assert sheet is not None and sheet.shape[1] >= 3 * 300
