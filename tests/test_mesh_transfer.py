@@ -226,3 +226,20 @@ def test_cli_on_real_clip_with_video(shared_mesh, shared_clip_dir, tmp_path, cap
     assert ok and first.shape == (480, 3 * 480, 3)
     sheet = cv2.imread(str(tmp_path / "c.png"))
     assert sheet is not None and sheet.shape[1] >= 3 * 300
+
+
+def test_cli_preview_uses_frames_of_an_npz(tmp_path, rng):
+    _write_case(tmp_path, rng)
+    lm = np.load(tmp_path / "lm.npy")
+    frames = np.zeros((len(lm), 240, 320, 3), np.uint8)
+    frames[..., 2] = 220  # blue frames (RGB)
+    np.savez(tmp_path / "seq.npz", landmarks=lm, frames=frames, fps=np.float32(25))
+    rc = main(["transfer3d", "--mesh", str(tmp_path / "cap.obj"), "--landmark-map", str(tmp_path / "map.json"),
+               "--landmarks", str(tmp_path / "seq.npz"), "--out", str(tmp_path / "o.npz"), "--render", str(tmp_path / "p.mp4")])
+    assert rc == 0
+    cap = cv2.VideoCapture(str(tmp_path / "p.mp4"))
+    assert cap.get(cv2.CAP_PROP_FPS) == pytest.approx(25)
+    ok, bgr = cap.read()
+    assert ok and bgr.shape == (240, 960, 3)
+    corner = bgr[5:40, 5:40].reshape(-1, 3).mean(axis=0)  # video panel: blue (BGR order)
+    assert corner[0] > 150 and corner[2] < 60

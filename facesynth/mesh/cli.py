@@ -40,19 +40,30 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--tol", type=float, default=1e-3, help="relative-change threshold of the iterative methods")
     p.add_argument("--max-iter", type=int, default=30, help="iteration cap of the iterative methods")
     p.add_argument("--render", default=None, help="write a shaded preview video (.mp4): video | posed mesh | frontal")
-    p.add_argument("--video", default=None, help="source video for the preview (default: video.mp4 beside the landmarks)")
+    p.add_argument("--video", default=None,
+                   help="source video for the preview (default: the landmark source's video / frames, if any)")
     p.add_argument("--contact-sheet", default=None, help="write a PNG of characteristic frames (jaw, lips, brows)")
 
 
-def _video_frames(args, n_rows: int):
+def _frames_and_fps(args) -> tuple:
+    """The frame source for the preview (``--video``, ``video.mp4`` beside a ``.npy``, or
+    whatever the landmark source carries: an ingest folder's video, an .npz's frames) and
+    the frame rate (30 when unknown)."""
+    from facesynth.data import load_sequence
     from facesynth.data.frames import VideoFrames
 
+    lp = Path(args.landmarks)
     video = Path(args.video) if args.video else None
-    if video is None:
-        lp = Path(args.landmarks)
-        cand = lp / "video.mp4" if lp.is_dir() else lp.with_name("video.mp4")
-        video = cand if cand.is_file() else None
-    return VideoFrames(video) if video is not None else None
+    if video is None and lp.is_file() and (lp.with_name("video.mp4")).is_file():
+        video = lp.with_name("video.mp4")
+    if video is not None:
+        vf = VideoFrames(video)
+        return vf, vf.fps or 30.0
+    try:
+        seq = load_sequence(lp)
+    except FacesynthError:
+        return None, 30.0
+    return seq.frames, float(seq.fps or 30.0)
 
 
 def _image_size(args, frames, lm) -> tuple[int, int]:
@@ -98,9 +109,10 @@ def run(args: argparse.Namespace) -> int:
     if not 0 <= neutral < len(lm) or not finite[neutral]:
         raise FacesynthError(f"--neutral-frame {neutral}: not a frame with finite landmarks (0..{len(lm) - 1})")
 
-    frames = _video_frames(args, len(lm)) if (args.render or args.contact_sheet) else None
+    frames, fps = _frames_and_fps(args)
     size = _image_size(args, frames, lm)
-    fps = frames.fps if frames is not None and frames.fps else 30.0
+    if not (args.render or args.contact_sheet):
+        frames = None
     cfg = TransferConfig(method=args.method, constraints=args.constraints, weight=args.weight, pose_method=args.pose_method,
                          fov_deg=args.fov, movement=args.movement, tol=args.tol, max_iter=args.max_iter,
                          anchors=args.anchors)
