@@ -30,6 +30,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--pose-method", default="epnp", choices=("dlt", "ndlt", "epnp", "cv-epnp", "cv-sqpnp", "cv-iterative"))
     p.add_argument("--movement", choices=("transformation", "projection"), default="transformation",
                    help="movement vectors: similarity-aligned neutral frame (default) or residual to the projected model")
+    p.add_argument("--image-size", default=None, metavar="WxH",
+                   help="frame size of the landmarks' video (default: from the frames or meta.json)")
     p.add_argument("--fov", type=float, default=40.0, help="assumed horizontal field of view of the video camera, degrees")
     p.add_argument("--neutral-frame", type=int, default=None, help="row of the neutral reference frame (default: first finite)")
     p.add_argument("--smooth", action="store_true", help="One Euro smoothing of the pose over time (off by default)")
@@ -67,6 +69,13 @@ def _frames_and_fps(args) -> tuple:
 
 
 def _image_size(args, frames, lm) -> tuple[int, int]:
+    if args.image_size:
+        try:
+            w, h = (int(v) for v in args.image_size.lower().split("x"))
+            assert w > 0 and h > 0
+        except (ValueError, AssertionError):
+            raise FacesynthError(f"--image-size {args.image_size!r}: expected WIDTHxHEIGHT, e.g. 640x480") from None
+        return w, h
     if frames is not None:
         h, w = frames.size
         return w, h
@@ -76,6 +85,7 @@ def _image_size(args, frames, lm) -> tuple[int, int]:
         if v.get("width") and v.get("height"):
             return int(v["width"]), int(v["height"])
     finite = lm[np.isfinite(lm).all(axis=(1, 2))]
+    log.warning("frame size unknown: guessed from the landmarks' extent (give --image-size for a correct camera)")
     return int(np.ceil(finite[..., 0].max() * 1.2)), int(np.ceil(finite[..., 1].max() * 1.2))
 
 
