@@ -9,6 +9,7 @@ import trimesh
 from scipy.spatial.transform import Rotation
 
 from facesynth.cli import main
+from facesynth.errors import FacesynthError
 from facesynth.mesh.camera import MESH_TO_CAMERA, default_intrinsics, project, projection_matrix, rotation_angle_deg
 from facesynth.mesh.io import FaceMesh
 from facesynth.mesh.preview import expression_stats, pick_sheet_frames
@@ -207,3 +208,71 @@ def test_transfer_on_real_clip_moves_the_jaw(shared_mesh, shared_clip_dir):
     drop = (mesh.vertices[chin, 1] - out.vertices[chin, 1]) - (mesh.vertices[upper, 1] - out.vertices[upper, 1])
     assert drop > 1.0  # cm: the chin drops against the upper lip when the mouth opens wide
     np.testing.assert_array_equal(out.vertices[tr.handles], out.targets)
+
+
+def test_cli_on_real_clip_with_video(shared_mesh, shared_clip_dir, tmp_path, capsys):
+    clip = shared_clip_dir("lp_d6")
+    rc = main(["transfer3d", "--mesh", str(shared_mesh / "ict_face_9409_neutral.obj"),
+               "--landmark-map", str(shared_mesh / "ict_face_9409_ibug68_map.json"), "--landmarks", str(clip),
+               "--out", str(tmp_path / "s.npz"), "--stride", "200", "--render", str(tmp_path / "p.mp4"),
+               "--contact-sheet", str(tmp_path / "c.png")])
+    assert rc == 0
+    z = np.load(tmp_path / "s.npz")
+    assert z["vertices"].shape == (6, 9409, 3) and z["uvs"].shape == (9409, 2)
+    assert list(z["frame_index"]) == [0, 200, 400, 600, 800, 1000]
+    meta = json.loads(str(z["meta"]))
+    assert meta["summary"]["pose_reprojection_px_mean"] < 10
+    cap = cv2.VideoCapture(str(tmp_path / "p.mp4"))
+    ok, first = cap.read()
+    assert ok and first.shape == (480, 3 * 480, 3)
+    sheet = cv2.imread(str(tmp_path / "c.png"))
+    assert sheet is not None and sheet.shape[1] >= 3 * 300
+
+
+def test_cli_preview_uses_frames_of_an_npz(tmp_path, rng):
+    _write_case(tmp_path, rng)
+    lm = np.load(tmp_path / "lm.npy")
+    frames = np.zeros((len(lm), 240, 320, 3), np.uint8)
+    frames[..., 2] = 220  # blue frames (RGB)
+    np.savez(tmp_path / "seq.npz", landmarks=lm, frames=frames, fps=np.float32(25))
+    rc = main(["transfer3d", "--mesh", str(tmp_path / "cap.obj"), "--landmark-map", str(tmp_path / "map.json"),
+               "--landmarks", str(tmp_path / "seq.npz"), "--out", str(tmp_path / "o.npz"), "--render", str(tmp_path / "p.mp4")])
+    assert rc == 0
+    cap = cv2.VideoCapture(str(tmp_path / "p.mp4"))
+    assert cap.get(cv2.CAP_PROP_FPS) == pytest.approx(25)
+    ok, bgr = cap.read()
+    assert ok and bgr.shape == (240, 960, 3)
+    corner = bgr[5:40, 5:40].reshape(-1, 3).mean(axis=0)  # video panel: blue (BGR order)
+    assert corner[0] > 150 and corner[2] < 60
+
+
+def test_transfer_with_partial_landmark_map(rng):
+    mesh = _cap_mesh()
+    lmap = _map(mesh, rng).astype(np.int64)
+    lmap[[0, 16, 60, 64]] = -1  # e.g. a mesh without outline ends and inner mouth corners
+    K = default_intrinsics(480, 480)
+    full = np.where(lmap >= 0, lmap, 0)
+    Q = _landmarks(mesh, full, MESH_TO_CAMERA, np.array([0, 0, 50.0]), K).astype(float)
+    tr = Transfer(mesh, lmap, (480, 480))
+    assert len(tr.handles) == 64
+    tr.set_reference(Q)
+    Q2 = Q.copy()
+    Q2[57, 1] += 5
+    out = tr.frame(Q2)
+    assert np.isfinite(out.vertices).all()
+    assert out.vertices[lmap[57], 1] < mesh.vertices[lmap[57], 1]  # moved down in the image = down in y
+    with pytest.raises(FacesynthError, match="mouth corners"):
+        bad = lmap.copy()
+        bad[48] = -1
+        Transfer(mesh, bad, (480, 480))
+
+
+def test_cli_image_size_option(tmp_path, rng, capsys):
+    _write_case(tmp_path, rng)
+    base = ["transfer3d", "--mesh", str(tmp_path / "cap.obj"), "--landmark-map", str(tmp_path / "map.json"),
+            "--landmarks", str(tmp_path / "lm.npy"), "--out", str(tmp_path / "o.npz")]
+    assert main(base + ["--image-size", "320x240"]) == 0
+    z = np.load(tmp_path / "o.npz")
+    np.testing.assert_allclose(z["K"][0], default_intrinsics(320, 240))
+    assert main(base + ["--image-size", "big"]) == 2
+    assert "WIDTHxHEIGHT" in capsys.readouterr().err

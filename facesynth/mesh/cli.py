@@ -30,6 +30,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--pose-method", default="epnp", choices=("dlt", "ndlt", "epnp", "cv-epnp", "cv-sqpnp", "cv-iterative"))
     p.add_argument("--movement", choices=("transformation", "projection"), default="transformation",
                    help="movement vectors: similarity-aligned neutral frame (default) or residual to the projected model")
+    p.add_argument("--image-size", default=None, metavar="WxH",
+                   help="frame size of the landmarks' video (default: from the frames or meta.json)")
     p.add_argument("--fov", type=float, default=40.0, help="assumed horizontal field of view of the video camera, degrees")
     p.add_argument("--neutral-frame", type=int, default=None, help="row of the neutral reference frame (default: first finite)")
     p.add_argument("--smooth", action="store_true", help="One Euro smoothing of the pose over time (off by default)")
@@ -40,22 +42,40 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--tol", type=float, default=1e-3, help="relative-change threshold of the iterative methods")
     p.add_argument("--max-iter", type=int, default=30, help="iteration cap of the iterative methods")
     p.add_argument("--render", default=None, help="write a shaded preview video (.mp4): video | posed mesh | frontal")
-    p.add_argument("--video", default=None, help="source video for the preview (default: video.mp4 beside the landmarks)")
+    p.add_argument("--video", default=None,
+                   help="source video for the preview (default: the landmark source's video / frames, if any)")
     p.add_argument("--contact-sheet", default=None, help="write a PNG of characteristic frames (jaw, lips, brows)")
 
 
-def _video_frames(args, n_rows: int):
+def _frames_and_fps(args) -> tuple:
+    """The frame source for the preview (``--video``, ``video.mp4`` beside a ``.npy``, or
+    whatever the landmark source carries: an ingest folder's video, an .npz's frames) and
+    the frame rate (30 when unknown)."""
+    from facesynth.data import load_sequence
     from facesynth.data.frames import VideoFrames
 
+    lp = Path(args.landmarks)
     video = Path(args.video) if args.video else None
-    if video is None:
-        lp = Path(args.landmarks)
-        cand = lp / "video.mp4" if lp.is_dir() else lp.with_name("video.mp4")
-        video = cand if cand.is_file() else None
-    return VideoFrames(video) if video is not None else None
+    if video is None and lp.is_file() and (lp.with_name("video.mp4")).is_file():
+        video = lp.with_name("video.mp4")
+    if video is not None:
+        vf = VideoFrames(video)
+        return vf, vf.fps or 30.0
+    try:
+        seq = load_sequence(lp)
+    except FacesynthError:
+        return None, 30.0
+    return seq.frames, float(seq.fps or 30.0)
 
 
 def _image_size(args, frames, lm) -> tuple[int, int]:
+    if args.image_size:
+        try:
+            w, h = (int(v) for v in args.image_size.lower().split("x"))
+            assert w > 0 and h > 0
+        except (ValueError, AssertionError):
+            raise FacesynthError(f"--image-size {args.image_size!r}: expected WIDTHxHEIGHT, e.g. 640x480") from None
+        return w, h
     if frames is not None:
         h, w = frames.size
         return w, h
@@ -65,6 +85,7 @@ def _image_size(args, frames, lm) -> tuple[int, int]:
         if v.get("width") and v.get("height"):
             return int(v["width"]), int(v["height"])
     finite = lm[np.isfinite(lm).all(axis=(1, 2))]
+    log.warning("frame size unknown: guessed from the landmarks' extent (give --image-size for a correct camera)")
     return int(np.ceil(finite[..., 0].max() * 1.2)), int(np.ceil(finite[..., 1].max() * 1.2))
 
 
@@ -98,9 +119,10 @@ def run(args: argparse.Namespace) -> int:
     if not 0 <= neutral < len(lm) or not finite[neutral]:
         raise FacesynthError(f"--neutral-frame {neutral}: not a frame with finite landmarks (0..{len(lm) - 1})")
 
-    frames = _video_frames(args, len(lm)) if (args.render or args.contact_sheet) else None
+    frames, fps = _frames_and_fps(args)
     size = _image_size(args, frames, lm)
-    fps = frames.fps if frames is not None and frames.fps else 30.0
+    if not (args.render or args.contact_sheet):
+        frames = None
     cfg = TransferConfig(method=args.method, constraints=args.constraints, weight=args.weight, pose_method=args.pose_method,
                          fov_deg=args.fov, movement=args.movement, tol=args.tol, max_iter=args.max_iter,
                          anchors=args.anchors)
