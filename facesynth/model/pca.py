@@ -35,20 +35,24 @@ class PCAModel:
     def fit(cls, data: np.ndarray, n_components: int | None = None, variance: float | None = 0.98) -> "PCAModel":
         """Fit on (N, D) samples, keeping ``n_components`` or the smallest number of
         components that explains ``variance`` (a fraction in (0, 1]) of the total."""
-        x = np.asarray(data, np.float64)
+        x = np.asarray(data)
         if x.ndim != 2 or len(x) < 2:
             raise FacesynthError(f"PCA needs (N >= 2, D) data, got shape {x.shape}")
         if not np.isfinite(x).all():
             raise FacesynthError("PCA data contain NaN/inf")
-        mean = x.mean(0)
-        xc = x - mean
         n = len(x)
-        if x.shape[1] > n:  # Gram trick: eigen-decompose the N x N matrix
-            evals, u = np.linalg.eigh(xc @ xc.T)
+        wide = x.shape[1] > n
+        # Wide data (textures: N x C*M) stays in float32 to bound memory (one centred copy);
+        # the small N x N eigenproblem is solved in float64.
+        x = x.astype(np.float32 if wide and x.dtype == np.float32 else np.float64, copy=False)
+        mean = x.mean(0, dtype=np.float64)
+        xc = x - mean.astype(x.dtype)
+        if wide:  # Gram trick: eigen-decompose the N x N matrix
+            evals, u = np.linalg.eigh((xc @ xc.T).astype(np.float64))
             order = np.argsort(evals)[::-1]
             evals, u = np.clip(evals[order], 0, None), u[:, order]
             keep = evals > evals[0] * 1e-12
-            comps = (u[:, keep].T @ xc) / np.sqrt(evals[keep])[:, None]
+            comps = (u[:, keep].T.astype(xc.dtype) @ xc) / np.sqrt(evals[keep]).astype(xc.dtype)[:, None]
             evals = evals[keep]
         else:
             _, s, vt = np.linalg.svd(xc, full_matrices=False)
