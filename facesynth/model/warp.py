@@ -129,6 +129,7 @@ class ToTarget(nn.Module):
         h, w = self.canvas
         hr, wr = self.ref_size
         n_ref = hr * wr
+        self.n_tri = n_tri
         self.code_base = float(2 ** int(np.ceil(np.log2(n_tri + 2))))
         self.n_rows = max(int(span[:, 1].max()) if len(span) else 1, 1)
         self.register_buffer("tri", torch.from_numpy(tri))
@@ -215,7 +216,7 @@ class ToTarget(nn.Module):
         and the per-triangle vertices (B, T, 6) [x0 y0 x1 y1 x2 y2].
         """
         h, w = self.canvas
-        n_tri = self.tri.shape[0]
+        n_tri = self.n_tri
         flat = target.flatten(1)  # batch sizes stay symbolic: reshapes use -1, no Shape ops
         vert = flat[:, self.vert_index].reshape(-1, n_tri, 6)
         e = torch.matmul(vert, self.p_edges)  # (B, T, 4)
