@@ -181,7 +181,7 @@ class ToTarget(nn.Module):
         ones = np.ones(h * w, np.float32)
         xy1 = np.stack([xs.reshape(-1), ys.reshape(-1), ones, xs.reshape(-1), ys.reshape(-1), ones])
         self.register_buffer("xy1", torch.from_numpy(xy1.reshape(2, 3, h * w)))
-        self.register_buffer("six", torch.arange(6, dtype=torch.float32).reshape(6, 1))
+        self.register_buffer("six", torch.arange(6).reshape(6, 1))
         self.register_buffer("zeros_row", torch.zeros(h * (w + 1) + 1))
         self.register_buffer("fl_max", torch.tensor([[wr - 2.0], [hr - 2.0]]))
         self.register_buffer("fl_flat", torch.tensor([[1.0, float(wr)]]))
@@ -204,7 +204,7 @@ class ToTarget(nn.Module):
         n_ref = self.ref_size[0] * self.ref_size[1]
         ch = torch.arange(c, device=self.fill_index.device)
         fill = (self.fill_index.unsqueeze(0) + ch.unsqueeze(1) * self.n_mask).reshape(-1)
-        quad = (self.quad_offset.unsqueeze(0) + ch.unsqueeze(1) * n_ref).reshape(-1, 1).float()  # (4C, 1)
+        quad = (self.quad_offset.unsqueeze(0) + ch.unsqueeze(1) * n_ref).reshape(-1, 1)  # (4C, 1)
         return fill, quad
 
     # ---------------------------------------------------------------- pieces
@@ -263,7 +263,7 @@ class ToTarget(nn.Module):
         maps : (B, T * 6) from :meth:`affine_maps`; tri_id : (B, 1, H*W) float.
         """
         n = tri_id.shape[-1]
-        index = (tri_id * 6.0 + self.six).to(torch.int64).flatten(1)  # (B, 6 N): exact small integers
+        index = (tri_id.to(torch.int64) * 6 + self.six).flatten(1)  # (B, 6 N)
         m = torch.gather(maps, 1, index).reshape(-1, 2, 3, n) * self.xy1
         return m[:, :, 0] + m[:, :, 1] + m[:, :, 2]
 
@@ -281,8 +281,8 @@ class ToTarget(nn.Module):
         raster = torch.gather(flat, 1, fill)
         fl = torch.minimum(torch.clamp(torch.floor(uv), min=0.0), self.fl_max)
         frac = uv - fl  # (B, 2, N)
-        base = torch.matmul(self.fl_flat, fl)  # (B, 1, N) y0 * W_ref + x0, exact
-        index = (base + quad).to(torch.int64).flatten(1)  # (B, 4C N), channel-major then neighbour
+        base = torch.matmul(self.fl_flat, fl).to(torch.int64)  # (B, 1, N) y0 * W_ref + x0, exact
+        index = (base + quad).flatten(1)  # (B, 4C N), channel-major then neighbour
         g = torch.gather(raster, 1, index).reshape(-1, c, 4, n)
         fx, fy = frac[:, :1], frac[:, 1:]
         top = g[:, :, 0] + fx * (g[:, :, 1] - g[:, :, 0])

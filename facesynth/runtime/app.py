@@ -35,6 +35,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     src = p.add_mutually_exclusive_group(required=True)
     src.add_argument("--landmarks", help="driving landmarks (T, 68, 2): .npy, a clip folder, or any readable sequence")
     src.add_argument("--video", help="driving video; landmarks are detected with the 'ingest' extra (dlib)")
+    p.add_argument("--driver-video", help="with --landmarks: the video they came from, shown left in --side-by-side")
     p.add_argument("--out", required=True, help="output video (.mp4, mp4v codec)")
     p.add_argument("--background", help="background image (default: a neutral grey frame)")
     p.add_argument("--size", help="output frame size WxH when no background is given (default: the landmarks' extent)")
@@ -185,6 +186,10 @@ def run(args: argparse.Namespace) -> int:
         landmarks = load_landmarks(args.landmarks)
         if args.max_frames:
             landmarks = landmarks[: args.max_frames]
+        if args.driver_video:
+            driver_frames, video_fps = read_video(args.driver_video, len(landmarks))
+            if len(driver_frames) < len(landmarks):
+                raise FacesynthError(f"{args.driver_video}: {len(driver_frames)} frames for {len(landmarks)} landmark rows")
     fps = float(args.fps or video_fps or 30.0)
     if not fps > 0:
         raise FacesynthError(f"--fps must be > 0, got {fps}")
