@@ -1,1 +1,15 @@
-"""facesynth.runtime"""
+"""The torch-free runtime: run exported synthesis models with ONNX Runtime.
+
+Imports only numpy, onnxruntime and OpenCV (a test checks that torch stays unimported)::
+
+    from facesynth.runtime import Renderer
+    r = Renderer("model.onnx", threads=1)
+    crops, masks, placements = r.render(landmarks)      # (B, 68, 2) frame pixels
+    frame = r.render_frame(landmarks[0], background)     # uint8 (H, W, 3)
+"""
+
+from facesynth.runtime.composite import composite
+from facesynth.runtime.filters import OneEuroFilter, smooth_landmarks
+from facesynth.runtime.renderer import Renderer, read_metadata
+
+__all__ = ["OneEuroFilter", "Renderer", "composite", "read_metadata", "smooth_landmarks"]

@@ -1,0 +1,275 @@
+"""ONNX export of the whole synthesis graph (torch side; the runtime side is torch-free).
+
+    landmarks (B, 68, 2) frame px -> crop (B, C, H, W) in [0, 1], mask (B, 1, H, W),
+                                     placement (B, 2, 3) crop px -> frame px
+
+:class:`SynthesisGraph` computes exactly what :class:`facesynth.sadm.synthesis.Synthesizer`
+computes (the parity tests hold it to 1e-4), rewritten for a short ONNX graph: both
+similarity alignments (to the model's mean shape and to the reference frame) share one
+closed-form Umeyama solve as one matmul, the PCA projections fold their means into
+constants, and the piecewise-affine render warp is :class:`facesynth.model.warp.ToTarget`
+(scanline coverage counting, flat element gathers). Every regressor is called as its own
+``nn.Module``, so whatever the registry holds exports the same way.
+
+The ONNX file records its opset and metadata properties (see :data:`METADATA_KEYS`), which
+:class:`facesynth.runtime.Renderer` checks before running.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import warnings
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import nn
+
+from facesynth import __version__
+from facesynth.errors import FacesynthError
+from facesynth.io import atomic_path
+from facesynth.sadm.synthesis import GlobalAppearance, Synthesizer
+
+log = logging.getLogger(__name__)
+
+OPSET = 18
+INPUT_NAME = "landmarks"
+OUTPUT_NAMES = ("crop", "mask", "placement")
+OUTPUT_LAYOUT = (
+    "crop: float32 (B, C, H, W) in [0, 1], zeros outside the face; mask: float32 (B, 1, H, W) in {0, 1}; "
+    "placement: float32 (B, 2, 3) affine map from crop pixels (x, y) to frame pixels"
+)
+METADATA_KEYS = (
+    "facesynth_version", "format", "regressor", "landmark_scheme", "n_landmarks", "reference_size",
+    "channels", "data_fingerprint", "output_layout", "opset",
+)
+FORMAT = "facesynth.synthesis.onnx/1"
+
+
+class SynthesisGraph(nn.Module):
+    """The export form of a :class:`Synthesizer` (same outputs, fewer ONNX nodes).
+
+    Forward
+    -------
+    landmarks : (B, 68, 2) float32 frame pixels, iBUG order
+    returns : crop (B, C, H, W), mask (B, 1, H, W), placement (B, 2, 3)
+    """
+
+    def __init__(self, syn: Synthesizer):
+        super().__init__()
+        enc = syn.encoder
+        self.appearance = syn.appearance
+        self.warp = syn.warp
+        targets = [enc.mean_shape.double(), syn.ref_points.double()]  # (68, 2) each
+        cols, mus = [], []
+        for d in targets:
+            mu = d.mean(0)
+            dc = d - mu
+            perp = torch.stack([dc[:, 1], -dc[:, 0]], -1)  # s . perp = s_x d_y - s_y d_x
+            cols += [dc.reshape(-1), perp.reshape(-1)]
+            mus.append(mu)
+        # (136, 4): [a, b] of the closed-form 2D similarity to each target (Umeyama)
+        self.register_buffer("umeyama", torch.stack(cols, 1).float())
+        # [sa, sb] -> row-major M with aligned = s @ M, M = [[sa, sb], [-sb, sa]]
+        to_m = torch.tensor([[1.0, 0.0, 0.0, 1.0], [0.0, 1.0, -1.0, 0.0]])
+        self.register_buffer("to_m", torch.block_diag(to_m, to_m))  # (4, 8)
+        self.register_buffer("target_mean", torch.stack(mus).float().reshape(2, 1, 2))
+        self.register_buffer("ref_mean", mus[1].float().reshape(1, 2, 1))
+        # shape parameters: (aligned - mean) @ P^T = aligned @ P^T - mean @ P^T
+        self.register_buffer("shape_proj", enc.components.t().contiguous())
+        self.register_buffer("shape_offset", -(enc.mean @ enc.components.t()))
+        self.register_buffer("shape_limit", enc.limit.clone())
+        self.global_appearance = isinstance(syn.appearance, GlobalAppearance)
+        if self.global_appearance:
+            app = syn.appearance
+            self.channels = app.channels
+            self.register_buffer("app_limit", app.limit.clone())
+            self.register_buffer("app_mean", app.mean.clone())
+            self.register_buffer("app_components", app.components.clone())
+
+    def forward(self, landmarks: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        mu = landmarks.mean(1, keepdim=True)  # (B, 1, 2)
+        s = landmarks - mu
+        var = (s * s).flatten(1).sum(1, keepdim=True)  # (B, 1)
+        ab = torch.matmul(s.flatten(1), self.umeyama) / var  # (B, 4): sa, sb (model), sa, sb (canvas)
+        m = torch.matmul(ab, self.to_m).reshape(-1, 2, 2, 2)
+        both = torch.matmul(s.unsqueeze(1), m) + self.target_mean  # (B, 2, 68, 2)
+        aligned, canvas = both[:, 0], both[:, 1]
+        b_s = torch.matmul(aligned.flatten(1), self.shape_proj) + self.shape_offset
+        b_s = torch.minimum(torch.maximum(b_s, -self.shape_limit), self.shape_limit)
+        if self.global_appearance:
+            b_g = self.appearance.regressor(self.appearance.features(aligned, b_s))
+            b_g = torch.minimum(torch.maximum(b_g, -self.app_limit), self.app_limit)
+            tex = torch.clamp(torch.matmul(b_g, self.app_components) + self.app_mean, 0.0, 1.0)
+            tex = tex.reshape(-1, self.channels, self.app_mean.shape[0] // self.channels)
+        else:
+            tex = torch.clamp(self.appearance(aligned, b_s), 0.0, 1.0)
+        crop, mask = self.warp(tex, canvas)
+        # placement: inverse of the frame -> canvas similarity x_c = R (x - mu) + mu_ref
+        sa, sb = ab[:, 2:3], ab[:, 3:4]
+        n2 = sa * sa + sb * sb
+        inv = torch.matmul(ab[:, 2:], self.to_m[:2, :4]).reshape(-1, 2, 2) / n2.unsqueeze(-1)  # R^-1 = M / |s|^2
+        t = mu.transpose(1, 2) - torch.matmul(inv, self.ref_mean)  # (B, 2, 1)
+        return crop, mask, torch.cat([inv, t], 2)
+
+
+def regressor_name(syn: Synthesizer) -> str:
+    reg = getattr(syn.appearance, "regressor", None)
+    return str(getattr(reg, "name", type(syn.appearance).__name__))
+
+
+def export_synthesizer(syn: Synthesizer, path: str | os.PathLike, metadata: dict | None = None, opset: int = OPSET) -> Path:
+    """Export ``syn`` to one ONNX file (written atomically) with a dynamic batch axis.
+
+    Parameters
+    ----------
+    syn : Synthesizer
+    path : output ``.onnx`` file
+    metadata : dict, optional
+        Extra metadata properties (e.g. ``data_fingerprint``, ``run``); values are stored as
+        strings (JSON for non-strings). The standard keys of :data:`METADATA_KEYS` are filled
+        from ``syn`` unless given.
+    opset : int
+
+    Returns
+    -------
+    Path of the written file.
+    """
+    import onnx
+
+    path = Path(path)
+    graph = SynthesisGraph(syn.eval()).eval()
+    ref = syn.warp.ref_size
+    meta = {
+        "facesynth_version": __version__,
+        "format": FORMAT,
+        "regressor": regressor_name(syn),
+        "landmark_scheme": "ibug68",
+        "n_landmarks": 68,
+        "reference_size": list(ref),
+        "canvas_size": list(syn.warp.canvas),
+        "channels": int(getattr(syn.appearance, "channels", 3)),
+        "data_fingerprint": "",
+        "output_layout": OUTPUT_LAYOUT,
+        "opset": opset,
+        "n_scanline_events": syn.warp.n_candidates,
+    }
+    meta.update(metadata or {})
+    example = torch.from_numpy(_example_landmarks(syn))
+    with atomic_path(path) as tmp, warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the TorchScript exporter's deprecation notices
+        with torch.no_grad():
+            torch.onnx.export(
+                graph, (example,), str(tmp), input_names=[INPUT_NAME], output_names=list(OUTPUT_NAMES),
+                dynamic_axes={INPUT_NAME: {0: "batch"}, **{k: {0: "batch"} for k in OUTPUT_NAMES}},
+                opset_version=opset, dynamo=False, do_constant_folding=True,
+            )
+        model = onnx.load(str(tmp))
+        model.producer_name = "facesynth"
+        model.producer_version = __version__
+        model.doc_string = "facesynth synthesis graph: landmarks -> face crop, mask, placement"
+        for k, v in meta.items():
+            entry = model.metadata_props.add()
+            entry.key, entry.value = k, v if isinstance(v, str) else json.dumps(v)
+        onnx.checker.check_model(model)
+        onnx.save(model, str(tmp))
+    log.info("exported %s (%s regressor, %.1f MB)", path, meta["regressor"], path.stat().st_size / 1e6)
+    return path
+
+
+def _example_landmarks(syn: Synthesizer) -> np.ndarray:
+    """(2, 68, 2) plausible frame landmarks (the reference shape, shifted) for tracing."""
+    pts = syn.ref_points.detach().cpu().numpy().astype(np.float32)
+    return np.stack([pts + 20.0, pts * 1.1 + 5.0]).astype(np.float32)
+
+
+# ---------------------------------------------------------------------- runs
+RUN_FACE_MODEL = "face_model"
+RUN_REGRESSOR = "sadm"
+
+
+def load_synthesizer(run_dir: str | os.PathLike) -> tuple[Synthesizer, dict]:
+    """Rebuild the :class:`Synthesizer` of a training run directory.
+
+    Layout read (written by :func:`save_run_synthesizer`; ``train.py`` should write the same):
+
+    * ``RUN/face_model/``: :func:`facesynth.model.save_face_model`;
+    * ``RUN/sadm/regressor.json``: ``{"name", "config", "features", "clamp"}``;
+    * ``RUN/sadm/regressor.safetensors``: the regressor's ``state_dict()``.
+
+    Returns the synthesizer and metadata for the ONNX file (regressor, data fingerprint, run).
+    """
+    from safetensors.torch import load_file
+
+    from facesynth.model import load_face_model
+    from facesynth.sadm.regressors import REGISTRY
+
+    d = Path(run_dir)
+    if not d.is_dir():
+        raise FacesynthError(f"{d}: training run directory not found")
+    if not (d / RUN_FACE_MODEL / "face_model.json").is_file():
+        raise FacesynthError(f"{d}: not a training run ({RUN_FACE_MODEL}/face_model.json missing)")
+    cfg_path = d / RUN_REGRESSOR / "regressor.json"
+    tensors_path = d / RUN_REGRESSOR / "regressor.safetensors"
+    if not cfg_path.is_file() or not tensors_path.is_file():
+        raise FacesynthError(
+            f"{d}: no SADM regressor in this run (expected {RUN_REGRESSOR}/regressor.json and "
+            f"{RUN_REGRESSOR}/regressor.safetensors)"
+        )
+    model = load_face_model(d / RUN_FACE_MODEL)
+    try:
+        spec = json.loads(cfg_path.read_text())
+    except json.JSONDecodeError as exc:
+        raise FacesynthError(f"{cfg_path}: invalid JSON ({exc})") from None
+    name = spec.get("name")
+    if name not in REGISTRY:
+        raise FacesynthError(f"{cfg_path}: unknown regressor {name!r}; known: {sorted(REGISTRY)}")
+    reg = REGISTRY[name].from_state(spec.get("config", {}), load_file(str(tensors_path)))
+    app = GlobalAppearance(model, reg, features=spec.get("features", "bs"), clamp=spec.get("clamp", True))
+    syn = Synthesizer(model, app).eval()
+    return syn, {"regressor": name, "data_fingerprint": model.fingerprint, "run": d.name}
+
+
+def save_run_synthesizer(run_dir: str | os.PathLike, model, regressor, features: str = "bs", clamp: bool = True) -> Path:
+    """Write a face model and SADM regressor in the layout :func:`load_synthesizer` reads."""
+    from safetensors.torch import save_file
+
+    from facesynth.io import write_json
+    from facesynth.model import save_face_model
+
+    d = Path(run_dir)
+    save_face_model(model, d / RUN_FACE_MODEL)
+    (d / RUN_REGRESSOR).mkdir(parents=True, exist_ok=True)
+    with atomic_path(d / RUN_REGRESSOR / "regressor.safetensors") as tmp:
+        save_file({k: v.contiguous() for k, v in regressor.state_dict().items()}, str(tmp))
+    spec = {"name": regressor.name, "config": regressor.config_dict(), "features": features, "clamp": clamp}
+    write_json(d / RUN_REGRESSOR / "regressor.json", spec)
+    return d
+
+
+def export_run(run_dir: str | os.PathLike, out: str | os.PathLike, opset: int = OPSET) -> Path:
+    """``facesynth export RUN --out model.onnx``: load a run and export it."""
+    syn, meta = load_synthesizer(run_dir)
+    return export_synthesizer(syn, out, meta, opset)
+
+
+def check_export(syn: Synthesizer, path: str | os.PathLike, landmarks: np.ndarray | None = None, tol: float = 1e-4) -> float:
+    """Run ``path`` in ONNX Runtime and ``syn`` in torch on the same landmarks.
+
+    Returns the largest absolute crop difference; raises FacesynthError above ``tol`` or
+    when the masks differ in more than 0.1% of pixels.
+    """
+    from facesynth.runtime.renderer import Renderer
+
+    x = _example_landmarks(syn) if landmarks is None else np.asarray(landmarks, np.float32)
+    crop, mask, _ = Renderer(path).render(x)
+    with torch.no_grad():
+        t_crop, t_mask, _ = syn(torch.from_numpy(x))
+    both = mask * t_mask.numpy()
+    diff = float(np.abs((crop - t_crop.numpy()) * both).max())
+    flips = float((mask != t_mask.numpy()).mean())
+    if diff > tol or flips > 1e-3:
+        raise FacesynthError(f"{path}: ONNX Runtime differs from torch (max |crop diff| {diff:.2e}, mask flips {flips:.2%})")
+    return diff

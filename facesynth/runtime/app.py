@@ -1,0 +1,251 @@
+"""``facesynth app``: render a talking-head video from landmarks with an exported model.
+
+    facesynth app --model model.onnx (--landmarks L.npy | --video DRIVER.mp4) --out out.mp4
+                  [--background IMG] [--side-by-side] [--smooth] [--size WxH]
+
+Each frame's landmarks drive the model (batch 1, as a live app would), the face is
+composited into the background (:func:`facesynth.runtime.composite`), and the video is
+written atomically (mp4v). A progress bar shows frames/s; the summary gives latency
+percentiles of the model call and of the whole frame. Torch is never imported.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import time
+from pathlib import Path
+from typing import Iterator
+
+import cv2
+import numpy as np
+
+from facesynth.errors import FacesynthError, MissingExtraError
+from facesynth.io import atomic_path
+from facesynth.runtime.composite import composite
+
+log = logging.getLogger(__name__)
+GREY = 128
+SHEET_DIR = Path("/tmp/facesynth_out")
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--model", required=True, help="ONNX model written by 'facesynth export'")
+    src = p.add_mutually_exclusive_group(required=True)
+    src.add_argument("--landmarks", help="driving landmarks (T, 68, 2): .npy, a clip folder, or any readable sequence")
+    src.add_argument("--video", help="driving video; landmarks are detected with the 'ingest' extra (dlib)")
+    p.add_argument("--driver-video", help="with --landmarks: the video they came from, shown left in --side-by-side")
+    p.add_argument("--out", required=True, help="output video (.mp4, mp4v codec)")
+    p.add_argument("--background", help="background image (default: a neutral grey frame)")
+    p.add_argument("--size", help="output frame size WxH when no background is given (default: the landmarks' extent)")
+    p.add_argument("--side-by-side", action="store_true", help="driver (video frame or drawn landmarks) left, rendering right")
+    p.add_argument("--smooth", action="store_true", help="One Euro filter on the landmarks (Casiez et al. 2012)")
+    p.add_argument("--min-cutoff", type=float, default=1.0, help="One Euro min cutoff, Hz (default 1.0)")
+    p.add_argument("--beta", type=float, default=0.05, help="One Euro speed coefficient (default 0.05)")
+    p.add_argument("--fps", type=float, help="output frame rate (default: the driver video's, else 30)")
+    p.add_argument("--threads", type=int, default=1, help="ONNX Runtime intra-op threads (default 1)")
+    p.add_argument("--feather", type=float, default=2.0, help="soft edge of the pasted face, pixels (default 2)")
+    p.add_argument("--max-frames", type=int, help="render only the first N frames")
+    p.add_argument("--contact-sheet", help=f"also write a PNG contact sheet (driver above rendering), e.g. {SHEET_DIR}/sheet.png")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+# ------------------------------------------------------------------ inputs
+def parse_size(text: str) -> tuple[int, int]:
+    """'WxH' -> (W, H)."""
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise FacesynthError(f"--size: expected WxH (e.g. 480x480), got {text!r}") from None
+    if w < 16 or h < 16 or w > 8192 or h > 8192:
+        raise FacesynthError(f"--size: width and height must be in [16, 8192], got {w}x{h}")
+    return w, h
+
+
+def default_size(landmarks: np.ndarray, margin: float = 0.25) -> tuple[int, int]:
+    """(W, H) covering every landmark plus a margin of the face size; even numbers (codecs)."""
+    finite = landmarks[np.isfinite(landmarks).all(axis=(1, 2))]
+    if not len(finite):
+        raise FacesynthError("landmarks: no frame has a face (all rows NaN)")
+    hi = finite.reshape(-1, 2).max(0)
+    lo = finite.reshape(-1, 2).min(0)
+    pad = margin * float((hi - lo).max())
+    w, h = (int(np.ceil(v + pad)) for v in hi)
+    return max(w + w % 2, 64), max(h + h % 2, 64)
+
+
+def load_background(path: str | None, size: tuple[int, int]) -> np.ndarray:
+    """uint8 RGB (H, W, 3): an image file, or neutral grey of ``size`` (W, H)."""
+    if path is None:
+        w, h = size
+        return np.full((h, w, 3), GREY, np.uint8)
+    img = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    if img is None:
+        raise FacesynthError(f"{path}: not a readable image")
+    return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+
+
+def read_video(path: str, max_frames: int | None) -> tuple[list[np.ndarray], float]:
+    """All frames (uint8 RGB) of a video and its fps."""
+    cap = cv2.VideoCapture(str(path))
+    if not cap.isOpened():
+        raise FacesynthError(f"{path}: not a readable video")
+    fps = cap.get(cv2.CAP_PROP_FPS) or 30.0
+    frames = []
+    while max_frames is None or len(frames) < max_frames:
+        ok, bgr = cap.read()
+        if not ok:
+            break
+        frames.append(cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB))
+    cap.release()
+    if not frames:
+        raise FacesynthError(f"{path}: no frames decoded")
+    return frames, float(fps)
+
+
+def detect_video_landmarks(frames: list[np.ndarray]) -> np.ndarray:
+    """Landmarks (T, 68, 2) of driver frames with the ingest extra (dlib); NaN rows where no face."""
+    try:
+        from facesynth.data import detect
+    except ModuleNotFoundError as exc:
+        raise MissingExtraError("ingest", exc.name or "facesynth.data.detect") from None
+    detect.check_extra()
+    return np.asarray(detect.detect_landmarks(frames).landmarks, np.float32)
+
+
+def draw_landmarks(background: np.ndarray, landmarks: np.ndarray) -> np.ndarray:
+    """The driver as dots on a copy of ``background`` (side-by-side view without a video)."""
+    out = background.copy()
+    if np.isfinite(landmarks).all():
+        for x, y in np.round(landmarks).astype(int):
+            cv2.circle(out, (int(x), int(y)), 2, (255, 64, 32), -1, lineType=cv2.LINE_AA)
+    return out
+
+
+# ----------------------------------------------------------------- rendering
+def render_frames(renderer, landmarks: np.ndarray, background: np.ndarray, feather: float = 2.0,
+                  latencies: list | None = None) -> Iterator[np.ndarray]:
+    """uint8 (H, W, 3) frames, one per landmark row (the background where a row is NaN).
+
+    ``latencies`` (a list) collects (model seconds, frame seconds) per rendered frame.
+    """
+    for lm in landmarks:
+        t0 = time.perf_counter()
+        if not np.isfinite(lm).all():
+            frame = background.copy()
+            t1 = time.perf_counter()
+        else:
+            crops, masks, placements = renderer.render(lm[None])
+            t1 = time.perf_counter()
+            crop = np.ascontiguousarray(crops[0].transpose(1, 2, 0))
+            if crop.shape[2] == 1:
+                crop = np.repeat(crop, 3, axis=2)
+            frame = composite(crop, masks[0, 0], placements[0].astype(np.float64), background, feather)
+            if latencies is not None:
+                latencies.append((t1 - t0, time.perf_counter() - t0))
+        yield frame
+
+
+def latency_summary(latencies: list) -> dict:
+    """p50/p90/p99 (ms) of the model call and of the whole frame."""
+    if not latencies:
+        return {"frames": 0}
+    a = np.asarray(latencies) * 1e3
+    out = {"frames": len(a)}
+    for i, name in enumerate(("model_ms", "frame_ms")):
+        out[name] = {f"p{q}": round(float(np.percentile(a[:, i], q)), 3) for q in (50, 90, 99)}
+    return out
+
+
+def contact_sheet(top: list[np.ndarray], bottom: list[np.ndarray], width: int = 240) -> np.ndarray:
+    """Two rows of thumbnails (uint8 RGB): drivers above renderings."""
+    def thumb(img):
+        h, w = img.shape[:2]
+        return cv2.resize(img, (width, int(round(h * width / w))), interpolation=cv2.INTER_AREA)
+
+    rows = [np.concatenate([thumb(i) for i in r], 1) for r in (top, bottom)]
+    return np.concatenate(rows, 0)
+
+
+def run(args: argparse.Namespace) -> int:
+    from tqdm.auto import tqdm
+
+    from facesynth.runtime.filters import smooth_landmarks
+    from facesynth.runtime.renderer import Renderer
+
+    renderer = Renderer(args.model, threads=args.threads)
+    driver_frames = None
+    if args.video:
+        driver_frames, video_fps = read_video(args.video, args.max_frames)
+        landmarks = detect_video_landmarks(driver_frames)
+    else:
+        from facesynth.data.readers import load_landmarks
+
+        video_fps = None
+        landmarks = load_landmarks(args.landmarks)
+        if args.max_frames:
+            landmarks = landmarks[: args.max_frames]
+        if args.driver_video:
+            driver_frames, video_fps = read_video(args.driver_video, len(landmarks))
+            if len(driver_frames) < len(landmarks):
+                raise FacesynthError(f"{args.driver_video}: {len(driver_frames)} frames for {len(landmarks)} landmark rows")
+    fps = float(args.fps or video_fps or 30.0)
+    if not fps > 0:
+        raise FacesynthError(f"--fps must be > 0, got {fps}")
+    if args.smooth:
+        landmarks = smooth_landmarks(landmarks, fps, args.min_cutoff, args.beta)
+    if args.background:
+        background = load_background(args.background, (0, 0))
+    elif driver_frames is not None and not args.size:
+        h, w = driver_frames[0].shape[:2]
+        background = load_background(None, (w, h))
+    else:
+        background = load_background(None, parse_size(args.size) if args.size else default_size(landmarks))
+    h, w = background.shape[:2]
+    out_w = 2 * w if args.side_by_side else w
+    n = len(landmarks)
+    latencies: list = []
+    sheet_idx = set(np.linspace(0, n - 1, min(6, n)).round().astype(int).tolist())
+    sheet_top, sheet_bottom = [], []
+    out = Path(args.out)
+    t_start = time.perf_counter()
+    with atomic_path(out) as tmp:
+        writer = cv2.VideoWriter(str(tmp), cv2.VideoWriter_fourcc(*"mp4v"), fps, (out_w, h))
+        if not writer.isOpened():
+            raise FacesynthError(f"{out}: OpenCV cannot write an mp4v video here")
+        try:
+            bar = tqdm(total=n, unit="frame", desc="app", disable=args.no_progress)
+            for i, frame in enumerate(render_frames(renderer, landmarks, background, args.feather, latencies)):
+                if driver_frames is not None:
+                    left = cv2.resize(driver_frames[i], (w, h)) if driver_frames[i].shape[:2] != (h, w) else driver_frames[i]
+                else:
+                    left = draw_landmarks(background, landmarks[i])
+                shown = np.concatenate([left, frame], 1) if args.side_by_side else frame
+                writer.write(cv2.cvtColor(shown, cv2.COLOR_RGB2BGR))
+                if i in sheet_idx:
+                    sheet_top.append(left)
+                    sheet_bottom.append(frame)
+                bar.update(1)
+            bar.close()
+        finally:
+            writer.release()
+    wall = time.perf_counter() - t_start
+    summary = latency_summary(latencies)
+    summary.update({"out": str(out), "size": [out_w, h], "fps": fps, "wall_s": round(wall, 3),
+                    "frames_per_s": round(n / wall, 1) if wall > 0 else None,
+                    "skipped_no_face": int(n - summary["frames"]), "smooth": bool(args.smooth),
+                    "regressor": renderer.metadata.get("regressor"), "threads": args.threads})
+    if args.contact_sheet:
+        sheet = contact_sheet(sheet_top, sheet_bottom)
+        sheet_path = Path(args.contact_sheet)
+        with atomic_path(sheet_path) as tmp:
+            if not cv2.imwrite(str(tmp), cv2.cvtColor(sheet, cv2.COLOR_RGB2BGR)):
+                raise FacesynthError(f"{sheet_path}: could not write the contact sheet")
+        summary["contact_sheet"] = str(sheet_path)
+    if latencies:
+        m, f = summary["model_ms"], summary["frame_ms"]
+        print(f"{n} frames -> {out} ({out_w}x{h}, {fps:g} fps) in {wall:.1f} s; latency ms p50/p90/p99: "
+              f"model {m['p50']}/{m['p90']}/{m['p99']}, frame {f['p50']}/{f['p90']}/{f['p99']}")
+    print(json.dumps(summary))
+    return 0

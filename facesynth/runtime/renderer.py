@@ -1,0 +1,186 @@
+"""Running an exported synthesis model with ONNX Runtime (numpy + onnxruntime, no torch).
+
+``Renderer(model_path).render(landmarks)`` keeps one inference session, binds
+preallocated output buffers per batch size (``run_with_iobinding``, no per-call output
+allocation) and fixes the thread settings once. Inputs are validated (shape, dtype, NaN)
+and the model's metadata (format, landmark scheme) is checked on loading.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+import onnxruntime as ort
+
+from facesynth import __version__
+from facesynth.errors import FacesynthError
+from facesynth.runtime.composite import composite
+
+FORMAT = "facesynth.synthesis.onnx/1"
+LANDMARK_SCHEME = "ibug68"
+INPUT_NAME = "landmarks"
+OUTPUT_NAMES = ("crop", "mask", "placement")
+
+
+def read_metadata(model_path: str | os.PathLike) -> dict:
+    """Metadata properties of an exported model, JSON values decoded."""
+    sess = _session(Path(model_path), 1, False)
+    return _decode(sess.get_modelmeta().custom_metadata_map)
+
+
+def _decode(props: dict) -> dict:
+    out = {}
+    for k, v in props.items():
+        try:
+            out[k] = json.loads(v)
+        except (json.JSONDecodeError, TypeError):
+            out[k] = v
+    return out
+
+
+def _session(path: Path, threads: int, spin: bool) -> ort.InferenceSession:
+    if not path.is_file():
+        raise FacesynthError(f"{path}: model file not found")
+    so = ort.SessionOptions()
+    so.intra_op_num_threads = int(threads)
+    so.inter_op_num_threads = 1
+    so.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
+    so.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+    so.log_severity_level = 3
+    so.add_session_config_entry("session.intra_op.allow_spinning", "1" if spin else "0")
+    try:
+        return ort.InferenceSession(str(path), so, providers=["CPUExecutionProvider"])
+    except Exception as exc:  # onnxruntime raises several types for unreadable models
+        raise FacesynthError(f"{path}: not a loadable ONNX model ({str(exc).splitlines()[0][:200]})") from None
+
+
+class Renderer:
+    """Landmarks -> rendered face crops with an exported facesynth model.
+
+    Parameters
+    ----------
+    model_path : path-like
+        An ONNX file written by ``facesynth export``.
+    threads : int
+        Intra-op threads of the session (1 = lowest latency per core).
+    spin : bool
+        Let idle worker threads spin (lower latency with ``threads > 1``, burns CPU).
+
+    Attributes
+    ----------
+    metadata : dict
+        The model's metadata (facesynth version, regressor, reference size, ...).
+    crop_size : (H, W)
+    channels : int
+    """
+
+    def __init__(self, model_path: str | os.PathLike, threads: int = 1, spin: bool = False):
+        if int(threads) < 1:
+            raise FacesynthError(f"threads must be >= 1, got {threads}")
+        self.path = Path(model_path)
+        self.session = _session(self.path, threads, spin)
+        self.threads = int(threads)
+        self.metadata = _decode(self.session.get_modelmeta().custom_metadata_map)
+        where = str(self.path)
+        fmt = self.metadata.get("format")
+        if fmt != FORMAT:
+            raise FacesynthError(f"{where}: not a facesynth synthesis model (format {fmt!r}, expected {FORMAT!r})")
+        scheme = self.metadata.get("landmark_scheme")
+        if scheme != LANDMARK_SCHEME:
+            raise FacesynthError(f"{where}: landmark scheme {scheme!r}; this runtime feeds {LANDMARK_SCHEME!r} (68 points)")
+        inputs = [i.name for i in self.session.get_inputs()]
+        outputs = [o.name for o in self.session.get_outputs()]
+        if inputs != [INPUT_NAME] or tuple(outputs) != OUTPUT_NAMES:
+            raise FacesynthError(f"{where}: inputs {inputs} / outputs {outputs}, expected [{INPUT_NAME}] / {list(OUTPUT_NAMES)}")
+        self.channels = int(self.metadata.get("channels", 3))
+        self.crop_size = tuple(int(s) for s in self.metadata.get("canvas_size", self.metadata.get("reference_size")))
+        self._bindings: dict[int, tuple] = {}
+
+    def __repr__(self) -> str:
+        return (f"Renderer({str(self.path)!r}, regressor={self.metadata.get('regressor')!r}, "
+                f"crop={self.crop_size}, threads={self.threads})")
+
+    # ------------------------------------------------------------ validation
+    def validate(self, landmarks) -> np.ndarray:
+        """Check (B, 68, 2) (or one (68, 2)) finite real landmarks -> C-contiguous float32 (B, 68, 2)."""
+        x = np.asarray(landmarks)
+        if x.dtype.kind not in "fiu":
+            raise FacesynthError(f"landmarks: expected a float array of (x, y) pixels, got dtype {x.dtype}")
+        if x.ndim == 2:
+            x = x[None]
+        if x.ndim != 3 or x.shape[1:] != (68, 2) or x.shape[0] < 1:
+            raise FacesynthError(f"landmarks: expected shape (B, 68, 2) (iBUG 68 points, x y), got {tuple(np.shape(landmarks))}")
+        x = np.ascontiguousarray(x, np.float32)
+        if not np.isfinite(x).all():
+            bad = np.flatnonzero(~np.isfinite(x).all(axis=(1, 2)))
+            raise FacesynthError(f"landmarks: NaN or infinite values in batch rows {bad[:10].tolist()} (drop frames without a face)")
+        extent = (x.max(1) - x.min(1)).max(1)  # (B,) larger side of each face's bounding box
+        if (extent < 1.0).any():
+            bad = np.flatnonzero(extent < 1.0)
+            raise FacesynthError(f"landmarks: degenerate faces (all 68 points within 1 px) in batch rows {bad[:10].tolist()}")
+        return x
+
+    # -------------------------------------------------------------- running
+    def _binding(self, batch: int):
+        got = self._bindings.get(batch)
+        if got is None:
+            h, w = self.crop_size
+            bufs = (
+                np.empty((batch, self.channels, h, w), np.float32),
+                np.empty((batch, 1, h, w), np.float32),
+                np.empty((batch, 2, 3), np.float32),
+            )
+            inp = np.empty((batch, 68, 2), np.float32)
+            io = self.session.io_binding()
+            io.bind_cpu_input(INPUT_NAME, inp)
+            for name, buf in zip(OUTPUT_NAMES, bufs):
+                io.bind_ortvalue_output(name, ort.OrtValue.ortvalue_from_numpy(buf))
+            got = (io, inp, bufs)
+            self._bindings[batch] = got
+        return got
+
+    def render(self, landmarks, copy: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Render faces for a batch of landmark sets.
+
+        Parameters
+        ----------
+        landmarks : (B, 68, 2) or (68, 2) array, frame pixels (x, y), iBUG order
+        copy : bool
+            Return copies; by default the returned arrays are this renderer's output
+            buffers, overwritten by the next call with the same batch size.
+
+        Returns
+        -------
+        crops : float32 (B, C, H, W) in [0, 1], zeros outside the face
+        masks : float32 (B, 1, H, W) in {0, 1}
+        placements : float32 (B, 2, 3) crop pixels -> frame pixels
+        """
+        x = self.validate(landmarks)
+        io, inp, bufs = self._binding(len(x))
+        np.copyto(inp, x)
+        self.session.run_with_iobinding(io)
+        return tuple(b.copy() for b in bufs) if copy else bufs
+
+    def render_frame(self, landmarks, background: np.ndarray, feather: float = 2.0) -> np.ndarray:
+        """One face composited into a frame.
+
+        landmarks : (68, 2) frame pixels; background : uint8 (H, W, 3) RGB.
+        Returns uint8 (H, W, 3) (see :func:`facesynth.runtime.composite`).
+        """
+        bg = np.asarray(background)
+        if bg.dtype != np.uint8 or bg.ndim != 3 or bg.shape[2] != 3:
+            raise FacesynthError(f"background: expected uint8 (H, W, 3), got {bg.dtype} {bg.shape}")
+        x = self.validate(landmarks)
+        if len(x) != 1:
+            raise FacesynthError(f"render_frame: one face at a time, got a batch of {len(x)}")
+        crops, masks, placements = self.render(x)
+        crop = np.ascontiguousarray(crops[0].transpose(1, 2, 0))
+        if crop.shape[2] == 1:
+            crop = np.repeat(crop, 3, axis=2)
+        return composite(crop, masks[0, 0], placements[0].astype(np.float64), bg, feather)
+
+
+__all__ = ["Renderer", "read_metadata", "__version__"]

@@ -1,0 +1,66 @@
+"""Small synthesizers (synthetic faces, every registered regressor) and their ONNX exports,
+shared by the ONNX/runtime tests. Built once per session; a few seconds in all."""
+
+from __future__ import annotations
+
+from functools import lru_cache
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from _faces import face_sequence_arrays
+from facesynth.data import FaceSequence
+from facesynth.data.frames import ArrayFrames
+from facesynth.model import FaceModel, FaceModelConfig
+from facesynth.sadm.regressors import REGISTRY
+from facesynth.sadm.synthesis import GlobalAppearance, Synthesizer
+
+
+@lru_cache(maxsize=1)
+def synthetic_model():
+    frames, lm = face_sequence_arrays(n=24, seed=1)
+    seq = FaceSequence.from_arrays(lm, ArrayFrames(frames), name="unit")
+    model = FaceModel.fit(seq, FaceModelConfig(reference_width=64, appearance_variance=0.95), progress=False)
+    x = model.shape_params(lm, clamp=True)
+    y = model.appearance_params(model.sample_textures(seq))
+    return model, lm, x, y
+
+
+def fit_synthesizer(name: str, model, x, y) -> Synthesizer:
+    torch.manual_seed(0)
+    reg = REGISTRY[name].fit(x, y, seed=0)
+    syn = Synthesizer(model, GlobalAppearance(model, reg)).eval()
+    syn.face_model, syn.regressor_ = model, reg  # kept for save_run_synthesizer in tests
+    return syn
+
+
+@lru_cache(maxsize=None)
+def synthetic_synthesizer(name: str = "linear") -> Synthesizer:
+    model, _, x, y = synthetic_model()
+    return fit_synthesizer(name, model, x, y)
+
+
+def exported(name: str, directory: Path) -> Path:
+    """The ONNX file of :func:`synthetic_synthesizer` (exported once per directory)."""
+    from facesynth.export_onnx import export_synthesizer
+
+    path = Path(directory) / f"synthetic_{name}.onnx"
+    if not path.is_file():
+        model = synthetic_model()[0]
+        export_synthesizer(synthetic_synthesizer(name), path, {"data_fingerprint": model.fingerprint})
+    return path
+
+
+def driving_landmarks(seed: int = 0, n: int = 6) -> np.ndarray:
+    """(n, 68, 2) synthetic landmarks near the training faces: jittered, scaled, rotated, moved."""
+    rng = np.random.default_rng(seed)
+    lm = synthetic_model()[1]
+    out = []
+    for i in range(n):
+        p = lm[i % len(lm)].astype(np.float64) + rng.normal(0, 0.7, (68, 2))
+        c = p.mean(0)
+        a, s = rng.uniform(-0.15, 0.15), rng.uniform(0.8, 1.4)
+        rot = s * np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
+        out.append((p - c) @ rot.T + c + rng.uniform(-20, 20, 2))
+    return np.stack(out).astype(np.float32)
