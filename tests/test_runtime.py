@@ -52,7 +52,7 @@ def test_render_matches_torch_and_reuses_buffers(model_path):
 
 
 def test_render_frame_equals_torch_composite(model_path):
-    from facesynth.sadm.synthesis import composite as torch_side_composite
+    from facesynth.imaging import composite as torch_side_composite
 
     syn = synthetic_synthesizer("linear")
     lm = driving_landmarks(seed=8, n=1)
@@ -67,7 +67,7 @@ def test_render_frame_equals_torch_composite(model_path):
 
 
 def test_composite_is_the_synthesis_composite():
-    from facesynth.sadm.synthesis import composite as torch_side_composite
+    from facesynth.imaging import composite as torch_side_composite
 
     rng = np.random.default_rng(1)
     crop = rng.random((40, 36, 3), dtype=np.float32)
@@ -162,7 +162,7 @@ def test_app_helpers():
 
 def test_app_writes_video_matching_torch(model_path, tmp_path):
     from facesynth.cli import main
-    from facesynth.sadm.synthesis import composite as torch_side_composite
+    from facesynth.imaging import composite as torch_side_composite
 
     syn = synthetic_synthesizer("linear")
     lm = driving_landmarks(seed=10, n=8)

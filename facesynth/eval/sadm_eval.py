@@ -24,7 +24,7 @@ import torch
 from facesynth.data.sequence import FaceSequence
 from facesynth.eval.metrics import ncc, psnr
 from facesynth.sadm.fit import SADM
-from facesynth.sadm.synthesis import composite
+from facesynth.imaging import composite
 
 
 @dataclass

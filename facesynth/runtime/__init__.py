@@ -8,7 +8,7 @@ Imports only numpy, onnxruntime and OpenCV (a test checks that torch stays unimp
     frame = r.render_frame(landmarks[0], background)     # uint8 (H, W, 3)
 """
 
-from facesynth.runtime.composite import composite
+from facesynth.imaging import composite
 from facesynth.runtime.filters import OneEuroFilter, smooth_landmarks
 from facesynth.runtime.renderer import Renderer, read_metadata
 

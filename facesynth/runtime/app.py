@@ -4,7 +4,7 @@
                   [--background IMG] [--side-by-side] [--smooth] [--size WxH]
 
 Each frame's landmarks drive the model (batch 1, as a live app would), the face is
-composited into the background (:func:`facesynth.runtime.composite`), and the video is
+composited into the background (:func:`facesynth.imaging.composite`), and the video is
 written atomically (mp4v). A progress bar shows frames/s; the summary gives latency
 percentiles of the model call and of the whole frame. Torch is never imported.
 """
@@ -23,7 +23,7 @@ import numpy as np
 
 from facesynth.errors import FacesynthError, MissingExtraError
 from facesynth.io import atomic_path
-from facesynth.runtime.composite import composite
+from facesynth.imaging import composite
 
 log = logging.getLogger(__name__)
 GREY = 128

@@ -17,7 +17,7 @@ import onnxruntime as ort
 
 from facesynth import __version__
 from facesynth.errors import FacesynthError
-from facesynth.runtime.composite import composite
+from facesynth.imaging import composite
 
 FORMAT = "facesynth.synthesis.onnx/1"
 LANDMARK_SCHEME = "ibug68"
@@ -168,7 +168,7 @@ class Renderer:
         """One face composited into a frame.
 
         landmarks : (68, 2) frame pixels; background : uint8 (H, W, 3) RGB.
-        Returns uint8 (H, W, 3) (see :func:`facesynth.runtime.composite`).
+        Returns uint8 (H, W, 3) (see :func:`facesynth.imaging.composite`).
         """
         bg = np.asarray(background)
         if bg.dtype != np.uint8 or bg.ndim != 3 or bg.shape[2] != 3:

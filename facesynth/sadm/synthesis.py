@@ -9,7 +9,6 @@ Pasting the crop into a frame (feathered) is :func:`composite`, outside the grap
 
 from __future__ import annotations
 
-import cv2
 import numpy as np
 import torch
 from torch import nn
@@ -129,35 +128,3 @@ class Synthesizer(nn.Module):
         to_canvas = similarity_to(landmarks, self.ref_points)
         crop, mask = self.warp(tex, apply_affine_t(landmarks, to_canvas))
         return crop, mask, invert_affine_t(to_canvas)
-
-
-def composite(
-    crop: np.ndarray, mask: np.ndarray, placement: np.ndarray, background: np.ndarray, feather: float = 2.0
-) -> np.ndarray:
-    """Paste a rendered crop into a frame with a feathered boundary.
-
-    Parameters
-    ----------
-    crop : float32 (H_c, W_c, 3) in [0, 1]
-    mask : float32 (H_c, W_c) in [0, 1]
-    placement : (2, 3) crop -> frame affine map
-    background : uint8 (H, W, 3) frame
-    feather : float
-        Width (frame pixels) of the soft edge; the face is shrunk by it before blurring,
-        so no background-coloured ring enters the face.
-
-    Returns
-    -------
-    uint8 (H, W, 3)
-    """
-    h, w = background.shape[:2]
-    face = cv2.warpAffine(crop, placement, (w, h), flags=cv2.INTER_LINEAR)
-    alpha = cv2.warpAffine(mask.astype(np.float32), placement, (w, h), flags=cv2.INTER_LINEAR)
-    if feather > 0:
-        r = int(np.ceil(feather))
-        hard = (alpha > 0.999).astype(np.float32)
-        alpha = cv2.erode(hard, np.ones((2 * r + 1, 2 * r + 1), np.uint8))
-        alpha = cv2.GaussianBlur(alpha, (0, 0), feather / 2) * hard
-    bg = background.astype(np.float32) / 255.0
-    out = alpha[..., None] * np.clip(face, 0, 1) + (1 - alpha[..., None]) * bg
-    return np.clip(out * 255.0 + 0.5, 0, 255).astype(np.uint8)

@@ -1,7 +1,8 @@
 """Pasting a rendered face crop into a frame (numpy + OpenCV, no torch).
 
-This is the one implementation of compositing: :mod:`facesynth.sadm.synthesis` re-exports
-it for the torch side, and :class:`facesynth.runtime.Renderer` uses it in the app.
+This is the one implementation of compositing, upstream of both users: the torch-side
+evaluation (:mod:`facesynth.eval`, :mod:`facesynth.eri`) and the torch-free runtime
+(:class:`facesynth.runtime.Renderer`) import it from here.
 """
 
 from __future__ import annotations
