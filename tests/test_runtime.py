@@ -3,7 +3,6 @@ Euro filter against the paper's reference form, and the ``facesynth app`` comman
 
 from __future__ import annotations
 
-import json
 import subprocess
 import sys
 from pathlib import Path
