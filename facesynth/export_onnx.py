@@ -186,67 +186,30 @@ def _example_landmarks(syn: Synthesizer) -> np.ndarray:
 
 
 # ---------------------------------------------------------------------- runs
-RUN_FACE_MODEL = "face_model"
-RUN_REGRESSOR = "sadm"
 
 
 def load_synthesizer(run_dir: str | os.PathLike) -> tuple[Synthesizer, dict]:
-    """Rebuild the :class:`Synthesizer` of a training run directory.
-
-    Layout read (written by :func:`save_run_synthesizer`; ``train.py`` should write the same):
-
-    * ``RUN/face_model/``: :func:`facesynth.model.save_face_model`;
-    * ``RUN/sadm/regressor.json``: ``{"name", "config", "features", "clamp"}``;
-    * ``RUN/sadm/regressor.safetensors``: the regressor's ``state_dict()``.
+    """Rebuild the :class:`Synthesizer` of a training run directory (the layout of
+    :mod:`facesynth.sadm.fit`, written by ``train.py``).
 
     Returns the synthesizer and metadata for the ONNX file (regressor, data fingerprint, run).
     """
-    from safetensors.torch import load_file
-
-    from facesynth.model import load_face_model
-    from facesynth.sadm.regressors import REGISTRY
+    from facesynth.sadm.fit import load_sadm
 
     d = Path(run_dir)
     if not d.is_dir():
         raise FacesynthError(f"{d}: training run directory not found")
-    if not (d / RUN_FACE_MODEL / "face_model.json").is_file():
-        raise FacesynthError(f"{d}: not a training run ({RUN_FACE_MODEL}/face_model.json missing)")
-    cfg_path = d / RUN_REGRESSOR / "regressor.json"
-    tensors_path = d / RUN_REGRESSOR / "regressor.safetensors"
-    if not cfg_path.is_file() or not tensors_path.is_file():
-        raise FacesynthError(
-            f"{d}: no SADM regressor in this run (expected {RUN_REGRESSOR}/regressor.json and "
-            f"{RUN_REGRESSOR}/regressor.safetensors)"
-        )
-    model = load_face_model(d / RUN_FACE_MODEL)
-    try:
-        spec = json.loads(cfg_path.read_text())
-    except json.JSONDecodeError as exc:
-        raise FacesynthError(f"{cfg_path}: invalid JSON ({exc})") from None
-    name = spec.get("name")
-    if name not in REGISTRY:
-        raise FacesynthError(f"{cfg_path}: unknown regressor {name!r}; known: {sorted(REGISTRY)}")
-    reg = REGISTRY[name].from_state(spec.get("config", {}), load_file(str(tensors_path)))
-    app = GlobalAppearance(model, reg, features=spec.get("features", "bs"), clamp=spec.get("clamp", True))
-    syn = Synthesizer(model, app).eval()
-    return syn, {"regressor": name, "data_fingerprint": model.fingerprint, "run": d.name}
+    sadm = load_sadm(d)
+    return sadm.synthesizer(), {"regressor": sadm.name, "data_fingerprint": sadm.model.fingerprint, "run": d.name}
 
 
 def save_run_synthesizer(run_dir: str | os.PathLike, model, regressor, features: str = "bs", clamp: bool = True) -> Path:
-    """Write a face model and SADM regressor in the layout :func:`load_synthesizer` reads."""
-    from safetensors.torch import save_file
+    """Write a face model and SADM regressor as a run directory (for tests and scripts
+    that fit outside ``train.py``)."""
+    from facesynth.sadm.fit import SADM, SADMConfig, save_sadm
 
-    from facesynth.io import write_json
-    from facesynth.model import save_face_model
-
-    d = Path(run_dir)
-    save_face_model(model, d / RUN_FACE_MODEL)
-    (d / RUN_REGRESSOR).mkdir(parents=True, exist_ok=True)
-    with atomic_path(d / RUN_REGRESSOR / "regressor.safetensors") as tmp:
-        save_file({k: v.contiguous() for k, v in regressor.state_dict().items()}, str(tmp))
-    spec = {"name": regressor.name, "config": regressor.config_dict(), "features": features, "clamp": clamp}
-    write_json(d / RUN_REGRESSOR / "regressor.json", spec)
-    return d
+    sadm = SADM(model, regressor, regressor.name, SADMConfig(features=features, clamp_shape=clamp), regressor.config_dict())
+    return save_sadm(sadm, run_dir)
 
 
 def export_run(run_dir: str | os.PathLike, out: str | os.PathLike, opset: int = OPSET) -> Path:

@@ -116,10 +116,10 @@ def test_run_round_trip_cli_and_errors(tmp_path):
     with pytest.raises(FacesynthError, match="not found"):
         load_synthesizer(tmp_path / "nope")
     (tmp_path / "empty").mkdir()
-    with pytest.raises(FacesynthError, match="face_model.json missing"):
+    with pytest.raises(FacesynthError, match=r"not a training run \(sadm/sadm.json missing\)"):
         load_synthesizer(tmp_path / "empty")
-    (run / "sadm" / "regressor.json").unlink()
-    with pytest.raises(FacesynthError, match="no SADM regressor"):
+    (run / "sadm" / "sadm.json").unlink()
+    with pytest.raises(FacesynthError, match="not a training run"):
         load_synthesizer(run)
     assert main(["export", str(run), "--out", str(tmp_path / "c.onnx")]) == 2
     assert not (tmp_path / "c.onnx").exists()

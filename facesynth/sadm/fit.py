@@ -194,8 +194,3 @@ def load_sadm(run_dir: str | os.PathLike) -> SADM:
     reg = REGISTRY[name].from_state(meta["regressor_config"], load_file(str(d / "sadm" / "regressor.safetensors")))
     cfg = SADMConfig(**{k: v for k, v in meta["sadm"].items() if k in SADMConfig.__dataclass_fields__})
     return SADM(model, reg.eval(), name, cfg, meta["regressor_config"], meta.get("search_table", []))
-
-
-def load_synthesizer(run_dir: str | os.PathLike) -> Synthesizer:
-    """The synthesis graph of a saved run (used by ONNX export)."""
-    return load_sadm(run_dir).synthesizer()
