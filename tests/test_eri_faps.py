@@ -134,3 +134,21 @@ def test_real_clip_faps(shared_clip_dir):
     np.testing.assert_allclose(compute_faps(back, lm[i]), f, atol=0.05)
     jaw = f[:, FAP_NAMES.index("open_jaw")]
     assert jaw.max() > 300  # the clip opens the mouth wide (FAPU MNS ~ 40 px / 1024)
+
+
+def test_free_points_follow_affine_fields_with_a_closed_mouth(rng):
+    """The thin-plate spline reproduces affine displacement fields exactly, also when the
+    inner lips of the neutral face coincide (closed mouth, as dlib's integer points give)."""
+    from facesynth.eri.faps import _interpolation
+
+    n = face_template().astype(np.float64)
+    n[[61, 62, 63]] = n[[67, 66, 65]]
+    w, rest, ctrl = _interpolation(n)
+    a = np.array([[0.05, -0.02], [0.03, 0.04]])
+    field = n @ a.T + [1.5, -2.0]
+    np.testing.assert_allclose(w @ field[ctrl], field[rest], atol=1e-3)
+    f = np.zeros((1, N_FAPS), np.float32)
+    f[0, FAP_NAMES.index("open_jaw")] = 500
+    d = faps_to_landmarks(n, f)[0] - n
+    assert np.abs(d).max() <= np.abs(d[8]).max() + 1e-6  # nothing overshoots the chin
+    assert d[7, 1] > 0 and d[9, 1] > 0  # jaw beside the chin follows it down

@@ -240,15 +240,24 @@ def faps_to_landmarks(neutral: np.ndarray, faps: np.ndarray) -> np.ndarray:
 
 
 def _interpolation(neutral: np.ndarray) -> tuple[np.ndarray, list, list]:
-    """Linear thin-plate-spline map from control-point to free-point displacements."""
+    """Linear thin-plate-spline map from control-point to free-point displacements:
+    (n_free, n_ctrl) weights, free and control indices.
+
+    The inner-lip points are left out of the controls (they coincide in a closed-mouth
+    neutral face, which makes interpolation singular); a small smoothing term keeps the
+    system regular if other controls coincide (dlib's integer landmarks).
+    """
     from scipy.interpolate import RBFInterpolator
 
     ctrl = sorted(set(_DRIVEN) | set(ANCHOR_POINTS))
     rest = [i for i in range(68) if i not in ctrl]
+    basis = [i for i in ctrl if not 60 <= i <= 67]
     scale = np.linalg.norm(neutral.max(0) - neutral.min(0))
     pts = (neutral - neutral.mean(0)) / scale
-    rbf = RBFInterpolator(pts[ctrl], np.eye(len(ctrl)), kernel="thin_plate_spline")
-    return rbf(pts[rest]), rest, ctrl
+    rbf = RBFInterpolator(pts[basis], np.eye(len(basis)), kernel="thin_plate_spline", smoothing=1e-6)
+    weights = np.zeros((len(rest), len(ctrl)))
+    weights[:, [ctrl.index(i) for i in basis]] = rbf(pts[rest])
+    return weights, rest, ctrl
 
 
 def _check(landmarks: np.ndarray, where: str) -> np.ndarray:
