@@ -139,6 +139,7 @@ def coefficient_scores(pred: np.ndarray, true: np.ndarray) -> dict:
         "nmse": float((mse_k / np.where(var_k > 0, var_k, 1)).mean()),
         "r2": float(r2_k.mean()),
         "r2_first5": float(r2_k[:5].mean()),
+        "explained_variance": float(1.0 - mse_k.sum() / max(var_k.sum(), 1e-30)),
         "mse_per_coefficient": mse_k.tolist(),
         "r2_per_coefficient": r2_k.tolist(),
     }

@@ -158,11 +158,14 @@ def report_markdown(m: dict) -> str:
         "",
         "## Driving model (cf. the paper's Fig. 5): eigenERI coefficients predicted from FAPs, test frames",
         "",
-        "| regressor | MSE | normalised MSE | r^2 (mean) | r^2 (first 5) | support vectors |",
-        "|---|---:|---:|---:|---:|---:|",
+        "MSE in coefficient units (mean over coefficients); normalised MSE divides each by its test variance; "
+        "r^2 is the squared correlation coefficient; variance explained = 1 - total squared error / total variance.",
+        "",
+        "| regressor | MSE | normalised MSE | r^2 (mean) | r^2 (first 5) | variance explained | support vectors |",
+        "|---|---:|---:|---:|---:|---:|---:|",
     ]
     for name, row in m["coefficients"].items():
-        lines.append(f"| {name} | {row['mse']:.4g} | {row['nmse']:.3f} | {row['r2']:.3f} | {row['r2_first5']:.3f} | "
+        lines.append(f"| {name} | {row['mse']:.4g} | {row['nmse']:.3f} | {row['r2']:.3f} | {row['r2_first5']:.3f} | {row['explained_variance']:.3f} | "
                      f"{row.get('support_vectors', '-')} |")
     s = m["synthesis"]
     p = s["psnr_db"]
