@@ -211,3 +211,23 @@ def test_write_video_is_atomic(tmp_path):
     with pytest.raises(FacesynthError, match="no frames"):
         write_video(tmp_path / "v.mp4", iter([]), 25)
     assert not list(tmp_path.iterdir())
+
+
+def test_confidence_and_brightening_cap():
+    from facesynth.eri.ratio import edge_confidence, to_multiplier
+
+    ref = ReferenceFrame.from_mean_shape(face_template(), 64)
+    s = ToReference(ref)
+    flat = edge_confidence(torch.full((3, s.n_pixels), 0.6), s, 0.03)
+    inner = cv2.erode(ref.mask().astype(np.uint8), np.ones((5, 5), np.uint8)).reshape(-1)[s.mask_index.numpy()] > 0
+    np.testing.assert_allclose(flat[torch.from_numpy(inner)].numpy(), 1.0, atol=1e-6)  # smooth skin: full confidence
+    xs = (s.mask_index % ref.size[1]).float()
+    step = (xs > xs.median()).float().mul(0.5).add(0.2).expand(3, -1)
+    conf = edge_confidence(step, s, 0.03)
+    at_edge = (xs - xs.median()).abs() < 1
+    assert conf[at_edge & torch.from_numpy(inner)].max() < 0.1
+    assert edge_confidence(step, s, 0.0).eq(1).all()
+    r = to_multiplier(torch.log(torch.tensor([[[2.0, 0.5, 1.0]]])), True, 4.0, None, 1.15)
+    np.testing.assert_allclose(r.numpy().ravel(), [1.15, 0.5, 1.0], rtol=1e-6)
+    half = to_multiplier(torch.log(torch.tensor([[[4.0]]])), True, 8.0, torch.tensor([0.5]))
+    assert float(half) == pytest.approx(2.0)

@@ -33,7 +33,10 @@ class EriConfig:
         ``eps`` added to numerator and denominator (intensities in [0, 1]);
         ratios clipped to ``[1/clip, clip]``; ``sigma`` of the Gaussian filter applied
         to the ratio image (pixels of the model geometry, 0 = none); ``log`` stores
-        log ratios (PCA in the log domain) instead of plain ratios.
+        log ratios (PCA in the log domain) instead of plain ratios; ``edge_tau``: at
+        synthesis, ratios are pulled towards 1 where the model's neutral texture has
+        strong edges (confidence 1 / (1 + (|grad F_0| / edge_tau)^2); 0 = off), and
+        brightening is capped at ``max_brighten`` (see ``ratio.to_multiplier``).
     eigenERI
         ``variance`` kept by the PCA (0.97 as in the paper) or ``n_components``.
     Driving model
@@ -62,6 +65,8 @@ class EriConfig:
     clip: float = 4.0
     sigma: float = 1.0
     log: bool = True
+    edge_tau: float = 0.03
+    max_brighten: float = 1.15
     variance: float = 0.97
     n_components: int | None = None
     driver: str = "auto"

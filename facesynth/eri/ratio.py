@@ -70,10 +70,41 @@ def ratio_images(
     return torch.log(r) if log else r
 
 
-def to_multiplier(values: torch.Tensor, log: bool, clip: float) -> torch.Tensor:
-    """Stored ratio values (log R or R) -> multiplicative R in [1/clip, clip]."""
+def edge_confidence(neutral: torch.Tensor, sampler: ToReference, tau: float) -> torch.Tensor:
+    """Per-pixel confidence (M,) in (0, 1] of ratio images: 1 / (1 + (|grad F_0| / tau)^2)
+    of the grey neutral texture (Sobel, per pixel, intensities in [0, 1]).
+
+    Where the neutral face has strong edges (eyeliner, brows, lip and eye contours, the
+    mask boundary) a one-pixel misregistration already changes the ratio a lot, so such
+    ratios say little about expression and transfer badly to another face (Liu et al.
+    note the same for their eye/mouth regions); smooth skin, where wrinkles and
+    shading appear, keeps confidence ~1. ``tau <= 0`` disables it (all ones).
+    """
+    if tau <= 0:
+        return torch.ones(neutral.shape[-1])
+    from kornia.filters import spatial_gradient
+
+    grey = sampler.to_image(neutral.mean(0, keepdim=True).unsqueeze(0))  # (1, 1, H, W)
+    g = spatial_gradient(grey, mode="sobel", normalized=True)  # (1, 1, 2, H, W)
+    mag = g.pow(2).sum(2).sqrt().flatten(1)[0, sampler.mask_index]
+    return 1.0 / (1.0 + (mag / tau) ** 2)
+
+
+def to_multiplier(
+    values: torch.Tensor, log: bool, clip: float, confidence: torch.Tensor | None = None, bright: float | None = None,
+) -> torch.Tensor:
+    """Stored ratio values (log R or R) -> multiplicative R in [1/clip, min(clip, bright)];
+    with a ``confidence`` (M,), R is pulled towards 1 (log R x c, or 1 + c (R - 1)).
+
+    ``bright`` caps brightening separately: on another face, a ratio > 1 learnt where the
+    training subject's neutral skin was dark (a lid crease, eye shadow) saturates skin that
+    is already bright there (albedo mismatch), while darkening (creases, shading, the mouth
+    interior) transfers well.
+    """
+    if confidence is not None:
+        values = values * confidence if log else 1.0 + (values - 1.0) * confidence
     r = torch.exp(values) if log else values
-    return r.clamp(1.0 / clip, clip)
+    return r.clamp(1.0 / clip, min(clip, bright or clip))
 
 
 def apply_ratio(ratio: torch.Tensor, base: torch.Tensor, eps: float = 0.02) -> torch.Tensor:

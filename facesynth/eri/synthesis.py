@@ -22,7 +22,7 @@ import torch
 from facesynth.eri.faps import faps_to_landmarks
 from facesynth.eri.geometry import extend, forehead_points, to_canvas
 from facesynth.eri.model import EriModel
-from facesynth.eri.ratio import apply_ratio, sample_textures, to_multiplier
+from facesynth.eri.ratio import apply_ratio, edge_confidence, sample_textures, to_multiplier
 from facesynth.errors import FacesynthError
 from facesynth.model.procrustes import apply_affine, invert_affine
 from facesynth.model.warp import ToTarget, candidate_spans
@@ -68,7 +68,9 @@ class EriSynthesizer:
         m = self.model
         b = m.predict_coefficients(faps, self.variant) if coefficients is None else np.asarray(coefficients, np.float32)
         vals = torch.from_numpy(m.pca.reconstruct(b)).reshape(len(b), 3, -1)
-        return to_multiplier(vals, m.config.log, m.config.clip)
+        if "_confidence" not in self.__dict__:
+            self._confidence = edge_confidence(torch.from_numpy(m.neutral_texture), m.sampler(), m.config.edge_tau)
+        return to_multiplier(vals, m.config.log, m.config.clip, self._confidence, m.config.max_brighten)
 
     def textures(self, faps: np.ndarray, mode: str = "eri", coefficients: np.ndarray | None = None) -> torch.Tensor:
         """Steps 2-3: B' (N, 3, M) in the model geometry (``mode="geometry"``: B_temp)."""
