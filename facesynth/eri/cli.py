@@ -32,6 +32,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--sheet", metavar="OUT.png", help="contact sheet: driver frame | geometry-only warp | ERI result")
     p.add_argument("--sheet-rows", type=int, default=6, help="frames on the contact sheet (default 6)")
     p.add_argument("--variant", choices=["eps_linear", "eps_rbf", "nu_linear", "nu_rbf"], help="SVR variant (default: the model's)")
+    p.add_argument("--raw-ratios", action="store_true",
+                   help="apply the predicted ratios as they are (no edge confidence / brightening cap)")
     p.add_argument("--max-frames", type=int, default=0, help="render only the first N driver frames (0 = all)")
     p.add_argument("--fps", type=float, help="output frame rate (default: the driver's)")
 
@@ -105,7 +107,7 @@ def run(args) -> int:
         d_neutral, how = driver.landmarks[row], f"row {row} (automatic)"
     n = len(driver) if args.max_frames <= 0 else min(args.max_frames, len(driver))
     faps = compute_faps(driver.landmarks[:n], d_neutral)
-    syn = EriSynthesizer(model, image, landmarks, args.variant)
+    syn = EriSynthesizer(model, image, landmarks, args.variant, raw=args.raw_ratios)
     t0 = time.perf_counter()
     frames = write_video(args.out, syn.iter_render(faps, "eri"), args.fps or driver.fps)
     per_frame = (time.perf_counter() - t0) / frames

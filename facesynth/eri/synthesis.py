@@ -40,15 +40,18 @@ class EriSynthesizer:
     image : uint8 (H, W, 3), the target's neutral image B
     landmarks : (68, 2), B's landmarks (frame pixels)
     variant : SVR variant (default: the model's driver)
+    raw : bool
+        Use the predicted ratios as they are: no edge confidence, no brightening cap
+        (``config.edge_tau``, ``config.max_brighten``; these guard cross-subject transfer).
     """
 
-    def __init__(self, model: EriModel, image: np.ndarray, landmarks: np.ndarray, variant: str | None = None):
+    def __init__(self, model: EriModel, image: np.ndarray, landmarks: np.ndarray, variant: str | None = None, raw: bool = False):
         if model.pca is None or not model.regressors:
             raise FacesynthError("ERI model is not fitted (no eigenERI PCA / regressors)")
         img = np.asarray(image)
         if img.ndim != 3 or img.shape[2] != 3 or img.dtype != np.uint8:
             raise FacesynthError(f"target image must be uint8 (H, W, 3) RGB, got {img.dtype} {img.shape}")
-        self.model, self.image, self.variant = model, img, variant or model.driver
+        self.model, self.image, self.variant, self.raw = model, img, variant or model.driver, raw
         self.neutral = np.asarray(landmarks, np.float32).reshape(68, 2)
         cfg = model.config
         self.forehead = forehead_points(self.neutral, cfg.forehead) if len(model.forehead) else np.zeros((0, 2))
@@ -68,6 +71,8 @@ class EriSynthesizer:
         m = self.model
         b = m.predict_coefficients(faps, self.variant) if coefficients is None else np.asarray(coefficients, np.float32)
         vals = torch.from_numpy(m.pca.reconstruct(b)).reshape(len(b), 3, -1)
+        if self.raw:
+            return to_multiplier(vals, m.config.log, m.config.clip)
         if "_confidence" not in self.__dict__:
             self._confidence = edge_confidence(torch.from_numpy(m.neutral_texture), m.sampler(), m.config.edge_tau)
         return to_multiplier(vals, m.config.log, m.config.clip, self._confidence, m.config.max_brighten)
