@@ -1,0 +1,126 @@
+"""``facesynth transfer-expression``: render a target face performing a driver's expressions
+with a trained ERI model (FAPs of the driver -> ratio images + geometry on the target)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from facesynth.errors import FacesynthError, MissingExtraError
+
+log = logging.getLogger(__name__)
+IMAGE_EXT = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp"}
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--eri", required=True, metavar="RUN", help="training run folder (or its eri/ model folder)")
+    p.add_argument("--target", required=True, metavar="IMAGE_OR_DIR",
+                   help="target neutral face: an image, or a folder in ingest layout (its neutral frame is used)")
+    p.add_argument("--target-landmarks", metavar="L", help="landmarks of the target image (.npy (68, 2)/(N, 68, 2) or .pts)")
+    p.add_argument("--target-frame", type=int, metavar="ROW",
+                   help="row of the target folder (or of --target-landmarks) to use as neutral (default: automatic)")
+    p.add_argument("--driver", required=True, metavar="DIR", help="driver sequence (ingest folder or landmark file)")
+    p.add_argument("--driver-neutral", type=int, metavar="ROW",
+                   help="driver's neutral row (default: the model's neutral when the driver is its training clip, else automatic)")
+    p.add_argument("--out", required=True, metavar="OUT.mp4", help="output video (written atomically)")
+    p.add_argument("--sheet", metavar="OUT.png", help="contact sheet: driver frame | geometry-only warp | ERI result")
+    p.add_argument("--sheet-rows", type=int, default=6, help="frames on the contact sheet (default 6)")
+    p.add_argument("--variant", choices=["eps_linear", "eps_rbf", "nu_linear", "nu_rbf"], help="SVR variant (default: the model's)")
+    p.add_argument("--raw-ratios", action="store_true",
+                   help="apply the predicted ratios as they are (no edge confidence / brightening cap)")
+    p.add_argument("--max-frames", type=int, default=0, help="render only the first N driver frames (0 = all)")
+    p.add_argument("--fps", type=float, help="output frame rate (default: the driver's)")
+
+
+def _target(args) -> tuple[np.ndarray, np.ndarray, str]:
+    """The target's neutral image (uint8 RGB) and (68, 2) landmarks, and a description."""
+    from facesynth.data import load_landmarks, load_sequence
+    from facesynth.eri.geometry import select_neutral
+
+    path = Path(args.target)
+    if path.is_dir():
+        seq = load_sequence(path)
+        if not seq.has_frames:
+            raise FacesynthError(f"{path}: target folder has landmarks but no video/images")
+        row = args.target_frame if args.target_frame is not None else select_neutral(seq.landmarks)[0]
+        if not 0 <= row < len(seq):
+            raise FacesynthError(f"--target-frame {row} is outside {path} (0..{len(seq) - 1})")
+        return seq.frame(row), seq.landmarks[row], f"{path} row {row}"
+    if not path.is_file():
+        raise FacesynthError(f"{path}: no such target image or folder")
+    if path.suffix.lower() not in IMAGE_EXT:
+        raise FacesynthError(f"{path}: target must be an image ({', '.join(sorted(IMAGE_EXT))}) or an ingest folder")
+    bgr = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    if bgr is None:
+        raise FacesynthError(f"{path}: unreadable image")
+    img = cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+    if args.target_landmarks:
+        lm = load_landmarks(args.target_landmarks)
+        row = args.target_frame or 0
+        if not 0 <= row < len(lm) or not np.isfinite(lm[row]).all():
+            raise FacesynthError(f"{args.target_landmarks}: no valid landmarks at row {row}")
+        return img, lm[row], f"{path} with {args.target_landmarks}"
+    return img, _detect(img, path), f"{path} (landmarks detected)"
+
+
+def _detect(img: np.ndarray, path: Path) -> np.ndarray:
+    try:
+        import dlib  # noqa: F401
+    except ImportError:
+        raise MissingExtraError("ingest", "dlib") from None
+    try:
+        from facesynth.data.detect import LandmarkDetector
+    except ImportError:
+        raise FacesynthError(f"{path}: landmark detection is not available in this build; pass --target-landmarks") from None
+    det = LandmarkDetector()
+    box, _, _ = det.detect(img)
+    if box is None:
+        raise FacesynthError(f"{path}: no face found in the target image; pass --target-landmarks")
+    return det.landmarks(img, box)
+
+
+def run(args) -> int:
+    from facesynth.data import load_sequence
+    from facesynth.eri.faps import compute_faps
+    from facesynth.eri.geometry import select_neutral
+    from facesynth.eri.model import EriModel
+    from facesynth.eri.render import contact_sheet, pick_sheet_rows, write_video
+    from facesynth.eri.synthesis import EriSynthesizer
+
+    model = EriModel.load(args.eri)
+    image, landmarks, target_desc = _target(args)
+    driver = load_sequence(args.driver)
+    if args.driver_neutral is not None:
+        if not 0 <= args.driver_neutral < len(driver):
+            raise FacesynthError(f"--driver-neutral {args.driver_neutral} is outside {args.driver} (0..{len(driver) - 1})")
+        d_neutral, how = driver.landmarks[args.driver_neutral], f"row {args.driver_neutral}"
+    elif driver.fingerprint == model.fingerprint:
+        d_neutral, how = model.neutral_landmarks, f"the model's neutral (row {model.neutral_index})"
+    else:
+        row = select_neutral(driver.landmarks, model.config.mouth_closed_max)[0]
+        d_neutral, how = driver.landmarks[row], f"row {row} (automatic)"
+    n = len(driver) if args.max_frames <= 0 else min(args.max_frames, len(driver))
+    faps = compute_faps(driver.landmarks[:n], d_neutral)
+    syn = EriSynthesizer(model, image, landmarks, args.variant, raw=args.raw_ratios)
+    t0 = time.perf_counter()
+    frames = write_video(args.out, syn.iter_render(faps, "eri"), args.fps or driver.fps)
+    per_frame = (time.perf_counter() - t0) / frames
+    summary = {"out": str(args.out), "frames": frames, "seconds_per_frame": per_frame, "target": target_desc,
+               "driver": str(args.driver), "driver_neutral": how, "variant": syn.variant}
+    if args.sheet:
+        if not driver.has_frames:
+            raise FacesynthError(f"{args.driver}: the contact sheet needs the driver's frames (video)")
+        rows = pick_sheet_rows(faps, args.sheet_rows)
+        geo, _ = syn.render(faps[rows], "geometry")
+        eri, _ = syn.render(faps[rows], "eri")
+        contact_sheet(args.sheet, list(driver.iter_frames(rows)), driver.landmarks[rows], list(geo), list(eri),
+                      syn.positions(faps[rows]))
+        summary.update(sheet=str(args.sheet), sheet_rows=rows.tolist())
+    print(json.dumps(summary))
+    return 0

@@ -1,0 +1,255 @@
+"""``EriModel``: one subject's expression ratio images, their PCA ("eigenERI") and the
+SVR driving model from MPEG-4 FAPs, with saving/loading (safetensors + JSON manifest).
+
+References
+----------
+Z. Liu, Y. Shan, Z. Zhang, "Expressive expression mapping with ratio images", SIGGRAPH 2001.
+The FAP-driven eigenERI + SVR model follows the issue's paper (Fig. 5: epsilon/nu-SVR with
+linear and RBF kernels predicting eigenERI coefficients from FAPs).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+from safetensors.numpy import load_file, save_file
+from tqdm.auto import tqdm
+
+from facesynth import __version__
+from facesynth.data.sequence import FaceSequence
+from facesynth.errors import FacesynthError
+from facesynth.eri.config import SVR_VARIANTS, EriConfig
+from facesynth.eri.driving import SVRBank, fit_variant
+from facesynth.eri.faps import FAP_NAMES, compute_faps, fapu
+from facesynth.eri.geometry import extend, forehead_points, open_mouth, select_neutral, to_canvas, upright
+from facesynth.eri.ratio import ratio_images, sample_textures
+from facesynth.io import atomic_path, write_json
+from facesynth.model.pca import PCAModel
+from facesynth.model.reference import ReferenceFrame
+from facesynth.model.warp import ToReference, candidate_spans
+from facesynth.provenance import package_versions
+
+log = logging.getLogger(__name__)
+
+FORMAT, FORMAT_VERSION = "facesynth.eri_model", 1
+TENSORS, MANIFEST = "eri_model.safetensors", "eri_model.json"
+
+
+@dataclass
+class EriModel:
+    """Attributes
+    ----------
+    config : EriConfig
+    neutral_index : int
+        Sequence row of the neutral frame.
+    neutral_landmarks : float32 (68, 2), the neutral frame's landmarks (frame pixels).
+    forehead : float32 (F, 2), the neutral frame's forehead points (F = 0 or 10).
+    reference : ReferenceFrame
+        The model geometry: the neutral face (plus forehead, mouth opened by
+        ``config.mouth_gap``), upright, ``config.width`` pixels wide.
+    span : int64 (T, 2), candidate blocks of the warp to targets.
+    neutral_texture : float32 (3, M), the neutral frame F_0 in the model geometry.
+    pca : PCAModel over (3 * M,) ratio values (log R when ``config.log``).
+    regressors : dict variant -> SVRBank (FAPs (B, 36) -> coefficients (B, K)).
+    driver : str, the variant synthesis uses.
+    """
+
+    config: EriConfig
+    neutral_index: int
+    neutral_landmarks: np.ndarray
+    forehead: np.ndarray
+    reference: ReferenceFrame
+    span: np.ndarray
+    neutral_texture: np.ndarray
+    pca: PCAModel
+    regressors: dict = field(default_factory=dict)
+    driver: str = "nu_rbf"
+    fingerprint: str = ""
+    meta: dict = field(default_factory=dict)
+    training: dict | None = field(default=None, repr=False)  # faps/coefficients of the fit (not saved)
+
+    # ------------------------------------------------------------------ fitting
+    @classmethod
+    def fit(cls, seq: FaceSequence, rows=None, config: EriConfig | None = None, progress: bool = False) -> "EriModel":
+        """Fit on sequence ``rows`` (default all): neutral frame, ratio images, eigenERI, SVRs.
+
+        The last ``config.val_fraction`` of ``rows`` is the validation slice for choosing
+        the driver (``driver="auto"``) and the grid search; final regressors use all rows.
+        """
+        cfg = EriConfig.from_dict(config)
+        rows = np.arange(len(seq)) if rows is None else np.asarray(rows)
+        if len(rows) < 10:
+            raise FacesynthError(f"{seq.name}: ERI training needs at least 10 frames, got {len(rows)}")
+        t0 = time.perf_counter()
+        info: dict = {}
+        if cfg.neutral_index is None:
+            i, info = select_neutral(seq.landmarks[rows], cfg.mouth_closed_max)
+            neutral_index = int(rows[i])
+        else:
+            neutral_index = int(cfg.neutral_index)
+            if not 0 <= neutral_index < len(seq):
+                raise FacesynthError(f"eri.neutral_index={neutral_index} is outside the sequence (0..{len(seq) - 1})")
+            info = {"rule": "config"}
+        model = cls.from_neutral(seq.landmarks[neutral_index], seq.frame(neutral_index), cfg)
+        model.neutral_index, model.fingerprint = neutral_index, seq.fingerprint
+        values = model.ratios_of(seq, rows, progress)
+        t1 = time.perf_counter()
+        model.pca = PCAModel.fit(values.reshape(len(rows), -1), cfg.n_components, cfg.variance)
+        coeffs = model.pca.project(values.reshape(len(rows), -1))
+        del values
+        faps = compute_faps(seq.landmarks[rows], model.neutral_landmarks)
+        t2 = time.perf_counter()
+        model.fit_regressors(faps, coeffs)
+        model.training = {"rows": rows, "faps": faps, "coefficients": coeffs}
+        canvas = to_canvas(model.extend(seq.landmarks[rows]), model.reference.points)[0]
+        model.span = candidate_spans(model.reference, canvas, cfg.span_safety)
+        t3 = time.perf_counter()
+        model.meta.update({
+            "sequence": seq.name, "train_frames": int(len(rows)), "neutral": {"row": neutral_index, **info},
+            "n_components": model.pca.n_components, "variance_kept": model.pca.explained_variance_ratio,
+            "fit_seconds": {"ratios": t1 - t0, "pca": t2 - t1, "regressors": t3 - t2},
+        })
+        log.info("eri: neutral row %d, %d eigenERIs (%.1f%% variance), driver %s", neutral_index,
+                 model.pca.n_components, 100 * model.pca.explained_variance_ratio, model.driver)
+        return model
+
+    @classmethod
+    def from_neutral(cls, neutral: np.ndarray, image: np.ndarray, cfg: EriConfig) -> "EriModel":
+        """The geometry part of a model (no PCA/regressors yet) from a neutral face."""
+        neutral = np.asarray(neutral, np.float32)
+        fapu(neutral)  # validates the neutral face (raises on degenerate FAPUs)
+        fh = forehead_points(neutral, cfg.forehead) if cfg.forehead > 0 else np.zeros((0, 2))
+        pts = upright(open_mouth(extend(neutral, neutral, fh)[0], cfg.mouth_gap))
+        ref = ReferenceFrame.from_mean_shape(pts, cfg.width, cfg.margin)
+        model = cls(cfg, -1, neutral, fh.astype(np.float32), ref, np.zeros((ref.n_triangles, 2), np.int64),
+                    np.zeros(0, np.float32), None)  # type: ignore[arg-type]
+        model.neutral_texture = model.textures(image[None], neutral[None])[0].numpy()
+        return model
+
+    def fit_regressors(self, faps: np.ndarray, coeffs: np.ndarray) -> dict:
+        """Fit every SVR variant; choose ``driver`` (config or lowest validation MSE)."""
+        cfg = self.config
+        n_val = max(1, int(round(len(faps) * cfg.val_fraction)))
+        xt, yt, xv, yv = faps[:-n_val], coeffs[:-n_val], faps[-n_val:], coeffs[-n_val:]
+        scale = coeffs.std(0) + 1e-12
+        report = {}
+        for v in SVR_VARIANTS:
+            bank, rep = fit_variant(v, xt, yt, cfg, xv, yv)
+            if rep["val_mse"] is None:
+                rep["val_mse"] = float((((bank.predict(xv) - yv) / scale) ** 2).mean())
+                bank = SVRBank.fit(faps, coeffs, rep["params"])
+            self.regressors[v] = bank
+            report[v] = {**rep, "support_vectors": int(len(bank.sv))}
+        self.driver = cfg.driver if cfg.driver != "auto" else min(report, key=lambda v: report[v]["val_mse"])
+        self.meta["regressors"] = report
+        return report
+
+    # ------------------------------------------------------------- utilities
+    def sampler(self) -> ToReference:
+        if "_sampler" not in self.__dict__:
+            self.__dict__["_sampler"] = ToReference(self.reference)
+        return self.__dict__["_sampler"]
+
+    @property
+    def n_pixels(self) -> int:
+        return self.sampler().n_pixels
+
+    def extend(self, landmarks: np.ndarray) -> np.ndarray:
+        """(N, 68, 2) frames of the training subject -> (N, P, 2) with forehead points."""
+        return extend(landmarks, self.neutral_landmarks, self.forehead)
+
+    def textures(self, images: np.ndarray, landmarks: np.ndarray) -> torch.Tensor:
+        """uint8 (B, H, W, 3) + (B, 68, 2) of the training subject -> (B, 3, M) in the model geometry."""
+        return sample_textures(images, self.extend(landmarks), self.sampler())
+
+    def ratios_of(self, seq: FaceSequence, rows, progress: bool = False) -> np.ndarray:
+        """Ratio values (log R or R) of sequence rows: float32 (N, 3, M)."""
+        cfg, rows = self.config, np.asarray(rows)
+        out = np.empty((len(rows), 3, self.n_pixels), np.float32)
+        neutral = torch.from_numpy(self.neutral_texture)
+        frames = seq.iter_frames(rows)
+        for s in tqdm(range(0, len(rows), cfg.batch_size), desc="ratio images", disable=not progress, leave=False):
+            chunk = rows[s : s + cfg.batch_size]
+            tex = self.textures(np.stack([next(frames) for _ in chunk]), seq.landmarks[chunk])
+            out[s : s + len(chunk)] = ratio_images(tex, neutral, self.sampler(), cfg.eps, cfg.clip, cfg.sigma, cfg.log).numpy()
+        return out
+
+    def faps(self, landmarks: np.ndarray) -> np.ndarray:
+        """FAPs (N, 36) of the training subject's frames, relative to the model's neutral."""
+        return compute_faps(landmarks, self.neutral_landmarks)
+
+    def predict_coefficients(self, faps: np.ndarray, variant: str | None = None, clamp: bool = True) -> np.ndarray:
+        """(N, 36) FAPs -> (N, K) eigenERI coefficients (clamped to +-clamp_k sqrt(lambda))."""
+        v = variant or self.driver
+        if v not in self.regressors:
+            raise FacesynthError(f"ERI model has no regressor {v!r}; it has {sorted(self.regressors)}")
+        b = self.regressors[v].predict(np.asarray(faps, np.float32))
+        return self.pca.clamp(b, self.config.clamp_k) if clamp else b
+
+    def describe(self) -> dict:
+        return {"neutral_index": self.neutral_index, "n_components": self.pca.n_components,
+                "variance_kept": self.pca.explained_variance_ratio, "n_pixels": self.n_pixels,
+                "reference_size": list(self.reference.size), "driver": self.driver, "n_faps": len(FAP_NAMES)}
+
+    # ------------------------------------------------------------ save / load
+    def save(self, directory: str | os.PathLike, extra: dict | None = None) -> Path:
+        """Write ``eri_model.safetensors`` + ``eri_model.json`` into ``directory`` (atomically)."""
+        d = Path(directory)
+        d.mkdir(parents=True, exist_ok=True)
+        t = {"neutral_landmarks": self.neutral_landmarks, "forehead": np.asarray(self.forehead, np.float32),
+             "reference_points": self.reference.points, "triangles": self.reference.triangles.astype(np.int64),
+             "span": self.span.astype(np.int64), "neutral_texture": self.neutral_texture,
+             "pca_mean": self.pca.mean, "pca_components": self.pca.components,
+             "pca_eigenvalues": self.pca.eigenvalues.astype(np.float64)}
+        regs = {}
+        for name, reg in self.regressors.items():
+            regs[name] = reg.config_dict()
+            t.update({f"reg.{name}.{k}": v.numpy() for k, v in reg.state_dict().items()})
+        with atomic_path(d / TENSORS) as tmp:
+            save_file({k: np.ascontiguousarray(v) for k, v in t.items()}, str(tmp))
+        write_json(d / MANIFEST, {
+            "format": FORMAT, "format_version": FORMAT_VERSION, "facesynth_version": __version__,
+            "created": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), "config": self.config.to_dict(),
+            "neutral_index": self.neutral_index, "reference_size": list(self.reference.size),
+            "pca_total_variance": self.pca.total_variance, "driver": self.driver, "regressors": regs,
+            "fap_names": list(FAP_NAMES), "data_fingerprint": self.fingerprint, "packages": package_versions(),
+            "meta": self.meta, **(extra or {}),
+        })
+        return d
+
+    @classmethod
+    def load(cls, directory: str | os.PathLike) -> "EriModel":
+        """Load a model written by :meth:`save` (a run directory or the model folder in it)."""
+        d = Path(directory)
+        if not (d / MANIFEST).is_file() and (d / "eri" / MANIFEST).is_file():
+            d = d / "eri"
+        if not (d / MANIFEST).is_file():
+            raise FacesynthError(f"{d}: not an ERI model directory ({MANIFEST} missing)")
+        try:
+            m = json.loads((d / MANIFEST).read_text())
+        except json.JSONDecodeError as exc:
+            raise FacesynthError(f"{d / MANIFEST}: invalid JSON ({exc})") from None
+        if m.get("format") != FORMAT or m.get("format_version") != FORMAT_VERSION:
+            raise FacesynthError(f"{d / MANIFEST}: format {m.get('format')!r} v{m.get('format_version')}, "
+                                 f"expected {FORMAT!r} v{FORMAT_VERSION}; retrain with this facesynth")
+        if m.get("fap_names") != list(FAP_NAMES):
+            raise FacesynthError(f"{d / MANIFEST}: FAP table differs from this facesynth's; retrain")
+        try:
+            t = load_file(str(d / TENSORS))
+        except Exception as exc:  # safetensors raises several types
+            raise FacesynthError(f"{d / TENSORS}: unreadable tensors ({exc})") from None
+        ref = ReferenceFrame(t["reference_points"], tuple(m["reference_size"]), t["triangles"])
+        pca = PCAModel(t["pca_mean"], t["pca_components"], t["pca_eigenvalues"], m["pca_total_variance"])
+        regs = {}
+        for name, conf in m["regressors"].items():
+            pre = f"reg.{name}."
+            regs[name] = SVRBank.from_state(conf, {k[len(pre):]: torch.from_numpy(v) for k, v in t.items() if k.startswith(pre)})
+        return cls(EriConfig.from_dict(m["config"]), int(m["neutral_index"]), t["neutral_landmarks"], t["forehead"], ref,
+                   t["span"], t["neutral_texture"], pca, regs, m["driver"], m.get("data_fingerprint", ""), m.get("meta", {}))

@@ -1,0 +1,81 @@
+"""Output helpers for expression transfer: atomic MP4 writing and the contact sheet
+(driver frame | geometry-only warp | ERI result)."""
+
+from __future__ import annotations
+
+import os
+from typing import Iterable
+
+import cv2
+import numpy as np
+
+from facesynth.errors import FacesynthError
+from facesynth.io import atomic_path, write_bytes
+
+
+def write_video(path: str | os.PathLike, frames: Iterable[np.ndarray], fps: float) -> int:
+    """Write uint8 RGB (H, W, 3) frames to an MP4 (OpenCV ``mp4v``) atomically; returns the
+    number of frames. The file appears only once every frame is written."""
+    n = 0
+    with atomic_path(path, suffix=".mp4") as tmp:
+        writer = None
+        try:
+            for f in frames:
+                if writer is None:
+                    h, w = f.shape[:2]
+                    writer = cv2.VideoWriter(str(tmp), cv2.VideoWriter_fourcc(*"mp4v"), float(fps), (w, h))
+                    if not writer.isOpened():
+                        raise FacesynthError(f"{path}: OpenCV cannot open an mp4v video writer")
+                writer.write(cv2.cvtColor(np.ascontiguousarray(f), cv2.COLOR_RGB2BGR))
+                n += 1
+        finally:
+            if writer is not None:
+                writer.release()
+        if n == 0:
+            raise FacesynthError(f"{path}: no frames to write")
+    return n
+
+
+def face_box(landmarks: np.ndarray, shape: tuple[int, ...], margin: float = 0.35) -> tuple[int, int, int, int]:
+    """Square crop (x0, y0, x1, y1) around (68, 2) landmarks with ``margin`` (fraction of the
+    box side) added above (forehead) and around, clipped to the image."""
+    lo, hi = landmarks.min(0), landmarks.max(0)
+    side = float(max(hi - lo)) * (1 + 2 * margin)
+    c = 0.5 * (lo + hi) - [0, 0.08 * side]
+    x0, y0 = int(max(0, c[0] - side / 2)), int(max(0, c[1] - side / 2))
+    x1, y1 = int(min(shape[1], c[0] + side / 2)), int(min(shape[0], c[1] + side / 2))
+    return x0, y0, x1, y1
+
+
+def crop(image: np.ndarray, box: tuple[int, int, int, int], size: int) -> np.ndarray:
+    x0, y0, x1, y1 = box
+    return cv2.resize(image[y0:y1, x0:x1], (size, size), interpolation=cv2.INTER_AREA)
+
+
+def pick_sheet_rows(faps: np.ndarray, n: int) -> np.ndarray:
+    """``n`` frames spread over time: the most expressive (largest FAP norm) of each of
+    ``n`` equal time chunks. (N, 36) -> int (n,) sorted indices."""
+    norm = np.linalg.norm(np.asarray(faps, np.float64), axis=1)
+    chunks = np.array_split(np.arange(len(faps)), min(n, len(faps)))
+    return np.array([c[np.argmax(norm[c])] for c in chunks if len(c)])
+
+
+def contact_sheet(
+    path: str | os.PathLike, driver: list[np.ndarray], driver_lm: np.ndarray, geometry: list[np.ndarray],
+    eri: list[np.ndarray], target_lm: np.ndarray, size: int = 256,
+) -> None:
+    """PNG with one row per frame: driver frame | geometry-only warp | ERI result, each a face
+    crop of ``size`` px (driver crops around its own landmarks (n, 68, 2); the target
+    crops around ``target_lm`` (n, 68, 2))."""
+    rows = []
+    for d, dl, g, e, tl in zip(driver, driver_lm, geometry, eri, target_lm):
+        tb = face_box(tl, g.shape)
+        rows.append(np.concatenate([crop(d, face_box(dl, d.shape), size), crop(g, tb, size), crop(e, tb, size)], 1))
+    sheet = np.concatenate(rows, 0)
+    head = np.full((28, sheet.shape[1], 3), 255, np.uint8)
+    for i, label in enumerate(("driver", "geometry-only warp", "ERI")):
+        cv2.putText(head, label, (i * size + 8, 20), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (0, 0, 0), 1, cv2.LINE_AA)
+    ok, buf = cv2.imencode(".png", cv2.cvtColor(np.concatenate([head, sheet], 0), cv2.COLOR_RGB2BGR))
+    if not ok:  # pragma: no cover
+        raise FacesynthError(f"{path}: PNG encoding failed")
+    write_bytes(path, buf.tobytes())
