@@ -7,6 +7,7 @@
 
 import logging
 import sys
+from pathlib import Path
 
 import hydra
 from hydra.core.hydra_config import HydraConfig
@@ -31,6 +32,8 @@ def main(cfg: DictConfig) -> None:
         sys.exit(2)
     if "psnr_ref" in metrics:
         print("\n".join(summary_lines(metrics)))
+    elif (Path(out_dir) / "eri_report.md").is_file():
+        print((Path(out_dir) / "eri_report.md").read_text())
     print(f"run directory: {out_dir}")
 
 

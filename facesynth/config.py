@@ -15,6 +15,7 @@ from typing import Any, Optional
 from hydra.core.config_store import ConfigStore
 from omegaconf import MISSING
 
+from facesynth.eri.config import EriConfig
 from facesynth.eval.sadm_eval import EvalConfig
 from facesynth.model.face_model import FaceModelConfig
 from facesynth.sadm.fit import SADMConfig, _make_config
@@ -51,7 +52,7 @@ class TrainConf:
     regressor: Any = MISSING
     sadm: SADMConfig = field(default_factory=SADMConfig)
     eval: EvalConfig = field(default_factory=EvalConfig)
-    eri: Any = None
+    eri: EriConfig = field(default_factory=EriConfig)
 
 
 def _omegaconf_type(tp):

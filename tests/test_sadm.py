@@ -135,3 +135,13 @@ def test_train_reports_bad_data_path(tmp_path):
     proc = subprocess.run([sys.executable, str(ROOT / "train.py"), "data=video", f"data.path={tmp_path / 'nope'}",
                            f"hydra.run.dir={tmp_path / 'r'}"], cwd=ROOT, capture_output=True, text=True, timeout=300)
     assert proc.returncode == 2 and "no such file or folder" in proc.stderr
+
+
+def test_train_model_eri_through_hydra(tmp_path):
+    """``train.py model=eri`` composes the eri/ group and writes the ERI run."""
+    from facesynth.pipeline import run_training
+
+    cfg = _compose(["model=eri", "data.n_frames=48", "data.size=192", "eri.compare=[]"])
+    metrics = run_training(cfg, tmp_path / "eri")
+    assert (tmp_path / "eri" / "eri_metrics.json").is_file() and (tmp_path / "eri" / "eri_report.md").is_file()
+    assert metrics["config"]["model"]["kind"] == "eri"

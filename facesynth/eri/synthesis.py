@@ -26,7 +26,7 @@ from facesynth.eri.ratio import apply_ratio, edge_confidence, sample_textures, t
 from facesynth.errors import FacesynthError
 from facesynth.model.procrustes import apply_affine, invert_affine
 from facesynth.model.warp import ToTarget, candidate_spans
-from facesynth.sadm.synthesis import composite
+from facesynth.imaging import composite
 
 MODES = ("eri", "geometry")
 
