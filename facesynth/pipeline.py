@@ -74,9 +74,7 @@ def run_training(cfg, out_dir: str | Path) -> dict:
     if cfg.model.kind == "eri":
         from facesynth.eri.train import train_eri
 
-        metrics = train_eri(cfg.eri, seq, out, cfg.seed)
-        metrics.setdefault("config", container)
-        return metrics
+        return train_eri(cfg.eri, seq, out, cfg.seed)  # the whole run config is in config.yaml
     if cfg.model.kind != "aam":
         raise FacesynthError(f"model.kind must be 'aam' or 'eri', got {cfg.model.kind!r}")
     model, tex_tr = FaceModel.fit_with_textures(seq, _dataclass_from(cfg.model, FaceModelConfig), rows=tr)
