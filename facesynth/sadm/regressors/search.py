@@ -35,6 +35,8 @@ DEFAULT_GRIDS: dict[str, dict[str, list]] = {
     # gamma_mult reaches below 0.25: on lp_d6 the best value WAS 0.25 = the low edge of {0.25..2}
     "svr": {"C": [0.01, 0.03, 0.1, 0.3, 1.0, 3.0, 10.0], "gamma_mult": [0.0625, 0.125, 0.25, 0.5, 1.0, 2.0]},
     # on lp_d6 dropout 0.2 and weight decay 1 helped most; the width hardly mattered
+    # kernel ridge + linear blend: alpha, width and the blend weight (blend 0 = linear ridge)
+    "krr": {"alpha": [0.1, 0.5, 2.0], "gamma_mult": [0.1, 0.3, 1.0], "blend": [0.25, 0.5, 0.75, 1.0]},
     "mlp": {"weight_decay": [1e-2, 1e-1, 1.0], "dropout": [0.0, 0.2], "hidden": [[128, 128], [256, 256]]},
 }
 
