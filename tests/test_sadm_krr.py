@@ -129,3 +129,22 @@ def test_hydra_regressor_krr_composes():
     name, params = regressor_params(cfg.regressor)
     assert name == "krr" and params["blend"] == 0.25 and params["alpha"] == 0.5
 
+
+
+def test_ceiling_study_on_real_clip(shared_clip_dir, tmp_path):
+    """facesynth.sadm.ceiling on lp_d3: the regressor lies between the mean texture and the
+    PCA oracle, and covering half of the test distribution helps (the segment shift)."""
+    from facesynth.sadm.ceiling import study
+
+    res = study(str(shared_clip_dir("lp_d3")), "krr")
+    assert res["mean_texture"] < res["train_to_B"] < res["oracle"]
+    assert res["train_plus_A_to_B"] > res["train_to_B"] + 1.0  # measured +3.5 dB on lp_d3
+    assert res["test_b_frames"] > 0
+
+
+def test_ceiling_cli_reports_missing_clip(tmp_path):
+    from facesynth.errors import FacesynthError
+    from facesynth.sadm.ceiling import main
+
+    with pytest.raises(FacesynthError):
+        main(["--clip", str(tmp_path / "nope")])
