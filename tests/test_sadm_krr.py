@@ -26,7 +26,7 @@ def test_krr_equals_sklearn_kernel_ridge_plus_ridge():
 
     x, y = _data()
     xt, _ = _data(40, seed=1)
-    cfg = KRRConfig(alpha=0.3, gamma_mult=0.5, ridge=2.0, blend=0.6)
+    cfg = KRRConfig(alpha=0.3, gamma_mult=0.5, ridge=2.0, blend=0.6, clip_inputs=False)
     reg = KRRRegressor.fit(x, y, cfg)
     sc = StandardScaler().fit(x)
     krr = KernelRidge(alpha=0.3, kernel="rbf", gamma=0.5 / x.shape[1]).fit(sc.transform(x), y - y.mean(0))
@@ -40,7 +40,7 @@ def test_blend_end_points():
 
     x, y = _data()
     lin = LinearRegressor.fit(x, y, {"ridge": 1.5})
-    zero = KRRRegressor.fit(x, y, {"blend": 0.0, "ridge": 1.5})
+    zero = KRRRegressor.fit(x, y, {"blend": 0.0, "ridge": 1.5})  # inside the training box: no clipping
     np.testing.assert_allclose(zero.predict(x), lin.predict(x), rtol=1e-5, atol=1e-4)
     one = KRRRegressor.fit(x, y, {"blend": 1.0, "alpha": 0.1, "gamma_mult": 1.0})
     z = (x - x.mean(0)) / x.std(0)
@@ -49,6 +49,17 @@ def test_blend_end_points():
     ref_c = KernelRidge(alpha=0.1, kernel="rbf", gamma=1.0 / x.shape[1]).fit(z, y - y.mean(0)).predict(z) + y.mean(0)
     np.testing.assert_allclose(one.predict(x), ref_c, rtol=1e-4, atol=1e-3)
     assert np.abs(ref - ref_c).max() > 1e-3  # the centring matters (so the check above is specific)
+
+
+def test_clip_inputs_maps_outside_shapes_to_the_training_box():
+    x, y = _data()
+    reg = KRRRegressor.fit(x, y)  # clip_inputs=True (default)
+    free = KRRRegressor.fit(x, y, {"clip_inputs": False})
+    np.testing.assert_allclose(reg.predict(x), free.predict(x), rtol=1e-6, atol=1e-5)  # inside: identical
+    far = x[:5] + 100.0 * np.sign(x[:5] - x.mean(0))  # far outside the box in every coordinate
+    box = np.where(far > x.max(0), x.max(0), np.where(far < x.min(0), x.min(0), far))
+    np.testing.assert_allclose(reg.predict(far), free.predict(box), rtol=1e-5, atol=1e-4)
+    assert np.abs(free.predict(far)).max() > 10 * np.abs(reg.predict(far)).max()  # the linear part extrapolates
 
 
 def test_kernel_part_interpolates_with_small_alpha():
