@@ -137,8 +137,14 @@ def test_hydra_regressor_krr_composes():
     root = Path(__file__).resolve().parents[1]
     with initialize_config_dir(str(root / "conf"), version_base=None):
         cfg = compose(config_name="config", overrides=["regressor=krr", "regressor.blend=0.25"])
+        default = compose(config_name="config", overrides=[])
+        linear = compose(config_name="config", overrides=["regressor=linear"])
+        again = compose(config_name="config", overrides=["regressor=krr", "sadm.augment_sigma=2"])
     name, params = regressor_params(cfg.regressor)
-    assert name == "krr" and params["blend"] == 0.25 and params["alpha"] == 0.5
+    assert name == "krr" and params["blend"] == 0.25 and params["alpha"] == 0.5 and params["clip_inputs"] is True
+    # krr is the default and brings its own augmentation (sigma 1 px); other regressors keep 2 px
+    assert regressor_params(default.regressor)[0] == "krr" and default.sadm.augment_sigma == 1.0
+    assert linear.sadm.augment_sigma == 2.0 and again.sadm.augment_sigma == 2.0
 
 
 
