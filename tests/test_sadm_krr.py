@@ -155,7 +155,7 @@ def test_ceiling_study_on_real_clip(shared_clip_dir, tmp_path):
 
     res = study(str(shared_clip_dir("lp_d3")), "krr")
     assert res["mean_texture"] < res["train_to_B"] < res["oracle"]
-    assert res["train_plus_A_to_B"] > res["train_to_B"] + 1.0  # measured +3.5 dB on lp_d3
+    assert res["train_plus_A_to_B"] > res["train_to_B"] + 1.0  # measured +3.0 dB on lp_d3
     assert res["test_b_frames"] > 0
 
 
