@@ -59,7 +59,8 @@ def geometry_figures(seq: dict, sizes=(256, 512)) -> dict:
 def speed(video_by_size: dict, qp: int) -> dict:
     out = {}
     for s, (vid, mask) in video_by_size.items():
-        for name, sizes in (("hip+pdp-intra", (4, 8)), ("hip+pdp-intra", (4,)), ("hip+pdp+pvm-ippp", (4, 8))):
+        for name, sizes in (("hip+pdp-intra", (4, 8, 16)), ("hip+pdp-intra", (4,)),
+                            ("hip+pdp+pvm-ippp", (4, 8, 16)), ("hip+pdp+pvm-ippp", (8,))):
             cfg = CodecConfig(qp=qp, block_sizes=sizes, **CONFIGS[name])
             data, rec, st = encode_video(vid, cfg, mask)
             t0 = time.perf_counter()

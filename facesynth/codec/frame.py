@@ -42,7 +42,7 @@ class CodecConfig:
     pvm: bool = True
     inter: bool = True
     gop: int = 1
-    block_sizes: tuple[int, ...] = (4, 8)
+    block_sizes: tuple[int, ...] = (4, 8, 16)
     mv_range: int = 4
     outside_weight: float = 0.05
     rd_candidates: int = 3
@@ -171,16 +171,18 @@ def decode_frame(code: FrameCode, prev: np.ndarray | None, qp: int | None, flags
         plane = modes == 3
         lin = np.where(modes > 3, modes - 1, np.where(plane, 0, modes))
     first_pvm = ms.n_spatial
-    if ms.pvm:
-        maps = prev_maps(padded(prev), g)
+    if ms.pvm:  # maps only for the blocks that use PVM
         is_pvm = (modes >= first_pvm) & (modes < first_pvm + 4)
         d = np.clip(modes - first_pvm, 0, 3)
-        add += np.where(is_pvm[..., None], np.take_along_axis(maps, d[..., None, None], 2)[:, :, 0], 0)
+        ci, bi = np.nonzero(is_pvm)
+        pb = padded(prev)
+        maps = intra.pvm_maps(pb[ci[:, None], g.pix_idx[bi]], pb[ci[:, None], g.nb_idx[bi]], n)
+        add[ci, bi] = maps[np.arange(len(ci)), d[ci, bi]]
         lin = np.where(is_pvm, nh + d, lin)
     if ms.inter:
         is_i = modes == ms.inter_mode
         pi = motion_compensate(prev, code.mvs, n, mv_range)
-        add += np.where(is_i[..., None], pi, 0)
+        add[is_i] = pi[is_i]
         lin = np.where(is_i, nh + 4, lin)
     o = g.order  # everything in wavefront order: each wave is a contiguous slice
     res = decode_residual(code.levels[:, o], n, qp).astype(np.float64)
