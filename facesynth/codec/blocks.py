@@ -115,23 +115,24 @@ class ModeSet:
         return out + (["INTER"] if self.inter else [])
 
 
-def wave_predictions(buf: np.ndarray, g: Grid, ids: np.ndarray, ms: ModeSet,
+def wave_predictions(buf: np.ndarray, nb_idx: np.ndarray, n: int, ms: ModeSet,
                      maps: np.ndarray | None) -> np.ndarray:
-    """Predictions of all current-frame-dependent modes for blocks ``ids``.
+    """Predictions of all current-frame-dependent modes for the blocks of one wave.
 
-    buf : (C, (H+1)(W+1)) reconstructed samples so far; maps : (C, nblk, 4, N*N) PVM maps.
+    buf : (C, (H+1)(W+1)) reconstructed samples so far; nb_idx : (b, K) neighbour indices
+    of the wave's blocks; maps : (C, b, 4, N*N) their PVM maps.
     Returns (C, b, n_predictive, N*N) int64 in [0, 65535].
     """
-    nb = buf[:, g.nb_idx[ids]]
-    raw = intra.apply_matrices(nb, "hip+pdp" if (ms.pdp or ms.pvm) else "hip", g.n)
-    nh = 3 if g.n == 16 else 9
+    nb = buf[:, nb_idx]
+    raw = intra.apply_matrices(nb, "hip+pdp" if (ms.pdp or ms.pvm) else "hip", n)
+    nh = 3 if n == 16 else 9
     parts = [raw[:, :, :nh]]
-    if g.n == 16:
+    if n == 16:
         parts.append(intra.plane16(nb)[:, :, None])
     if ms.pdp:
         parts.append(raw[:, :, nh:])
     if ms.pvm:
-        parts.append(raw[:, :, nh:] + maps[:, ids])
+        parts.append(raw[:, :, nh:] + maps)
     pred = np.concatenate(parts, 2) if len(parts) > 1 else parts[0]
     return np.clip(pred, 0, 65535, out=pred)
 

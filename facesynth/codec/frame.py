@@ -113,36 +113,43 @@ def _encode_n(x, prev, cfg, weight, n):
     mp = ms.n_predictive
     kk = mp if not cfg.rd_candidates else min(cfg.rd_candidates, mp)
     ones = np.ones(n * n)
-    for ids in g.waves:
-        pred = wave_predictions(buf, g, ids, ms, maps)
-        xi = xb[:, ids, None, :]
-        wi = wb[ids][None, :, None, :]
+    o = g.order  # wavefront order: each wave is a contiguous slice
+    xo, wo, nbo, pixo = xb[:, o], wb[o], g.nb_idx[o], g.pix_idx[o]
+    mo = maps[:, o] if ms.pvm else None
+    if ms.inter:
+        j_i, rec_i, lev_i, mvs_all = j_i[:, o], rec_i[:, o], lev_i[:, o], mvs_all[:, o]
+    cidx = np.arange(c)[:, None]
+    for s, e in g.bounds:
+        pred = wave_predictions(buf, nbo[s:e], n, ms, mo[:, s:e] if ms.pvm else None)
+        xi = xo[:, s:e, None, :]
+        wi = wo[None, s:e, None, :]
+        bidx = np.arange(e - s)[None, :]
         if kk < mp:  # prune to the kk modes of least weighted SAD before the full RD test
             sad = (np.abs(xi - pred) * wi) @ ones
             cand = np.argpartition(sad, kk - 1, axis=-1)[..., :kk]
-            pred = np.take_along_axis(pred, cand[..., None], 2)
+            pred = pred[cidx[..., None], bidx[..., None], cand]
         else:
             cand = np.broadcast_to(np.arange(mp), pred.shape[:3])
         lev, rres = code_residual(xi - pred, n, qp)
         rec = np.clip(pred + rres, 0, 65535)
         j = (((xi - rec) ** 2) * wi) @ ones + lam * _est_bits(lev)
         if ms.inter:
-            j = np.concatenate([j, j_i[:, ids, None]], -1)
+            j = np.concatenate([j, j_i[:, s:e, None]], -1)
         bl = np.argmin(j, -1)
         bi = np.minimum(bl, kk - 1)
-        b = np.take_along_axis(cand, bi[..., None], -1)[..., 0]
-        r = np.take_along_axis(rec, bi[..., None, None], 2)[:, :, 0]
-        lv = np.take_along_axis(lev, bi[..., None, None, None], 2)[:, :, 0]
+        b = cand[cidx, bidx, bi]
+        r = rec[cidx, bidx, bi]
+        lv = lev[cidx, bidx, bi]
         if ms.inter:
             is_i = (bl == kk)
             b = np.where(is_i, mp, b)
-            r = np.where(is_i[..., None], rec_i[:, ids], r)
-            lv = np.where(is_i[..., None, None], lev_i[:, ids], lv)
-            mvs[:, ids] = np.where(is_i[..., None], mvs_all[:, ids], 0)
-        buf[:, g.pix_idx[ids]] = r
-        modes[:, ids] = b
-        levels[:, ids] = lv
-        total += float(np.take_along_axis(j, bl[..., None], -1).sum()) + lam * MODE_BITS * bl.size
+            r = np.where(is_i[..., None], rec_i[:, s:e], r)
+            lv = np.where(is_i[..., None, None], lev_i[:, s:e], lv)
+            mvs[:, o[s:e]] = np.where(is_i[..., None], mvs_all[:, s:e], 0)
+        buf[:, pixo[s:e]] = r
+        modes[:, o[s:e]] = b
+        levels[:, o[s:e]] = lv
+        total += float(j[cidx, bidx, bl].sum()) + lam * MODE_BITS * bl.size
     return FrameCode(n, prev is not None, modes, levels, mvs), unpadded(buf, h, w).copy(), total
 
 
