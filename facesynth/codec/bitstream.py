@@ -79,9 +79,12 @@ def encode_video(frames: np.ndarray, cfg: CodecConfig, mask: np.ndarray | None =
     recs, prev = [], None
     mode_hist: dict[str, int] = {}
     t0 = time.perf_counter()
+    last_size: dict[bool, int] = {}
     for i in range(t):
         p = prev if (i % cfg.gop) else None
-        code, rec = encode_frame(x[i], p, cfg, wmask)
+        full = cfg.size_refresh <= 1 or i % cfg.size_refresh == 0 or (p is not None) not in last_size
+        code, rec = encode_frame(x[i], p, cfg, wmask, None if full else (last_size[p is not None],))
+        last_size[p is not None] = code.n
         payload = write_frame(code, flags, cfg.mv_range, x[i].shape)
         out.append(_CHUNK.pack(len(payload), zlib.crc32(payload)))
         out.append(payload)

@@ -34,7 +34,9 @@ class CodecConfig:
     group (1 = all intra); block_sizes : candidate N per frame; mv_range : full-search
     range in pixels; outside_weight : weight of pixels outside the mask in D;
     rd_candidates : full RD test only for this many modes of least SAD (0 = all);
-    lambda_scale : multiplies the H.264 lambda(QP).
+    lambda_scale : multiplies the H.264 lambda(QP); size_refresh : all block sizes are
+    tried on I-frames and every ``size_refresh``-th frame, the others reuse the last
+    choice within the same frame type (0 or 1 = try all sizes on every frame).
     """
 
     qp: int | None = 30
@@ -47,6 +49,7 @@ class CodecConfig:
     outside_weight: float = 0.05
     rd_candidates: int = 3
     lambda_scale: float = 1.0
+    size_refresh: int = 4
 
 
 @dataclass
@@ -74,13 +77,15 @@ def _est_bits(lev: np.ndarray) -> np.ndarray:
 
 
 def encode_frame(x: np.ndarray, prev: np.ndarray | None, cfg: CodecConfig,
-                 weight: np.ndarray | None = None) -> tuple[FrameCode, np.ndarray]:
+                 weight: np.ndarray | None = None, sizes: tuple[int, ...] | None = None
+                 ) -> tuple[FrameCode, np.ndarray]:
     """Encode one frame (C, H, W) int64; ``prev`` (C, H, W) makes it a P-frame.
 
+    ``sizes`` overrides ``cfg.block_sizes`` (the candidate block sizes tried).
     Returns the frame's code and its reconstruction (C, H, W) int64.
     """
     best = None
-    for n in cfg.block_sizes:
+    for n in sizes or cfg.block_sizes:
         code, rec, cost = _encode_n(x, prev, cfg, weight, n)
         if best is None or cost < best[2]:
             best = (code, rec, cost)
