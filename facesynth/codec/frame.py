@@ -20,9 +20,9 @@ import numpy as np
 from facesynth.codec import entropy, intra
 from facesynth.codec.intra import n_neighbours
 from facesynth.codec.blocks import (
-    MID, ModeSet, grid, motion_compensate, motion_search, padded, prev_maps, unpadded, wave_predictions,
+    MID, ModeSet, grid, motion_compensate, motion_search, padded, sad_maps, prev_maps, unpadded, wave_predictions,
 )
-from facesynth.codec.transform import code_residual, decode_residual, lagrangian
+from facesynth.codec.transform import analyse_residual, code_residual, decode_residual, lagrangian
 
 
 @dataclass
@@ -85,14 +85,15 @@ def encode_frame(x: np.ndarray, prev: np.ndarray | None, cfg: CodecConfig,
     Returns the frame's code and its reconstruction (C, H, W) int64.
     """
     best = None
+    sads = sad_maps(x, prev, cfg.mv_range) if (prev is not None and cfg.inter) else None
     for n in sizes or cfg.block_sizes:
-        code, rec, cost = _encode_n(x, prev, cfg, weight, n)
+        code, rec, cost = _encode_n(x, prev, cfg, weight, n, sads)
         if best is None or cost < best[2]:
             best = (code, rec, cost)
     return best[0], best[1]
 
 
-def _encode_n(x, prev, cfg, weight, n):
+def _encode_n(x, prev, cfg, weight, n, sads=None):
     c, h, w = x.shape
     g = grid(n, h, w)
     ms = mode_set(cfg.pdp, cfg.pvm, cfg.inter, n, prev is not None)
@@ -108,7 +109,7 @@ def _encode_n(x, prev, cfg, weight, n):
     levels = np.zeros((c, g.n_blocks, nsub, 16), np.int64)
     mvs = np.zeros((c, g.n_blocks, 2), np.int64)
     if ms.inter:
-        mvs_all = motion_search(x, prev, n, cfg.mv_range)
+        mvs_all = motion_search(x, prev, n, cfg.mv_range, sads)
         pi = motion_compensate(prev, mvs_all, n, cfg.mv_range)
         lev_i, rr = code_residual(xb - pi, n, qp, intra=False)
         rec_i = np.clip(pi + rr, 0, 65535)
@@ -120,6 +121,7 @@ def _encode_n(x, prev, cfg, weight, n):
     ones = np.ones(n * n)
     o = g.order  # wavefront order: each wave is a contiguous slice
     xo, wo, nbo, pixo = xb[:, o], wb[o], g.nb_idx[o], g.pix_idx[o]
+    wm = wo.mean(-1)
     mo = maps[:, o] if ms.pvm else None
     if ms.inter:
         j_i, rec_i, lev_i, mvs_all = j_i[:, o], rec_i[:, o], lev_i[:, o], mvs_all[:, o]
@@ -135,16 +137,17 @@ def _encode_n(x, prev, cfg, weight, n):
             pred = pred[cidx[..., None], bidx[..., None], cand]
         else:
             cand = np.broadcast_to(np.arange(mp), pred.shape[:3])
-        lev, rres = code_residual(xi - pred, n, qp)
-        rec = np.clip(pred + rres, 0, 65535)
-        j = (((xi - rec) ** 2) * wi) @ ones + lam * _est_bits(lev)
+        # D from the transform domain (Parseval), weighted by the block's mean mask weight;
+        # only the chosen candidate is inverse-transformed, with the decoder's own function
+        lev, dist = analyse_residual(xi - pred, n, qp)
+        j = dist * wm[None, s:e, None] + lam * _est_bits(lev)
         if ms.inter:
             j = np.concatenate([j, j_i[:, s:e, None]], -1)
         bl = np.argmin(j, -1)
         bi = np.minimum(bl, kk - 1)
         b = cand[cidx, bidx, bi]
-        r = rec[cidx, bidx, bi]
         lv = lev[cidx, bidx, bi]
+        r = np.clip(pred[cidx, bidx, bi] + decode_residual(lv, n, qp), 0, 65535)
         if ms.inter:
             is_i = (bl == kk)
             b = np.where(is_i, mp, b)
