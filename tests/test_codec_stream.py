@@ -30,7 +30,8 @@ def video():
     CodecConfig(qp=36, gop=1, block_sizes=(8, 16)),
     CodecConfig(qp=20, gop=3, pdp=True, pvm=True, inter=True, mv_range=2),
     CodecConfig(qp=60, gop=2, pdp=False, pvm=False, inter=True, block_sizes=(16,)),
-], ids=["hip-intra", "pdp-intra-8-16", "ippp-pvm-inter", "hip-inter-coarse"])
+    CodecConfig(qp=30, gop=3, mv_range=0, size_refresh=0),
+], ids=["hip-intra", "pdp-intra-8-16", "ippp-pvm-inter", "hip-inter-coarse", "zero-motion-range"])
 def test_decoder_output_equals_encoder_reconstruction(video, cfg):
     vid, mask = video
     data, rec, st = encode_video(vid, cfg, mask)

@@ -58,7 +58,7 @@ def _codec_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--gop", type=int, default=1, help="1 = all intra; N = I then N-1 P-frames")
     p.add_argument("--no-inter", action="store_true", help="P-frames without motion compensation")
     p.add_argument("--block-sizes", default="4,8,16")
-    p.add_argument("--mv-range", type=int, default=4)
+    p.add_argument("--mv-range", type=int, default=2, help="full-search range in pixels")
 
 
 def _sizes(text: str) -> tuple[int, ...]:

@@ -45,7 +45,7 @@ class CodecConfig:
     inter: bool = True
     gop: int = 1
     block_sizes: tuple[int, ...] = (4, 8, 16)
-    mv_range: int = 4
+    mv_range: int = 2
     outside_weight: float = 0.05
     rd_candidates: int = 3
     lambda_scale: float = 1.0
