@@ -99,6 +99,10 @@ def test_corrupt_and_truncated_streams_are_rejected(video):
     forged = data[:hdr_len] + struct.pack("<II", len(junk), zlib.crc32(junk)) + junk + data[hdr_len + 8 + ln:]
     with pytest.raises(FacesynthError, match="frame 0"):
         decode_video(forged)
+    # a forged header (valid CRC) claiming a million 60000x60000 frames: clean error, no huge allocation
+    hdr = struct.pack("<4sBBBBHHBHBI6d", b"FSGV", 1, 0, 3, 16, 60000, 60000, 30, 1, 2, 10**6, *([0.0] * 6))
+    with pytest.raises(FacesynthError, match="truncated"):
+        decode_video(hdr + struct.pack("<I", zlib.crc32(hdr)) + b"\0" * 100)
 
 
 def test_encoder_rejects_bad_input():

@@ -130,7 +130,9 @@ def decode_video(data: bytes) -> tuple[np.ndarray, StreamInfo, dict]:
     info, off = read_header(data)
     hp, wp = info.height + (-info.height % 16), info.width + (-info.width % 16)
     shape = (info.channels, hp, wp)
-    out = np.empty((info.n_frames, info.height, info.width, info.channels), np.uint16)
+    if len(data) - off < info.n_frames * (_CHUNK.size + 3):
+        raise FacesynthError(f"bitstream: truncated ({len(data)} bytes cannot hold {info.n_frames} frames)")
+    out = []  # frames are allocated as they decode, so a forged header cannot force a huge allocation
     prev = None
     t0 = time.perf_counter()
     for i in range(info.n_frames):
@@ -152,9 +154,9 @@ def decode_video(data: bytes) -> tuple[np.ndarray, StreamInfo, dict]:
             rec = decode_frame(code, prev if code.p_frame else None, info.qp, info.flags, mvr, shape)
         except (ValueError, IndexError, RuntimeError, OverflowError) as exc:
             raise FacesynthError(f"bitstream: frame {i} is malformed ({exc})") from None
-        out[i] = np.moveaxis(rec, 0, -1)[:info.height, :info.width]
+        out.append(np.moveaxis(rec, 0, -1)[:info.height, :info.width].astype(np.uint16))
         prev = rec
     dec_s = time.perf_counter() - t0
     if off != len(data):
         raise FacesynthError(f"bitstream: {len(data) - off} unexpected bytes after the last frame")
-    return out, info, {"decode_s": dec_s}
+    return np.stack(out), info, {"decode_s": dec_s}
