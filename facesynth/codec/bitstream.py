@@ -104,6 +104,8 @@ def _count_modes(hist: dict, code: FrameCode, flags) -> None:
     names = mode_set(*flags, code.n, code.p_frame).names()
     cnt = np.bincount(code.modes.ravel(), minlength=len(names))
     for name, k in zip(names, cnt):
+        if k == 0:
+            continue
         key = f"{name}@{code.n}" if name.startswith("HIP") else name
         hist[key] = hist.get(key, 0) + int(k) * code.n * code.n  # in pixels
 
