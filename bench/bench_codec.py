@@ -27,7 +27,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from facesynth.codec.bitstream import decode_video, encode_video  # noqa: E402
 from facesynth.codec.frame import CodecConfig  # noqa: E402
-from facesynth.codec.geometry import build_layout, geometry_video, rasterise, sample_vertices  # noqa: E402
+from facesynth.codec.geometry import (  # noqa: E402
+    build_layout, geometry_video, rasterise, sample_vertices, vertex_solver,
+)
 from facesynth.codec.rd import CONFIGS, bd_between, bd_rate, plot_rd, rd_sweep  # noqa: E402
 from facesynth.codec.sources import ict_blendshape_sequence  # noqa: E402
 from facesynth.data.shared import shared_mesh_dir  # noqa: E402
@@ -48,10 +50,19 @@ def geometry_figures(seq: dict, sizes=(256, 512)) -> dict:
         err = np.linalg.norm(sample_vertices(lay, img) - frames, axis=-1)
         vid, q = geometry_video(lay, frames[:3])
         err16 = np.linalg.norm(sample_vertices(lay, q.dequantise(vid)) - frames[:3], axis=-1)
+        t0 = time.perf_counter()
+        solver = vertex_solver(lay)
+        t_factor = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        ls = np.linalg.norm(solver(q.dequantise(vid)) - frames[:3], axis=-1)
+        t_solve = (time.perf_counter() - t0) / 3
         out[str(s)] = {"layout_s": t_layout, "rasterise_fps": fps, "mask_share": float(lay.mask.mean()),
                        "round_trip_err_cm": {"mean": float(err.mean()), "median": float(np.median(err)),
                                              "p99": float(np.quantile(err, 0.99)), "max": float(err.max())},
-                       "round_trip_err_16bit_cm_mean": float(err16.mean())}
+                       "round_trip_err_16bit_cm_mean": float(err16.mean()),
+                       "least_squares_16bit_err_cm": {"mean": float(ls.mean()), "median": float(np.median(ls)),
+                                                      "p99": float(np.quantile(ls, 0.99)), "max": float(ls.max()),
+                                                      "factorise_s": t_factor, "solve_s_per_frame": t_solve}}
     out["mesh_bbox_diag_cm"] = diag
     return out
 
