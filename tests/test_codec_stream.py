@@ -99,6 +99,15 @@ def test_corrupt_and_truncated_streams_are_rejected(video):
     forged = data[:hdr_len] + struct.pack("<II", len(junk), zlib.crc32(junk)) + junk + data[hdr_len + 8 + ln:]
     with pytest.raises(FacesynthError, match="frame 0"):
         decode_video(forged)
+    # CRC-valid payloads of random words: an error or some frame, never another exception
+    rng = np.random.default_rng(3)
+    for _ in range(30):
+        junk = b"\x00\x04\x02" + rng.integers(0, 256, 4 * int(rng.integers(1, 40))).astype(np.uint8).tobytes()
+        forged = data[:hdr_len] + struct.pack("<II", len(junk), zlib.crc32(junk)) + junk + data[hdr_len + 8 + ln:]
+        try:
+            decode_video(forged)
+        except FacesynthError:
+            pass
     # a forged header (valid CRC) claiming a million 60000x60000 frames: clean error, no huge allocation
     hdr = struct.pack("<4sBBBBHHBHBI6d", b"FSGV", 1, 0, 3, 16, 60000, 60000, 30, 1, 2, 10**6, *([0.0] * 6))
     with pytest.raises(FacesynthError, match="truncated"):

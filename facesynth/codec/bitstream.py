@@ -154,7 +154,7 @@ def decode_video(data: bytes) -> tuple[np.ndarray, StreamInfo, dict]:
             if code.p_frame != bool(i % info.gop) or mvr != info.mv_range:
                 raise ValueError("frame type or motion range disagrees with the header")
             rec = decode_frame(code, prev if code.p_frame else None, info.qp, info.flags, mvr, shape)
-        except (ValueError, IndexError, RuntimeError, OverflowError) as exc:
+        except (ValueError, IndexError, RuntimeError, OverflowError, AssertionError) as exc:  # constriction asserts
             raise FacesynthError(f"bitstream: frame {i} is malformed ({exc})") from None
         out.append(np.moveaxis(rec, 0, -1)[:info.height, :info.width].astype(np.uint16))
         prev = rec
