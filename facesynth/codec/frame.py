@@ -1,10 +1,12 @@
 """Frame encoder and decoder: wavefront intra/inter prediction, residual coding, RD choice.
 
 For every wavefront (see :mod:`facesynth.codec.blocks`) the encoder forms all candidate
-predictions of all its blocks and channels at once, codes every candidate residual
-(transform, quantisation, reconstruction), and keeps per block and channel the mode of
-least ``J = D + lambda(QP) R`` (D: SSD weighted by the coverage mask, R: an estimate of
-the level bits). The block size is chosen per frame by the same cost. The decoder
+predictions of all its blocks and channels at once, keeps the few of least mask-weighted
+SAD, transforms and quantises their residuals, and keeps per block and channel the mode of
+least ``J = D + lambda(QP) R`` (D: the SSD the levels will cause, from the transform
+domain by Parseval, times the block's mean mask weight; R: an estimate of the level bits).
+Only the chosen candidate is reconstructed, with the decoder's own residual function.
+The block size is chosen per frame by the same cost. The decoder
 entropy-decodes the whole frame first, rebuilds all residuals in one pass, then runs
 the wavefront with the same prediction code, so its output equals the encoder's
 reconstruction bit for bit.
