@@ -212,10 +212,67 @@ def save_run_synthesizer(run_dir: str | os.PathLike, model, regressor, features:
     return save_sadm(sadm, run_dir)
 
 
-def export_run(run_dir: str | os.PathLike, out: str | os.PathLike, opset: int = OPSET) -> Path:
-    """``facesynth export RUN --out model.onnx``: load a run and export it."""
+DEFAULT_COMPONENTS = 40  # appearance components kept at export (see docs/runtime.md for the measurements)
+
+
+def training_landmarks(run_dir: str | os.PathLike) -> np.ndarray:
+    """(N, 68, 2) training landmarks of a ``train.py`` run: its ``config.yaml`` names the data
+    and the temporal split, which are reloaded (no frames are decoded)."""
+    d = Path(run_dir)
+    cfg_path = d / "config.yaml"
+    if not cfg_path.is_file():
+        raise FacesynthError(
+            f"{cfg_path}: not found, so the run's training landmarks are unknown; pass --landmarks L.npy "
+            "(the training landmarks) or --components 0 (no appearance compression)"
+        )
+    from omegaconf import OmegaConf
+
+    from facesynth.data import temporal_split
+    from facesynth.pipeline import load_data
+
+    cfg = OmegaConf.load(cfg_path)
+    seq = load_data(cfg.data, int(cfg.seed))
+    rows, _ = temporal_split(len(seq), cfg.data.train_fraction, cfg.data.gap)
+    return np.asarray(seq.landmarks[rows], np.float32)
+
+
+def compress_for_export(
+    syn: Synthesizer, landmarks, components: int | None = DEFAULT_COMPONENTS, predicted_variance: float | None = None,
+) -> tuple[Synthesizer, dict]:
+    """Apply :func:`facesynth.sadm.compress.compress_synthesizer` for export and return the
+    metadata that records it. ``components`` 0/None and no ``predicted_variance``, or a
+    model with at most ``components`` components: unchanged (``compression: none``).
+    ``landmarks`` is an array or a callable returning one (only called when needed)."""
+    from facesynth.sadm.compress import compress_synthesizer
+
+    app = syn.appearance
+    if not isinstance(app, GlobalAppearance):
+        return syn, {"compression": "none"}
+    k_all = int(app.components.shape[0])
+    if predicted_variance is None and (not components or int(components) >= k_all):
+        return syn, {"compression": "none", "appearance_components": k_all, "appearance_components_full": k_all}
+    lm = landmarks() if callable(landmarks) else landmarks
+    out, info = compress_synthesizer(syn, np.asarray(lm, np.float32), None if predicted_variance is not None else int(components),
+                                     predicted_variance)
+    info = {k: v for k, v in info.items() if k != "kept_components"}
+    info["compression"] = "predicted_variance_topk"
+    if predicted_variance is not None:
+        info["compression_predicted_variance_target"] = float(predicted_variance)
+    return out, info
+
+
+def export_run(
+    run_dir: str | os.PathLike, out: str | os.PathLike, opset: int = OPSET,
+    components: int | None = DEFAULT_COMPONENTS, predicted_variance: float | None = None, landmarks=None,
+) -> tuple[Path, Synthesizer, dict]:
+    """``facesynth export RUN --out model.onnx``: load a run, compress its appearance
+    (:func:`compress_for_export`; ``landmarks`` default: the run's training landmarks) and
+    export it. Returns the file, the exported (compressed) synthesizer and the metadata."""
     syn, meta = load_synthesizer(run_dir)
-    return export_synthesizer(syn, out, meta, opset)
+    lm = landmarks if landmarks is not None else (lambda: training_landmarks(run_dir))
+    syn, info = compress_for_export(syn, lm, components, predicted_variance)
+    meta.update(info)
+    return export_synthesizer(syn, out, meta, opset), syn, meta
 
 
 def check_export(syn: Synthesizer, path: str | os.PathLike, landmarks: np.ndarray | None = None, tol: float = 1e-4) -> float:
