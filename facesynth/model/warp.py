@@ -264,8 +264,7 @@ class ToTarget(nn.Module):
         """
         n = tri_id.shape[-1]
         index = (tri_id.to(torch.int64) * 6 + self.six).flatten(1)  # (B, 6 N)
-        m = torch.gather(maps, 1, index).reshape(-1, 2, 3, n) * self.xy1
-        return m[:, :, 0] + m[:, :, 1] + m[:, :, 2]
+        return (torch.gather(maps, 1, index).reshape(-1, 2, 3, n) * self.xy1).sum(2)
 
     def bilinear(self, textures: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
         """Bilinear reads of reference textures.
@@ -283,11 +282,12 @@ class ToTarget(nn.Module):
         frac = uv - fl  # (B, 2, N)
         base = torch.matmul(self.fl_flat, fl).to(torch.int64)  # (B, 1, N) y0 * W_ref + x0, exact
         index = (base + quad).flatten(1)  # (B, 4C N), channel-major then neighbour
-        g = torch.gather(raster, 1, index).reshape(-1, c, 4, n)
-        fx, fy = frac[:, :1], frac[:, 1:]
-        top = g[:, :, 0] + fx * (g[:, :, 1] - g[:, :, 0])
-        bottom = g[:, :, 2] + fx * (g[:, :, 3] - g[:, :, 2])
-        return top + fy * (bottom - top)
+        g = torch.gather(raster, 1, index).reshape(-1, c, 2, 2, n)  # (B, C, row, column, N)
+        fx, fy = frac[:, :1].unsqueeze(2), frac[:, 1:]  # (B, 1, 1, N), (B, 1, N)
+        left = g[:, :, :, 0]
+        rows = left + fx * (g[:, :, :, 1] - left)  # (B, C, 2, N): top and bottom rows
+        top = rows[:, :, 0]
+        return top + fy * (rows[:, :, 1] - top)
 
     def forward(self, textures: torch.Tensor, target: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         c = textures.shape[1]
