@@ -85,6 +85,7 @@ class SynthesisGraph(nn.Module):
         if self.global_appearance:
             app = syn.appearance
             self.channels = app.channels
+            self.n_tex = int(app.mean.shape[0]) // int(app.channels)  # a Python int: no Shape op when traced
             self.register_buffer("app_limit", app.limit.clone())
             self.register_buffer("app_mean", app.mean.clone())
             self.register_buffer("app_components", app.components.clone())
@@ -103,7 +104,7 @@ class SynthesisGraph(nn.Module):
             b_g = self.appearance.regressor(self.appearance.features(aligned, b_s))
             b_g = torch.minimum(torch.maximum(b_g, -self.app_limit), self.app_limit)
             tex = torch.clamp(torch.matmul(b_g, self.app_components) + self.app_mean, 0.0, 1.0)
-            tex = tex.reshape(-1, self.channels, self.app_mean.shape[0] // self.channels)
+            tex = tex.reshape(-1, self.channels, self.n_tex)
         else:
             tex = torch.clamp(self.appearance(aligned, b_s), 0.0, 1.0)
         crop, mask = self.warp(tex, canvas)
