@@ -30,6 +30,7 @@ from torch import nn
 from facesynth import __version__
 from facesynth.errors import FacesynthError
 from facesynth.io import atomic_path
+from facesynth.onnx_passes import int32_indices
 from facesynth.sadm.synthesis import GlobalAppearance, Synthesizer
 
 log = logging.getLogger(__name__)
@@ -168,6 +169,7 @@ def export_synthesizer(syn: Synthesizer, path: str | os.PathLike, metadata: dict
                 opset_version=opset, dynamo=False, do_constant_folding=True,
             )
         model = onnx.load(str(tmp))
+        meta.setdefault("int32_index_gathers", int32_indices(model))
         model.producer_name = "facesynth"
         model.producer_version = __version__
         model.doc_string = "facesynth synthesis graph: landmarks -> face crop, mask, placement"
