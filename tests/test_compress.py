@@ -114,3 +114,17 @@ def test_export_run_records_compression(tmp_path):
     with pytest.raises(FacesynthError, match="2 finite landmark rows"):
         export_run(run, tmp_path / "e.onnx", components=2, landmarks=np.full((3, 68, 2), np.nan, np.float32))
     assert not (tmp_path / "e.onnx").exists()
+
+
+def test_training_landmarks_from_run_config(tmp_path):
+    from facesynth.data import temporal_split
+    from facesynth.data.synthetic import make_synthetic_sequence
+    from facesynth.export_onnx import training_landmarks
+
+    (tmp_path / "config.yaml").write_text(
+        "seed: 3\ndata:\n  kind: synthetic\n  n_frames: 12\n  size: 96\n  max_frames: 0\n"
+        "  train_fraction: 0.75\n  gap: 1\n"
+    )
+    seq = make_synthetic_sequence(n_frames=12, size=96, seed=3)
+    rows, _ = temporal_split(12, 0.75, 1)
+    np.testing.assert_array_equal(training_landmarks(tmp_path), seq.landmarks[rows])
