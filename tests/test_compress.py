@@ -128,3 +128,16 @@ def test_training_landmarks_from_run_config(tmp_path):
     seq = make_synthetic_sequence(n_frames=12, size=96, seed=3)
     rows, _ = temporal_split(12, 0.75, 1)
     np.testing.assert_array_equal(training_landmarks(tmp_path), seq.landmarks[rows])
+
+
+def test_sadm_compressed_is_compress_synthesizer():
+    from facesynth.sadm.fit import SADM, SADMConfig
+
+    syn = synthetic_synthesizer("linear")
+    model, train = synthetic_model()[:2]
+    sadm = SADM(model, syn.regressor_, "linear", SADMConfig(features="bs"))
+    small, info = sadm.compressed(train, keep=2)
+    ref, ref_info = compress_synthesizer(syn, train, keep=2)
+    assert info == ref_info
+    lm = driving_landmarks(seed=9, n=3)
+    np.testing.assert_allclose(_texture(small, lm), _texture(ref, lm), atol=1e-6)
