@@ -27,7 +27,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from facesynth.codec.bitstream import decode_video, encode_video  # noqa: E402
 from facesynth.codec.frame import CodecConfig  # noqa: E402
-from facesynth.codec.geometry import build_layout, geometry_video, rasterise, sample_vertices  # noqa: E402
+from facesynth.codec.geometry import (  # noqa: E402
+    build_layout, geometry_video, rasterise, sample_vertices, vertex_solver,
+)
 from facesynth.codec.rd import CONFIGS, bd_between, bd_rate, plot_rd, rd_sweep  # noqa: E402
 from facesynth.codec.sources import ict_blendshape_sequence  # noqa: E402
 from facesynth.data.shared import shared_mesh_dir  # noqa: E402
@@ -48,10 +50,19 @@ def geometry_figures(seq: dict, sizes=(256, 512)) -> dict:
         err = np.linalg.norm(sample_vertices(lay, img) - frames, axis=-1)
         vid, q = geometry_video(lay, frames[:3])
         err16 = np.linalg.norm(sample_vertices(lay, q.dequantise(vid)) - frames[:3], axis=-1)
+        t0 = time.perf_counter()
+        solver = vertex_solver(lay)
+        t_factor = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        ls = np.linalg.norm(solver(q.dequantise(vid)) - frames[:3], axis=-1)
+        t_solve = (time.perf_counter() - t0) / 3
         out[str(s)] = {"layout_s": t_layout, "rasterise_fps": fps, "mask_share": float(lay.mask.mean()),
                        "round_trip_err_cm": {"mean": float(err.mean()), "median": float(np.median(err)),
                                              "p99": float(np.quantile(err, 0.99)), "max": float(err.max())},
-                       "round_trip_err_16bit_cm_mean": float(err16.mean())}
+                       "round_trip_err_16bit_cm_mean": float(err16.mean()),
+                       "least_squares_16bit_err_cm": {"mean": float(ls.mean()), "median": float(np.median(ls)),
+                                                      "p99": float(np.quantile(ls, 0.99)), "max": float(ls.max()),
+                                                      "factorise_s": t_factor, "solve_s_per_frame": t_solve}}
     out["mesh_bbox_diag_cm"] = diag
     return out
 
@@ -59,7 +70,8 @@ def geometry_figures(seq: dict, sizes=(256, 512)) -> dict:
 def speed(video_by_size: dict, qp: int) -> dict:
     out = {}
     for s, (vid, mask) in video_by_size.items():
-        for name, sizes in (("hip+pdp-intra", (4, 8)), ("hip+pdp-intra", (4,)), ("hip+pdp+pvm-ippp", (4, 8))):
+        for name, sizes in (("hip+pdp-intra", (4, 8, 16)), ("hip+pdp-intra", (4,)),
+                            ("hip+pdp+pvm-ippp", (4, 8, 16)), ("hip+pdp+pvm-ippp", (8,))):
             cfg = CodecConfig(qp=qp, block_sizes=sizes, **CONFIGS[name])
             data, rec, st = encode_video(vid, cfg, mask)
             t0 = time.perf_counter()
@@ -121,6 +133,7 @@ def main() -> None:
     ap.add_argument("--no-anchors", action="store_true")
     ap.add_argument("--plot", type=Path, default=None, help="write the RD plot PNG here")
     ap.add_argument("--quick", action="store_true", help="4 frames, 4 QPs, no 512 speed run")
+    ap.add_argument("--speed-only", action="store_true", help="only the encode/decode frames/s figures")
     args = ap.parse_args()
     if args.quick:
         args.frames, args.qps = 4, "30,42,54,66"
@@ -132,10 +145,16 @@ def main() -> None:
     result = {"bench": "codec", "source": f"ICT 9409-vertex face, blendshape animation (seed 0), "
               f"{args.frames} frames", "threads": os.environ.get("OMP_NUM_THREADS", "unset"),
               "versions": package_versions()}
-    result["geometry"] = geometry_figures(seq, (args.size,) if args.quick else (256, 512))
     lay = build_layout(seq["faces"], seq["uv"], args.size)
     vid, q = geometry_video(lay, seq["frames"])
     mask = lay.mask
+    if args.speed_only:
+        lay5 = build_layout(seq["faces"], seq["uv"], 512)
+        v5, _ = geometry_video(lay5, seq["frames"][:3])
+        result["speed"] = speed({args.size: (vid[:6], mask), 512: (v5, lay5.mask)}, args.speed_qp)
+        print(json.dumps(result, default=float))
+        return
+    result["geometry"] = geometry_figures(seq, (args.size,) if args.quick else (256, 512))
     result["video"] = {"shape": list(vid.shape), "fingerprint": array_fingerprint(vid),
                        "bbox_diag_cm": q.diag, "mask_share": float(mask.mean())}
     qps = [int(x) for x in args.qps.split(",")]

@@ -1,17 +1,23 @@
 """Runtime benchmark: exported synthesis models in ONNX Runtime vs torch eager.
 
 Fits a face model on a real clip (default lp_d6, every 2nd frame), fits every registered
-SADM regressor on it, exports each to ONNX and measures, at the model's reference size:
+SADM regressor on it with the default SADM settings (``fit_sadm``), exports each twice --
+uncompressed and with the export's appearance compression (``--components``, default the
+export default 40: the components of largest predicted variance over the training
+landmarks, the rest folded into the mean) -- and measures, at the model's reference size:
 
 * per-frame latency at batch 1 with 1 and 2 threads (median and p90 wall clock, and the
   median CPU time of the calling process, which is less affected by other load);
 * throughput at batch 32 (frames/s, 1 thread);
 * the same for torch eager (``Synthesizer.forward``, ``torch.set_num_threads``);
-* model file size, support vectors (SVR), appearance components, peak RSS.
+* model file size, support vectors (SVR), appearance components, peak RSS;
+* the compression's effect: PSNR of the compressed vs the full texture over the training
+  landmarks (the figure the export records) and the held-out texture PSNR (odd frames,
+  which the model never saw) of both models against the real textures.
 
 Prints ONE JSON line.
 
-    PYTHONPATH=. python bench/bench_runtime.py [--regressors linear,mlp] [--n-appearance 50] [--reps 300]
+    PYTHONPATH=. python bench/bench_runtime.py [--regressors linear,mlp] [--components 40] [--reps 300]
 """
 
 from __future__ import annotations
@@ -50,24 +56,63 @@ def _throughput(fn, reps: int, batch: int) -> dict:
             "frames_per_s_cpu": round(batch / t["cpu_ms_p50"] * 1e3, 1)}
 
 
+def _measure(syn, path, lm, reps: int, reps32: int) -> dict:
+    """ONNX Runtime and torch eager figures of one exported model."""
+    import torch
+
+    from facesynth.runtime import Renderer
+
+    n = len(lm)
+    res: dict = {"onnx_bytes": path.stat().st_size}
+    ort_res = {}
+    for threads in (1, 2):
+        r = Renderer(path, threads=threads)
+        ort_res[f"batch1_threads{threads}"] = _times(lambda i: r.render(lm[i % n: i % n + 1]), reps)
+    r = Renderer(path, threads=1)
+    starts = np.arange(0, n - 32, 32)
+    ort_res["batch32_threads1"] = _throughput(lambda i: r.render(lm[starts[i % len(starts)]:][:32]), reps32, 32)
+    for t in (1, 2):
+        b = ort_res[f"batch1_threads{t}"]
+        ort_res[f"frames_per_s_batch1_threads{t}"] = {"wall": round(1e3 / b["wall_ms_p50"], 1), "cpu": round(1e3 / b["cpu_ms_p50"], 1)}
+    res["onnxruntime"] = ort_res
+    torch_res = {}
+    xt = torch.from_numpy(lm)
+    with torch.no_grad():
+        for threads in (1, 2):
+            torch.set_num_threads(threads)
+            torch_res[f"batch1_threads{threads}"] = _times(lambda i: syn(xt[i % n: i % n + 1]), max(reps // 3, 20))
+        torch.set_num_threads(1)
+        torch_res["batch32_threads1"] = _throughput(lambda i: syn(xt[starts[i % len(starts)]:][:32]), reps32, 32)
+    res["torch_eager"] = torch_res
+    return res
+
+
+def _heldout_psnr(syn, lm, textures) -> float:
+    """Texture PSNR (dB, peak 1, pooled) of ``syn``'s prediction vs real (N, C*M) textures."""
+    import torch
+
+    with torch.no_grad():
+        pred = syn.texture(torch.from_numpy(lm)).double().numpy().reshape(len(lm), -1)
+    mse = float(np.mean((pred - textures) ** 2))
+    return round(10 * np.log10(1.0 / mse), 3)
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--clip", default="lp_d6")
     p.add_argument("--step", type=int, default=2, help="training rows: every STEP-th frame")
-    p.add_argument("--n-appearance", type=int, default=None, help="appearance components (default: 98%% variance)")
+    p.add_argument("--n-appearance", type=int, default=None, help="appearance components (default: the model default)")
+    p.add_argument("--components", type=int, default=None, help="components kept by the compressed export (default: export default)")
     p.add_argument("--regressors", default="", help="comma-separated names (default: every registered one)")
     p.add_argument("--reps", type=int, default=300, help="batch-1 repetitions per setting")
     p.add_argument("--reps32", type=int, default=20, help="batch-32 repetitions")
     args = p.parse_args(argv)
 
-    import torch
-
     from facesynth.data import load_sequence, shared_clip
-    from facesynth.export_onnx import export_synthesizer
+    from facesynth.export_onnx import DEFAULT_COMPONENTS, compress_for_export, export_synthesizer
     from facesynth.model import FaceModel, FaceModelConfig
-    from facesynth.runtime import Renderer
+    from facesynth.sadm.fit import fit_sadm
     from facesynth.sadm.regressors import REGISTRY
-    from facesynth.sadm.synthesis import GlobalAppearance, Synthesizer
 
     clip = shared_clip(args.clip)
     if clip is None:
@@ -75,51 +120,40 @@ def main(argv=None) -> int:
         return 2
     seq = load_sequence(clip)
     rows = np.arange(0, len(seq), args.step)
+    held = np.setdiff1d(np.arange(len(seq)), rows)
     t0 = time.perf_counter()
-    model = FaceModel.fit(seq, FaceModelConfig(n_appearance=args.n_appearance), rows=rows, progress=False)
-    x = model.shape_params(seq.landmarks[rows], clamp=True)
-    y = model.appearance_params(model.sample_textures(seq, rows))
+    model, tex = FaceModel.fit_with_textures(seq, FaceModelConfig(n_appearance=args.n_appearance), rows=rows, progress=False)
     fit_s = time.perf_counter() - t0
+    tex_held = model.sample_textures(seq, held).astype(np.float64)
     lm = seq.landmarks.astype(np.float32)
-    n = len(lm)
+    train_lm = lm[rows]
+    keep = DEFAULT_COMPONENTS if args.components is None else args.components
     names = [s for s in args.regressors.split(",") if s] or sorted(REGISTRY)
     out = {
-        "bench": "runtime", "clip": args.clip, "train_frames": int(len(rows)),
+        "bench": "runtime", "clip": args.clip, "train_frames": int(len(rows)), "heldout_frames": int(len(held)),
         "reference_size": list(model.reference.size), "n_shape": model.shape_pca.n_components,
         "n_appearance": model.appearance_pca.n_components, "n_triangles": model.reference.n_triangles,
-        "cpu_count": os.cpu_count(), "loadavg_at_start": [round(v, 2) for v in os.getloadavg()],
+        "components_kept": keep, "cpu_count": os.cpu_count(), "loadavg_at_start": [round(v, 2) for v in os.getloadavg()],
         "model_fit_s": round(fit_s, 1), "regressors": {},
     }
     tmp = Path(tempfile.mkdtemp(prefix="bench_runtime_"))
     for name in names:
         entry: dict = {}
         t0 = time.perf_counter()
-        reg = REGISTRY[name].fit(x, y, seed=0)
+        sadm = fit_sadm(model, seq, rows, tex, name)
         entry["fit_s"] = round(time.perf_counter() - t0, 2)
-        entry["summary"] = reg.summary()
-        syn = Synthesizer(model, GlobalAppearance(model, reg)).eval()
-        path = export_synthesizer(syn, tmp / f"{name}.onnx", {"data_fingerprint": model.fingerprint})
-        entry["onnx_bytes"] = path.stat().st_size
-        ort_res = {}
-        for threads in (1, 2):
-            r = Renderer(path, threads=threads)
-            ort_res[f"batch1_threads{threads}"] = _times(lambda i: r.render(lm[i % n: i % n + 1]), args.reps)
-        r = Renderer(path, threads=1)
-        starts = np.arange(0, n - 32, 32)
-        ort_res["batch32_threads1"] = _throughput(lambda i: r.render(lm[starts[i % len(starts)]:][:32]), args.reps32, 32)
-        b1 = ort_res["batch1_threads1"]
-        ort_res["frames_per_s_batch1_threads1"] = {"wall": round(1e3 / b1["wall_ms_p50"], 1), "cpu": round(1e3 / b1["cpu_ms_p50"], 1)}
-        entry["onnxruntime"] = ort_res
-        torch_res = {}
-        xt = torch.from_numpy(lm)
-        with torch.no_grad():
-            for threads in (1, 2):
-                torch.set_num_threads(threads)
-                torch_res[f"batch1_threads{threads}"] = _times(lambda i: syn(xt[i % n: i % n + 1]), max(args.reps // 3, 20))
-            torch.set_num_threads(1)
-            torch_res["batch32_threads1"] = _throughput(lambda i: syn(xt[starts[i % len(starts)]:][:32]), args.reps32, 32)
-        entry["torch_eager"] = torch_res
+        entry["summary"] = sadm.regressor.summary()
+        syn = sadm.synthesizer()
+        small, info = compress_for_export(syn, train_lm, keep)
+        for tag, s_ in (("uncompressed", syn), ("compressed", small)):
+            path = export_synthesizer(s_, tmp / f"{name}_{tag}.onnx", {"data_fingerprint": model.fingerprint})
+            res = {"appearance_components": int(s_.appearance.components.shape[0]),
+                   "heldout_texture_psnr_db": _heldout_psnr(s_, lm[held], tex_held)}
+            res.update(_measure(s_, path, lm, args.reps, args.reps32))
+            entry[tag] = res
+        entry["compression"] = {k: v for k, v in info.items() if k != "kept_components"}
         out["regressors"][name] = entry
+    out["loadavg_at_end"] = [round(v, 2) for v in os.getloadavg()]
     out["peak_rss_mb"] = round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1)
     print(json.dumps(out))
     return 0

@@ -30,6 +30,7 @@ from torch import nn
 from facesynth import __version__
 from facesynth.errors import FacesynthError
 from facesynth.io import atomic_path
+from facesynth.onnx_passes import int32_indices
 from facesynth.sadm.synthesis import GlobalAppearance, Synthesizer
 
 log = logging.getLogger(__name__)
@@ -85,6 +86,7 @@ class SynthesisGraph(nn.Module):
         if self.global_appearance:
             app = syn.appearance
             self.channels = app.channels
+            self.n_tex = int(app.mean.shape[0]) // int(app.channels)  # a Python int: no Shape op when traced
             self.register_buffer("app_limit", app.limit.clone())
             self.register_buffer("app_mean", app.mean.clone())
             self.register_buffer("app_components", app.components.clone())
@@ -103,7 +105,7 @@ class SynthesisGraph(nn.Module):
             b_g = self.appearance.regressor(self.appearance.features(aligned, b_s))
             b_g = torch.minimum(torch.maximum(b_g, -self.app_limit), self.app_limit)
             tex = torch.clamp(torch.matmul(b_g, self.app_components) + self.app_mean, 0.0, 1.0)
-            tex = tex.reshape(-1, self.channels, self.app_mean.shape[0] // self.channels)
+            tex = tex.reshape(-1, self.channels, self.n_tex)
         else:
             tex = torch.clamp(self.appearance(aligned, b_s), 0.0, 1.0)
         crop, mask = self.warp(tex, canvas)
@@ -167,6 +169,7 @@ def export_synthesizer(syn: Synthesizer, path: str | os.PathLike, metadata: dict
                 opset_version=opset, dynamo=False, do_constant_folding=True,
             )
         model = onnx.load(str(tmp))
+        meta.setdefault("int32_index_gathers", int32_indices(model))
         model.producer_name = "facesynth"
         model.producer_version = __version__
         model.doc_string = "facesynth synthesis graph: landmarks -> face crop, mask, placement"
@@ -212,10 +215,67 @@ def save_run_synthesizer(run_dir: str | os.PathLike, model, regressor, features:
     return save_sadm(sadm, run_dir)
 
 
-def export_run(run_dir: str | os.PathLike, out: str | os.PathLike, opset: int = OPSET) -> Path:
-    """``facesynth export RUN --out model.onnx``: load a run and export it."""
+DEFAULT_COMPONENTS = 40  # appearance components kept at export (see docs/runtime.md for the measurements)
+
+
+def training_landmarks(run_dir: str | os.PathLike) -> np.ndarray:
+    """(N, 68, 2) training landmarks of a ``train.py`` run: its ``config.yaml`` names the data
+    and the temporal split, which are reloaded (no frames are decoded)."""
+    d = Path(run_dir)
+    cfg_path = d / "config.yaml"
+    if not cfg_path.is_file():
+        raise FacesynthError(
+            f"{cfg_path}: not found, so the run's training landmarks are unknown; pass --landmarks L.npy "
+            "(the training landmarks) or --components 0 (no appearance compression)"
+        )
+    from omegaconf import OmegaConf
+
+    from facesynth.data import temporal_split
+    from facesynth.pipeline import load_data
+
+    cfg = OmegaConf.load(cfg_path)
+    seq = load_data(cfg.data, int(cfg.seed))
+    rows, _ = temporal_split(len(seq), cfg.data.train_fraction, cfg.data.gap)
+    return np.asarray(seq.landmarks[rows], np.float32)
+
+
+def compress_for_export(
+    syn: Synthesizer, landmarks, components: int | None = DEFAULT_COMPONENTS, predicted_variance: float | None = None,
+) -> tuple[Synthesizer, dict]:
+    """Apply :func:`facesynth.sadm.compress.compress_synthesizer` for export and return the
+    metadata that records it. ``components`` 0/None and no ``predicted_variance``, or a
+    model with at most ``components`` components: unchanged (``compression: none``).
+    ``landmarks`` is an array or a callable returning one (only called when needed)."""
+    from facesynth.sadm.compress import compress_synthesizer
+
+    app = syn.appearance
+    if not isinstance(app, GlobalAppearance):
+        return syn, {"compression": "none"}
+    k_all = int(app.components.shape[0])
+    if predicted_variance is None and (not components or int(components) >= k_all):
+        return syn, {"compression": "none", "appearance_components": k_all, "appearance_components_full": k_all}
+    lm = landmarks() if callable(landmarks) else landmarks
+    out, info = compress_synthesizer(syn, np.asarray(lm, np.float32), None if predicted_variance is not None else int(components),
+                                     predicted_variance)
+    info = {k: v for k, v in info.items() if k != "kept_components"}
+    info["compression"] = "predicted_variance_topk"
+    if predicted_variance is not None:
+        info["compression_predicted_variance_target"] = float(predicted_variance)
+    return out, info
+
+
+def export_run(
+    run_dir: str | os.PathLike, out: str | os.PathLike, opset: int = OPSET,
+    components: int | None = DEFAULT_COMPONENTS, predicted_variance: float | None = None, landmarks=None,
+) -> tuple[Path, Synthesizer, dict]:
+    """``facesynth export RUN --out model.onnx``: load a run, compress its appearance
+    (:func:`compress_for_export`; ``landmarks`` default: the run's training landmarks) and
+    export it. Returns the file, the exported (compressed) synthesizer and the metadata."""
     syn, meta = load_synthesizer(run_dir)
-    return export_synthesizer(syn, out, meta, opset)
+    lm = landmarks if landmarks is not None else (lambda: training_landmarks(run_dir))
+    syn, info = compress_for_export(syn, lm, components, predicted_variance)
+    meta.update(info)
+    return export_synthesizer(syn, out, meta, opset), syn, meta
 
 
 def check_export(syn: Synthesizer, path: str | os.PathLike, landmarks: np.ndarray | None = None, tol: float = 1e-4) -> float:

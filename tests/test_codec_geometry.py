@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 
 from facesynth.codec.geometry import (
-    PEAK16, Quantiser, build_layout, fill_outside, geometry_video, rasterise, sample_vertices,
+    PEAK16, Quantiser, build_layout, fill_outside, geometry_video, rasterise, sample_vertices, vertex_solver,
 )
 from facesynth.codec.sources import height_field_mesh, ict_blendshape_sequence
 from facesynth.errors import FacesynthError
@@ -36,6 +36,9 @@ def test_sample_back_recovers_affine_vertices_exactly_and_curved_closely():
     rec = sample_vertices(lay, rasterise(lay, m["frames"]))
     assert rec.shape == m["frames"].shape
     assert np.abs(rec - m["frames"]).max() < 0.05  # heights span ~4 units; resampling error
+    # the least-squares inverse of the (linear) rasteriser is much closer
+    ls = vertex_solver(lay)(rasterise(lay, m["frames"]))
+    assert np.abs(ls - m["frames"]).max() < 0.1 * np.abs(rec - m["frames"]).max()
 
 
 def test_partial_chart_mask_and_ring():
@@ -94,3 +97,5 @@ def test_ict_geometry_video_round_trip(shared_mesh):
     err = np.linalg.norm(rec - s["frames"], axis=-1)
     assert err.mean() < 0.05  # cm, on a ~40 cm bounding-box diagonal
     assert np.median(err) < 0.01
+    ls = np.linalg.norm(vertex_solver(lay)(q.dequantise(vid)) - s["frames"], axis=-1)
+    assert ls.mean() < 0.6 * err.mean() and ls.max() < 0.6 * err.max()

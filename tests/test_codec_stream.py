@@ -30,7 +30,8 @@ def video():
     CodecConfig(qp=36, gop=1, block_sizes=(8, 16)),
     CodecConfig(qp=20, gop=3, pdp=True, pvm=True, inter=True, mv_range=2),
     CodecConfig(qp=60, gop=2, pdp=False, pvm=False, inter=True, block_sizes=(16,)),
-], ids=["hip-intra", "pdp-intra-8-16", "ippp-pvm-inter", "hip-inter-coarse"])
+    CodecConfig(qp=30, gop=3, mv_range=0, size_refresh=0),
+], ids=["hip-intra", "pdp-intra-8-16", "ippp-pvm-inter", "hip-inter-coarse", "zero-motion-range"])
 def test_decoder_output_equals_encoder_reconstruction(video, cfg):
     vid, mask = video
     data, rec, st = encode_video(vid, cfg, mask)
@@ -98,6 +99,19 @@ def test_corrupt_and_truncated_streams_are_rejected(video):
     forged = data[:hdr_len] + struct.pack("<II", len(junk), zlib.crc32(junk)) + junk + data[hdr_len + 8 + ln:]
     with pytest.raises(FacesynthError, match="frame 0"):
         decode_video(forged)
+    # CRC-valid payloads of random words: an error or some frame, never another exception
+    rng = np.random.default_rng(3)
+    for _ in range(30):
+        junk = b"\x00\x04\x02" + rng.integers(0, 256, 4 * int(rng.integers(1, 40))).astype(np.uint8).tobytes()
+        forged = data[:hdr_len] + struct.pack("<II", len(junk), zlib.crc32(junk)) + junk + data[hdr_len + 8 + ln:]
+        try:
+            decode_video(forged)
+        except FacesynthError:
+            pass
+    # a forged header (valid CRC) claiming a million 60000x60000 frames: clean error, no huge allocation
+    hdr = struct.pack("<4sBBBBHHBHBI6d", b"FSGV", 1, 0, 3, 16, 60000, 60000, 30, 1, 2, 10**6, *([0.0] * 6))
+    with pytest.raises(FacesynthError, match="truncated"):
+        decode_video(hdr + struct.pack("<I", zlib.crc32(hdr)) + b"\0" * 100)
 
 
 def test_encoder_rejects_bad_input():

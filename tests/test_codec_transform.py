@@ -87,3 +87,16 @@ def test_adaptive_contexts_beat_the_static_bound(rng):
     entropy.encode_levels(enc, lv)
     bits = 32 * enc.get_compressed().size
     assert bits < 0.15 * len(lv)
+
+
+@pytest.mark.parametrize("qp", [24, 48, 72])
+def test_transform_domain_distortion_matches_pixel_ssd(qp, rng):
+    from facesynth.codec.transform import analyse_residual
+
+    res = rng.integers(-5000, 5000, (300, 64))
+    lev, rec = code_residual(res, 8, qp)
+    lev2, dist = analyse_residual(res, 8, qp)
+    np.testing.assert_array_equal(lev2, lev)
+    ssd = ((res - rec) ** 2).sum(-1)
+    # Parseval on the (scaled-orthogonal) core transform; the integer inverse adds rounding
+    np.testing.assert_allclose(dist, ssd, rtol=0.05, atol=64 * 6)

@@ -110,7 +110,7 @@ def test_run_round_trip_cli_and_errors(tmp_path):
     loaded, meta = load_synthesizer(run)
     assert meta["regressor"] == "linear" and meta["data_fingerprint"] == syn.face_model.fingerprint
     lm = driving_landmarks(seed=5, n=3)
-    _assert_parity(_ort(export_run(run, tmp_path / "a.onnx")), syn, lm)
+    _assert_parity(_ort(export_run(run, tmp_path / "a.onnx")[0]), syn, lm)
     assert main(["export", str(run), "--out", str(tmp_path / "b.onnx")]) == 0
     _assert_parity(_ort(tmp_path / "b.onnx"), loaded, lm)
     with pytest.raises(FacesynthError, match="not found"):

@@ -88,6 +88,22 @@ def test_poly2_equals_sklearn_pipeline(n, d_in, ridge):
     np.testing.assert_allclose(reg.predict(x_new), ref.predict(x_new), atol=1e-4 * y.std(0).max())
 
 
+def test_poly2_on_whitened_principal_components_equals_sklearn_pipeline():
+    from sklearn.decomposition import PCA
+    from sklearn.linear_model import Ridge
+    from sklearn.pipeline import make_pipeline
+    from sklearn.preprocessing import PolynomialFeatures, StandardScaler
+
+    x, y = smooth_problem(n=120, d_in=10)
+    reg = Poly2Regressor.fit(x, y, Poly2Config(ridge=0.7, relative_ridge=False, input_components=4))
+    ref = make_pipeline(StandardScaler(), PCA(4, whiten=True), PolynomialFeatures(2, include_bias=False),
+                        Ridge(alpha=0.7)).fit(x, y)
+    x_new = smooth_problem(n=40, d_in=10, seed=1)[0]
+    np.testing.assert_allclose(reg.predict(x_new), ref.predict(x_new), atol=1e-4 * y.std(0).max())
+    back = Poly2Regressor.from_state(reg.config_dict(), dict(reg.state_dict()))
+    np.testing.assert_array_equal(back.predict(x_new), reg.predict(x_new))
+
+
 def test_poly2_without_standardise_or_linear_terms():
     from sklearn.linear_model import Ridge
     from sklearn.preprocessing import PolynomialFeatures

@@ -79,9 +79,12 @@ def encode_video(frames: np.ndarray, cfg: CodecConfig, mask: np.ndarray | None =
     recs, prev = [], None
     mode_hist: dict[str, int] = {}
     t0 = time.perf_counter()
+    last_size: dict[bool, int] = {}
     for i in range(t):
         p = prev if (i % cfg.gop) else None
-        code, rec = encode_frame(x[i], p, cfg, wmask)
+        full = cfg.size_refresh <= 1 or i % cfg.size_refresh == 0 or (p is not None) not in last_size
+        code, rec = encode_frame(x[i], p, cfg, wmask, None if full else (last_size[p is not None],))
+        last_size[p is not None] = code.n
         payload = write_frame(code, flags, cfg.mv_range, x[i].shape)
         out.append(_CHUNK.pack(len(payload), zlib.crc32(payload)))
         out.append(payload)
@@ -101,6 +104,8 @@ def _count_modes(hist: dict, code: FrameCode, flags) -> None:
     names = mode_set(*flags, code.n, code.p_frame).names()
     cnt = np.bincount(code.modes.ravel(), minlength=len(names))
     for name, k in zip(names, cnt):
+        if k == 0:
+            continue
         key = f"{name}@{code.n}" if name.startswith("HIP") else name
         hist[key] = hist.get(key, 0) + int(k) * code.n * code.n  # in pixels
 
@@ -127,7 +132,9 @@ def decode_video(data: bytes) -> tuple[np.ndarray, StreamInfo, dict]:
     info, off = read_header(data)
     hp, wp = info.height + (-info.height % 16), info.width + (-info.width % 16)
     shape = (info.channels, hp, wp)
-    out = np.empty((info.n_frames, info.height, info.width, info.channels), np.uint16)
+    if len(data) - off < info.n_frames * (_CHUNK.size + 3):
+        raise FacesynthError(f"bitstream: truncated ({len(data)} bytes cannot hold {info.n_frames} frames)")
+    out = []  # frames are allocated as they decode, so a forged header cannot force a huge allocation
     prev = None
     t0 = time.perf_counter()
     for i in range(info.n_frames):
@@ -147,11 +154,11 @@ def decode_video(data: bytes) -> tuple[np.ndarray, StreamInfo, dict]:
             if code.p_frame != bool(i % info.gop) or mvr != info.mv_range:
                 raise ValueError("frame type or motion range disagrees with the header")
             rec = decode_frame(code, prev if code.p_frame else None, info.qp, info.flags, mvr, shape)
-        except (ValueError, IndexError, RuntimeError, OverflowError) as exc:
+        except (ValueError, IndexError, RuntimeError, OverflowError, AssertionError) as exc:  # constriction asserts
             raise FacesynthError(f"bitstream: frame {i} is malformed ({exc})") from None
-        out[i] = np.moveaxis(rec, 0, -1)[:info.height, :info.width]
+        out.append(np.moveaxis(rec, 0, -1)[:info.height, :info.width].astype(np.uint16))
         prev = rec
     dec_s = time.perf_counter() - t0
     if off != len(data):
         raise FacesynthError(f"bitstream: {len(data) - off} unexpected bytes after the last frame")
-    return out, info, {"decode_s": dec_s}
+    return np.stack(out), info, {"decode_s": dec_s}

@@ -115,23 +115,24 @@ class ModeSet:
         return out + (["INTER"] if self.inter else [])
 
 
-def wave_predictions(buf: np.ndarray, g: Grid, ids: np.ndarray, ms: ModeSet,
+def wave_predictions(buf: np.ndarray, nb_idx: np.ndarray, n: int, ms: ModeSet,
                      maps: np.ndarray | None) -> np.ndarray:
-    """Predictions of all current-frame-dependent modes for blocks ``ids``.
+    """Predictions of all current-frame-dependent modes for the blocks of one wave.
 
-    buf : (C, (H+1)(W+1)) reconstructed samples so far; maps : (C, nblk, 4, N*N) PVM maps.
+    buf : (C, (H+1)(W+1)) reconstructed samples so far; nb_idx : (b, K) neighbour indices
+    of the wave's blocks; maps : (C, b, 4, N*N) their PVM maps.
     Returns (C, b, n_predictive, N*N) int64 in [0, 65535].
     """
-    nb = buf[:, g.nb_idx[ids]]
-    raw = intra.apply_matrices(nb, "hip+pdp" if (ms.pdp or ms.pvm) else "hip", g.n)
-    nh = 3 if g.n == 16 else 9
+    nb = buf[:, nb_idx]
+    raw = intra.apply_matrices(nb, "hip+pdp" if (ms.pdp or ms.pvm) else "hip", n)
+    nh = 3 if n == 16 else 9
     parts = [raw[:, :, :nh]]
-    if g.n == 16:
+    if n == 16:
         parts.append(intra.plane16(nb)[:, :, None])
     if ms.pdp:
         parts.append(raw[:, :, nh:])
     if ms.pvm:
-        parts.append(raw[:, :, nh:] + maps[:, ids])
+        parts.append(raw[:, :, nh:] + maps)
     pred = np.concatenate(parts, 2) if len(parts) > 1 else parts[0]
     return np.clip(pred, 0, 65535, out=pred)
 
@@ -141,24 +142,37 @@ def prev_maps(prev_buf: np.ndarray, g: Grid) -> np.ndarray:
     return intra.pvm_maps(prev_buf[:, g.pix_idx], prev_buf[:, g.nb_idx], g.n)
 
 
-def motion_search(cur: np.ndarray, prev: np.ndarray, n: int, rng: int) -> np.ndarray:
-    """Full-search block motion estimation (integer pel, SAD; ties -> smaller |mv|).
+def sad_maps(cur: np.ndarray, prev: np.ndarray, rng: int) -> tuple[np.ndarray, np.ndarray]:
+    """SAD of every 4x4 block for every integer displacement in [-rng, rng]^2.
 
-    cur, prev : (C, H, W). Returns (C, nblk, 2) int64 displacements (dy, dx) in [-rng, rng].
+    cur, prev : (C, H, W). Returns (displacements (D, 2) sorted by |dy|+|dx|,
+    SADs (D, C, H/4, W/4)); block sums are two matrix products per displacement.
     """
     c, h, w = cur.shape
     pp = np.pad(prev.astype(np.float32), ((0, 0), (rng, rng), (rng, rng)), mode="edge")
     cands = sorted(((dy, dx) for dy in range(-rng, rng + 1) for dx in range(-rng, rng + 1)),
                    key=lambda d: (abs(d[0]) + abs(d[1]), d))
-    rows = (np.arange(h)[None, :] // n == np.arange(h // n)[:, None]).astype(np.float32)  # (nby, H)
-    cols = (np.arange(w)[:, None] // n == np.arange(w // n)[None, :]).astype(np.float32)  # (W, nbx)
+    rows = (np.arange(h)[None, :] // 4 == np.arange(h // 4)[:, None]).astype(np.float32)  # (H/4, H)
+    cols = (np.arange(w)[:, None] // 4 == np.arange(w // 4)[None, :]).astype(np.float32)  # (W, W/4)
     cur = cur.astype(np.float32)
-    sads = np.empty((len(cands), c, (h // n) * (w // n)), np.float64)
+    sads = np.empty((len(cands), c, h // 4, w // 4), np.float64)
     for i, (dy, dx) in enumerate(cands):
-        d = np.abs(cur - pp[:, rng + dy:rng + dy + h, rng + dx:rng + dx + w])
-        sads[i] = (rows @ d @ cols).reshape(c, -1)  # block sums as two matrix products
-    best = np.argmin(sads, 0)
-    return np.asarray(cands, np.int64)[best]
+        sads[i] = rows @ np.abs(cur - pp[:, rng + dy:rng + dy + h, rng + dx:rng + dx + w]) @ cols
+    return np.asarray(cands, np.int64), sads
+
+
+def motion_search(cur: np.ndarray, prev: np.ndarray, n: int, rng: int,
+                  sads: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
+    """Full-search block motion estimation (integer pel, SAD; ties -> smaller |mv|).
+
+    cur, prev : (C, H, W); ``sads``: :func:`sad_maps` output, reused across block sizes.
+    Returns (C, nblk, 2) int64 displacements (dy, dx) in [-rng, rng].
+    """
+    cands, s4 = sads if sads is not None else sad_maps(cur, prev, rng)
+    d, c, h4, w4 = s4.shape
+    k = n // 4
+    s = s4.reshape(d, c, h4 // k, k, w4 // k, k).sum((3, 5)).reshape(d, c, -1)
+    return cands[np.argmin(s, 0)]
 
 
 def motion_compensate(prev: np.ndarray, mvs: np.ndarray, n: int, rng: int) -> np.ndarray:

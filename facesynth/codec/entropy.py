@@ -203,7 +203,9 @@ def decode_modes(dec: RangeDecoder, shape: tuple[int, int, int], n_modes: int) -
 
 
 def encode_mvs(enc: RangeEncoder, mvs: np.ndarray, rng: int) -> None:
-    """Motion vectors (M, 2) in [-rng, rng], adaptive per component."""
+    """Motion vectors (M, 2) in [-rng, rng], adaptive per component (nothing if rng = 0)."""
+    if rng == 0:
+        return
     model = AdaptiveModel(2, 2 * rng + 1)
     sym = (mvs + rng).astype(np.int64)
     ctx = np.broadcast_to(np.arange(2), sym.shape)
@@ -211,6 +213,8 @@ def encode_mvs(enc: RangeEncoder, mvs: np.ndarray, rng: int) -> None:
 
 
 def decode_mvs(dec: RangeDecoder, n: int, rng: int) -> np.ndarray:
+    if rng == 0:
+        return np.zeros((n, 2), np.int64)
     model = AdaptiveModel(2, 2 * rng + 1)
     ctx = np.tile(np.arange(2), n)
     return _dec_adaptive(dec, model, ctx).reshape(n, 2) - rng

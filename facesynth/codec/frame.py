@@ -1,10 +1,12 @@
 """Frame encoder and decoder: wavefront intra/inter prediction, residual coding, RD choice.
 
 For every wavefront (see :mod:`facesynth.codec.blocks`) the encoder forms all candidate
-predictions of all its blocks and channels at once, codes every candidate residual
-(transform, quantisation, reconstruction), and keeps per block and channel the mode of
-least ``J = D + lambda(QP) R`` (D: SSD weighted by the coverage mask, R: an estimate of
-the level bits). The block size is chosen per frame by the same cost. The decoder
+predictions of all its blocks and channels at once, keeps the few of least mask-weighted
+SAD, transforms and quantises their residuals, and keeps per block and channel the mode of
+least ``J = D + lambda(QP) R`` (D: the SSD the levels will cause, from the transform
+domain by Parseval, times the block's mean mask weight; R: an estimate of the level bits).
+Only the chosen candidate is reconstructed, with the decoder's own residual function.
+The block size is chosen per frame by the same cost. The decoder
 entropy-decodes the whole frame first, rebuilds all residuals in one pass, then runs
 the wavefront with the same prediction code, so its output equals the encoder's
 reconstruction bit for bit.
@@ -20,9 +22,9 @@ import numpy as np
 from facesynth.codec import entropy, intra
 from facesynth.codec.intra import n_neighbours
 from facesynth.codec.blocks import (
-    MID, ModeSet, grid, motion_compensate, motion_search, padded, prev_maps, unpadded, wave_predictions,
+    MID, ModeSet, grid, motion_compensate, motion_search, padded, sad_maps, prev_maps, unpadded, wave_predictions,
 )
-from facesynth.codec.transform import code_residual, decode_residual, lagrangian
+from facesynth.codec.transform import analyse_residual, code_residual, decode_residual, lagrangian
 
 
 @dataclass
@@ -34,7 +36,9 @@ class CodecConfig:
     group (1 = all intra); block_sizes : candidate N per frame; mv_range : full-search
     range in pixels; outside_weight : weight of pixels outside the mask in D;
     rd_candidates : full RD test only for this many modes of least SAD (0 = all);
-    lambda_scale : multiplies the H.264 lambda(QP).
+    lambda_scale : multiplies the H.264 lambda(QP); size_refresh : all block sizes are
+    tried on I-frames and every ``size_refresh``-th frame, the others reuse the last
+    choice within the same frame type (0 or 1 = try all sizes on every frame).
     """
 
     qp: int | None = 30
@@ -42,11 +46,12 @@ class CodecConfig:
     pvm: bool = True
     inter: bool = True
     gop: int = 1
-    block_sizes: tuple[int, ...] = (4, 8)
-    mv_range: int = 4
+    block_sizes: tuple[int, ...] = (4, 8, 16)
+    mv_range: int = 2
     outside_weight: float = 0.05
     rd_candidates: int = 3
     lambda_scale: float = 1.0
+    size_refresh: int = 4
 
 
 @dataclass
@@ -74,20 +79,23 @@ def _est_bits(lev: np.ndarray) -> np.ndarray:
 
 
 def encode_frame(x: np.ndarray, prev: np.ndarray | None, cfg: CodecConfig,
-                 weight: np.ndarray | None = None) -> tuple[FrameCode, np.ndarray]:
+                 weight: np.ndarray | None = None, sizes: tuple[int, ...] | None = None
+                 ) -> tuple[FrameCode, np.ndarray]:
     """Encode one frame (C, H, W) int64; ``prev`` (C, H, W) makes it a P-frame.
 
+    ``sizes`` overrides ``cfg.block_sizes`` (the candidate block sizes tried).
     Returns the frame's code and its reconstruction (C, H, W) int64.
     """
     best = None
-    for n in cfg.block_sizes:
-        code, rec, cost = _encode_n(x, prev, cfg, weight, n)
+    sads = sad_maps(x, prev, cfg.mv_range) if (prev is not None and cfg.inter) else None
+    for n in sizes or cfg.block_sizes:
+        code, rec, cost = _encode_n(x, prev, cfg, weight, n, sads)
         if best is None or cost < best[2]:
             best = (code, rec, cost)
     return best[0], best[1]
 
 
-def _encode_n(x, prev, cfg, weight, n):
+def _encode_n(x, prev, cfg, weight, n, sads=None):
     c, h, w = x.shape
     g = grid(n, h, w)
     ms = mode_set(cfg.pdp, cfg.pvm, cfg.inter, n, prev is not None)
@@ -103,7 +111,7 @@ def _encode_n(x, prev, cfg, weight, n):
     levels = np.zeros((c, g.n_blocks, nsub, 16), np.int64)
     mvs = np.zeros((c, g.n_blocks, 2), np.int64)
     if ms.inter:
-        mvs_all = motion_search(x, prev, n, cfg.mv_range)
+        mvs_all = motion_search(x, prev, n, cfg.mv_range, sads)
         pi = motion_compensate(prev, mvs_all, n, cfg.mv_range)
         lev_i, rr = code_residual(xb - pi, n, qp, intra=False)
         rec_i = np.clip(pi + rr, 0, 65535)
@@ -113,36 +121,45 @@ def _encode_n(x, prev, cfg, weight, n):
     mp = ms.n_predictive
     kk = mp if not cfg.rd_candidates else min(cfg.rd_candidates, mp)
     ones = np.ones(n * n)
-    for ids in g.waves:
-        pred = wave_predictions(buf, g, ids, ms, maps)
-        xi = xb[:, ids, None, :]
-        wi = wb[ids][None, :, None, :]
+    o = g.order  # wavefront order: each wave is a contiguous slice
+    xo, wo, nbo, pixo = xb[:, o], wb[o], g.nb_idx[o], g.pix_idx[o]
+    wm = wo.mean(-1)
+    mo = maps[:, o] if ms.pvm else None
+    if ms.inter:
+        j_i, rec_i, lev_i, mvs_all = j_i[:, o], rec_i[:, o], lev_i[:, o], mvs_all[:, o]
+    cidx = np.arange(c)[:, None]
+    for s, e in g.bounds:
+        pred = wave_predictions(buf, nbo[s:e], n, ms, mo[:, s:e] if ms.pvm else None)
+        xi = xo[:, s:e, None, :]
+        wi = wo[None, s:e, None, :]
+        bidx = np.arange(e - s)[None, :]
         if kk < mp:  # prune to the kk modes of least weighted SAD before the full RD test
             sad = (np.abs(xi - pred) * wi) @ ones
             cand = np.argpartition(sad, kk - 1, axis=-1)[..., :kk]
-            pred = np.take_along_axis(pred, cand[..., None], 2)
+            pred = pred[cidx[..., None], bidx[..., None], cand]
         else:
             cand = np.broadcast_to(np.arange(mp), pred.shape[:3])
-        lev, rres = code_residual(xi - pred, n, qp)
-        rec = np.clip(pred + rres, 0, 65535)
-        j = (((xi - rec) ** 2) * wi) @ ones + lam * _est_bits(lev)
+        # D from the transform domain (Parseval), weighted by the block's mean mask weight;
+        # only the chosen candidate is inverse-transformed, with the decoder's own function
+        lev, dist = analyse_residual(xi - pred, n, qp)
+        j = dist * wm[None, s:e, None] + lam * _est_bits(lev)
         if ms.inter:
-            j = np.concatenate([j, j_i[:, ids, None]], -1)
+            j = np.concatenate([j, j_i[:, s:e, None]], -1)
         bl = np.argmin(j, -1)
         bi = np.minimum(bl, kk - 1)
-        b = np.take_along_axis(cand, bi[..., None], -1)[..., 0]
-        r = np.take_along_axis(rec, bi[..., None, None], 2)[:, :, 0]
-        lv = np.take_along_axis(lev, bi[..., None, None, None], 2)[:, :, 0]
+        b = cand[cidx, bidx, bi]
+        lv = lev[cidx, bidx, bi]
+        r = np.clip(pred[cidx, bidx, bi] + decode_residual(lv, n, qp), 0, 65535)
         if ms.inter:
             is_i = (bl == kk)
             b = np.where(is_i, mp, b)
-            r = np.where(is_i[..., None], rec_i[:, ids], r)
-            lv = np.where(is_i[..., None, None], lev_i[:, ids], lv)
-            mvs[:, ids] = np.where(is_i[..., None], mvs_all[:, ids], 0)
-        buf[:, g.pix_idx[ids]] = r
-        modes[:, ids] = b
-        levels[:, ids] = lv
-        total += float(np.take_along_axis(j, bl[..., None], -1).sum()) + lam * MODE_BITS * bl.size
+            r = np.where(is_i[..., None], rec_i[:, s:e], r)
+            lv = np.where(is_i[..., None, None], lev_i[:, s:e], lv)
+            mvs[:, o[s:e]] = np.where(is_i[..., None], mvs_all[:, s:e], 0)
+        buf[:, pixo[s:e]] = r
+        modes[:, o[s:e]] = b
+        levels[:, o[s:e]] = lv
+        total += float(j[cidx, bidx, bl].sum()) + lam * MODE_BITS * bl.size
     return FrameCode(n, prev is not None, modes, levels, mvs), unpadded(buf, h, w).copy(), total
 
 
@@ -171,16 +188,18 @@ def decode_frame(code: FrameCode, prev: np.ndarray | None, qp: int | None, flags
         plane = modes == 3
         lin = np.where(modes > 3, modes - 1, np.where(plane, 0, modes))
     first_pvm = ms.n_spatial
-    if ms.pvm:
-        maps = prev_maps(padded(prev), g)
+    if ms.pvm:  # maps only for the blocks that use PVM
         is_pvm = (modes >= first_pvm) & (modes < first_pvm + 4)
         d = np.clip(modes - first_pvm, 0, 3)
-        add += np.where(is_pvm[..., None], np.take_along_axis(maps, d[..., None, None], 2)[:, :, 0], 0)
+        ci, bi = np.nonzero(is_pvm)
+        pb = padded(prev)
+        maps = intra.pvm_maps(pb[ci[:, None], g.pix_idx[bi]], pb[ci[:, None], g.nb_idx[bi]], n)
+        add[ci, bi] = maps[np.arange(len(ci)), d[ci, bi]]
         lin = np.where(is_pvm, nh + d, lin)
     if ms.inter:
         is_i = modes == ms.inter_mode
         pi = motion_compensate(prev, code.mvs, n, mv_range)
-        add += np.where(is_i[..., None], pi, 0)
+        add[is_i] = pi[is_i]
         lin = np.where(is_i, nh + 4, lin)
     o = g.order  # everything in wavefront order: each wave is a contiguous slice
     res = decode_residual(code.levels[:, o], n, qp).astype(np.float64)

@@ -107,6 +107,29 @@ def code_residual(res: np.ndarray, n: int, qp: int | None, intra: bool = True
     return lev.reshape(*lev.shape[:-2], 16)[..., ZIGZAG], rec
 
 
+_PF = np.array([0.25, 0.1, 0.1 ** 0.5 / 2])[_POS]  # orthonormal scale of each Cf coefficient
+_M = np.array([4.0, 2.5, 2.5 ** 0.5 * 2])[_POS]  # orthonormal scale of each inverse basis (x 64)
+
+
+def analyse_residual(res: np.ndarray, n: int, qp: int | None, intra: bool = True
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """Levels (..., (N/4)^2, 16) zigzag and the SSD they will cause (...), without inverting.
+
+    The core transform is orthogonal up to row scales, so by Parseval the pixel-domain
+    error is ``sum((W * PF - Z * V 2^(QP//6) * M / 64)^2)`` (PF, M: the forward and
+    inverse row scales); the integer inverse only adds its rounding. Lossless: SSD 0.
+    """
+    sub = to_sub4(res, n)
+    if qp is None:
+        return sub.reshape(*sub.shape[:-2], 16)[..., ZIGZAG], np.zeros(res.shape[:-1])
+    w = forward4(sub)
+    z = quantise(w, qp, intra)
+    rm = (_V[qp % 6][_POS] << (qp // 6)) * _M / 64.0
+    err = w * _PF - z * rm
+    d = (err * err).reshape(*err.shape[:-3], -1).sum(-1)
+    return z.reshape(*z.shape[:-2], 16)[..., ZIGZAG], d
+
+
 def decode_residual(levels: np.ndarray, n: int, qp: int | None) -> np.ndarray:
     """Zigzag levels (..., (N/4)^2, 16) -> reconstructed residual (..., N*N)."""
     sub = np.empty_like(levels)

@@ -200,12 +200,18 @@ class ToTarget(nn.Module):
         return self.n_edge_events
 
     def _channel_tables(self, c: int) -> tuple[torch.Tensor, torch.Tensor]:
-        """fill index into (C * M) and neighbour offsets into (C * H_ref * W_ref), per channel."""
+        """fill index into (C * M) and neighbour offsets into (C * H_ref * W_ref), per channel.
+
+        Built from ``int(c)`` so that they are constants in an exported graph (no
+        Shape -> Range chain evaluated per call)."""
+        c = int(c)
         n_ref = self.ref_size[0] * self.ref_size[1]
-        ch = torch.arange(c, device=self.fill_index.device)
-        fill = (self.fill_index.unsqueeze(0) + ch.unsqueeze(1) * self.n_mask).reshape(-1)
-        quad = (self.quad_offset.unsqueeze(0) + ch.unsqueeze(1) * n_ref).reshape(-1, 1)  # (4C, 1)
-        return fill, quad
+        ch = np.arange(c, dtype=np.int64)
+        fill_np = self.fill_index.cpu().numpy()
+        fill = (fill_np[None, :] + ch[:, None] * self.n_mask).reshape(-1)
+        quad = (self.quad_offset.cpu().numpy()[None, :] + ch[:, None] * n_ref).reshape(-1, 1)  # (4C, 1)
+        dev = self.fill_index.device
+        return torch.from_numpy(fill).to(dev), torch.from_numpy(quad).to(dev)
 
     # ---------------------------------------------------------------- pieces
     def locate(self, target: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -262,10 +268,9 @@ class ToTarget(nn.Module):
 
         maps : (B, T * 6) from :meth:`affine_maps`; tri_id : (B, 1, H*W) float.
         """
-        n = tri_id.shape[-1]
+        n = self.canvas[0] * self.canvas[1]  # constants, not Shape ops, in an exported graph
         index = (tri_id.to(torch.int64) * 6 + self.six).flatten(1)  # (B, 6 N)
-        m = torch.gather(maps, 1, index).reshape(-1, 2, 3, n) * self.xy1
-        return m[:, :, 0] + m[:, :, 1] + m[:, :, 2]
+        return (torch.gather(maps, 1, index).reshape(-1, 2, 3, n) * self.xy1).sum(2)
 
     def bilinear(self, textures: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
         """Bilinear reads of reference textures.
@@ -273,8 +278,8 @@ class ToTarget(nn.Module):
         textures : (B, C, M) mask-pixel textures; uv : (B, 2, N) reference pixel coordinates.
         Returns (B, C, N).
         """
-        c = textures.shape[1]
-        n = uv.shape[-1]
+        c = int(textures.shape[1])
+        n = self.canvas[0] * self.canvas[1]
         fill, quad = self._channel_tables(c)
         flat = textures.flatten(1)
         fill = torch.zeros_like(flat[:, :1], dtype=torch.int64) + fill  # (B, C * Hr * Wr)
@@ -283,14 +288,15 @@ class ToTarget(nn.Module):
         frac = uv - fl  # (B, 2, N)
         base = torch.matmul(self.fl_flat, fl).to(torch.int64)  # (B, 1, N) y0 * W_ref + x0, exact
         index = (base + quad).flatten(1)  # (B, 4C N), channel-major then neighbour
-        g = torch.gather(raster, 1, index).reshape(-1, c, 4, n)
-        fx, fy = frac[:, :1], frac[:, 1:]
-        top = g[:, :, 0] + fx * (g[:, :, 1] - g[:, :, 0])
-        bottom = g[:, :, 2] + fx * (g[:, :, 3] - g[:, :, 2])
-        return top + fy * (bottom - top)
+        g = torch.gather(raster, 1, index).reshape(-1, c, 2, 2, n)  # (B, C, row, column, N)
+        fx, fy = frac[:, :1].unsqueeze(2), frac[:, 1:]  # (B, 1, 1, N), (B, 1, N)
+        left = g[:, :, :, 0]
+        rows = left + fx * (g[:, :, :, 1] - left)  # (B, C, 2, N): top and bottom rows
+        top = rows[:, :, 0]
+        return top + fy * (rows[:, :, 1] - top)
 
     def forward(self, textures: torch.Tensor, target: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        c = textures.shape[1]
+        c = int(textures.shape[1])
         h, w = self.canvas
         tri_id, inside, vert = self.locate(target)
         img = self.bilinear(textures, self.source(self.affine_maps(vert), tri_id))

@@ -76,6 +76,14 @@ class SADM:
         """The whole landmarks -> face graph (eval mode)."""
         return Synthesizer(self.model, self.appearance(), self.config.clamp_shape).eval()
 
+    def compressed(self, landmarks: np.ndarray, keep: int | None = None, predicted_variance: float | None = None):
+        """The synthesizer with only the appearance components of largest predicted variance
+        over ``landmarks`` (N, 68, 2) (the training frames); the rest are folded into the
+        mean. Returns ``(Synthesizer, info)``; see :func:`facesynth.sadm.compress.compress_synthesizer`."""
+        from facesynth.sadm.compress import compress_synthesizer
+
+        return compress_synthesizer(self.synthesizer(), landmarks, keep, predicted_variance)
+
     def features(self, landmarks: np.ndarray) -> np.ndarray:
         """(N, 68, 2) frame landmarks -> (N, F) regressor inputs."""
         return ShapeFeatures.numpy(self.model, landmarks, self.config.features)

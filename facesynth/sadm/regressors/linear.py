@@ -11,6 +11,9 @@ from facesynth.sadm.regressors._common import as_config
 from facesynth.sadm.regressors.base import Regressor, register
 
 
+RCOND = 1e-10  # singular values of the Gram matrix below RCOND * largest are treated as 0
+
+
 @dataclass
 class LinearConfig:
     ridge: float = 0.0  # lambda of ||A||^2 (the bias is not penalised)
@@ -36,7 +39,10 @@ class LinearRegressor(Regressor):
         xc, yc = x - mx, y - my
         # Closed form on centred data: the bias absorbs the means (unpenalised).
         gram = xc.T @ xc + ridge * np.eye(x.shape[1])
-        w = np.linalg.lstsq(gram, xc.T @ yc, rcond=None)[0].T  # (D_out, D_in)
+        # Minimum-norm solution: directions the inputs never vary in (aligned landmarks have
+        # exact similarity constraints: eigenvalues ~1e-13 of the largest) get zero weight,
+        # instead of weights ~1e4 that turn float32 rounding of the inputs into texture error.
+        w = np.linalg.lstsq(gram, xc.T @ yc, rcond=RCOND)[0].T  # (D_out, D_in)
         b = my - w @ mx
         return cls(torch.from_numpy(w), torch.from_numpy(b), ridge)
 

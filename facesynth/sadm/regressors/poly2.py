@@ -11,6 +11,7 @@ scikit-learn's ``StandardScaler -> PolynomialFeatures(2, include_bias=False) -> 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Optional
 
 import numpy as np
 import scipy.linalg
@@ -26,6 +27,7 @@ class Poly2Config:
     relative_ridge: bool = True  # lambda = ridge * trace(Phi_c^T Phi_c) / N (scale-free); else absolute
     include_linear: bool = True  # keep the D linear terms next to the D(D+1)/2 products
     standardise: bool = True  # z-score the inputs before forming products
+    input_components: Optional[int] = None  # project (standardised) inputs on their leading K whitened PCs first
 
 
 def triu_flat_index(d: int) -> np.ndarray:
@@ -81,13 +83,14 @@ class Poly2Regressor(Regressor):
 
     config_class = Poly2Config
 
-    def __init__(self, x_mean, x_scale, weight, bias, config: Poly2Config):
+    def __init__(self, x_mean, x_scale, weight, bias, config: Poly2Config, proj=None):
         super().__init__()
         self.config = config
-        d = int(x_mean.shape[0])
+        proj = torch.eye(int(x_mean.shape[0])) if proj is None else torch.as_tensor(proj)
         self.register_buffer("x_mean", torch.as_tensor(x_mean).float())
         self.register_buffer("x_scale", torch.as_tensor(x_scale).float())
-        self.register_buffer("triu", torch.from_numpy(triu_flat_index(d)))
+        self.register_buffer("proj", proj.float())  # (D, d): identity, or whitened leading PCs
+        self.register_buffer("triu", torch.from_numpy(triu_flat_index(int(proj.shape[1]))))
         self.register_buffer("weight", torch.as_tensor(weight).float())
         self.register_buffer("bias", torch.as_tensor(bias).float())
         self.lam = float("nan")  # the absolute lambda used by fit
@@ -100,16 +103,27 @@ class Poly2Regressor(Regressor):
             mu, sd = standardiser(x)
         else:
             mu, sd = np.zeros(x.shape[1]), np.ones(x.shape[1])
-        phi = poly2_features((x - mu) / sd, cfg.include_linear)
+        z = (x - mu) / sd
+        proj = np.eye(x.shape[1])
+        if cfg.input_components:
+            # Quadratic features of many correlated inputs (e.g. 136 landmark coordinates)
+            # extrapolate wildly; a few whitened principal components keep them in check.
+            zc = z - z.mean(0)
+            _, sv, vt = np.linalg.svd(zc, full_matrices=False)
+            k = min(int(cfg.input_components), len(sv))
+            proj = vt[:k].T / np.maximum(sv[:k] / np.sqrt(max(len(z) - 1, 1)), 1e-12)
+            z = (x - mu) / sd @ proj
+        phi = poly2_features(z, cfg.include_linear)
         lam = float(cfg.ridge) * (float(phi.var(0).sum()) if cfg.relative_ridge else 1.0)
         w, b = ridge_closed_form(phi, y, lam)
-        reg = cls(torch.from_numpy(mu), torch.from_numpy(sd), torch.from_numpy(w), torch.from_numpy(b), cfg)
+        reg = cls(torch.from_numpy(mu), torch.from_numpy(sd), torch.from_numpy(w), torch.from_numpy(b), cfg,
+                  torch.from_numpy(proj))
         reg.lam = lam
         return reg
 
     def features(self, x: torch.Tensor) -> torch.Tensor:
         """(B, D) -> (B, F) polynomial features (torch)."""
-        z = (x - self.x_mean) / self.x_scale
+        z = torch.matmul((x - self.x_mean) / self.x_scale, self.proj)
         outer = (z.unsqueeze(2) * z.unsqueeze(1)).reshape(z.shape[0], -1)
         quad = torch.index_select(outer, 1, self.triu)
         return torch.cat([z, quad], 1) if self.config.include_linear else quad
@@ -124,6 +138,7 @@ class Poly2Regressor(Regressor):
             "lambda": self.lam,
             "include_linear": bool(self.config.include_linear),
             "standardise": bool(self.config.standardise),
+            "input_components": self.config.input_components,
         }
 
     @classmethod
@@ -131,7 +146,7 @@ class Poly2Regressor(Regressor):
         config = dict(config)
         lam = config.pop("lambda", float("nan"))
         reg = cls(tensors["x_mean"], tensors["x_scale"], tensors["weight"], tensors["bias"],
-                  as_config(Poly2Config, config, "regressor poly2"))
+                  as_config(Poly2Config, config, "regressor poly2"), tensors.get("proj"))
         reg.lam = float(lam)
         return reg
 
