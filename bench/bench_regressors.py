@@ -91,7 +91,7 @@ def main(argv=None) -> int:
     ap.add_argument("--clip", default="lp_d6")
     ap.add_argument("--features", default="bs", choices=["bs", "landmarks", "bs+landmarks"])
     ap.add_argument("--random", action="store_true", help="random data even when the shared clip exists")
-    ap.add_argument("--only", default="linear,poly2,mlp,svr", help="comma-separated regressors")
+    ap.add_argument("--only", default="linear,poly2,mlp,svr,krr", help="comma-separated regressors")
     ap.add_argument("--search", action="store_true", help="also grid-search the default grids")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--cache", default=None, help="npz file to reuse the clip's (x, b_g) arrays (written if absent)")

@@ -17,7 +17,7 @@ import torch
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--clip", default="lp_d6")
-    ap.add_argument("--only", default="linear,poly2,mlp,svr")
+    ap.add_argument("--only", default="linear,poly2,mlp,svr,krr")
     ap.add_argument("--threads", type=int, default=1)
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
