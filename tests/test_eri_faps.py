@@ -8,7 +8,7 @@ from facesynth.eri.faps import (
     FAP_NAMES, FAP_TABLE, FEATURE_POINTS, N_FAPS, compute_faps, face_axes, fapu, faps_to_landmarks,
 )
 from facesynth.eri.geometry import extend, forehead_points, mouth_open, open_mouth, select_neutral
-from facesynth.model.procrustes import apply_affine
+from facesynth.geometry import apply_affine
 from tests._faces import face_sequence_arrays, face_template, random_similarity
 
 

@@ -5,7 +5,8 @@ from sklearn.decomposition import PCA as SkPCA
 from _faces import face_template, random_similarity
 from facesynth.errors import FacesynthError
 from facesynth.model.pca import PCAModel
-from facesynth.model.procrustes import apply_affine, generalised_procrustes, invert_affine, similarity_fit
+from facesynth.geometry import apply_affine, invert_affine, similarity_fit
+from facesynth.model.procrustes import generalised_procrustes
 
 
 def _lstsq_similarity(src, dst):

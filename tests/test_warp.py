@@ -126,7 +126,7 @@ def test_round_trip_through_a_scaled_face(ref):
 
 
 def test_torch_similarity_matches_numpy(rng):
-    from facesynth.model.procrustes import similarity_fit
+    from facesynth.geometry import similarity_fit
 
     src = rng.normal(size=(3, 68, 2)) * 20
     dst = rng.normal(size=(68, 2)) * 5

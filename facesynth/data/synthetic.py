@@ -30,10 +30,11 @@ from facesynth.data.frames import ArrayFrames
 from facesynth.data.sequence import FaceSequence, validate_landmarks
 from facesynth.data.synthetic_draw import Alpha, DrawFrame, Shaded, bbox, bezier, blend
 from facesynth.data.synthetic_shape import (
-    CONTROL_NAMES, MEAN_SHAPE, apply_similarity, estimate_pose_and_controls, invert_similarity,
+    CONTROL_NAMES, MEAN_SHAPE, estimate_pose_and_controls,
     pose_matrices, shapes_from_controls, smooth_controls, smooth_head_motion,
 )
 from facesynth.errors import FacesynthError
+from facesynth.geometry import apply_affine, invert_affine
 
 __all__ = ["CONTROL_NAMES", "make_synthetic_sequence", "render_faces", "synthetic_landmarks"]
 
@@ -207,7 +208,7 @@ def render_faces(landmarks: np.ndarray, size: int = 256, seed: int = 0, noise_si
     """
     lm = validate_landmarks(landmarks, "synthetic landmarks")
     m, controls = estimate_pose_and_controls(lm)
-    local = apply_similarity(lm.astype(np.float64), invert_similarity(m))
+    local = apply_affine(lm.astype(np.float64), invert_affine(m))
     controls = np.clip(controls, 0.0, 1.0)
     yy, xx = np.mgrid[0:size, 0:size].astype(np.float32)
     grid = np.stack([xx, yy])
@@ -242,7 +243,7 @@ def synthetic_landmarks(controls: np.ndarray, pose: np.ndarray | None = None, si
     if controls.shape[1] != len(CONTROL_NAMES):
         raise FacesynthError(f"controls must have shape (T, {len(CONTROL_NAMES)}) ({', '.join(CONTROL_NAMES)}), got {controls.shape}")
     pose = np.zeros((len(controls), 4)) if pose is None else np.atleast_2d(pose)
-    return apply_similarity(shapes_from_controls(controls), pose_matrices(pose, size)).astype(np.float32)
+    return apply_affine(shapes_from_controls(controls), pose_matrices(pose, size)).astype(np.float32)
 
 
 def make_synthetic_sequence(

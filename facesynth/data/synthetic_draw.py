@@ -8,7 +8,7 @@ from typing import NamedTuple
 import cv2
 import numpy as np
 
-from facesynth.data.synthetic_shape import invert_similarity
+from facesynth.geometry import invert_affine
 
 _SS = 16  # sub-pixel factor for cv2 drawing (shift=4)
 HEAD_BOX = [[-0.62, -0.36], [0.62, -0.36], [-0.62, 1.32], [0.62, 1.32]]  # face units: hair, ears, face, jaw open
@@ -67,7 +67,7 @@ class DrawFrame:
         self.angle = float(np.arctan2(m[1, 0], m[0, 0]))
         # face coordinates of each pixel, computed on the head's box only (zero elsewhere)
         self.head = self.box(HEAD_BOX, 0.02)
-        inv = invert_similarity(m[None])[0]
+        inv = invert_affine(m[None])[0]
         self.U = np.zeros((size, size), np.float32)
         self.V = np.zeros((size, size), np.float32)
         gx, gy = grid[0][self.head], grid[1][self.head]

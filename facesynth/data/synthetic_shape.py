@@ -20,6 +20,8 @@ from __future__ import annotations
 import numpy as np
 from scipy.ndimage import gaussian_filter1d
 
+from facesynth.geometry import apply_affine, invert_affine, similarity_fit
+
 CONTROL_NAMES = ("jaw_open", "smile", "brow_raise", "eye_close")
 
 # Mean 68-point face in [0, 1]-ish face units, iBUG order. Hand-adjusted from the commonly
@@ -173,38 +175,14 @@ def shapes_from_controls(controls: np.ndarray) -> np.ndarray:
     return MEAN_SHAPE[None] + np.einsum("tk,kpd->tpd", np.atleast_2d(controls), DISPLACEMENTS)
 
 
-def apply_similarity(points: np.ndarray, m: np.ndarray) -> np.ndarray:
-    """Apply (T, 2, 3) similarity matrices to (T, P, 2) points."""
-    return np.einsum("tij,tpj->tpi", m[:, :, :2], points) + m[:, None, :, 2]
-
-
 def estimate_pose_and_controls(landmarks: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Recover, from image landmarks (T, 68, 2), the face-unit -> image similarity (T, 2, 3)
     (least squares on the rigid points) and the controls (T, K) (least squares on the
     residual displacement). Exact for shapes produced by this module."""
     lm = np.asarray(landmarks, dtype=np.float64).reshape(-1, 68, 2)
-    src = MEAN_SHAPE[RIGID]
-    src_c = src - src.mean(0)
-    dst = lm[:, RIGID]
-    dst_mean = dst.mean(1, keepdims=True)
-    dst_c = dst - dst_mean
-    # complex-number least squares for a similarity: z_dst = w * z_src
-    zs = src_c[:, 0] + 1j * src_c[:, 1]
-    zd = dst_c[..., 0] + 1j * dst_c[..., 1]
-    w = (zd * zs.conj()).sum(1) / (np.abs(zs) ** 2).sum()
-    a, b = w.real, w.imag
-    t = dst_mean[:, 0] - np.stack([a * src.mean(0)[0] - b * src.mean(0)[1], b * src.mean(0)[0] + a * src.mean(0)[1]], 1)
-    m = np.stack([np.stack([a, -b, t[:, 0]], 1), np.stack([b, a, t[:, 1]], 1)], 1)
-    inv = invert_similarity(m)
-    local = apply_similarity(lm, inv) - MEAN_SHAPE[None]
+    m = similarity_fit(MEAN_SHAPE[RIGID][None], lm[:, RIGID])
+    inv = invert_affine(m)
+    local = apply_affine(lm, inv) - MEAN_SHAPE[None]
     basis = DISPLACEMENTS.reshape(len(CONTROL_NAMES), -1).T  # (136, K)
     controls = np.linalg.lstsq(basis, local.reshape(len(lm), -1).T, rcond=None)[0].T
     return m, controls
-
-
-def invert_similarity(m: np.ndarray) -> np.ndarray:
-    """Inverse of (T, 2, 3) affine matrices."""
-    a = m[:, :, :2]
-    ainv = np.linalg.inv(a)
-    t = -np.einsum("tij,tj->ti", ainv, m[:, :, 2])
-    return np.concatenate([ainv, t[:, :, None]], axis=2)

@@ -71,7 +71,7 @@ from __future__ import annotations
 import numpy as np
 
 from facesynth.errors import FacesynthError
-from facesynth.model.procrustes import apply_affine, similarity_fit
+from facesynth.geometry import apply_affine, similarity_fit
 
 FEATURE_POINTS: dict[str, tuple[int, ...]] = {
     "2.1": (8,), "2.2": (62,), "2.3": (66,), "2.4": (64,), "2.5": (60,), "2.6": (63,), "2.7": (61,),

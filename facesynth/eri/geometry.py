@@ -11,7 +11,8 @@ import numpy as np
 
 from facesynth.errors import FacesynthError
 from facesynth.eri.faps import face_axes, head_pose
-from facesynth.model.procrustes import apply_affine, generalised_procrustes, similarity_fit
+from facesynth.geometry import apply_affine, similarity_fit
+from facesynth.model.procrustes import generalised_procrustes
 
 N_FOREHEAD = 10
 BROWS = tuple(range(17, 27))

@@ -91,27 +91,25 @@ def _betas_n1(V: np.ndarray, Cw: np.ndarray) -> np.ndarray:
     return np.array([num / den, 0.0, 0.0, 0.0])
 
 
-def _betas_n2(L: np.ndarray, rho: np.ndarray) -> np.ndarray:
-    # Sign handling as in the authors' reference code (and OpenCV): the sign of b12 sets
-    # the sign of beta1, whatever the sign of b11.
-    b = np.linalg.lstsq(L[:, [0, 1, 2]], rho, rcond=None)[0]  # b11, b12, b22
+def _beta12(b: np.ndarray) -> tuple[float, float]:
+    """beta1, beta2 from (b11, b12, b22, ...) with the sign rule of the authors' reference
+    code (and OpenCV): the sign of b12 sets the sign of beta1, whatever the sign of b11."""
     if b[0] < 0:
         b1, b2 = np.sqrt(-b[0]), (np.sqrt(-b[2]) if b[2] < 0 else 0.0)
     else:
         b1, b2 = np.sqrt(b[0]), (np.sqrt(b[2]) if b[2] > 0 else 0.0)
-    if b[1] < 0:
-        b1 = -b1
+    return (-b1 if b[1] < 0 else b1), b2
+
+
+def _betas_n2(L: np.ndarray, rho: np.ndarray) -> np.ndarray:
+    b = np.linalg.lstsq(L[:, [0, 1, 2]], rho, rcond=None)[0]  # b11, b12, b22
+    b1, b2 = _beta12(b)
     return np.array([b1, b2, 0.0, 0.0])
 
 
 def _betas_n3(L: np.ndarray, rho: np.ndarray) -> np.ndarray:
     b = np.linalg.lstsq(L[:, [0, 1, 2, 3, 4]], rho, rcond=None)[0]  # b11, b12, b22, b13, b23
-    if b[0] < 0:
-        b1, b2 = np.sqrt(-b[0]), (np.sqrt(-b[2]) if b[2] < 0 else 0.0)
-    else:
-        b1, b2 = np.sqrt(b[0]), (np.sqrt(b[2]) if b[2] > 0 else 0.0)
-    if b[1] < 0:
-        b1 = -b1
+    b1, b2 = _beta12(b)
     return np.array([b1, b2, b[3] / b1 if b1 != 0 else 0.0, 0.0])
 
 

@@ -20,7 +20,8 @@ from tqdm.auto import tqdm
 from facesynth.data.sequence import FaceSequence, validate_landmarks
 from facesynth.errors import FacesynthError
 from facesynth.model.pca import PCAModel
-from facesynth.model.procrustes import apply_affine, generalised_procrustes, similarity_fit
+from facesynth.geometry import apply_affine, similarity_fit
+from facesynth.model.procrustes import generalised_procrustes
 from facesynth.model.reference import ReferenceFrame
 from facesynth.model.warp import ToReference, ToTarget, apply_affine_t, candidate_spans, invert_affine_t, similarity_to
 

@@ -1,0 +1,59 @@
+"""Array-level 2D geometry: least-squares similarity transforms and affine maps.
+
+Upstream of every stage (numpy only, no torch): the data layer's synthetic subject, the
+face model's Procrustes analysis and the ERI feature points all use these.
+
+References
+----------
+S. Umeyama, "Least-squares estimation of transformation parameters between two point
+patterns", IEEE TPAMI 13(4), 1991.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def similarity_fit(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
+    """Least-squares similarity transforms mapping ``src`` onto ``dst`` (Umeyama, no reflection).
+
+    Parameters
+    ----------
+    src, dst : np.ndarray
+        (..., K, 2) point sets; leading axes broadcast.
+
+    Returns
+    -------
+    np.ndarray
+        (..., 2, 3) float64 matrices ``M`` with ``dst ~= src @ M[:, :2].T + M[:, 2]``.
+    """
+    src = np.asarray(src, np.float64)
+    dst = np.asarray(dst, np.float64)
+    mu_s = src.mean(-2, keepdims=True)
+    mu_d = dst.mean(-2, keepdims=True)
+    s = src - mu_s
+    d = dst - mu_d
+    # For 2D similarity the optimum has closed form: rotation angle from the cross terms.
+    a = (s * d).sum((-1, -2))  # sum x_s x_d + y_s y_d
+    b = (s[..., 0] * d[..., 1] - s[..., 1] * d[..., 0]).sum(-1)
+    var_s = (s**2).sum((-1, -2))
+    norm = np.hypot(a, b)
+    scale = np.where(var_s > 0, norm / np.where(var_s > 0, var_s, 1), 1.0)
+    cos = np.where(norm > 0, a / np.where(norm > 0, norm, 1), 1.0)
+    sin = np.where(norm > 0, b / np.where(norm > 0, norm, 1), 0.0)
+    r = np.stack([np.stack([cos, -sin], -1), np.stack([sin, cos], -1)], -2) * scale[..., None, None]
+    t = mu_d[..., 0, :] - (mu_s[..., 0, :, None] * r.swapaxes(-1, -2)[..., :, :]).sum(-2)
+    return np.concatenate([r, t[..., :, None]], -1)
+
+
+def apply_affine(points: np.ndarray, m: np.ndarray) -> np.ndarray:
+    """Apply (..., 2, 3) affine matrices to (..., K, 2) points."""
+    m = np.asarray(m)
+    return np.einsum("...ij,...kj->...ki", m[..., :2], points) + m[..., None, :, 2]
+
+
+def invert_affine(m: np.ndarray) -> np.ndarray:
+    """Inverse of (..., 2, 3) affine matrices."""
+    a = np.linalg.inv(np.asarray(m, np.float64)[..., :2])
+    t = -np.einsum("...ij,...j->...i", a, m[..., 2])
+    return np.concatenate([a, t[..., None]], -1)
