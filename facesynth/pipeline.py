@@ -105,7 +105,6 @@ def run_training(cfg, out_dir: str | Path) -> dict:
 
 def summary_lines(metrics: dict) -> list[str]:
     """Short printable summary of a metrics dict."""
-    ref = metrics["psnr_ref"]
     lines = [f"regressor={metrics['regressor']} shape={metrics['n_shape']} appearance={metrics['n_appearance']} "
              f"train={metrics['train_frames']} test={metrics['test_frames']}"]
     for key in ("psnr_ref", "psnr_frame", "psnr_train_ref"):
@@ -113,5 +112,4 @@ def summary_lines(metrics: dict) -> list[str]:
             for row, vals in metrics[key].items():
                 lines.append(f"{key:15s} {row:13s} " + "  ".join(f"s{k}={v:6.2f}" for k, v in vals.items()))
     lines.append(f"ncc mean={np.mean(metrics['ncc']):.3f} (first 5: {', '.join(f'{v:.2f}' for v in metrics['ncc'][:5])})")
-    del ref
     return lines

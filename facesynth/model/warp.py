@@ -7,12 +7,12 @@ Two directions:
   The reference geometry is fixed, so every reference pixel's triangle and barycentric
   coordinates are precomputed; a frame is one (M, 68) matmul and one ``grid_sample``.
 * :class:`ToTarget` warps a reference-frame texture onto any target landmark set
-  (rendering). The triangle covering each output pixel is found by *candidate
-  scattering*: each triangle owns a fixed block of candidate pixels sized to the
-  largest bounding box that triangle takes over the training shapes (times a safety
-  factor); candidates inside their triangle scatter their reference coordinates into
-  the output grid, then one ``grid_sample`` reads the texture. Its cost is a few
-  times the canvas area, instead of (pixels x triangles) for a brute-force test.
+  (rendering). The triangle covering each output pixel is found by *scanline coverage
+  counting*: each triangle edge adds a signed triangle code at its row crossings
+  (scatter-add over at most ``span`` rows, sized from the training shapes by
+  :func:`candidate_spans`), and a cumulative sum along each row yields the covering
+  triangle; each pixel then gathers its triangle's affine map and bilinear taps. Its
+  cost is a few gathers per canvas pixel, instead of (pixels x triangles) tests.
 
 Coordinates: (x, y), integer values at pixel centres; ``grid_sample`` uses
 ``align_corners=True`` so that this matches OpenCV's ``remap``/``warpAffine``.
@@ -27,7 +27,6 @@ from torch.nn import functional as F
 
 from facesynth.model.reference import ReferenceFrame
 
-_FAR = -1.0e4  # grid coordinate far outside any image: grid_sample returns zeros there
 
 
 def to_grid(xy: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:

@@ -31,7 +31,7 @@ from facesynth.model.artifact import load_face_model, save_face_model
 from facesynth.model.face_model import FaceModel
 from facesynth.provenance import package_versions
 from facesynth.sadm.regressors import REGISTRY, Regressor
-from facesynth.sadm.synthesis import GlobalAppearance, ShapeFeatures, Synthesizer
+from facesynth.sadm.synthesis import GlobalAppearance, ShapeEncoder, ShapeFeatures, Synthesizer
 
 log = logging.getLogger(__name__)
 SADM_FORMAT_VERSION = 1
@@ -86,15 +86,14 @@ class SADM:
 
     def features(self, landmarks: np.ndarray) -> np.ndarray:
         """(N, 68, 2) frame landmarks -> (N, F) regressor inputs."""
-        return ShapeFeatures.numpy(self.model, landmarks, self.config.features)
+        return ShapeFeatures.numpy(self.model, landmarks, self.config.features, self.config.clamp_shape)
 
     def predict_params(self, landmarks: np.ndarray) -> np.ndarray:
         """(N, 68, 2) -> predicted b_g (N, K_g), clamped."""
         app = self.appearance().eval()
+        enc = ShapeEncoder(self.model, self.config.clamp_shape)
         with torch.no_grad():
-            x = torch.from_numpy(np.asarray(landmarks, np.float32))
-            enc = self.synthesizer().encoder
-            return app.params(*enc(x)).numpy()
+            return app.params(*enc(torch.from_numpy(np.asarray(landmarks, np.float32)))).numpy()
 
 
 def _make_config(name: str, params: dict):
@@ -131,7 +130,10 @@ def fit_sadm(
     rows = np.asarray(rows)
     lm = seq.landmarks[rows]
     y = model.appearance_params(textures)
-    probe = SADM(model, None, name, cfg)  # type: ignore[arg-type]
+
+    def features(landmarks):
+        return ShapeFeatures.numpy(model, landmarks, cfg.features, cfg.clamp_shape)
+
     n_val = int(round(len(rows) * cfg.val_fraction))
     fit_idx, val_idx = np.arange(len(rows) - n_val), np.arange(len(rows) - n_val, len(rows))
     rng = np.random.default_rng(seed)
@@ -141,7 +143,7 @@ def fit_sadm(
         for _ in range(cfg.augment_copies if cfg.augment_sigma > 0 else 0):
             lms.append(lm[idx] + rng.normal(0, cfg.augment_sigma, lm[idx].shape).astype(np.float32))
             ys.append(y[idx])
-        return probe.features(np.concatenate(lms)), np.concatenate(ys)
+        return features(np.concatenate(lms)), np.concatenate(ys)
 
     table: list = []
     if cfg.search:
@@ -150,13 +152,13 @@ def fit_sadm(
         if n_val < 2:
             raise FacesynthError("search needs a validation slice: raise sadm.val_fraction")
         x_fit, y_fit = design(fit_idx)
-        best, table = search(name, x_fit, y_fit, probe.features(lm[val_idx]), y[val_idx],
+        best, table = search(name, x_fit, y_fit, features(lm[val_idx]), y[val_idx],
                              DEFAULT_GRIDS.get(name, {}), _make_config(name, params), seed)
         params = {**params, **(asdict(best) if hasattr(best, "__dataclass_fields__") else dict(best))}
         log.info("search for %s picked %s", name, params)
     x, yy = design(np.arange(len(rows)))
     torch.manual_seed(seed)
-    x_val = probe.features(lm[val_idx]) if n_val else None
+    x_val = features(lm[val_idx]) if n_val else None
     reg = REGISTRY[name].fit(x, yy, _make_config(name, params), x_val, y[val_idx] if n_val else None, seed=seed)
     return SADM(model, reg.eval(), name, cfg, reg.config_dict(), table)
 

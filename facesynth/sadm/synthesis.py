@@ -68,9 +68,10 @@ class ShapeFeatures(nn.Module):
         return lm if self.kind == "landmarks" else torch.cat([b_s, lm], 1)
 
     @staticmethod
-    def numpy(model: FaceModel, landmarks: np.ndarray, kind: str = "bs") -> np.ndarray:
-        """The same features computed from (N, 68, 2) frame landmarks -> (N, F) float32."""
-        enc = ShapeEncoder(model)
+    def numpy(model: FaceModel, landmarks: np.ndarray, kind: str = "bs", clamp: bool = True) -> np.ndarray:
+        """The same features computed from (N, 68, 2) frame landmarks -> (N, F) float32
+        (``clamp``: b_s clamped as by the graph's :class:`ShapeEncoder`)."""
+        enc = ShapeEncoder(model, clamp)
         feat = ShapeFeatures(model, kind)
         with torch.no_grad():
             aligned, b = enc(torch.from_numpy(np.asarray(landmarks, np.float32)))
