@@ -49,8 +49,10 @@ def _index_chain(node, producers, inits, outputs):
 def int32_indices(model) -> int:
     """Rewrite the int64 index chains of ``GatherElements`` nodes to int32 (in place).
 
-    A chain is rewritten only when each of its tensors is used by the chain alone and every
-    constant fits in int32. Returns the number of gathers rewritten.
+    Chains that share tensors (one index read by several gathers, e.g. one per colour
+    channel) are rewritten together. A group of chains is rewritten only when each of its
+    tensors is used by the group alone (its chain nodes, or its gathers as their index)
+    and every constant fits in int32. Returns the number of gathers rewritten.
     """
     from onnx import TensorProto, numpy_helper
 
@@ -62,23 +64,47 @@ def int32_indices(model) -> int:
             consumers.setdefault(i, []).append(n)
     inits = {t.name: t for t in g.initializer}
     outputs = {o.name for o in g.output}
+    chains = {}
+    for node in g.node:
+        if node.op_type == "GatherElements":
+            found = _index_chain(node, producers, inits, outputs)
+            if found is not None:
+                chains[id(node)] = (node, *found)
+    # group gathers whose chains share a tensor (union-find over tensor names)
+    parent = {k: k for k in chains}
+
+    def root(k):
+        while parent[k] != k:
+            parent[k] = parent[parent[k]]
+            k = parent[k]
+        return k
+
+    owner: dict[str, int] = {}
+    for k, (_, chain, chain_inits) in chains.items():
+        for t in [o for p in chain for o in p.output] + sorted(chain_inits):
+            if t in owner:
+                parent[root(k)] = root(owner[t])
+            else:
+                owner[t] = k
+    groups: dict[int, list] = {}
+    for k in chains:
+        groups.setdefault(root(k), []).append(chains[k])
     done = 0
-    for node in list(g.node):
-        if node.op_type != "GatherElements":
-            continue
-        found = _index_chain(node, producers, inits, outputs)
-        if found is None:
-            continue
-        chain, chain_inits = found
+    for members_ in groups.values():
+        gathers = [m[0] for m in members_]
+        chain = list({id(p): p for m in members_ for p in m[1]}.values())
+        chain_inits = set().union(*(m[2] for m in members_))
         arrays = {t: numpy_helper.to_array(inits[t]) for t in chain_inits}
         if any(a.dtype != np.int64 or (a.size and np.abs(a).max() >= 2 ** 31) for a in arrays.values()):
             continue
-        members = {id(p) for p in chain} | {id(node)}
+        members = {id(p) for p in chain}
+        gather_ids = {id(n) for n in gathers}
         tensors = {o for p in chain for o in p.output} | chain_inits
         # shape inputs of Reshape are int64 by definition: they must not be in the chain
         if any(p.op_type == "Reshape" and p.input[1] in tensors for p in chain):
             continue
-        if any(id(c) not in members for t in tensors for c in consumers.get(t, [])):
+        if any(id(c) not in members and not (id(c) in gather_ids and c.input[1] == t and c.input[0] != t)
+               for t in tensors for c in consumers.get(t, [])):
             continue
         if any(p.op_type == "Cast" and next(a.i for a in p.attribute if a.name == "to") != TensorProto.INT64
                for p in chain):
@@ -94,5 +120,5 @@ def int32_indices(model) -> int:
         stale = [v for v in g.value_info if v.name in tensors]
         for v in stale:
             g.value_info.remove(v)
-        done += 1
+        done += len(gathers)
     return done

@@ -81,40 +81,44 @@ class ToTarget(nn.Module):
     """Warp reference-frame textures onto target landmark sets (piecewise affine).
 
     The triangle covering each output pixel is found by *scanline coverage counting*
-    (the edge-event form of polygon scan conversion; Foley et al., "Computer Graphics:
-    Principles and Practice", 2nd ed., sec. 3.6): each triangle edge crosses at most
-    ``span[:, 1].max()`` canvas rows; at each crossing it adds ``+code`` (left edge of its
-    triangle) or ``-code`` (right edge) at the first pixel right of the crossing, and a
-    cumulative sum along each row leaves, at every pixel, the sum of the codes of the
-    triangles that cover it. ``code = C + t + 1`` with ``C`` a power of two above the
-    triangle count, so one sum gives both the coverage count and the triangle index;
-    pixels covered exactly once are inside (degenerate or flipped triangles are skipped).
-    Shared edges are evaluated from the same two vertices in the same order for both
-    triangles, so neighbours partition each row exactly (a pixel centre on an edge
-    belongs to the triangle on its right; rows are half-open at the bottom). Each pixel
-    then reads its triangle's affine map (target -> reference pixels) and the 2x2
-    texture neighbourhood of its source point (bilinear, as ``grid_sample`` with
-    ``align_corners=True``) with flat element gathers.
+    along canvas columns (the edge-event form of polygon scan conversion; Foley et al.,
+    "Computer Graphics: Principles and Practice", 2nd ed., sec. 3.6): each mesh edge
+    crosses at most ``n_e`` canvas columns (the widest ``span`` of its triangles); at each
+    crossing it adds, at the first pixel below the crossing, ``+code`` for the triangle
+    it starts (the triangle below it) and ``-code`` for the one it ends, and a cumulative
+    sum down each column leaves, at every pixel, the sum of the codes of the triangles
+    that cover it. ``code = C + t + 1`` with ``C`` a power of two above the triangle
+    count, so one sum gives both the coverage count and the triangle index; pixels
+    covered exactly once are inside (degenerate or flipped triangles are skipped). Both
+    triangles of a shared edge take their events from one evaluation of that edge, so
+    neighbours partition each column exactly (a pixel centre on an edge belongs to the
+    triangle below it; columns are half-open on the right).
+
+    Each pixel then reads its triangle's affine map (target -> reference pixels) from
+    per-frame tables indexed by (triangle, canvas column) -- ``u = u0[t, x] + u_y[t] y``,
+    likewise ``v`` -- and the 2x2 texture neighbourhood of its source point (bilinear,
+    as ``grid_sample`` with ``align_corners=True``) with flat element gathers.
 
     Everything is a short, fixed list of tensor ops (Gather, MatMul, ScatterElements-add,
-    CumSum, GatherElements and elementwise ops, about 80 ONNX nodes): it exports to ONNX
-    without loops or custom ops; the cost is (3 T x span rows) edge events plus 18
-    gathered values per canvas pixel.
+    CumSum, GatherElements and elementwise ops): it exports to ONNX without loops or
+    custom ops. Per image the cost is one event per (edge, column) it may cross and 4 + 12
+    gathered values per canvas pixel; the column sum runs along the outer axis of a
+    (H + 1, W) buffer, which ONNX Runtime vectorises across the row.
 
     Parameters
     ----------
     ref : ReferenceFrame
     span : np.ndarray
         int (T, 2): largest width and height (pixels) each triangle takes in the targets,
-        from :func:`candidate_spans`; each edge visits ``span[:, 1].max()`` rows
-        (:meth:`clipped_triangles` reports targets that exceed the span).
+        from :func:`candidate_spans`; each edge visits as many columns as the widest of
+        its triangles (:meth:`clipped_triangles` reports targets that exceed the span).
     canvas : (H, W), optional
         Output size; defaults to the reference frame size.
 
     Forward
     -------
     textures : (B, C, M) float tensor (M reference mask pixels, as from ToReference)
-    target : (B, 68, 2) float tensor, landmarks in canvas pixel coordinates
+    target : (B, P, 2) float tensor, landmarks in canvas pixel coordinates
     returns : image (B, C, H, W) with zeros outside the face, mask (B, 1, H, W) in {0, 1}
     """
 
@@ -123,35 +127,52 @@ class ToTarget(nn.Module):
         self.canvas = tuple(int(s) for s in (canvas or ref.size))
         self.ref_size = tuple(int(s) for s in ref.size)
         tri = np.asarray(ref.triangles, np.int64)
-        span = np.asarray(span, np.int64)
+        span = np.asarray(span, np.int64).reshape(-1, 2)
         n_tri = len(tri)
         h, w = self.canvas
-        hr, wr = self.ref_size
-        n_ref = hr * wr
         self.n_tri = n_tri
         self.code_base = float(2 ** int(np.ceil(np.log2(n_tri + 2))))
-        self.n_rows = max(int(span[:, 1].max()) if len(span) else 1, 1)
+        c = self.code_base
         self.register_buffer("tri", torch.from_numpy(tri))
         self.register_buffer("span", torch.from_numpy(span.astype(np.float32)))
-        # half-edges (t, k) go from tri[t, k] to tri[t, k + 1]; both half-edges of an edge
-        # are evaluated from its lower-index vertex ("lo") to its higher-index one ("hi")
+        # undirected edges (lo, hi) (vertex indices lo < hi); half-edge (t, k) runs from
+        # tri[t, k] to tri[t, k + 1] and is +1 when it runs from lo to hi
         he_from, he_to = tri, tri[:, [1, 2, 0]]
         lo, hi = np.minimum(he_from, he_to), np.maximum(he_from, he_to)
-        fields = np.stack([2 * lo, 2 * lo + 1, 2 * hi, 2 * hi + 1])  # (4, T, 3) into (68 * 2,)
-        self.register_buffer("edge_index", torch.from_numpy(fields.reshape(-1)))
-        # +code where the half-edge runs upwards (lo above hi and from == hi, ...): the
-        # triangle (counter-clockwise, det > 0) then lies right of the crossing
-        code = self.code_base + 1.0 + np.arange(n_tri, dtype=np.float64)[:, None]
-        signed = np.where(he_from == lo, 1.0, -1.0) * code  # sign when y_lo > y_hi
-        self.register_buffer("edge_code", torch.from_numpy(signed.astype(np.float32)[..., None]))  # (T, 3, 1)
-        self.register_buffer("rows", torch.arange(self.n_rows, dtype=torch.float32))
-        vert = np.stack([2 * tri, 2 * tri + 1], -1).reshape(n_tri, 6)  # x0 y0 x1 y1 x2 y2
-        self.register_buffer("vert_index", torch.from_numpy(vert.reshape(-1)))
-        # linear maps on [x0, y0, x1, y1, x2, y2]: edge vectors, their swaps, v0
+        edges, he_edge = np.unique(np.stack([lo.reshape(-1), hi.reshape(-1)], 1), axis=0, return_inverse=True)
+        he_edge = he_edge.reshape(-1)
+        n_edge = len(edges)
+        # a half-edge running towards +x starts its triangle below the crossing (+code),
+        # towards -x it ends it: code matrix (T, E) of the lo -> hi direction
+        code = c + 1.0 + np.arange(n_tri, dtype=np.float64)
+        he_sign = np.where(he_from == lo, 1.0, -1.0).reshape(-1)
+        code_m = np.zeros((n_tri, n_edge))
+        np.add.at(code_m, (np.repeat(np.arange(n_tri), 3), he_edge), he_sign * np.repeat(code, 3))
+        self.register_buffer("edge_codes", torch.from_numpy(code_m.astype(np.float32)))
+        n_pts = len(ref.points)
+        # coordinate selections as exact 0/1 matmuls (a row Gather costs ~8 ns per index in ONNX Runtime)
+        self.register_buffer("edge_select", torch.from_numpy(_one_hot(np.stack([2 * edges[:, 0], 2 * edges[:, 0] + 1,
+                                                                                 2 * edges[:, 1], 2 * edges[:, 1] + 1]).reshape(-1), 2 * n_pts)))
+        # columns each edge may cross: an edge lies in the bounding box of each of its
+        # triangles, so the narrower of their spans bounds it
+        width = np.full(n_edge, w, np.int64)
+        np.minimum.at(width, he_edge, np.repeat(np.maximum(span[:, 0], 1), 3))
+        ev_edge = np.repeat(np.arange(n_edge), width)
+        ev_k = np.arange(len(ev_edge)) - np.repeat(np.cumsum(width) - width, width)
+        self.n_edges = n_edge
+        self.n_edge_events = int(len(ev_edge))
+        # per-event parameter gather: 5 per-edge fields [x0, columns, y at x0, slope, delta]
+        ev_index = (np.arange(5)[:, None] * n_edge + ev_edge[None, :]).reshape(1, -1)
+        self.register_buffer("ev_index", torch.from_numpy(ev_index))
+        self.register_buffer("ev_k", torch.from_numpy(ev_k.astype(np.float32)))
+        self.register_buffer("zeros_buf", torch.zeros((h + 1) * w))
+        # affine maps: vertices [x0 y0 x1 y1 x2 y2] -> edge vectors etc. (linear maps)
+        vert = np.stack([2 * tri, 2 * tri + 1], -1).reshape(n_tri, 6)
+        self.register_buffer("vert_select", torch.from_numpy(_one_hot(vert.reshape(-1), 2 * n_pts)))
         p_edges = np.zeros((6, 4), np.float32)  # -> e1x e1y e2x e2y
         for j, (a, b) in enumerate([(2, 0), (3, 1), (4, 0), (5, 1)]):
             p_edges[a, j], p_edges[b, j] = 1, -1
-        p_swap = np.zeros((4, 4), np.float32)  # -> e2y e2x (for det = e1x e2y - e1y e2x)
+        p_swap = np.zeros((4, 2), np.float32)  # -> e2y e2x (for det = e1x e2y - e1y e2x)
         p_swap[3, 0] = p_swap[2, 1] = 1
         p_ab = np.zeros((4, 4), np.float32)  # -> det * [a1, b1, a2, b2] = [e2y, -e2x, -e1y, e1x]
         p_ab[3, 0], p_ab[2, 1], p_ab[1, 2], p_ab[0, 3] = 1, -1, -1, 1
@@ -159,154 +180,171 @@ class ToTarget(nn.Module):
         p_v0[0, 0] = p_v0[1, 1] = p_v0[0, 2] = p_v0[1, 3] = 1
         p_c = np.array([[-1, 0], [-1, 0], [0, -1], [0, -1]], np.float32)  # -> c1, c2
         self.register_buffer("p_edges", torch.from_numpy(p_edges))
-        self.register_buffer("p_swap", torch.from_numpy(p_swap[:, :2]))
+        self.register_buffer("p_swap", torch.from_numpy(p_swap))
         self.register_buffer("p_det", torch.tensor([[1.0], [-1.0]]))
         self.register_buffer("p_ab", torch.from_numpy(p_ab))
         self.register_buffer("p_v0", torch.from_numpy(p_v0))
         self.register_buffer("p_c", torch.from_numpy(p_c))
-        # [a1 b1 a2 b2 c1 c2] -> [u_x u_y u_1 v_x v_y v_1] per triangle: l1 (ref_1 - ref_0) + l2 (ref_2 - ref_0) + ref_0
-        rp = ref.points[tri].astype(np.float64)  # (T, 3, 2)
-        d1, d2 = rp[:, 1] - rp[:, 0], rp[:, 2] - rp[:, 0]
-        m = np.zeros((n_tri, 6, 6))
-        for q in range(2):  # u, v
-            for col, (i1, i2) in enumerate([(0, 2), (1, 3), (4, 5)]):  # x, y, const coefficients of l1 / l2
-                m[:, i1, 3 * q + col] = d1[:, q]
-                m[:, i2, 3 * q + col] = d2[:, q]
-        const = np.zeros((n_tri, 1, 6))
-        const[:, 0, 2], const[:, 0, 5] = rp[:, 0, 0], rp[:, 0, 1]
-        self.register_buffer("p_maps", torch.from_numpy(m.astype(np.float32)))  # (T, 6, 6)
-        self.register_buffer("maps_const", torch.from_numpy(const.astype(np.float32)))  # (T, 1, 6)
-        ys, xs = np.mgrid[0:h, 0:w].astype(np.float32)
-        ones = np.ones(h * w, np.float32)
-        xy1 = np.stack([xs.reshape(-1), ys.reshape(-1), ones, xs.reshape(-1), ys.reshape(-1), ones])
-        self.register_buffer("xy1", torch.from_numpy(xy1.reshape(2, 3, h * w)))
-        self.register_buffer("six", torch.arange(6).reshape(6, 1))
-        self.register_buffer("zeros_row", torch.zeros(h * (w + 1) + 1))
-        self.register_buffer("fl_max", torch.tensor([[wr - 2.0], [hr - 2.0]]))
-        self.register_buffer("fl_flat", torch.tensor([[1.0, float(wr)]]))
-        # Reference pixels outside the mask take their nearest mask pixel's value, so that
-        # bilinear reads at the face boundary never mix in black.
+        # the texture raster: the reference mask's bounding box plus 2 px, reference pixels
+        # outside the mask filled with their nearest mask pixel's value, so that bilinear
+        # reads at the face boundary never mix in black
+        hr, wr = self.ref_size
         tri_index, _ = ref.rasterise()
-        fill = _nearest_inside(tri_index >= 0)
-        self.register_buffer("fill_index", torch.from_numpy(fill))
-        self.n_mask = int((tri_index >= 0).sum())
-        self.register_buffer("quad_offset", torch.tensor([0, 1, wr, wr + 1]))
-        self.n_edge_events = 3 * n_tri * self.n_rows
+        inside_ref = tri_index >= 0
+        fill = _nearest_inside(inside_ref)
+        self.register_buffer("fill_index", torch.from_numpy(fill))  # (Hr * Wr,) into the M mask pixels
+        self.n_mask = int(inside_ref.sum())
+        ys_in, xs_in = np.nonzero(inside_ref)
+        r0, r1 = max(int(ys_in.min()) - 2, 0), min(int(ys_in.max()) + 3, hr)
+        c0, c1 = max(int(xs_in.min()) - 2, 0), min(int(xs_in.max()) + 3, wr)
+        self.raster_box = (r0, r1, c0, c1)
+        rh, rw = r1 - r0, c1 - c0
+        self.raster_w = rw
+        self.n_raster = rh * rw
+        self.register_buffer("raster_fill", torch.from_numpy(fill.reshape(hr, wr)[r0:r1, c0:c1].reshape(-1).copy()))
+        # [u_x u_y u_1] = l1 (ref_1 - ref_0)_x + l2 (ref_2 - ref_0)_x + [0 0 ref_0x] (likewise v), with
+        # barycentric l_i = a_i x + b_i y + c_i; in raster coordinates (reference pixels minus the box origin)
+        rp = ref.points[tri].astype(np.float64) - np.array([c0, r0], np.float64)  # (T, 3, 2)
+        p_lin = np.zeros((6, 6), np.float32)  # [a1 b1 a2 b2 c1 c2] -> [a1 b1 c1 a2 b2 c2]
+        for src, dst in enumerate([0, 1, 3, 4, 2, 5]):
+            p_lin[src, dst] = 1
+        const = np.zeros((n_tri, 2, 3))
+        const[:, :, 2] = rp[:, 0]
+        self.register_buffer("p_lin", torch.from_numpy(p_lin))
+        self.register_buffer("ref_d1", torch.from_numpy((rp[:, 1] - rp[:, 0]).astype(np.float32)[:, :, None]))  # (T, 2, 1)
+        self.register_buffer("ref_d2", torch.from_numpy((rp[:, 2] - rp[:, 0]).astype(np.float32)[:, :, None]))
+        self.register_buffer("maps_const", torch.from_numpy(const.astype(np.float32)))  # (T, 2, 3)
+        # per-pixel constants: column x, row y, table offset x - C W (tables are (C + 1, W))
+        ys, xs = np.mgrid[0:h, 0:w].astype(np.float32)
+        self.register_buffer("col_x", torch.arange(w, dtype=torch.float32))
+        self.register_buffer("pix_y", torch.from_numpy(ys.reshape(1, -1)))
+        self.register_buffer("table_off", torch.from_numpy((xs - c * w).astype(np.float32)))  # (H, W)
+        self.register_buffer("quad_offset", torch.tensor([0, 1, rw, rw + 1]).reshape(4, 1, 1))
+        self.base_max = float(self.n_raster - rw - 2)
+        self.register_buffer("ones4", torch.ones(1, 4))
 
     @property
     def n_candidates(self) -> int:
-        """Number of scanline events evaluated per image (3 T edges x rows)."""
+        """Number of scanline events evaluated per image (edge x column crossings)."""
         return self.n_edge_events
 
-    def _channel_tables(self, c: int) -> tuple[torch.Tensor, torch.Tensor]:
-        """fill index into (C * M) and neighbour offsets into (C * H_ref * W_ref), per channel.
-
-        Built from ``int(c)`` so that they are constants in an exported graph (no
-        Shape -> Range chain evaluated per call)."""
-        c = int(c)
-        n_ref = self.ref_size[0] * self.ref_size[1]
-        ch = np.arange(c, dtype=np.int64)
-        fill_np = self.fill_index.cpu().numpy()
-        fill = (fill_np[None, :] + ch[:, None] * self.n_mask).reshape(-1)
-        quad = (self.quad_offset.cpu().numpy()[None, :] + ch[:, None] * n_ref).reshape(-1, 1)  # (4C, 1)
-        dev = self.fill_index.device
-        return torch.from_numpy(fill).to(dev), torch.from_numpy(quad).to(dev)
+    def _fill_tables(self, c: int) -> list[torch.Tensor]:
+        """Raster fill index of each of ``c`` channels into (C * M): (1, n_raster) each,
+        constants of an exported graph (built from ``int(c)``, no Shape -> Range chain)."""
+        return [self.raster_fill.reshape(1, -1) + ch * self.n_mask for ch in range(int(c))]
 
     # ---------------------------------------------------------------- pieces
-    def locate(self, target: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Which triangle covers each canvas pixel.
+    def triangles(self, target: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Target vertices (B, T, 6) [x0 y0 x1 y1 x2 y2] and edge vectors (B, T, 4)."""
+        vert = torch.matmul(target.flatten(1), self.vert_select).reshape(-1, self.n_tri, 6)
+        return vert, torch.matmul(vert, self.p_edges)
 
-        target : (B, 68, 2) canvas landmarks. Returns the triangle index as float (B, 1, H*W)
-        (0 where not inside), inside as bool (B, 1, H*W) (covered by exactly one triangle),
-        and the per-triangle vertices (B, T, 6) [x0 y0 x1 y1 x2 y2].
+    def locate(self, target: torch.Tensor, det: torch.Tensor) -> torch.Tensor:
+        """Coverage code sum of every canvas pixel, float (B, H, W): 0 outside, ``C + t + 1``
+        inside triangle t, more where triangles overlap.
+
+        target : (B, P, 2) canvas landmarks; det : (B, T, 1) from :meth:`affine_maps`.
         """
         h, w = self.canvas
-        n_tri = self.n_tri
-        flat = target.flatten(1)  # batch sizes stay symbolic: reshapes use -1, no Shape ops
-        vert = flat[:, self.vert_index].reshape(-1, n_tri, 6)
-        e = torch.matmul(vert, self.p_edges)  # (B, T, 4)
-        det = torch.matmul(e[..., :2] * torch.matmul(e, self.p_swap), self.p_det)  # (B, T, 1)
-        ed = flat[:, self.edge_index].reshape(-1, 4, n_tri, 3, 1)
-        xa, ya, xb, yb = ed[:, 0], ed[:, 1], ed[:, 2], ed[:, 3]  # (B, T, 3, 1)
-        delta = torch.where(ya > yb, self.edge_code, -self.edge_code)
-        delta = torch.where(det.unsqueeze(-1) > 1e-6, delta, 0.0)
-        dy = yb - ya
-        slope = (xb - xa) / torch.where(dy == 0, 1.0, dy)
-        y0 = torch.clamp(torch.ceil(torch.minimum(ya, yb)), min=0.0)
-        y1 = torch.clamp(torch.maximum(ya, yb), max=float(h))
-        y = y0 + self.rows  # (B, T, 3, R)
-        valid = y < y1
-        col = torch.clamp(torch.ceil((y - ya) * slope + xa), 0.0, float(w))
-        size = h * (w + 1)
-        idx = torch.where(valid, y * float(w + 1) + col, float(size)).to(torch.int64).flatten(1)
-        upd = torch.where(valid, delta, 0.0).flatten(1)
-        buf = torch.zeros_like(upd[:, :1]) + self.zeros_row  # (B, size + 1); the last slot is a dump
-        s = torch.cumsum(buf.scatter_add(1, idx, upd)[:, :size].reshape(-1, h, w + 1), 2)
-        s = s[:, :, :w].reshape(-1, 1, h * w)
-        c = self.code_base
-        inside = (s > c + 0.5) & (s < 2 * c - 0.5)
-        tri_id = torch.clamp(s - (c + 1.0), 0.0, float(n_tri - 1))
-        return tri_id, inside, vert
+        ed = torch.matmul(target.flatten(1), self.edge_select).reshape(-1, 4, self.n_edges)
+        xa, ya, xb, yb = ed[:, 0:1], ed[:, 1:2], ed[:, 2:3], ed[:, 3:4]  # (B, 1, E)
+        valid = (det.transpose(1, 2) > 1e-6).to(ed.dtype)  # (B, 1, T)
+        codes = torch.matmul(valid, self.edge_codes)  # (B, 1, E): signed codes, lo -> hi direction
+        dx = xb - xa
+        delta = torch.where(dx > 0, codes, -codes)
+        slope = (yb - ya) / torch.where(dx == 0, 1.0, dx)
+        x0 = torch.clamp(torch.ceil(torch.minimum(xa, xb)), min=0.0)
+        cols = torch.clamp(torch.maximum(xa, xb), max=float(w)) - x0  # columns x0 + k, k < cols
+        y0 = (x0 - xa) * slope + ya
+        fields = torch.cat([x0, cols, y0, slope, delta], 1).flatten(1)  # (B, 5 E)
+        index = torch.zeros_like(fields[:, :1], dtype=torch.int64) + self.ev_index
+        ev = torch.gather(fields, 1, index).reshape(-1, 5, self.n_edge_events)
+        k = self.ev_k
+        row = torch.clamp(torch.ceil(ev[:, 2] + k * ev[:, 3]), 0.0, float(h))
+        # events past the edge's end, or below the canvas, land in row h (dropped)
+        idx = torch.where(k < ev[:, 1], row * float(w) + (ev[:, 0] + k), float(h * w)).to(torch.int64)
+        buf = torch.zeros_like(fields[:, :1]) + self.zeros_buf  # (B, (H + 1) W)
+        s = torch.cumsum(buf.scatter_add(1, idx, ev[:, 4]).reshape(-1, h + 1, w), 1)
+        return s[:, :h]
 
-    def affine_maps(self, vert: torch.Tensor) -> torch.Tensor:
-        """Per-triangle affine maps, target canvas pixels -> reference pixels.
+    def affine_maps(self, vert: torch.Tensor, e: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Per-triangle affine maps, target canvas pixels -> raster pixels (reference pixels
+        minus the raster box origin), and the triangles' determinants.
 
-        vert : (B, T, 6) target vertices. Returns (B, T * 6): per triangle
-        [u_x, u_y, u_1, v_x, v_y, v_1] with u = u_x x + u_y y + u_1 (barycentric interpolation).
+        vert, e : from :meth:`triangles`. Returns maps (B, T, 6): per triangle
+        [u_x, u_y, u_1, v_x, v_y, v_1] with u = u_x x + u_y y + u_1 (barycentric
+        interpolation), and det (B, T, 1) (> 0 for counter-clockwise target triangles).
         """
-        e = torch.matmul(vert, self.p_edges)
-        det = torch.matmul(e[..., :2] * torch.matmul(e, self.p_swap), self.p_det)
+        det = torch.matmul(e[..., :2] * torch.matmul(e, self.p_swap), self.p_det)  # (B, T, 1)
         inv = 1.0 / torch.where(det.abs() > 1e-12, det, 1.0)
         ab = torch.matmul(e, self.p_ab) * inv  # (B, T, 4) a1 b1 a2 b2
         cc = torch.matmul(ab * torch.matmul(vert, self.p_v0), self.p_c)  # (B, T, 2) c1 c2
-        lin = torch.cat([ab, cc], -1).unsqueeze(-2)  # (B, T, 1, 6)
-        return (torch.matmul(lin, self.p_maps) + self.maps_const).flatten(1)
+        lin = torch.matmul(torch.cat([ab, cc], -1), self.p_lin).reshape(-1, self.n_tri, 2, 1, 3)  # [[a1 b1 c1], [a2 b2 c2]]
+        maps = lin[:, :, 0] * self.ref_d1 + lin[:, :, 1] * self.ref_d2 + self.maps_const  # (B, T, 2, 3)
+        return maps.reshape(-1, self.n_tri, 6), det
 
-    def source(self, maps: torch.Tensor, tri_id: torch.Tensor) -> torch.Tensor:
-        """Reference coordinates (B, 2, H*W) [u; v] of every canvas pixel given its triangle.
+    def source(self, maps: torch.Tensor, s: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Raster coordinates u, v (B, H, W) of every canvas pixel given its code sum.
 
-        maps : (B, T * 6) from :meth:`affine_maps`; tri_id : (B, 1, H*W) float.
+        maps : (B, T, 6) from :meth:`affine_maps`; s : (B, H, W) from :meth:`locate`.
+        Tables (B, (C + 1) W) indexed by ``(s' - C) W + x`` with s' = clamp(s, C, 2 C) hold
+        u0 = u_x x + u_1 and u_y (likewise v); rows of no single triangle map to (0, 0).
         """
-        n = self.canvas[0] * self.canvas[1]  # constants, not Shape ops, in an exported graph
-        index = (tri_id.to(torch.int64) * 6 + self.six).flatten(1)  # (B, 6 N)
-        return (torch.gather(maps, 1, index).reshape(-1, 2, 3, n) * self.xy1).sum(2)
+        c = int(self.code_base)
+        h, w = self.canvas
+        tab = F.pad(maps, (0, 0, 1, c - self.n_tri))  # (B, C + 1, 6), row t + 1 = triangle t
+        x = self.col_x
+        zero = torch.zeros_like(x)
+        u0 = (tab[..., 0:1] * x + tab[..., 2:3]).flatten(1)  # (B, (C + 1) W)
+        uy = (tab[..., 1:2] + zero).flatten(1)
+        v0 = (tab[..., 3:4] * x + tab[..., 5:6]).flatten(1)
+        vy = (tab[..., 4:5] + zero).flatten(1)
+        index = (torch.clamp(s, self.code_base, 2 * self.code_base) * float(w) + self.table_off).to(torch.int64)
+        index = index.reshape(-1, h * w)
+        y = self.pix_y
+        u = torch.gather(u0, 1, index) + torch.gather(uy, 1, index) * y
+        v = torch.gather(v0, 1, index) + torch.gather(vy, 1, index) * y
+        return u.reshape(-1, 1, h, w), v.reshape(-1, 1, h, w)
 
-    def bilinear(self, textures: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
-        """Bilinear reads of reference textures.
+    def bilinear(self, textures: torch.Tensor, u: torch.Tensor, v: torch.Tensor, inside: torch.Tensor) -> torch.Tensor:
+        """Bilinear reads of reference textures, zero where ``inside`` is 0.
 
-        textures : (B, C, M) mask-pixel textures; uv : (B, 2, N) reference pixel coordinates.
-        Returns (B, C, N).
+        textures : (B, C, M) mask-pixel textures; u, v : (B, 1, H, W) raster coordinates;
+        inside : (B, 1, H, W) float. Returns (B, C, H, W).
         """
-        c = int(textures.shape[1])
-        n = self.canvas[0] * self.canvas[1]
-        fill, quad = self._channel_tables(c)
-        flat = textures.flatten(1)
-        fill = torch.zeros_like(flat[:, :1], dtype=torch.int64) + fill  # (B, C * Hr * Wr)
-        raster = torch.gather(flat, 1, fill)
-        fl = torch.minimum(torch.clamp(torch.floor(uv), min=0.0), self.fl_max)
-        frac = uv - fl  # (B, 2, N)
-        base = torch.matmul(self.fl_flat, fl).to(torch.int64)  # (B, 1, N) y0 * W_ref + x0, exact
-        index = (base + quad).flatten(1)  # (B, 4C N), channel-major then neighbour
-        g = torch.gather(raster, 1, index).reshape(-1, c, 2, 2, n)  # (B, C, row, column, N)
-        fx, fy = frac[:, :1].unsqueeze(2), frac[:, 1:]  # (B, 1, 1, N), (B, 1, N)
-        left = g[:, :, :, 0]
-        rows = left + fx * (g[:, :, :, 1] - left)  # (B, C, 2, N): top and bottom rows
-        top = rows[:, :, 0]
-        return top + fy * (rows[:, :, 1] - top)
-
-    def forward(self, textures: torch.Tensor, target: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         c = int(textures.shape[1])
         h, w = self.canvas
-        tri_id, inside, vert = self.locate(target)
-        img = self.bilinear(textures, self.source(self.affine_maps(vert), tri_id))
-        mask = inside.to(img.dtype)
-        return (img * mask).reshape(-1, c, h, w), mask.reshape(-1, 1, h, w)
+        flat = textures.flatten(1)
+        zero = torch.zeros_like(flat[:, :1], dtype=torch.int64)
+        fu, fv = torch.floor(u), torch.floor(v)
+        fx, fy = u - fu, v - fv
+        base = torch.clamp(fv * float(self.raster_w) + fu, 0.0, self.base_max).to(torch.int64)  # (B, 1, H, W)
+        index = (base + self.quad_offset).reshape(-1, 4 * h * w)  # (B, 4 N): the 2x2 neighbours
+        wy = torch.cat([1.0 - fy, fy], 1) * inside  # (B, 2, H, W)
+        wx = torch.cat([1.0 - fx, fx], 1)
+        weights = (wy.unsqueeze(2) * wx.unsqueeze(1)).reshape(-1, 4, h * w)  # top-left, top-right, bottom-left, bottom-right
+        out = []
+        for table in self._fill_tables(c):  # one raster per channel, all read with the same index
+            raster = torch.gather(flat, 1, zero + table)  # (B, R)
+            taps = torch.gather(raster, 1, index).reshape(-1, 4, h * w)
+            # the 4-term sum as a (1, 4) matmul: ONNX Runtime's ReduceSum over axis 1 is ~7x slower
+            out.append(torch.matmul(self.ones4, taps * weights).reshape(-1, 1, h, w))
+        return out[0] if c == 1 else torch.cat(out, 1)
+
+    def forward(self, textures: torch.Tensor, target: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        vert, e = self.triangles(target)
+        maps, det = self.affine_maps(vert, e)
+        s = self.locate(target, det).unsqueeze(1)  # (B, 1, H, W)
+        cb = self.code_base
+        inside = ((s > cb + 0.5) & (s < cb + self.n_tri + 0.5)).to(textures.dtype)
+        u, v = self.source(maps, s)
+        return self.bilinear(textures, u, v, inside), inside
 
     def clipped_triangles(self, target: torch.Tensor) -> torch.Tensor:
-        """bool (B, T): triangles wider or taller than their ``span`` (may leave holes)."""
+        """bool (B, T): triangles wider than their ``span`` (their edges may miss columns)."""
         v = target[:, self.tri]
         ext = torch.floor(torch.amax(v, 2)) - torch.floor(torch.amin(v, 2)) + 1
-        return (ext > self.span).any(-1)
+        return ext[..., 0] > self.span[:, 0]
 
 
 def candidate_spans(ref: ReferenceFrame, shapes: np.ndarray, safety: float = 1.3) -> np.ndarray:
@@ -330,6 +368,13 @@ def candidate_spans(ref: ReferenceFrame, shapes: np.ndarray, safety: float = 1.3
     corners = pts[:, ref.triangles]  # (N, T, 3, 2)
     span = np.floor(corners.max(2) - corners.min(2)).max(0) + 2  # largest bbox + rounding
     return np.ceil(span * safety).astype(np.int64)
+
+
+def _one_hot(index: np.ndarray, n: int) -> np.ndarray:
+    """float32 (n, len(index)) selection matrix: x @ S == x[..., index] exactly."""
+    out = np.zeros((n, len(index)), np.float32)
+    out[index, np.arange(len(index))] = 1.0
+    return out
 
 
 def _nearest_inside(mask: np.ndarray) -> np.ndarray:
