@@ -149,10 +149,7 @@ class ToTarget(nn.Module):
         code_m = np.zeros((n_tri, n_edge))
         np.add.at(code_m, (np.repeat(np.arange(n_tri), 3), he_edge), he_sign * np.repeat(code, 3))
         self.register_buffer("edge_codes", torch.from_numpy(code_m.astype(np.float32)))
-        n_pts = len(ref.points)
-        # coordinate selections as exact 0/1 matmuls (a row Gather costs ~8 ns per index in ONNX Runtime)
-        self.register_buffer("edge_select", torch.from_numpy(_one_hot(np.stack([2 * edges[:, 0], 2 * edges[:, 0] + 1,
-                                                                                 2 * edges[:, 1], 2 * edges[:, 1] + 1]).reshape(-1), 2 * n_pts)))
+        edge_coords = np.stack([2 * edges[:, 0], 2 * edges[:, 0] + 1, 2 * edges[:, 1], 2 * edges[:, 1] + 1]).reshape(-1)
         # columns each edge may cross: an edge lies in the bounding box of each of its
         # triangles, so the narrower of their spans bounds it
         width = np.full(n_edge, w, np.int64)
@@ -168,7 +165,9 @@ class ToTarget(nn.Module):
         self.register_buffer("zeros_buf", torch.zeros((h + 1) * w))
         # affine maps: vertices [x0 y0 x1 y1 x2 y2] -> edge vectors etc. (linear maps)
         vert = np.stack([2 * tri, 2 * tri + 1], -1).reshape(n_tri, 6)
-        self.register_buffer("vert_select", torch.from_numpy(_one_hot(vert.reshape(-1), 2 * n_pts)))
+        # one element gather of the flat landmarks: triangle vertices (T * 6), then edge end points (4 E)
+        # (GatherElements: a row Gather costs ~8 ns per index in ONNX Runtime)
+        self.register_buffer("coord_index", torch.from_numpy(np.concatenate([vert.reshape(-1), edge_coords])[None]))
         p_edges = np.zeros((6, 4), np.float32)  # -> e1x e1y e2x e2y
         for j, (a, b) in enumerate([(2, 0), (3, 1), (4, 0), (5, 1)]):
             p_edges[a, j], p_edges[b, j] = 1, -1
@@ -234,19 +233,23 @@ class ToTarget(nn.Module):
         return [self.raster_fill.reshape(1, -1) + ch * self.n_mask for ch in range(int(c))]
 
     # ---------------------------------------------------------------- pieces
-    def triangles(self, target: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Target vertices (B, T, 6) [x0 y0 x1 y1 x2 y2] and edge vectors (B, T, 4)."""
-        vert = torch.matmul(target.flatten(1), self.vert_select).reshape(-1, self.n_tri, 6)
-        return vert, torch.matmul(vert, self.p_edges)
+    def coordinates(self, target: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Target vertices (B, T, 6) [x0 y0 x1 y1 x2 y2], their edge vectors (B, T, 4)
+        [e1x e1y e2x e2y] and the edge end points (B, 4, E) [x_lo, y_lo, x_hi, y_hi]."""
+        flat = target.flatten(1)
+        index = torch.zeros_like(flat[:, :1], dtype=torch.int64) + self.coord_index
+        coords = torch.gather(flat, 1, index)
+        vert = coords[:, : 6 * self.n_tri].reshape(-1, self.n_tri, 6)
+        return vert, torch.matmul(vert, self.p_edges), coords[:, 6 * self.n_tri:].reshape(-1, 4, self.n_edges)
 
-    def locate(self, target: torch.Tensor, det: torch.Tensor) -> torch.Tensor:
+    def locate(self, ed: torch.Tensor, det: torch.Tensor) -> torch.Tensor:
         """Coverage code sum of every canvas pixel, float (B, H, W): 0 outside, ``C + t + 1``
         inside triangle t, more where triangles overlap.
 
-        target : (B, P, 2) canvas landmarks; det : (B, T, 1) from :meth:`affine_maps`.
+        ed : (B, 4, E) edge end points and det : (B, T, 1) determinants, from
+        :meth:`coordinates` / :meth:`affine_maps`.
         """
         h, w = self.canvas
-        ed = torch.matmul(target.flatten(1), self.edge_select).reshape(-1, 4, self.n_edges)
         xa, ya, xb, yb = ed[:, 0:1], ed[:, 1:2], ed[:, 2:3], ed[:, 3:4]  # (B, 1, E)
         valid = (det.transpose(1, 2) > 1e-6).to(ed.dtype)  # (B, 1, T)
         codes = torch.matmul(valid, self.edge_codes)  # (B, 1, E): signed codes, lo -> hi direction
@@ -271,7 +274,7 @@ class ToTarget(nn.Module):
         """Per-triangle affine maps, target canvas pixels -> raster pixels (reference pixels
         minus the raster box origin), and the triangles' determinants.
 
-        vert, e : from :meth:`triangles`. Returns maps (B, T, 6): per triangle
+        vert, e : from :meth:`coordinates`. Returns maps (B, T, 6): per triangle
         [u_x, u_y, u_1, v_x, v_y, v_1] with u = u_x x + u_y y + u_1 (barycentric
         interpolation), and det (B, T, 1) (> 0 for counter-clockwise target triangles).
         """
@@ -332,9 +335,9 @@ class ToTarget(nn.Module):
         return out[0] if c == 1 else torch.cat(out, 1)
 
     def forward(self, textures: torch.Tensor, target: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        vert, e = self.triangles(target)
+        vert, e, ed = self.coordinates(target)
         maps, det = self.affine_maps(vert, e)
-        s = self.locate(target, det).unsqueeze(1)  # (B, 1, H, W)
+        s = self.locate(ed, det).unsqueeze(1)  # (B, 1, H, W)
         cb = self.code_base
         inside = ((s > cb + 0.5) & (s < cb + self.n_tri + 0.5)).to(textures.dtype)
         u, v = self.source(maps, s)
@@ -368,13 +371,6 @@ def candidate_spans(ref: ReferenceFrame, shapes: np.ndarray, safety: float = 1.3
     corners = pts[:, ref.triangles]  # (N, T, 3, 2)
     span = np.floor(corners.max(2) - corners.min(2)).max(0) + 2  # largest bbox + rounding
     return np.ceil(span * safety).astype(np.int64)
-
-
-def _one_hot(index: np.ndarray, n: int) -> np.ndarray:
-    """float32 (n, len(index)) selection matrix: x @ S == x[..., index] exactly."""
-    out = np.zeros((n, len(index)), np.float32)
-    out[index, np.arange(len(index))] = 1.0
-    return out
 
 
 def _nearest_inside(mask: np.ndarray) -> np.ndarray:
