@@ -162,7 +162,6 @@ class ToTarget(nn.Module):
         ev_index = (np.arange(5)[:, None] * n_edge + ev_edge[None, :]).reshape(1, -1)
         self.register_buffer("ev_index", torch.from_numpy(ev_index))
         self.register_buffer("ev_k", torch.from_numpy(ev_k.astype(np.float32)))
-        self.register_buffer("zeros_buf", torch.zeros((h + 1) * w))
         # affine maps: vertices [x0 y0 x1 y1 x2 y2] -> edge vectors etc. (linear maps)
         vert = np.stack([2 * tri, 2 * tri + 1], -1).reshape(n_tri, 6)
         # one element gather of the flat landmarks: triangle vertices (T * 6), then edge end points (4 E)
@@ -213,7 +212,7 @@ class ToTarget(nn.Module):
         self.register_buffer("ref_d1", torch.from_numpy((rp[:, 1] - rp[:, 0]).astype(np.float32)[:, :, None]))  # (T, 2, 1)
         self.register_buffer("ref_d2", torch.from_numpy((rp[:, 2] - rp[:, 0]).astype(np.float32)[:, :, None]))
         self.register_buffer("maps_const", torch.from_numpy(const.astype(np.float32)))  # (T, 2, 3)
-        # per-pixel constants: column x, row y, table offset x - C W (tables are (C + 1, W))
+        # per-pixel constants: column x, row y, table offset x - C W (tables are (T + 2, W))
         ys, xs = np.mgrid[0:h, 0:w].astype(np.float32)
         self.register_buffer("col_x", torch.arange(w, dtype=torch.float32))
         self.register_buffer("pix_y", torch.from_numpy(ys.reshape(1, -1)))
@@ -266,7 +265,7 @@ class ToTarget(nn.Module):
         row = torch.clamp(torch.ceil(ev[:, 2] + k * ev[:, 3]), 0.0, float(h))
         # events past the edge's end, or below the canvas, land in row h (dropped)
         idx = torch.where(k < ev[:, 1], row * float(w) + (ev[:, 0] + k), float(h * w)).to(torch.int64)
-        buf = torch.zeros_like(fields[:, :1]) + self.zeros_buf  # (B, (H + 1) W)
+        buf = torch.zeros(fields.shape[0], (h + 1) * w, dtype=fields.dtype, device=fields.device)  # ConstantOfShape
         s = torch.cumsum(buf.scatter_add(1, idx, ev[:, 4]).reshape(-1, h + 1, w), 1)
         return s[:, :h]
 
@@ -290,19 +289,19 @@ class ToTarget(nn.Module):
         """Raster coordinates u, v (B, H, W) of every canvas pixel given its code sum.
 
         maps : (B, T, 6) from :meth:`affine_maps`; s : (B, H, W) from :meth:`locate`.
-        Tables (B, (C + 1) W) indexed by ``(s' - C) W + x`` with s' = clamp(s, C, 2 C) hold
-        u0 = u_x x + u_1 and u_y (likewise v); rows of no single triangle map to (0, 0).
+        Tables (B, (T + 2) W) indexed by ``(s' - C) W + x`` with s' = clamp(s, C, C + T + 1)
+        hold u0 = u_x x + u_1 and u_y (likewise v); row 0 (no triangle) and row T + 1 (two or
+        more triangles) map to (0, 0).
         """
-        c = int(self.code_base)
         h, w = self.canvas
-        tab = F.pad(maps, (0, 0, 1, c - self.n_tri))  # (B, C + 1, 6), row t + 1 = triangle t
+        tab = F.pad(maps, (0, 0, 1, 1))  # (B, T + 2, 6), row t + 1 = triangle t, rows 0 and T + 1 map to (0, 0)
         x = self.col_x
         zero = torch.zeros_like(x)
-        u0 = (tab[..., 0:1] * x + tab[..., 2:3]).flatten(1)  # (B, (C + 1) W)
+        u0 = (tab[..., 0:1] * x + tab[..., 2:3]).flatten(1)  # (B, (T + 2) W)
         uy = (tab[..., 1:2] + zero).flatten(1)
         v0 = (tab[..., 3:4] * x + tab[..., 5:6]).flatten(1)
         vy = (tab[..., 4:5] + zero).flatten(1)
-        index = (torch.clamp(s, self.code_base, 2 * self.code_base) * float(w) + self.table_off).to(torch.int64)
+        index = (torch.clamp(s, self.code_base, self.code_base + self.n_tri + 1) * float(w) + self.table_off).to(torch.int64)
         index = index.reshape(-1, h * w)
         y = self.pix_y
         u = torch.gather(u0, 1, index) + torch.gather(uy, 1, index) * y
@@ -330,8 +329,11 @@ class ToTarget(nn.Module):
         for table in self._fill_tables(c):  # one raster per channel, all read with the same index
             raster = torch.gather(flat, 1, zero + table)  # (B, R)
             taps = torch.gather(raster, 1, index).reshape(-1, 4, h * w)
-            # the 4-term sum as a (1, 4) matmul: ONNX Runtime's ReduceSum over axis 1 is ~7x slower
-            out.append(torch.matmul(self.ones4, taps * weights).reshape(-1, 1, h, w))
+            # the 4-term sum: in ONNX a (1, 4) matmul (ONNX Runtime's ReduceSum over axis 1 is ~7x
+            # slower); in torch a sum (a BLAS matmul here stalls torch's thread pool on busy cores)
+            prod = taps * weights
+            summed = torch.matmul(self.ones4, prod) if torch.onnx.is_in_onnx_export() else prod.sum(1, keepdim=True)
+            out.append(summed.reshape(-1, 1, h, w))
         return out[0] if c == 1 else torch.cat(out, 1)
 
     def forward(self, textures: torch.Tensor, target: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
