@@ -220,6 +220,8 @@ class ToTarget(nn.Module):
         self.register_buffer("quad_offset", torch.tensor([0, 1, rw, rw + 1]).reshape(4, 1, 1))
         self.base_max = float(self.n_raster - rw - 2)
         self.register_buffer("ones4", torch.ones(1, 4))
+        self.register_buffer("canvas_max", torch.tensor([float(w), float(h)]))  # (x, y) limits
+        self.register_buffer("zero2", torch.zeros(2))
 
     @property
     def n_candidates(self) -> int:
@@ -241,33 +243,48 @@ class ToTarget(nn.Module):
         vert = coords[:, : 6 * self.n_tri].reshape(-1, self.n_tri, 6)
         return vert, torch.matmul(vert, self.p_edges), coords[:, 6 * self.n_tri:].reshape(-1, 4, self.n_edges)
 
-    def locate(self, ed: torch.Tensor, det: torch.Tensor) -> torch.Tensor:
-        """Coverage code sum of every canvas pixel, float (B, H, W): 0 outside, ``C + t + 1``
+    def box(self, target: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The canvas pixels that any triangle can cover: float (2,) tensors lo = [x_lo, y_lo]
+        and hi = [x_hi, y_hi] (pixel centres lo <= (x, y) < hi), the bounding box of all the
+        landmarks of the batch clipped to the canvas (at least one pixel). Every triangle lies
+        in it, so pixels outside are outside the face and need not be evaluated."""
+        xy = target.reshape(-1, 2)
+        lo = torch.minimum(torch.clamp(torch.ceil(xy.amin(0)), min=0.0), self.canvas_max - 1.0)
+        hi = torch.minimum(torch.maximum(torch.floor(xy.amax(0)) + 1.0, lo + 1.0), self.canvas_max)
+        return lo, hi
+
+    def locate(self, ed: torch.Tensor, det: torch.Tensor, lo: torch.Tensor, hi: torch.Tensor,
+               cols: torch.Tensor, rows_ext: torch.Tensor) -> torch.Tensor:
+        """Coverage code sum of every box pixel, float (B, Hb, Wb): 0 outside, ``C + t + 1``
         inside triangle t, more where triangles overlap.
 
         ed : (B, 4, E) edge end points and det : (B, T, 1) determinants, from
-        :meth:`coordinates` / :meth:`affine_maps`.
+        :meth:`coordinates` / :meth:`affine_maps`; lo, hi : the box from :meth:`box`;
+        cols (Wb,) and rows_ext (Hb + 1,): its pixel columns and rows plus one row below.
         """
-        h, w = self.canvas
+        x_lo, y_lo, x_hi = lo[0], lo[1], hi[0]
+        wb, hb = x_hi - x_lo, hi[1] - y_lo
         xa, ya, xb, yb = ed[:, 0:1], ed[:, 1:2], ed[:, 2:3], ed[:, 3:4]  # (B, 1, E)
         valid = (det.transpose(1, 2) > 1e-6).to(ed.dtype)  # (B, 1, T)
         codes = torch.matmul(valid, self.edge_codes)  # (B, 1, E): signed codes, lo -> hi direction
         dx = xb - xa
         delta = torch.where(dx > 0, codes, -codes)
         slope = (yb - ya) / torch.where(dx == 0, 1.0, dx)
-        x0 = torch.clamp(torch.ceil(torch.minimum(xa, xb)), min=0.0)
-        cols = torch.clamp(torch.maximum(xa, xb), max=float(w)) - x0  # columns x0 + k, k < cols
-        y0 = (x0 - xa) * slope + ya
-        fields = torch.cat([x0, cols, y0, slope, delta], 1).flatten(1)  # (B, 5 E)
+        x0 = torch.maximum(torch.ceil(torch.minimum(xa, xb)), x_lo)
+        n_cols = torch.minimum(torch.maximum(xa, xb), x_hi) - x0  # columns x0 + k, k < n_cols
+        y0 = (x0 - xa) * slope + ya - y_lo  # box rows
+        fields = torch.cat([x0 - x_lo, n_cols, y0, slope, delta], 1).flatten(1)  # (B, 5 E)
         index = torch.zeros_like(fields[:, :1], dtype=torch.int64) + self.ev_index
         ev = torch.gather(fields, 1, index).reshape(-1, 5, self.n_edge_events)
         k = self.ev_k
-        row = torch.clamp(torch.ceil(ev[:, 2] + k * ev[:, 3]), 0.0, float(h))
-        # events past the edge's end, or below the canvas, land in row h (dropped)
-        idx = torch.where(k < ev[:, 1], row * float(w) + (ev[:, 0] + k), float(h * w)).to(torch.int64)
-        buf = torch.zeros(fields.shape[0], (h + 1) * w, dtype=fields.dtype, device=fields.device)  # ConstantOfShape
-        s = torch.cumsum(buf.scatter_add(1, idx, ev[:, 4]).reshape(-1, h + 1, w), 1)
-        return s[:, :h]
+        row = torch.clamp(torch.ceil(ev[:, 2] + k * ev[:, 3]), min=0.0)
+        row = torch.minimum(row, hb)
+        # events past the edge's end, or below the box, land in row Hb (dropped)
+        idx = torch.where(k < ev[:, 1], row * wb + (ev[:, 0] + k), hb * wb).to(torch.int64)
+        grid = rows_ext.unsqueeze(1) * 0.0 + cols * 0.0  # (Hb + 1, Wb) zeros
+        buf = torch.zeros_like(fields[:, :1]) + grid.reshape(1, -1)  # (B, (Hb + 1) Wb)
+        s = buf.scatter_add(1, idx, ev[:, 4]).reshape(-1, rows_ext.shape[0], cols.shape[0])
+        return torch.cumsum(s, 1)[:, :-1]
 
     def affine_maps(self, vert: torch.Tensor, e: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Per-triangle affine maps, target canvas pixels -> raster pixels (reference pixels
@@ -285,65 +302,70 @@ class ToTarget(nn.Module):
         maps = lin[:, :, 0] * self.ref_d1 + lin[:, :, 1] * self.ref_d2 + self.maps_const  # (B, T, 2, 3)
         return maps.reshape(-1, self.n_tri, 6), det
 
-    def source(self, maps: torch.Tensor, s: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Raster coordinates u, v (B, H, W) of every canvas pixel given its code sum.
+    def source(self, maps: torch.Tensor, s: torch.Tensor, lo: torch.Tensor, hi: torch.Tensor,
+               cols: torch.Tensor, rows: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Raster coordinates u, v (B, 1, Hb, Wb) of every box pixel given its code sum.
 
-        maps : (B, T, 6) from :meth:`affine_maps`; s : (B, H, W) from :meth:`locate`.
-        Tables (B, (T + 2) W) indexed by ``(s' - C) W + x`` with s' = clamp(s, C, C + T + 1)
-        hold u0 = u_x x + u_1 and u_y (likewise v); row 0 (no triangle) and row T + 1 (two or
-        more triangles) map to (0, 0).
+        maps : (B, T, 6) from :meth:`affine_maps`; s : (B, 1, Hb, Wb) from :meth:`locate`;
+        lo, hi : the box; cols (Wb,), rows (Hb,): its canvas coordinates. Tables (B, (T + 2) Wb) indexed
+        by ``(s' - C) Wb + (x - x_lo)`` with s' = clamp(s, C, C + T + 1) hold u0 = u_x x + u_1
+        and u_y (likewise v); row 0 (no triangle) and row T + 1 (two or more triangles) map
+        to (0, 0).
         """
-        h, w = self.canvas
         tab = F.pad(maps, (0, 0, 1, 1))  # (B, T + 2, 6), row t + 1 = triangle t, rows 0 and T + 1 map to (0, 0)
-        x = self.col_x
-        zero = torch.zeros_like(x)
-        u0 = (tab[..., 0:1] * x + tab[..., 2:3]).flatten(1)  # (B, (T + 2) W)
+        zero = cols * 0.0
+        u0 = (tab[..., 0:1] * cols + tab[..., 2:3]).flatten(1)  # (B, (T + 2) Wb)
         uy = (tab[..., 1:2] + zero).flatten(1)
-        v0 = (tab[..., 3:4] * x + tab[..., 5:6]).flatten(1)
+        v0 = (tab[..., 3:4] * cols + tab[..., 5:6]).flatten(1)
         vy = (tab[..., 4:5] + zero).flatten(1)
-        index = (torch.clamp(s, self.code_base, self.code_base + self.n_tri + 1) * float(w) + self.table_off).to(torch.int64)
-        index = index.reshape(-1, h * w)
-        y = self.pix_y
-        u = torch.gather(u0, 1, index) + torch.gather(uy, 1, index) * y
-        v = torch.gather(v0, 1, index) + torch.gather(vy, 1, index) * y
-        return u.reshape(-1, 1, h, w), v.reshape(-1, 1, h, w)
+        wb = hi[0] - lo[0]
+        offset = cols - (lo[0] + self.code_base * wb)  # (Wb,)
+        index = (torch.clamp(s, self.code_base, self.code_base + self.n_tri + 1) * wb + offset).to(torch.int64).flatten(1)
+        y = rows.unsqueeze(1)  # (Hb, 1)
+        u = torch.gather(u0, 1, index).reshape_as(s) + torch.gather(uy, 1, index).reshape_as(s) * y
+        v = torch.gather(v0, 1, index).reshape_as(s) + torch.gather(vy, 1, index).reshape_as(s) * y
+        return u, v
 
     def bilinear(self, textures: torch.Tensor, u: torch.Tensor, v: torch.Tensor, inside: torch.Tensor) -> torch.Tensor:
         """Bilinear reads of reference textures, zero where ``inside`` is 0.
 
-        textures : (B, C, M) mask-pixel textures; u, v : (B, 1, H, W) raster coordinates;
-        inside : (B, 1, H, W) float. Returns (B, C, H, W).
+        textures : (B, C, M) mask-pixel textures; u, v : (B, 1, Hb, Wb) raster coordinates;
+        inside : (B, 1, Hb, Wb) float. Returns (B, C, Hb, Wb).
         """
         c = int(textures.shape[1])
-        h, w = self.canvas
         flat = textures.flatten(1)
         zero = torch.zeros_like(flat[:, :1], dtype=torch.int64)
         fu, fv = torch.floor(u), torch.floor(v)
         fx, fy = u - fu, v - fv
-        base = torch.clamp(fv * float(self.raster_w) + fu, 0.0, self.base_max).to(torch.int64)  # (B, 1, H, W)
-        index = (base + self.quad_offset).reshape(-1, 4 * h * w)  # (B, 4 N): the 2x2 neighbours
-        wy = torch.cat([1.0 - fy, fy], 1) * inside  # (B, 2, H, W)
+        base = torch.clamp(fv * float(self.raster_w) + fu, 0.0, self.base_max).to(torch.int64)  # (B, 1, Hb, Wb)
+        index = (base + self.quad_offset).flatten(1)  # (B, 4 N): the 2x2 neighbours
+        wy = torch.cat([1.0 - fy, fy], 1) * inside  # (B, 2, Hb, Wb)
         wx = torch.cat([1.0 - fx, fx], 1)
-        weights = (wy.unsqueeze(2) * wx.unsqueeze(1)).reshape(-1, 4, h * w)  # top-left, top-right, bottom-left, bottom-right
+        weights = (wy.unsqueeze(2) * wx.unsqueeze(1)).flatten(1, 2).flatten(2)  # (B, 4, N): top-left, top-right, bottom-left, bottom-right
         out = []
         for table in self._fill_tables(c):  # one raster per channel, all read with the same index
             raster = torch.gather(flat, 1, zero + table)  # (B, R)
-            taps = torch.gather(raster, 1, index).reshape(-1, 4, h * w)
+            taps = torch.gather(raster, 1, index).reshape_as(weights)
             # the 4-term sum: in ONNX a (1, 4) matmul (ONNX Runtime's ReduceSum over axis 1 is ~7x
             # slower); in torch a sum (a BLAS matmul here stalls torch's thread pool on busy cores)
             prod = taps * weights
             summed = torch.matmul(self.ones4, prod) if torch.onnx.is_in_onnx_export() else prod.sum(1, keepdim=True)
-            out.append(summed.reshape(-1, 1, h, w))
+            out.append(summed.reshape_as(inside))
         return out[0] if c == 1 else torch.cat(out, 1)
 
     def forward(self, textures: torch.Tensor, target: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         vert, e, ed = self.coordinates(target)
         maps, det = self.affine_maps(vert, e)
-        s = self.locate(ed, det).unsqueeze(1)  # (B, 1, H, W)
+        lo, hi = self.box(target)
+        cols, rows = torch.arange(lo[0], hi[0]), torch.arange(lo[1], hi[1] + 1.0)  # box pixels, one row more
+        s = self.locate(ed, det, lo, hi, cols, rows).unsqueeze(1)  # (B, 1, Hb, Wb)
         cb = self.code_base
         inside = ((s > cb + 0.5) & (s < cb + self.n_tri + 0.5)).to(textures.dtype)
-        u, v = self.source(maps, s)
-        return self.bilinear(textures, u, v, inside), inside
+        u, v = self.source(maps, s, lo, hi, cols, rows[:-1])
+        img = self.bilinear(textures, u, v, inside)
+        # ONNX Pad order: begins of (B, C, H, W), then ends
+        pads = torch.cat([self.zero2, lo.flip(0), self.zero2, (self.canvas_max - hi).flip(0)]).to(torch.int64)
+        return _pad(img, pads), _pad(inside, pads)
 
     def clipped_triangles(self, target: torch.Tensor) -> torch.Tensor:
         """bool (B, T): triangles wider than their ``span`` (their edges may miss columns)."""
@@ -373,6 +395,25 @@ def candidate_spans(ref: ReferenceFrame, shapes: np.ndarray, safety: float = 1.3
     corners = pts[:, ref.triangles]  # (N, T, 3, 2)
     span = np.floor(corners.max(2) - corners.min(2)).max(0) + 2  # largest bbox + rounding
     return np.ceil(span * safety).astype(np.int64)
+
+
+class _Pad(torch.autograd.Function):
+    """Zero padding of a 4-D tensor by a pads *tensor* in ONNX order (begins of the four axes,
+    then ends), exported as one ONNX ``Pad`` whose pads are computed in the graph (``F.pad``
+    takes Python ints, which tracing would freeze into constants)."""
+
+    @staticmethod
+    def forward(ctx, x: torch.Tensor, pads: torch.Tensor) -> torch.Tensor:
+        p = [int(v) for v in pads.tolist()]
+        return F.pad(x, [p[3], p[7], p[2], p[6], p[1], p[5], p[0], p[4]])
+
+    @staticmethod
+    def symbolic(g, x, pads):
+        return g.op("Pad", x, pads, mode_s="constant")
+
+
+def _pad(x: torch.Tensor, pads: torch.Tensor) -> torch.Tensor:
+    return _Pad.apply(x, pads)
 
 
 def _nearest_inside(mask: np.ndarray) -> np.ndarray:
