@@ -56,3 +56,38 @@ def test_shared_chain_untouched():
     before = m.SerializeToString()
     assert int32_indices(m) == 0
     assert m.SerializeToString() == before
+
+
+def test_shared_chain_between_gathers_rewritten_together():
+    # one index (Cast(x) * 2 + offset) read by two gathers on different data: one group
+    nodes = [
+        helper.make_node("Cast", ["x"], ["xi"], to=TensorProto.INT64),
+        helper.make_node("Mul", ["xi", "two"], ["x2"]),
+        helper.make_node("Add", ["x2", "offset"], ["idx"]),
+        helper.make_node("GatherElements", ["data", "idx"], ["out"], axis=1),
+        helper.make_node("GatherElements", ["data2", "idx"], ["out2"], axis=1),
+    ]
+    graph = helper.make_graph(
+        nodes, "g",
+        [helper.make_tensor_value_info("data", TensorProto.FLOAT, [1, 10]),
+         helper.make_tensor_value_info("data2", TensorProto.FLOAT, [1, 10]),
+         helper.make_tensor_value_info("x", TensorProto.FLOAT, [1, 4])],
+        [helper.make_tensor_value_info("out", TensorProto.FLOAT, [1, 4]),
+         helper.make_tensor_value_info("out2", TensorProto.FLOAT, [1, 4])],
+        [numpy_helper.from_array(np.array(2, np.int64), "two"),
+         numpy_helper.from_array(np.array([[0, 1, 0, 1]], np.int64), "offset")],
+    )
+    m = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 18)], ir_version=9)
+    feed = {"data": np.arange(10, dtype=np.float32)[None], "data2": -np.arange(10, dtype=np.float32)[None],
+            "x": np.array([[0.0, 1.0, 2.0, 4.0]], np.float32)}
+
+    def run(model):
+        return ort.InferenceSession(model.SerializeToString(), providers=["CPUExecutionProvider"]).run(None, feed)
+
+    want = run(m)
+    assert int32_indices(m) == 2
+    onnx.checker.check_model(m)
+    assert {numpy_helper.to_array(t).dtype for t in m.graph.initializer} == {np.dtype(np.int32)}
+    for got, exp in zip(run(m), want):
+        np.testing.assert_array_equal(got, exp)
+    np.testing.assert_array_equal(want[1], -feed["data"][:, [0, 3, 4, 9]])

@@ -85,6 +85,42 @@ def test_to_target_matches_opencv_and_covers_the_face(ref, rng):
     assert not render.clipped_triangles(torch.from_numpy(target)[None]).any()
 
 
+def test_to_target_box_and_onnx_on_a_larger_canvas(ref, rng, tmp_path):
+    """Faces anywhere on a canvas larger than the reference, one partly outside it: the
+    coverage equals the brute-force triangle test, batches (one box for all) equal single
+    frames, and the exported graph (its box is computed per call) equals torch."""
+    import onnxruntime as ort
+
+    from facesynth.model.reference import locate
+
+    canvas = (ref.size[0] + 40, ref.size[1] + 70)
+    shifts = [(5.37, 3.21), (60.13, 35.71), (-25.29, 10.43)]  # the last one crosses the left edge
+    targets = np.stack([_deformed(ref, rng) + np.float32(s) for s in shifts]).astype(np.float32)
+    render = ToTarget(ref, candidate_spans(ref, targets), canvas=canvas)
+    tex = torch.rand(3, 3, render.n_mask, generator=torch.Generator().manual_seed(1))
+    with torch.no_grad():
+        img, mask = render(tex, torch.from_numpy(targets))
+    ys, xs = np.mgrid[0 : canvas[0], 0 : canvas[1]]
+    pix = np.stack([xs, ys], -1).reshape(-1, 2).astype(np.float64)
+    for i, t in enumerate(targets):
+        tri_index, _ = locate(pix, t.astype(np.float64), ref.triangles, eps=1e-5)
+        np.testing.assert_array_equal(mask[i, 0].numpy().reshape(-1) > 0, tri_index >= 0)
+        assert (img[i].numpy()[:, mask[i, 0].numpy() == 0] == 0).all()
+        with torch.no_grad():
+            one, _ = render(tex[i : i + 1], torch.from_numpy(targets[i : i + 1]))
+        torch.testing.assert_close(one, img[i : i + 1], atol=1e-5, rtol=0)
+    path = tmp_path / "to_target.onnx"
+    with torch.no_grad():
+        torch.onnx.export(render, (tex[:2], torch.from_numpy(targets[:2])), str(path), input_names=["tex", "target"],
+                          output_names=["img", "mask"], dynamic_axes={"tex": {0: "b"}, "target": {0: "b"}},
+                          opset_version=18, dynamo=False)
+    sess = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+    for rows in ([0, 1, 2], [2], [1]):  # boxes other than the traced one
+        got_img, got_mask = sess.run(None, {"tex": tex[rows].numpy(), "target": targets[rows]})
+        np.testing.assert_array_equal(got_mask, mask[rows].numpy())
+        assert np.abs(got_img - img[rows].numpy()).max() < 1e-4
+
+
 def test_batched_equals_single(ref, rng):
     sampler = ToReference(ref)
     tex = torch.rand(4, 3, sampler.n_pixels, generator=torch.Generator().manual_seed(0))
