@@ -1,0 +1,368 @@
+"""The render warp: reference-frame textures -> any target landmark set (piecewise
+affine), as exportable tensor ops. See :class:`ToTarget`; :mod:`facesynth.model.warp`
+re-exports it with the sampling direction (:class:`facesynth.model.warp.ToReference`)."""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+from torch import nn
+from torch.nn import functional as F
+
+from facesynth.model.reference import ReferenceFrame
+
+
+class ToTarget(nn.Module):
+    """Warp reference-frame textures onto target landmark sets (piecewise affine).
+
+    The triangle covering each output pixel is found by *scanline coverage counting*
+    along canvas columns (the edge-event form of polygon scan conversion; Foley et al.,
+    "Computer Graphics: Principles and Practice", 2nd ed., sec. 3.6): each mesh edge
+    crosses at most ``n_e`` canvas columns (the narrower ``span`` of its triangles); at each
+    crossing it adds, at the first pixel below the crossing, ``+code`` for the triangle
+    it starts (the triangle below it) and ``-code`` for the one it ends, and a cumulative
+    sum down each column leaves, at every pixel, the sum of the codes of the triangles
+    that cover it. ``code = C + t + 1`` with ``C`` a power of two above the triangle
+    count, so one sum gives both the coverage count and the triangle index; pixels
+    covered exactly once are inside (degenerate or flipped triangles are skipped). Both
+    triangles of a shared edge take their events from one evaluation of that edge, so
+    neighbours partition each column exactly (a pixel centre on an edge belongs to the
+    triangle below it; columns are half-open on the right).
+
+    Each pixel then reads its triangle's affine map (target -> reference pixels) from
+    per-frame tables indexed by (triangle, canvas column) -- ``u = u0[t, x] + u_y[t] y``,
+    likewise ``v`` -- and the 2x2 texture neighbourhood of its source point (bilinear,
+    as ``grid_sample`` with ``align_corners=True``) with flat element gathers.
+
+    Only the bounding box of the landmarks (of the whole batch, clipped to the canvas) is
+    evaluated: every triangle lies in it, so the pixels outside are outside the face; the
+    result is zero-padded back to the canvas.
+
+    Everything is a short, fixed list of tensor ops (GatherElements, MatMul,
+    ScatterElements-add, CumSum, Range, Pad and elementwise ops): it exports to ONNX
+    without loops or custom ops (the box makes the inner shapes data-dependent, which
+    ONNX Runtime handles). Per image the cost is one event per (edge, column) it may cross
+    and 4 + 12 gathered values per box pixel; the column sum runs along the outer axis of a
+    (Hb + 1, Wb) buffer, which ONNX Runtime vectorises across the row (~10x faster than a
+    sum along the rows).
+
+    Parameters
+    ----------
+    ref : ReferenceFrame
+    span : np.ndarray
+        int (T, 2): largest width and height (pixels) each triangle takes in the targets,
+        from :func:`candidate_spans`; each edge visits as many columns as the narrower of
+        its triangles (:meth:`clipped_triangles` reports targets that exceed the span).
+    canvas : (H, W), optional
+        Output size; defaults to the reference frame size.
+
+    Forward
+    -------
+    textures : (B, C, M) float tensor (M reference mask pixels, as from ToReference)
+    target : (B, P, 2) float tensor, landmarks in canvas pixel coordinates
+    returns : image (B, C, H, W) with zeros outside the face, mask (B, 1, H, W) in {0, 1}
+    """
+
+    def __init__(self, ref: ReferenceFrame, span: np.ndarray, canvas: tuple[int, int] | None = None):
+        super().__init__()
+        self.canvas = tuple(int(s) for s in (canvas or ref.size))
+        self.ref_size = tuple(int(s) for s in ref.size)
+        tri = np.asarray(ref.triangles, np.int64)
+        span = np.asarray(span, np.int64).reshape(-1, 2)
+        n_tri = len(tri)
+        h, w = self.canvas
+        self.n_tri = n_tri
+        self.code_base = float(2 ** int(np.ceil(np.log2(n_tri + 2))))
+        c = self.code_base
+        self.register_buffer("tri", torch.from_numpy(tri))
+        self.register_buffer("span", torch.from_numpy(span.astype(np.float32)))
+        # undirected edges (lo, hi) (vertex indices lo < hi); half-edge (t, k) runs from
+        # tri[t, k] to tri[t, k + 1] and is +1 when it runs from lo to hi
+        he_from, he_to = tri, tri[:, [1, 2, 0]]
+        lo, hi = np.minimum(he_from, he_to), np.maximum(he_from, he_to)
+        edges, he_edge = np.unique(np.stack([lo.reshape(-1), hi.reshape(-1)], 1), axis=0, return_inverse=True)
+        he_edge = he_edge.reshape(-1)
+        n_edge = len(edges)
+        # a half-edge running towards +x starts its triangle below the crossing (+code),
+        # towards -x it ends it: code matrix (T, E) of the lo -> hi direction
+        code = c + 1.0 + np.arange(n_tri, dtype=np.float64)
+        he_sign = np.where(he_from == lo, 1.0, -1.0).reshape(-1)
+        code_m = np.zeros((n_tri, n_edge))
+        np.add.at(code_m, (np.repeat(np.arange(n_tri), 3), he_edge), he_sign * np.repeat(code, 3))
+        self.register_buffer("edge_codes", torch.from_numpy(code_m.astype(np.float32)))
+        edge_coords = np.stack([2 * edges[:, 0], 2 * edges[:, 0] + 1, 2 * edges[:, 1], 2 * edges[:, 1] + 1]).reshape(-1)
+        # columns each edge may cross: an edge lies in the bounding box of each of its
+        # triangles, so the narrower of their spans bounds it
+        width = np.full(n_edge, w, np.int64)
+        np.minimum.at(width, he_edge, np.repeat(np.maximum(span[:, 0], 1), 3))
+        ev_edge = np.repeat(np.arange(n_edge), width)
+        ev_k = np.arange(len(ev_edge)) - np.repeat(np.cumsum(width) - width, width)
+        self.n_edges = n_edge
+        self.n_edge_events = int(len(ev_edge))
+        # per-event parameter gather: 5 per-edge fields [x0, columns, y at x0, slope, delta]
+        ev_index = (np.arange(5)[:, None] * n_edge + ev_edge[None, :]).reshape(1, -1)
+        self.register_buffer("ev_index", torch.from_numpy(ev_index))
+        self.register_buffer("ev_k", torch.from_numpy(ev_k.astype(np.float32)))
+        # affine maps: vertices [x0 y0 x1 y1 x2 y2] -> edge vectors etc. (linear maps)
+        vert = np.stack([2 * tri, 2 * tri + 1], -1).reshape(n_tri, 6)
+        # one element gather of the flat landmarks: triangle vertices (T * 6), then edge end points (4 E)
+        # (GatherElements: a row Gather costs ~8 ns per index in ONNX Runtime)
+        self.register_buffer("coord_index", torch.from_numpy(np.concatenate([vert.reshape(-1), edge_coords])[None]))
+        p_edges = np.zeros((6, 4), np.float32)  # -> e1x e1y e2x e2y
+        for j, (a, b) in enumerate([(2, 0), (3, 1), (4, 0), (5, 1)]):
+            p_edges[a, j], p_edges[b, j] = 1, -1
+        p_swap = np.zeros((4, 2), np.float32)  # -> e2y e2x (for det = e1x e2y - e1y e2x)
+        p_swap[3, 0] = p_swap[2, 1] = 1
+        p_ab = np.zeros((4, 4), np.float32)  # -> det * [a1, b1, a2, b2] = [e2y, -e2x, -e1y, e1x]
+        p_ab[3, 0], p_ab[2, 1], p_ab[1, 2], p_ab[0, 3] = 1, -1, -1, 1
+        p_v0 = np.zeros((6, 4), np.float32)  # -> v0x v0y v0x v0y
+        p_v0[0, 0] = p_v0[1, 1] = p_v0[0, 2] = p_v0[1, 3] = 1
+        p_c = np.array([[-1, 0], [-1, 0], [0, -1], [0, -1]], np.float32)  # -> c1, c2
+        self.register_buffer("p_edges", torch.from_numpy(p_edges))
+        self.register_buffer("p_swap", torch.from_numpy(p_swap))
+        self.register_buffer("p_det", torch.tensor([[1.0], [-1.0]]))
+        self.register_buffer("p_ab", torch.from_numpy(p_ab))
+        self.register_buffer("p_v0", torch.from_numpy(p_v0))
+        self.register_buffer("p_c", torch.from_numpy(p_c))
+        # the texture raster: the reference mask's bounding box plus 2 px, reference pixels
+        # outside the mask filled with their nearest mask pixel's value, so that bilinear
+        # reads at the face boundary never mix in black
+        hr, wr = self.ref_size
+        tri_index, _ = ref.rasterise()
+        inside_ref = tri_index >= 0
+        fill = _nearest_inside(inside_ref)
+        self.register_buffer("fill_index", torch.from_numpy(fill))  # (Hr * Wr,) into the M mask pixels
+        self.n_mask = int(inside_ref.sum())
+        ys_in, xs_in = np.nonzero(inside_ref)
+        r0, r1 = max(int(ys_in.min()) - 2, 0), min(int(ys_in.max()) + 3, hr)
+        c0, c1 = max(int(xs_in.min()) - 2, 0), min(int(xs_in.max()) + 3, wr)
+        self.raster_box = (r0, r1, c0, c1)
+        rh, rw = r1 - r0, c1 - c0
+        self.raster_w = rw
+        self.n_raster = rh * rw
+        self.register_buffer("raster_fill", torch.from_numpy(fill.reshape(hr, wr)[r0:r1, c0:c1].reshape(-1).copy()))
+        # [u_x u_y u_1] = l1 (ref_1 - ref_0)_x + l2 (ref_2 - ref_0)_x + [0 0 ref_0x] (likewise v), with
+        # barycentric l_i = a_i x + b_i y + c_i; in raster coordinates (reference pixels minus the box origin)
+        rp = ref.points[tri].astype(np.float64) - np.array([c0, r0], np.float64)  # (T, 3, 2)
+        p_lin = np.zeros((6, 6), np.float32)  # [a1 b1 a2 b2 c1 c2] -> [a1 b1 c1 a2 b2 c2]
+        for src, dst in enumerate([0, 1, 3, 4, 2, 5]):
+            p_lin[src, dst] = 1
+        const = np.zeros((n_tri, 2, 3))
+        const[:, :, 2] = rp[:, 0]
+        self.register_buffer("p_lin", torch.from_numpy(p_lin))
+        self.register_buffer("ref_d1", torch.from_numpy((rp[:, 1] - rp[:, 0]).astype(np.float32)[:, :, None]))  # (T, 2, 1)
+        self.register_buffer("ref_d2", torch.from_numpy((rp[:, 2] - rp[:, 0]).astype(np.float32)[:, :, None]))
+        self.register_buffer("maps_const", torch.from_numpy(const.astype(np.float32)))  # (T, 2, 3)
+        # per-pixel constants: column x, row y, table offset x - C W (tables are (T + 2, W))
+        ys, xs = np.mgrid[0:h, 0:w].astype(np.float32)
+        self.register_buffer("col_x", torch.arange(w, dtype=torch.float32))
+        self.register_buffer("pix_y", torch.from_numpy(ys.reshape(1, -1)))
+        self.register_buffer("table_off", torch.from_numpy((xs - c * w).astype(np.float32)))  # (H, W)
+        self.register_buffer("quad_offset", torch.tensor([0, 1, rw, rw + 1]).reshape(4, 1, 1))
+        self.base_max = float(self.n_raster - rw - 2)
+        self.register_buffer("ones4", torch.ones(1, 4))
+        self.register_buffer("canvas_max", torch.tensor([float(w), float(h)]))  # (x, y) limits
+        self.register_buffer("zero2", torch.zeros(2))
+
+    @property
+    def n_candidates(self) -> int:
+        """Number of scanline events evaluated per image (edge x column crossings)."""
+        return self.n_edge_events
+
+    def _fill_tables(self, c: int) -> list[torch.Tensor]:
+        """Raster fill index of each of ``c`` channels into (C * M): (1, n_raster) each,
+        constants of an exported graph (built from ``int(c)``, no Shape -> Range chain)."""
+        return [self.raster_fill.reshape(1, -1) + ch * self.n_mask for ch in range(int(c))]
+
+    # ---------------------------------------------------------------- pieces
+    def coordinates(self, target: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Target vertices (B, T, 6) [x0 y0 x1 y1 x2 y2], their edge vectors (B, T, 4)
+        [e1x e1y e2x e2y] and the edge end points (B, 4, E) [x_lo, y_lo, x_hi, y_hi]."""
+        flat = target.flatten(1)
+        index = torch.zeros_like(flat[:, :1], dtype=torch.int64) + self.coord_index
+        coords = torch.gather(flat, 1, index)
+        vert = coords[:, : 6 * self.n_tri].reshape(-1, self.n_tri, 6)
+        return vert, torch.matmul(vert, self.p_edges), coords[:, 6 * self.n_tri:].reshape(-1, 4, self.n_edges)
+
+    def box(self, target: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The canvas pixels that any triangle can cover: float (2,) tensors lo = [x_lo, y_lo]
+        and hi = [x_hi, y_hi] (pixel centres lo <= (x, y) < hi), the bounding box of all the
+        landmarks of the batch clipped to the canvas (at least one pixel). Every triangle lies
+        in it, so pixels outside are outside the face and need not be evaluated."""
+        xy = target.reshape(-1, 2)
+        lo = torch.minimum(torch.clamp(torch.ceil(xy.amin(0)), min=0.0), self.canvas_max - 1.0)
+        hi = torch.minimum(torch.maximum(torch.floor(xy.amax(0)) + 1.0, lo + 1.0), self.canvas_max)
+        return lo, hi
+
+    def locate(self, ed: torch.Tensor, det: torch.Tensor, lo: torch.Tensor, hi: torch.Tensor,
+               cols: torch.Tensor, rows_ext: torch.Tensor) -> torch.Tensor:
+        """Coverage code sum of every box pixel, float (B, Hb, Wb): 0 outside, ``C + t + 1``
+        inside triangle t, more where triangles overlap.
+
+        ed : (B, 4, E) edge end points and det : (B, T, 1) determinants, from
+        :meth:`coordinates` / :meth:`affine_maps`; lo, hi : the box from :meth:`box`;
+        cols (Wb,) and rows_ext (Hb + 1,): its pixel columns and rows plus one row below.
+        """
+        x_lo, y_lo, x_hi = lo[0], lo[1], hi[0]
+        wb, hb = x_hi - x_lo, hi[1] - y_lo
+        xa, ya, xb, yb = ed[:, 0:1], ed[:, 1:2], ed[:, 2:3], ed[:, 3:4]  # (B, 1, E)
+        valid = (det.transpose(1, 2) > 1e-6).to(ed.dtype)  # (B, 1, T)
+        codes = torch.matmul(valid, self.edge_codes)  # (B, 1, E): signed codes, lo -> hi direction
+        dx = xb - xa
+        delta = torch.where(dx > 0, codes, -codes)
+        slope = (yb - ya) / torch.where(dx == 0, 1.0, dx)
+        x0 = torch.maximum(torch.ceil(torch.minimum(xa, xb)), x_lo)
+        n_cols = torch.minimum(torch.maximum(xa, xb), x_hi) - x0  # columns x0 + k, k < n_cols
+        y0 = (x0 - xa) * slope + ya - y_lo  # box rows
+        fields = torch.cat([x0 - x_lo, n_cols, y0, slope, delta], 1).flatten(1)  # (B, 5 E)
+        index = torch.zeros_like(fields[:, :1], dtype=torch.int64) + self.ev_index
+        ev = torch.gather(fields, 1, index).reshape(-1, 5, self.n_edge_events)
+        k = self.ev_k
+        row = torch.clamp(torch.ceil(ev[:, 2] + k * ev[:, 3]), min=0.0)
+        row = torch.minimum(row, hb)
+        # events past the edge's end, or below the box, land in row Hb (dropped)
+        idx = torch.where(k < ev[:, 1], row * wb + (ev[:, 0] + k), hb * wb).to(torch.int64)
+        grid = rows_ext.unsqueeze(1) * 0.0 + cols * 0.0  # (Hb + 1, Wb) zeros
+        buf = torch.zeros_like(fields[:, :1]) + grid.reshape(1, -1)  # (B, (Hb + 1) Wb)
+        s = buf.scatter_add(1, idx, ev[:, 4]).reshape(-1, rows_ext.shape[0], cols.shape[0])
+        return torch.cumsum(s, 1)[:, :-1]
+
+    def affine_maps(self, vert: torch.Tensor, e: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Per-triangle affine maps, target canvas pixels -> raster pixels (reference pixels
+        minus the raster box origin), and the triangles' determinants.
+
+        vert, e : from :meth:`coordinates`. Returns maps (B, T, 6): per triangle
+        [u_x, u_y, u_1, v_x, v_y, v_1] with u = u_x x + u_y y + u_1 (barycentric
+        interpolation), and det (B, T, 1) (> 0 for counter-clockwise target triangles).
+        """
+        det = torch.matmul(e[..., :2] * torch.matmul(e, self.p_swap), self.p_det)  # (B, T, 1)
+        inv = 1.0 / torch.where(det.abs() > 1e-12, det, 1.0)
+        ab = torch.matmul(e, self.p_ab) * inv  # (B, T, 4) a1 b1 a2 b2
+        cc = torch.matmul(ab * torch.matmul(vert, self.p_v0), self.p_c)  # (B, T, 2) c1 c2
+        lin = torch.matmul(torch.cat([ab, cc], -1), self.p_lin).reshape(-1, self.n_tri, 2, 1, 3)  # [[a1 b1 c1], [a2 b2 c2]]
+        maps = lin[:, :, 0] * self.ref_d1 + lin[:, :, 1] * self.ref_d2 + self.maps_const  # (B, T, 2, 3)
+        return maps.reshape(-1, self.n_tri, 6), det
+
+    def source(self, maps: torch.Tensor, s: torch.Tensor, lo: torch.Tensor, hi: torch.Tensor,
+               cols: torch.Tensor, rows: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Raster coordinates u, v (B, 1, Hb, Wb) of every box pixel given its code sum.
+
+        maps : (B, T, 6) from :meth:`affine_maps`; s : (B, 1, Hb, Wb) from :meth:`locate`;
+        lo, hi : the box; cols (Wb,), rows (Hb,): its canvas coordinates. Tables (B, (T + 2) Wb) indexed
+        by ``(s' - C) Wb + (x - x_lo)`` with s' = clamp(s, C, C + T + 1) hold u0 = u_x x + u_1
+        and u_y (likewise v); row 0 (no triangle) and row T + 1 (two or more triangles) map
+        to (0, 0).
+        """
+        tab = F.pad(maps, (0, 0, 1, 1))  # (B, T + 2, 6), row t + 1 = triangle t, rows 0 and T + 1 map to (0, 0)
+        zero = cols * 0.0
+        u0 = (tab[..., 0:1] * cols + tab[..., 2:3]).flatten(1)  # (B, (T + 2) Wb)
+        uy = (tab[..., 1:2] + zero).flatten(1)
+        v0 = (tab[..., 3:4] * cols + tab[..., 5:6]).flatten(1)
+        vy = (tab[..., 4:5] + zero).flatten(1)
+        wb = hi[0] - lo[0]
+        offset = cols - (lo[0] + self.code_base * wb)  # (Wb,)
+        index = (torch.clamp(s, self.code_base, self.code_base + self.n_tri + 1) * wb + offset).to(torch.int64).flatten(1)
+        y = rows.unsqueeze(1)  # (Hb, 1)
+        u = torch.gather(u0, 1, index).reshape_as(s) + torch.gather(uy, 1, index).reshape_as(s) * y
+        v = torch.gather(v0, 1, index).reshape_as(s) + torch.gather(vy, 1, index).reshape_as(s) * y
+        return u, v
+
+    def bilinear(self, textures: torch.Tensor, u: torch.Tensor, v: torch.Tensor, inside: torch.Tensor) -> torch.Tensor:
+        """Bilinear reads of reference textures, zero where ``inside`` is 0.
+
+        textures : (B, C, M) mask-pixel textures; u, v : (B, 1, Hb, Wb) raster coordinates;
+        inside : (B, 1, Hb, Wb) float. Returns (B, C, Hb, Wb).
+        """
+        c = int(textures.shape[1])
+        flat = textures.flatten(1)
+        zero = torch.zeros_like(flat[:, :1], dtype=torch.int64)
+        fu, fv = torch.floor(u), torch.floor(v)
+        fx, fy = u - fu, v - fv
+        base = torch.clamp(fv * float(self.raster_w) + fu, 0.0, self.base_max).to(torch.int64)  # (B, 1, Hb, Wb)
+        index = (base + self.quad_offset).flatten(1)  # (B, 4 N): the 2x2 neighbours
+        wy = torch.cat([1.0 - fy, fy], 1) * inside  # (B, 2, Hb, Wb)
+        wx = torch.cat([1.0 - fx, fx], 1)
+        weights = (wy.unsqueeze(2) * wx.unsqueeze(1)).flatten(1, 2).flatten(2)  # (B, 4, N): top-left, top-right, bottom-left, bottom-right
+        out = []
+        for table in self._fill_tables(c):  # one raster per channel, all read with the same index
+            raster = torch.gather(flat, 1, zero + table)  # (B, R)
+            taps = torch.gather(raster, 1, index).reshape_as(weights)
+            # the 4-term sum: in ONNX a (1, 4) matmul (ONNX Runtime's ReduceSum over axis 1 is ~7x
+            # slower); in torch a sum (a BLAS matmul here stalls torch's thread pool on busy cores)
+            prod = taps * weights
+            summed = torch.matmul(self.ones4, prod) if torch.onnx.is_in_onnx_export() else prod.sum(1, keepdim=True)
+            out.append(summed.reshape_as(inside))
+        return out[0] if c == 1 else torch.cat(out, 1)
+
+    def forward(self, textures: torch.Tensor, target: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        vert, e, ed = self.coordinates(target)
+        maps, det = self.affine_maps(vert, e)
+        lo, hi = self.box(target)
+        cols, rows = torch.arange(lo[0], hi[0]), torch.arange(lo[1], hi[1] + 1.0)  # box pixels, one row more
+        s = self.locate(ed, det, lo, hi, cols, rows).unsqueeze(1)  # (B, 1, Hb, Wb)
+        cb = self.code_base
+        inside = ((s > cb + 0.5) & (s < cb + self.n_tri + 0.5)).to(textures.dtype)
+        u, v = self.source(maps, s, lo, hi, cols, rows[:-1])
+        img = self.bilinear(textures, u, v, inside)
+        # ONNX Pad order: begins of (B, C, H, W), then ends
+        pads = torch.cat([self.zero2, lo.flip(0), self.zero2, (self.canvas_max - hi).flip(0)]).to(torch.int64)
+        return _pad(img, pads), _pad(inside, pads)
+
+    def clipped_triangles(self, target: torch.Tensor) -> torch.Tensor:
+        """bool (B, T): triangles wider than their ``span`` (their edges may miss columns)."""
+        v = target[:, self.tri]
+        ext = torch.floor(torch.amax(v, 2)) - torch.floor(torch.amin(v, 2)) + 1
+        return ext[..., 0] > self.span[:, 0]
+
+
+def candidate_spans(ref: ReferenceFrame, shapes: np.ndarray, safety: float = 1.3) -> np.ndarray:
+    """Candidate block size of each triangle for :class:`ToTarget`.
+
+    Parameters
+    ----------
+    ref : ReferenceFrame
+    shapes : np.ndarray
+        (N, 68, 2) example target shapes in canvas coordinates (e.g. the training shapes
+        aligned to the reference frame, and their +-3 sigma extremes).
+    safety : float
+        Factor on the largest observed bounding box of each triangle.
+
+    Returns
+    -------
+    np.ndarray
+        int64 (T, 2): (width, height) in pixels.
+    """
+    pts = np.concatenate([np.asarray(shapes, np.float64).reshape(-1, len(ref.points), 2), ref.points[None]], 0)
+    corners = pts[:, ref.triangles]  # (N, T, 3, 2)
+    span = np.floor(corners.max(2) - corners.min(2)).max(0) + 2  # largest bbox + rounding
+    return np.ceil(span * safety).astype(np.int64)
+
+
+class _Pad(torch.autograd.Function):
+    """Zero padding of a 4-D tensor by a pads *tensor* in ONNX order (begins of the four axes,
+    then ends), exported as one ONNX ``Pad`` whose pads are computed in the graph (``F.pad``
+    takes Python ints, which tracing would freeze into constants)."""
+
+    @staticmethod
+    def forward(ctx, x: torch.Tensor, pads: torch.Tensor) -> torch.Tensor:
+        p = [int(v) for v in pads.tolist()]
+        return F.pad(x, [p[3], p[7], p[2], p[6], p[1], p[5], p[0], p[4]])
+
+    @staticmethod
+    def symbolic(g, x, pads):
+        return g.op("Pad", x, pads, mode_s="constant")
+
+
+def _pad(x: torch.Tensor, pads: torch.Tensor) -> torch.Tensor:
+    return _Pad.apply(x, pads)
+
+
+def _nearest_inside(mask: np.ndarray) -> np.ndarray:
+    """For each pixel of a (H, W) mask, the index (into the mask's True pixels, in raster
+    order) of the nearest True pixel: int64 (H*W,)."""
+    from scipy import ndimage
+
+    _, (iy, ix) = ndimage.distance_transform_edt(~mask, return_indices=True)
+    order = np.full(mask.size, -1, np.int64)
+    order[np.flatnonzero(mask.reshape(-1))] = np.arange(int(mask.sum()))
+    return order[(iy * mask.shape[1] + ix).reshape(-1)]
