@@ -133,6 +133,19 @@ def test_batched_equals_single(ref, rng):
             torch.testing.assert_close(batch[i : i + 1], one)
 
 
+def test_frame_without_face_renders_empty(ref, rng):
+    """A NaN landmark row (no face) renders empty and leaves the other rows unchanged."""
+    targets = np.stack([_deformed(ref, rng), np.full_like(ref.points, np.nan)])
+    render = ToTarget(ref, candidate_spans(ref, targets[:1]))
+    tex = torch.rand(2, 3, render.n_mask, generator=torch.Generator().manual_seed(2))
+    with torch.no_grad():
+        img, mask = render(tex, torch.from_numpy(targets))
+        one, one_mask = render(tex[:1], torch.from_numpy(targets[:1]))
+    assert not mask[1].any() and not img[1].isnan().any() and not img[1].any()
+    torch.testing.assert_close(img[:1], one, atol=1e-5, rtol=0)
+    assert torch.equal(mask[:1], one_mask)
+
+
 def test_round_trip_image_reference_image(ref):
     """image -> reference -> the same shape recovers the face (two bilinear resamplings)."""
     img = smooth_image(160, 150, seed=5)

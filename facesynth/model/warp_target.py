@@ -190,8 +190,13 @@ class ToTarget(nn.Module):
         landmarks of the batch clipped to the canvas (at least one pixel). Every triangle lies
         in it, so pixels outside are outside the face and need not be evaluated."""
         xy = target.reshape(-1, 2)
-        lo = torch.minimum(torch.clamp(torch.ceil(xy.amin(0)), min=0.0), self.canvas_max - 1.0)
-        hi = torch.minimum(torch.maximum(torch.floor(xy.amax(0)) + 1.0, lo + 1.0), self.canvas_max)
+        lo, hi = torch.ceil(xy.amin(0)), torch.floor(xy.amax(0)) + 1.0
+        # a NaN landmark (a frame without a face) makes the box the whole canvas; its own
+        # triangles are then all degenerate and it renders empty, as without the box
+        lo = torch.where(torch.isnan(lo), torch.zeros_like(lo), lo)
+        hi = torch.where(torch.isnan(hi), self.canvas_max, hi)
+        lo = torch.minimum(torch.clamp(lo, min=0.0), self.canvas_max - 1.0)
+        hi = torch.minimum(torch.maximum(hi, lo + 1.0), self.canvas_max)
         return lo, hi
 
     def locate(self, ed: torch.Tensor, det: torch.Tensor, lo: torch.Tensor, hi: torch.Tensor,
