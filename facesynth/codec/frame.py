@@ -1,15 +1,10 @@
-"""Frame encoder and decoder: wavefront intra/inter prediction, residual coding, RD choice.
+"""Frame-level API: encoder settings, frame codes, the decoder and frame serialisation.
 
-For every wavefront (see :mod:`facesynth.codec.blocks`) the encoder forms all candidate
-predictions of all its blocks and channels at once, keeps the few of least mask-weighted
-SAD, transforms and quantises their residuals, and keeps per block and channel the mode of
-least ``J = D + lambda(QP) R`` (D: the SSD the levels will cause, from the transform
-domain by Parseval, times the block's mean mask weight; R: an estimate of the level bits).
-Only the chosen candidate is reconstructed, with the decoder's own residual function.
-The block size is chosen per frame by the same cost. The decoder
-entropy-decodes the whole frame first, rebuilds all residuals in one pass, then runs
-the wavefront with the same prediction code, so its output equals the encoder's
-reconstruction bit for bit.
+The encoder itself lives in :mod:`facesynth.codec.encoder` (wavefront prediction,
+transform-domain RD decisions, per-frame block-size choice). The decoder entropy-decodes
+the whole frame first, rebuilds all residuals in one pass, then runs the wavefront with
+the chosen modes only; its arithmetic (exact float64 sums of integers, floor, clips) is
+the encoder's, so its output equals the encoder's reconstruction bit for bit.
 """
 
 from __future__ import annotations
@@ -19,12 +14,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from facesynth.codec import entropy, intra
+from facesynth.codec import encoder, entropy, intra
 from facesynth.codec.intra import n_neighbours
-from facesynth.codec.blocks import (
-    MID, ModeSet, grid, motion_compensate, motion_search, padded, sad_maps, prev_maps, unpadded, wave_predictions,
-)
-from facesynth.codec.transform import analyse_residual, code_residual, decode_residual, lagrangian
+from facesynth.codec.blocks import MID, ModeSet, grid, motion_compensate, padded, unpadded
+from facesynth.codec.transform import decode_residual
 
 
 @dataclass
@@ -38,7 +31,9 @@ class CodecConfig:
     rd_candidates : full RD test only for this many modes of least SAD (0 = all);
     lambda_scale : multiplies the H.264 lambda(QP); size_refresh : all block sizes are
     tried on I-frames and every ``size_refresh``-th frame, the others reuse the last
-    choice within the same frame type (0 or 1 = try all sizes on every frame).
+    choice within the same frame type (0 or 1 = try all sizes on every frame);
+    batch_frames : all-intra streams (gop 1) encode this many frames at once (the frames
+    are independent; the bitstream does not depend on it).
     """
 
     qp: int | None = 30
@@ -52,6 +47,7 @@ class CodecConfig:
     rd_candidates: int = 3
     lambda_scale: float = 1.0
     size_refresh: int = 4
+    batch_frames: int = 8
 
 
 @dataclass
@@ -68,16 +64,6 @@ def mode_set(cfg_pdp: bool, cfg_pvm: bool, cfg_inter: bool, n: int, p_frame: boo
     return ModeSet(n, cfg_pdp, cfg_pvm and p_frame, cfg_inter and p_frame)
 
 
-MODE_BITS = 2.5  # typical adaptive cost of a block's mode; enters the per-frame block-size choice
-
-
-def _est_bits(lev: np.ndarray) -> np.ndarray:
-    """Rough level bits (..., S, 16) -> (...): 2 + 2 log2(1 + |l|) per non-zero, 1 per sub-block."""
-    a = np.abs(lev)
-    b = np.where(a > 0, 2.0 + 2.0 * np.log2(1.0 + a), 0.0)
-    return b.sum((-1, -2)) + lev.shape[-2]
-
-
 def encode_frame(x: np.ndarray, prev: np.ndarray | None, cfg: CodecConfig,
                  weight: np.ndarray | None = None, sizes: tuple[int, ...] | None = None
                  ) -> tuple[FrameCode, np.ndarray]:
@@ -86,81 +72,15 @@ def encode_frame(x: np.ndarray, prev: np.ndarray | None, cfg: CodecConfig,
     ``sizes`` overrides ``cfg.block_sizes`` (the candidate block sizes tried).
     Returns the frame's code and its reconstruction (C, H, W) int64.
     """
-    best = None
-    sads = sad_maps(x, prev, cfg.mv_range) if (prev is not None and cfg.inter) else None
-    for n in sizes or cfg.block_sizes:
-        code, rec, cost = _encode_n(x, prev, cfg, weight, n, sads)
-        if best is None or cost < best[2]:
-            best = (code, rec, cost)
-    return best[0], best[1]
+    return encode_batch(x[None], prev, cfg, weight, [tuple(sizes or cfg.block_sizes)])[0]
 
 
-def _encode_n(x, prev, cfg, weight, n, sads=None):
-    c, h, w = x.shape
-    g = grid(n, h, w)
-    ms = mode_set(cfg.pdp, cfg.pvm, cfg.inter, n, prev is not None)
-    qp = cfg.qp
-    lam = lagrangian(qp) * cfg.lambda_scale
-    xb = padded(x)[:, g.pix_idx]
-    wt = np.ones((h, w)) if weight is None else np.where(weight, 1.0, cfg.outside_weight)
-    wb = np.pad(wt, ((1, 0), (1, 0))).ravel()[g.pix_idx]
-    buf = padded(np.full_like(x, MID))
-    maps = prev_maps(padded(prev), g) if ms.pvm else None
-    nsub = (n // 4) ** 2
-    modes = np.zeros((c, g.n_blocks), np.int64)
-    levels = np.zeros((c, g.n_blocks, nsub, 16), np.int64)
-    mvs = np.zeros((c, g.n_blocks, 2), np.int64)
-    if ms.inter:
-        mvs_all = motion_search(x, prev, n, cfg.mv_range, sads)
-        pi = motion_compensate(prev, mvs_all, n, cfg.mv_range)
-        lev_i, rr = code_residual(xb - pi, n, qp, intra=False)
-        rec_i = np.clip(pi + rr, 0, 65535)
-        mvbits = 2.0 * (np.abs(mvs_all) > 0).sum(-1) + 1.0
-        j_i = (((xb - rec_i) ** 2) * wb).sum(-1) + lam * (_est_bits(lev_i) + mvbits)
-    total = 0.0
-    mp = ms.n_predictive
-    kk = mp if not cfg.rd_candidates else min(cfg.rd_candidates, mp)
-    ones = np.ones(n * n)
-    o = g.order  # wavefront order: each wave is a contiguous slice
-    xo, wo, nbo, pixo = xb[:, o], wb[o], g.nb_idx[o], g.pix_idx[o]
-    wm = wo.mean(-1)
-    mo = maps[:, o] if ms.pvm else None
-    if ms.inter:
-        j_i, rec_i, lev_i, mvs_all = j_i[:, o], rec_i[:, o], lev_i[:, o], mvs_all[:, o]
-    cidx = np.arange(c)[:, None]
-    for s, e in g.bounds:
-        pred = wave_predictions(buf, nbo[s:e], n, ms, mo[:, s:e] if ms.pvm else None)
-        xi = xo[:, s:e, None, :]
-        wi = wo[None, s:e, None, :]
-        bidx = np.arange(e - s)[None, :]
-        if kk < mp:  # prune to the kk modes of least weighted SAD before the full RD test
-            sad = (np.abs(xi - pred) * wi) @ ones
-            cand = np.argpartition(sad, kk - 1, axis=-1)[..., :kk]
-            pred = pred[cidx[..., None], bidx[..., None], cand]
-        else:
-            cand = np.broadcast_to(np.arange(mp), pred.shape[:3])
-        # D from the transform domain (Parseval), weighted by the block's mean mask weight;
-        # only the chosen candidate is inverse-transformed, with the decoder's own function
-        lev, dist = analyse_residual(xi - pred, n, qp)
-        j = dist * wm[None, s:e, None] + lam * _est_bits(lev)
-        if ms.inter:
-            j = np.concatenate([j, j_i[:, s:e, None]], -1)
-        bl = np.argmin(j, -1)
-        bi = np.minimum(bl, kk - 1)
-        b = cand[cidx, bidx, bi]
-        lv = lev[cidx, bidx, bi]
-        r = np.clip(pred[cidx, bidx, bi] + decode_residual(lv, n, qp), 0, 65535)
-        if ms.inter:
-            is_i = (bl == kk)
-            b = np.where(is_i, mp, b)
-            r = np.where(is_i[..., None], rec_i[:, s:e], r)
-            lv = np.where(is_i[..., None, None], lev_i[:, s:e], lv)
-            mvs[:, o[s:e]] = np.where(is_i[..., None], mvs_all[:, s:e], 0)
-        buf[:, pixo[s:e]] = r
-        modes[:, o[s:e]] = b
-        levels[:, o[s:e]] = lv
-        total += float(j[cidx, bidx, bl].sum()) + lam * MODE_BITS * bl.size
-    return FrameCode(n, prev is not None, modes, levels, mvs), unpadded(buf, h, w).copy(), total
+def encode_batch(xs: np.ndarray, prev: np.ndarray | None, cfg: CodecConfig, weight: np.ndarray | None,
+                 sizes_per_frame: list[tuple[int, ...]]) -> list[tuple[FrameCode, np.ndarray]]:
+    """Encode F independent frames xs (F, C, H, W) at once (F = 1 for a P-frame)."""
+    f, c = xs.shape[:2]
+    out = encoder.encode_frames(xs.reshape(f * c, *xs.shape[2:]), prev, cfg, weight, sizes_per_frame, c)
+    return [(FrameCode(n, prev is not None, modes, levels, mvs), rec) for n, modes, levels, mvs, rec in out]
 
 
 def decode_frame(code: FrameCode, prev: np.ndarray | None, qp: int | None, flags: tuple[bool, bool, bool],

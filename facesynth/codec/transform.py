@@ -141,3 +141,45 @@ def decode_residual(levels: np.ndarray, n: int, qp: int | None) -> np.ndarray:
         out[nz] = inverse4(dequantise(sub[nz], qp))
         sub = out
     return from_sub4(sub, n)
+
+
+# --- the same transform as matrices on flattened 4x4 blocks (raster order), for the encoder
+
+FWD16 = np.kron(CF, CF).T.astype(np.float64)  # x (..., 16) @ FWD16 = forward4 flattened
+MF_TABLE = _MF[:, _POS.ravel()]  # (6, 16) quantiser multipliers per raster position
+PF16 = _PF.ravel()
+
+
+def rescale_scale(qp: int) -> np.ndarray:
+    """(16,) pixel-domain scale of one level (Parseval, see :func:`analyse_residual`)."""
+    return ((_V[qp % 6][_POS] << (qp // 6)) * _M / 64.0).ravel()
+
+
+def _inverse_stage(axis: int) -> np.ndarray:
+    """(32, 16) matrix of one inverse butterfly stage on ``[d, d >> 1]`` (flattened 4x4)."""
+    a = np.zeros((32, 16))
+    # out[0] = d0 + d2 + d1 + h3, out[1] = d0 - d2 + h1 - d3, out[2] = d0 - d2 - h1 + d3,
+    # out[3] = d0 + d2 - d1 - h3 (the butterfly of :func:`inverse4`, h = d >> 1)
+    taps = [[(0, 1), (2, 1), (1, 1), (19, 1)], [(0, 1), (2, -1), (17, 1), (3, -1)],
+            [(0, 1), (2, -1), (17, -1), (3, 1)], [(0, 1), (2, 1), (1, -1), (19, -1)]]
+    for line in range(4):
+        for out in range(4):
+            for src, wgt in taps[out]:
+                half, k = divmod(src, 16)
+                pos = (lambda t: 4 * line + t) if axis == -1 else (lambda t: 4 * t + line)
+                a[16 * half + pos(k), pos(out)] += wgt
+    return a
+
+
+_INV_ROWS, _INV_COLS = _inverse_stage(-1), _inverse_stage(-2)
+
+
+def inverse_sub(z: np.ndarray, qp: int) -> np.ndarray:
+    """Signed levels (..., 16) in raster order (float) -> residual (..., 16), the exact
+    result of ``inverse4(dequantise(z))`` computed as two products in float64."""
+    d = z * (_V[qp % 6][_POS] << (qp // 6)).ravel()
+    y = np.concatenate([d, np.floor(d * 0.5)], -1) @ _INV_ROWS
+    y = np.concatenate([y, np.floor(y * 0.5)], -1) @ _INV_COLS
+    y += 32.0
+    y *= 1.0 / 64
+    return np.floor(y, out=y)

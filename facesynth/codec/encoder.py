@@ -1,0 +1,209 @@
+"""The frame encoder: wavefront prediction, transform-domain RD decisions, block-size choice.
+
+For every wavefront (see :mod:`facesynth.codec.blocks`) the encoder forms all candidate
+predictions of all its blocks and channels in one product, keeps the few of least
+mask-weighted SAD, and keeps per block and channel the mode of least
+``J = D + lambda(QP) R`` (D: the SSD the levels will cause, from the transform domain
+by Parseval, times the block's mean mask weight; R: an estimate of the level bits).
+Only the chosen candidate is reconstructed, with the decoder's integer inverse.
+
+Speed (the arithmetic is the decoder's, the layout is not):
+
+- everything runs in float64 on integer values (exact: every sum stays below 2**53);
+  prediction weights are pre-scaled by ``2**-SHIFT`` so ``floor(nb @ W + 1/2)`` is the
+  decoder's ``(W nb + 2**(S-1)) >> S``;
+- block samples are kept sub-block-major (:func:`~facesynth.codec.blocks.sub_perm`), so
+  the 4x4 core transform of any block size is one product with a 16 x 16 matrix, and
+  the source's coefficients are computed once per frame: a candidate's residual
+  coefficients are ``F(x) - F(pred)``;
+- channels are independent images, so independent frames (all-intra) are stacked along
+  the channel axis and share the wavefront loop (:func:`encode_frames`).
+"""
+
+from __future__ import annotations
+
+from functools import lru_cache
+
+import numpy as np
+
+from facesynth.codec import intra
+from facesynth.codec.blocks import (
+    MID, ModeSet, grid, motion_compensate, motion_search, padded, prev_maps, sad_maps, sub_perm, unpadded,
+)
+from facesynth.codec.transform import (
+    FWD16, MF_TABLE, PF16, ZIGZAG, code_residual, inverse_sub, lagrangian, rescale_scale,
+)
+
+MODE_BITS = 2.5  # typical adaptive cost of a block's mode; enters the per-frame block-size choice
+
+
+@lru_cache(maxsize=None)
+def encoder_weights(n: int, pdp: bool, pvm: bool) -> np.ndarray:
+    """(K, M * N*N) float64 prediction weights scaled by ``2**-SHIFT``, sub-block-major rows.
+
+    Mode order is the :class:`~facesynth.codec.blocks.ModeSet` order: HIP (with an
+    all-zero slot for Plane at 16x16, filled by :func:`~facesynth.codec.intra.plane16`),
+    PDP, then PDP again for PVM (the map is added afterwards).
+    """
+    k, nn = intra.n_neighbours(n), n * n
+    parts = [intra.hip_matrices(n)]
+    if n == 16:
+        parts.append(np.zeros((1, nn, k), np.int64))
+    if pdp:
+        parts.append(intra.pdp_matrices(n))
+    if pvm:
+        parts.append(intra.pdp_matrices(n))
+    w = np.concatenate(parts, 0)[:, sub_perm(n), :]
+    return np.ascontiguousarray(w.reshape(-1, k).T.astype(np.float64) * 2.0 ** -intra.SHIFT)
+
+
+def est_bits(z: np.ndarray) -> np.ndarray:
+    """Rough level bits of magnitudes (..., S, 16) -> (...): ``2 + 2 log2(1 + |l|)`` per
+    non-zero level, 1 per 4x4 sub-block."""
+    lz = np.log2(z + 1.0)
+    nzc = np.count_nonzero(z, axis=(-1, -2))
+    return 2.0 * (lz.sum((-1, -2)) + nzc) + z.shape[-2]
+
+
+def encode_frames(x: np.ndarray, prev: np.ndarray | None, cfg, weight: np.ndarray | None,
+                  sizes_per_frame: list[tuple[int, ...]], channels: int):
+    """Encode F frames stacked along the channel axis: x (F*C, H, W) int64.
+
+    ``prev`` (C, H, W) makes it a P-frame (then F = 1). Each frame keeps, among its
+    candidate sizes ``sizes_per_frame[f]``, the one of least total cost.
+    Returns a list of (n, modes (C, nblk), levels (C, nblk, S, 16), mvs (C, nblk, 2),
+    reconstruction (C, H, W)) per frame.
+    """
+    nf = len(sizes_per_frame)
+    best: list = [None] * nf
+    sads = sad_maps(x, prev, cfg.mv_range) if (prev is not None and cfg.inter) else None
+    for n in sorted(set().union(*sizes_per_frame)):
+        fr = [f for f in range(nf) if n in sizes_per_frame[f]]
+        rows = np.concatenate([np.arange(f * channels, (f + 1) * channels) for f in fr])
+        modes, levels, mvs, rec, cost = encode_n(x[rows], prev, cfg, weight, n, sads)
+        for i, f in enumerate(fr):
+            sl = slice(i * channels, (i + 1) * channels)
+            tot = float(cost[sl].sum())
+            if best[f] is None or tot < best[f][0]:
+                best[f] = (tot, (n, modes[sl], levels[sl], mvs[sl], rec[sl]))
+    return [b[1] for b in best]
+
+
+def encode_n(x: np.ndarray, prev: np.ndarray | None, cfg, weight: np.ndarray | None, n: int, sads=None):
+    """Encode (C, H, W) int64 with N x N blocks -> (modes, levels, mvs, reconstruction, cost (C,))."""
+    c, h, w = x.shape
+    g = grid(n, h, w)
+    p_frame = prev is not None
+    ms = ModeSet(n, cfg.pdp, cfg.pvm and p_frame, cfg.inter and p_frame)
+    qp = cfg.qp
+    lam = lagrangian(qp) * cfg.lambda_scale
+    perm = sub_perm(n)
+    nn, s_sub = n * n, (n // 4) ** 2
+    o = g.order  # wavefront order: each wave is a contiguous slice
+    pix_r = g.pix_idx[o]  # raster order (inter, mask)
+    pix = pix_r[:, perm]  # sub-block-major order
+    nbo = g.nb_idx[o]
+    xpad = padded(x)
+    xs = xpad[:, pix].astype(np.float64)  # (C, nblk, NN)
+    wt = np.ones((h, w)) if weight is None else np.where(weight, 1.0, cfg.outside_weight)
+    wpad = np.pad(wt, ((1, 0), (1, 0))).ravel()
+    wm = wpad[pix_r].mean(-1)
+    ones = np.ones(nn)
+    wmat = encoder_weights(n, ms.pdp, ms.pvm)
+    mp = ms.n_predictive
+    kk = mp if not cfg.rd_candidates else min(cfg.rd_candidates, mp)
+    lossless = qp is None
+    if not lossless:
+        fx = (xs.reshape(-1, 16) @ FWD16).reshape(c, -1, s_sub, 16)  # source coefficients
+        qbits = 15 + qp // 6
+        mf = MF_TABLE[qp % 6].astype(np.float64)
+        fq = float((1 << qbits) // 3)
+        iq = 2.0 ** -qbits
+        rm = rescale_scale(qp)
+    maps = None
+    if ms.pvm:
+        maps = prev_maps(padded(prev), g)[:, o][..., perm].astype(np.float64)  # (C, nblk, 4, NN)
+    if ms.inter:
+        mvs_r = motion_search(x, prev, n, cfg.mv_range, sads)
+        pi = motion_compensate(prev, mvs_r, n, cfg.mv_range)[:, o]
+        mvs_all = mvs_r[:, o]
+        xb = xpad[:, pix_r]
+        lev_i, rr = code_residual(xb - pi, n, qp, intra=False)
+        rec_i = np.clip(pi + rr, 0, 65535)
+        mvbits = 2.0 * (np.abs(mvs_all) > 0).sum(-1) + 1.0
+        j_i = (((xb - rec_i) ** 2) * wpad[pix_r]).sum(-1) + lam * (est_bits(np.abs(lev_i)) + mvbits)
+        rec_i = rec_i[..., perm].astype(np.float64)
+    modes = np.zeros((c, g.n_blocks), np.int64)
+    zlev = np.zeros((c, g.n_blocks, s_sub, 16))
+    mvs = np.zeros((c, g.n_blocks, 2), np.int64)
+    is_inter = np.zeros((c, g.n_blocks), bool)
+    cost = np.zeros(c)
+    buf = np.full(xpad.shape, float(MID))
+    cidx = np.arange(c)[:, None]
+    for s, e in g.bounds:
+        b = e - s
+        nb = buf[:, nbo[s:e]]  # (C, b, K)
+        pred = (nb.reshape(-1, nb.shape[-1]) @ wmat).reshape(c, b, mp, nn)  # scaled, unrounded
+        if n == 16:
+            pred[:, :, 3] = intra.plane16(nb.astype(np.int64))[..., perm]
+        if ms.pvm:
+            pred[:, :, ms.n_spatial:] += maps[:, s:e]
+        xw = xs[:, s:e]
+        bidx = np.arange(b)[None, :]
+        if kk < mp:  # prune to the kk modes of least SAD before the full RD test
+            d = pred - xw[:, :, None]
+            np.abs(d, out=d)
+            sad = (d.reshape(-1, nn) @ ones).reshape(c, b, mp)
+            cand = np.argpartition(sad, kk - 1, axis=-1)[..., :kk]
+            rows = (np.arange(c * b).reshape(c, b, 1) * mp + cand).ravel()
+            pred = pred.reshape(-1, nn)[rows].reshape(c, b, kk, nn)
+        else:
+            cand = np.broadcast_to(np.arange(mp), (c, b, mp))
+        # the decoder's rounding and clipping, for the candidates only (Plane is integer already)
+        pred += 0.5
+        np.floor(pred, out=pred)
+        np.clip(pred, 0, 65535, out=pred)
+        if lossless:
+            coef = (xw[:, :, None] - pred).reshape(c, b, kk, s_sub, 16)
+            z = np.abs(coef)
+            j = lam * est_bits(z)
+        else:
+            coef = fx[:, s:e, None] - (pred.reshape(-1, 16) @ FWD16).reshape(c, b, kk, s_sub, 16)
+            a = np.abs(coef)
+            z = a * mf
+            z += fq
+            z *= iq
+            np.floor(z, out=z)
+            err = a * PF16 - z * rm
+            err *= err
+            d = err.reshape(c, b, kk, -1).sum(-1)
+            j = d * wm[None, s:e, None] + lam * est_bits(z)
+        if ms.inter:
+            j = np.concatenate([j, j_i[:, s:e, None]], -1)
+        bl = np.argmin(j, -1)
+        bi = np.minimum(bl, kk - 1)
+        zc = np.copysign(z[cidx, bidx, bi], coef[cidx, bidx, bi])  # (C, b, S, 16) signed levels
+        if lossless:
+            r = x_rec = xw  # the residual is coded as is
+        else:
+            x_rec = pred[cidx, bidx, bi] + inverse_sub(zc, qp).reshape(c, b, nn)
+            r = np.clip(x_rec, 0, 65535, out=x_rec)
+        if ms.inter:
+            is_i = bl == kk
+            r = np.where(is_i[..., None], rec_i[:, s:e], r)
+            is_inter[:, s:e] = is_i
+            modes[:, s:e] = np.where(is_i, mp, cand[cidx, bidx, bi])
+        else:
+            modes[:, s:e] = cand[cidx, bidx, bi]
+        buf[:, pix[s:e]] = r
+        zlev[:, s:e] = zc
+        cost += j[cidx, bidx, bl].sum(1)
+    cost += lam * MODE_BITS * g.n_blocks
+    levels = zlev[..., ZIGZAG].astype(np.int64)
+    if ms.inter:
+        levels[is_inter] = lev_i[is_inter]
+        mvs[is_inter] = mvs_all[is_inter]
+    inv = np.empty_like(o)
+    inv[o] = np.arange(len(o))  # back from wavefront order to raster block order
+    rec = unpadded(buf, h, w).astype(np.int64)
+    return modes[:, inv], levels[:, inv], mvs[:, inv], rec, cost
