@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from facesynth.cli import main
-from facesynth.codec.bitstream import decode_video, encode_video
+from facesynth.codec.bitstream import VERSION, decode_video, encode_video
 from facesynth.codec.frame import CodecConfig
 from facesynth.codec.geometry import build_layout, geometry_video
 from facesynth.codec.rd import bd_rate
@@ -109,9 +109,14 @@ def test_corrupt_and_truncated_streams_are_rejected(video):
         except FacesynthError:
             pass
     # a forged header (valid CRC) claiming a million 60000x60000 frames: clean error, no huge allocation
-    hdr = struct.pack("<4sBBBBHHBHBI6d", b"FSGV", 1, 0, 3, 16, 60000, 60000, 30, 1, 2, 10**6, *([0.0] * 6))
+    hdr = struct.pack("<4sBBBBHHBHBI6d", b"FSGV", VERSION, 0, 3, 16, 60000, 60000, 30, 1, 2, 10**6, *([0.0] * 6))
     with pytest.raises(FacesynthError, match="truncated"):
         decode_video(hdr + struct.pack("<I", zlib.crc32(hdr)) + b"\0" * 100)
+    # a stream of another format version (its header CRC valid) is refused, not misread
+    old = bytearray(data[:hdr_len - 4])
+    old[4] = VERSION - 1
+    with pytest.raises(FacesynthError, match="unsupported header"):
+        decode_video(bytes(old) + struct.pack("<I", zlib.crc32(bytes(old))) + data[hdr_len:])
 
 
 def test_encoder_rejects_bad_input():

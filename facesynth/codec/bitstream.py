@@ -27,7 +27,7 @@ from facesynth.codec.transform import QP_MAX
 from facesynth.errors import FacesynthError
 
 MAGIC = b"FSGV"
-VERSION = 1
+VERSION = 2  # 2: neighbour contexts for `last`, coded by staggered anti-diagonals
 _HDR = struct.Struct("<4sBBBBHHBHBI6d")
 _CHUNK = struct.Struct("<II")
 

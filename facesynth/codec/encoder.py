@@ -2,10 +2,14 @@
 
 For every wavefront (see :mod:`facesynth.codec.blocks`) the encoder forms all candidate
 predictions of all its blocks and channels in one product, keeps the few of least
-mask-weighted SAD, and keeps per block and channel the mode of least
-``J = D + lambda(QP) R`` (D: the SSD the levels will cause, from the transform domain
-by Parseval, times the block's mean mask weight; R: an estimate of the level bits).
-Only the chosen candidate is reconstructed, with the decoder's integer inverse.
+``SAD + sqrt(lambda) R_mode``, and keeps per block and channel the mode of least
+``J = D + lambda(QP) (R_levels + R_mode)`` (D: the SSD the levels will cause, from the
+transform domain by Parseval, times the block's mean mask weight; R_levels: an estimate
+of the level bits, :func:`est_bits`; R_mode: ``-log2`` of the mode's running frequency in
+its entropy-coding context, the channel and the mode above, so the choice follows what
+the adaptive coder will charge). Levels are RD-quantised (RDOQ): each level is lowered
+by one where that lowers ``D + lambda R`` of that level. Only the chosen candidate is
+reconstructed, with the decoder's integer inverse.
 
 Speed (the arithmetic is the decoder's, the layout is not):
 
@@ -26,7 +30,7 @@ from functools import lru_cache
 
 import numpy as np
 
-from facesynth.codec import intra
+from facesynth.codec import entropy, intra
 from facesynth.codec.blocks import (
     MID, ModeSet, grid, motion_compensate, motion_search, padded, prev_maps, sad_maps, sub_perm, unpadded,
 )
@@ -34,7 +38,7 @@ from facesynth.codec.transform import (
     FWD16, MF_TABLE, PF16, ZIGZAG, code_residual, inverse_sub, lagrangian, rescale_scale,
 )
 
-MODE_BITS = 2.5  # typical adaptive cost of a block's mode; enters the per-frame block-size choice
+_C0, _C1, _CS = 2.0, 2.0, 1.0  # level rate model: C0 + C1 log2(1 + |l|) per non-zero, CS per sub-block
 
 
 @lru_cache(maxsize=None)
@@ -62,7 +66,7 @@ def est_bits(z: np.ndarray) -> np.ndarray:
     non-zero level, 1 per 4x4 sub-block."""
     lz = np.log2(z + 1.0)
     nzc = np.count_nonzero(z, axis=(-1, -2))
-    return 2.0 * (lz.sum((-1, -2)) + nzc) + z.shape[-2]
+    return _C1 * lz.sum((-1, -2)) + _C0 * nzc + _CS * z.shape[-2]
 
 
 def encode_frames(x: np.ndarray, prev: np.ndarray | None, cfg, weight: np.ndarray | None,
@@ -80,7 +84,7 @@ def encode_frames(x: np.ndarray, prev: np.ndarray | None, cfg, weight: np.ndarra
     for n in sorted(set().union(*sizes_per_frame)):
         fr = [f for f in range(nf) if n in sizes_per_frame[f]]
         rows = np.concatenate([np.arange(f * channels, (f + 1) * channels) for f in fr])
-        modes, levels, mvs, rec, cost = encode_n(x[rows], prev, cfg, weight, n, sads)
+        modes, levels, mvs, rec, cost = encode_n(x[rows], prev, cfg, weight, n, sads, channels)
         for i, f in enumerate(fr):
             sl = slice(i * channels, (i + 1) * channels)
             tot = float(cost[sl].sum())
@@ -89,9 +93,11 @@ def encode_frames(x: np.ndarray, prev: np.ndarray | None, cfg, weight: np.ndarra
     return [b[1] for b in best]
 
 
-def encode_n(x: np.ndarray, prev: np.ndarray | None, cfg, weight: np.ndarray | None, n: int, sads=None):
+def encode_n(x: np.ndarray, prev: np.ndarray | None, cfg, weight: np.ndarray | None, n: int, sads=None,
+             channels: int | None = None):
     """Encode (C, H, W) int64 with N x N blocks -> (modes, levels, mvs, reconstruction, cost (C,))."""
     c, h, w = x.shape
+    channels = channels or c  # channels per frame (x may stack several frames)
     g = grid(n, h, w)
     p_frame = prev is not None
     ms = ModeSet(n, cfg.pdp, cfg.pvm and p_frame, cfg.inter and p_frame)
@@ -133,7 +139,15 @@ def encode_n(x: np.ndarray, prev: np.ndarray | None, cfg, weight: np.ndarray | N
         mvbits = 2.0 * (np.abs(mvs_all) > 0).sum(-1) + 1.0
         j_i = (((xb - rec_i) ** 2) * wpad[pix_r]).sum(-1) + lam * (est_bits(np.abs(lev_i)) + mvbits)
         rec_i = rec_i[..., perm].astype(np.float64)
-    modes = np.zeros((c, g.n_blocks), np.int64)
+    nm = ms.n_modes
+    modes = np.full((c, g.n_blocks + 1), nm, np.int64)  # wave order; the last column: "no block above"
+    pos = np.empty_like(o)
+    pos[o] = np.arange(len(o))
+    nbx = g.shape[1]
+    above = np.where(o >= nbx, pos[np.maximum(o - nbx, 0)], g.n_blocks)  # wave position of the block above
+    chan = (np.arange(c) % channels)[:, None]
+    mcnt = np.ones((c, entropy.n_mode_contexts(channels, nm), nm))  # running mode statistics per context
+    sad_lam = np.sqrt(lam)  # SAD + sqrt(lambda) R for the pre-selection (H.264 reference encoder)
     zlev = np.zeros((c, g.n_blocks, s_sub, 16))
     mvs = np.zeros((c, g.n_blocks, 2), np.int64)
     is_inter = np.zeros((c, g.n_blocks), bool)
@@ -150,10 +164,14 @@ def encode_n(x: np.ndarray, prev: np.ndarray | None, cfg, weight: np.ndarray | N
             pred[:, :, ms.n_spatial:] += maps[:, s:e]
         xw = xs[:, s:e]
         bidx = np.arange(b)[None, :]
-        if kk < mp:  # prune to the kk modes of least SAD before the full RD test
+        ctx = entropy.mode_ctx(modes[:, above[s:e]], chan, nm)
+        cnt = mcnt[cidx, ctx]  # (C, b, nm)
+        mbits = np.log2(cnt.sum(-1, keepdims=True)) - np.log2(cnt)  # adaptive mode cost estimate
+        if kk < mp:  # prune to the kk modes of least SAD (+ mode cost) before the full RD test
             d = pred - xw[:, :, None]
             np.abs(d, out=d)
             sad = (d.reshape(-1, nn) @ ones).reshape(c, b, mp)
+            sad += sad_lam * mbits[..., :mp]
             cand = np.argpartition(sad, kk - 1, axis=-1)[..., :kk]
             rows = (np.arange(c * b).reshape(c, b, 1) * mp + cand).ravel()
             pred = pred.reshape(-1, nn)[rows].reshape(c, b, kk, nn)
@@ -174,12 +192,21 @@ def encode_n(x: np.ndarray, prev: np.ndarray | None, cfg, weight: np.ndarray | N
             z += fq
             z *= iq
             np.floor(z, out=z)
-            err = a * PF16 - z * rm
+            ap = a * PF16
+            err = ap - z * rm
+            # RDOQ: lower a level by one where that lowers D + lambda R (each level's rate alone)
+            e1 = err + rm
+            dd = (e1 * e1 - err * err) * wm[None, s:e, None, None, None]
+            dr = _C1 * (np.log2(np.maximum(z, 1.0)) - np.log2(z + 1.0)) - _C0 * (z == 1)
+            down = (z > 0) & (dd + lam * dr < 0)
+            z -= down
+            err = np.where(down, e1, err)
             err *= err
             d = err.reshape(c, b, kk, -1).sum(-1)
             j = d * wm[None, s:e, None] + lam * est_bits(z)
+        j += lam * np.take_along_axis(mbits, cand, -1)
         if ms.inter:
-            j = np.concatenate([j, j_i[:, s:e, None]], -1)
+            j = np.concatenate([j, (j_i[:, s:e] + lam * mbits[..., mp])[..., None]], -1)
         bl = np.argmin(j, -1)
         bi = np.minimum(bl, kk - 1)
         zc = np.copysign(z[cidx, bidx, bi], coef[cidx, bidx, bi])  # (C, b, S, 16) signed levels
@@ -195,10 +222,10 @@ def encode_n(x: np.ndarray, prev: np.ndarray | None, cfg, weight: np.ndarray | N
             modes[:, s:e] = np.where(is_i, mp, cand[cidx, bidx, bi])
         else:
             modes[:, s:e] = cand[cidx, bidx, bi]
+        np.add.at(mcnt, (np.broadcast_to(cidx, (c, b)), ctx, modes[:, s:e]), 4.0)
         buf[:, pix[s:e]] = r
         zlev[:, s:e] = zc
         cost += j[cidx, bidx, bl].sum(1)
-    cost += lam * MODE_BITS * g.n_blocks
     levels = zlev[..., ZIGZAG].astype(np.int64)
     if ms.inter:
         levels[is_inter] = lev_i[is_inter]
@@ -206,4 +233,4 @@ def encode_n(x: np.ndarray, prev: np.ndarray | None, cfg, weight: np.ndarray | N
     inv = np.empty_like(o)
     inv[o] = np.arange(len(o))  # back from wavefront order to raster block order
     rec = unpadded(buf, h, w).astype(np.int64)
-    return modes[:, inv], levels[:, inv], mvs[:, inv], rec, cost
+    return modes[:, :-1][:, inv], levels[:, inv], mvs[:, inv], rec, cost

@@ -18,6 +18,8 @@ escapes ``|v| - 15`` as Exp-Golomb (adaptive length class + raw bits).
 
 from __future__ import annotations
 
+from functools import lru_cache
+
 import numpy as np
 import constriction
 
@@ -101,9 +103,32 @@ def _dec_raw(dec: RangeDecoder, nbits: np.ndarray) -> np.ndarray:
     return out
 
 
+@lru_cache(maxsize=32)
+def grid_groups(shape: tuple[int, int, int]) -> tuple[np.ndarray, ...]:
+    """Flat indices into a (C, H, W) grid grouped by ``c + y + x`` (staggered anti-diagonals).
+
+    A cell's left and upper neighbours and the same cell of the previous channel all lie
+    in the group before it, so symbols coded group by group may use them as context and
+    still decode one vectorised group at a time.
+    """
+    c, h, w = shape
+    cc, yy, xx = np.meshgrid(np.arange(c), np.arange(h), np.arange(w), indexing="ij")
+    key = (cc + yy + xx).ravel()
+    order = np.argsort(key, kind="stable")
+    ends = np.searchsorted(key[order], np.arange(key.max() + 2))
+    return tuple(order[ends[k]:ends[k + 1]] for k in range(key.max() + 1))
+
+
+def _last_ctx(nzp: np.ndarray, idx: np.ndarray, shape) -> np.ndarray:
+    """Context of ``last`` (0..7): non-zero above, left, and in the previous channel.
+    ``nzp`` (C+1, H+1, W+1) holds ``last > 0`` at offset (1, 1, 1)."""
+    c, y, x = np.unravel_index(idx, shape)
+    return 4 * nzp[c + 1, y, x + 1] + 2 * nzp[c + 1, y + 1, x] + nzp[c, y + 1, x + 1]
+
+
 class _LevelModels:
     def __init__(self):
-        self.last = AdaptiveModel(1, 17)
+        self.last = AdaptiveModel(8, 17)
         self.level = AdaptiveModel(16 * 3 * 3 * 2, ESC + 1)
         self.esc = AdaptiveModel(3, 48)
 
@@ -112,13 +137,26 @@ def _level_ctx(k: int, nnz: np.ndarray, prev: np.ndarray, is_last: np.ndarray) -
     return ((k * 3 + np.minimum(nnz, 2)) * 3 + np.minimum(prev, 2)) * 2 + is_last
 
 
-def encode_levels(enc: RangeEncoder, levels: np.ndarray) -> None:
-    """Encode levels (R, 16) int64 (zigzag order)."""
+def encode_levels(enc: RangeEncoder, levels: np.ndarray, shape: tuple[int, int, int] | None = None) -> None:
+    """Encode levels (R, 16) int64 (zigzag order).
+
+    ``shape`` (C, H, W) with C*H*W = R: the rows form a grid of 4x4 sub-blocks (raster
+    order per channel); ``last`` is then coded by staggered anti-diagonals
+    (:func:`grid_groups`) in the context of its neighbours' (:func:`_last_ctx`).
+    Without it, ``last`` has one context.
+    """
     lv = levels.reshape(-1, 16).astype(np.int64)
     nz = lv != 0
     last = np.where(nz.any(1), 16 - np.argmax(nz[:, ::-1], 1), 0)
     m = _LevelModels()
-    _enc_adaptive(enc, m.last, np.zeros(len(lv), np.int64), last)
+    if shape is None:
+        _enc_adaptive(enc, m.last, np.zeros(len(lv), np.int64), last)
+    else:
+        nzp = np.pad((last > 0).reshape(shape), ((1, 0), (1, 0), (1, 0))).astype(np.int64)
+        ctx = _last_ctx(nzp, np.arange(len(lv)), shape)
+        for g in grid_groups(tuple(shape)):
+            enc.encode(last[g].astype(np.int32), _CAT, m.last.probs(ctx[g]))
+            m.last.update(ctx[g], last[g])
     nnz = np.zeros(len(lv), np.int64)
     prev = np.zeros(len(lv), np.int64)
     for k in range(16):
@@ -143,10 +181,21 @@ def encode_levels(enc: RangeEncoder, levels: np.ndarray) -> None:
         prev[rows] = a
 
 
-def decode_levels(dec: RangeDecoder, n_rows: int) -> np.ndarray:
-    """Decode ``n_rows`` blocks of 16 levels written by :func:`encode_levels`."""
+def decode_levels(dec: RangeDecoder, n_rows: int, shape: tuple[int, int, int] | None = None) -> np.ndarray:
+    """Decode ``n_rows`` blocks of 16 levels written by :func:`encode_levels` (same ``shape``)."""
     m = _LevelModels()
-    last = _dec_adaptive(dec, m.last, np.zeros(n_rows, np.int64))
+    if shape is None:
+        last = _dec_adaptive(dec, m.last, np.zeros(n_rows, np.int64))
+    else:
+        last = np.zeros(n_rows, np.int64)
+        nzp = np.zeros((shape[0] + 1, shape[1] + 1, shape[2] + 1), np.int64)
+        for g in grid_groups(tuple(shape)):
+            ctx = _last_ctx(nzp, g, shape)
+            v = np.asarray(dec.decode(_CAT, m.last.probs(ctx)), np.int64)
+            m.last.update(ctx, v)
+            last[g] = v
+            c, y, x = np.unravel_index(g, shape)
+            nzp[c + 1, y + 1, x + 1] = v > 0
     lv = np.zeros((n_rows, 16), np.int64)
     nnz = np.zeros(n_rows, np.int64)
     prev = np.zeros(n_rows, np.int64)
@@ -171,35 +220,49 @@ def decode_levels(dec: RangeDecoder, n_rows: int) -> np.ndarray:
     return lv
 
 
+def n_mode_contexts(c: int, n_modes: int) -> int:
+    return c * (n_modes + 1)
+
+
+def mode_ctx(above: np.ndarray, ch: np.ndarray, n_modes: int) -> np.ndarray:
+    """Context of a block's mode: its channel and the mode above (``n_modes``: none).
+    (Adding the mode to the left, or dropping the channel, dilutes the statistics: +4 %
+    and +11 % bits.)"""
+    return ch * (n_modes + 1) + above
+
+
+def _mode_ctx_at(mp: np.ndarray, idx: np.ndarray, shape, n_modes: int) -> np.ndarray:
+    c, y, x = np.unravel_index(idx, shape)
+    return mode_ctx(mp[c + 1, y, x + 1], c, n_modes)
+
+
 def encode_modes(enc: RangeEncoder, modes: np.ndarray, n_modes: int) -> None:
-    """Modes (C, BY, BX) coded row by row, context = (channel, mode of the block above)."""
-    c, by, bx = modes.shape
-    model = AdaptiveModel(c * (n_modes + 1), n_modes)
-    above = np.full((c, bx), n_modes, np.int64)
-    ch = np.repeat(np.arange(c), bx)
-    for r in range(by):
-        ctx = ch * (n_modes + 1) + above.ravel()
-        sym = modes[:, r].ravel().astype(np.int64)
-        enc.encode(sym.astype(np.int32), _CAT, model.probs(ctx))
-        model.update(ctx, sym)
-        above = modes[:, r].astype(np.int64)
+    """Modes (C, BY, BX) coded by staggered anti-diagonals (:func:`grid_groups`) in the
+    context of :func:`mode_ctx`."""
+    shape = modes.shape
+    model = AdaptiveModel(n_mode_contexts(shape[0], n_modes), n_modes)
+    mp = np.pad(modes.astype(np.int64), ((1, 0), (1, 0), (1, 0)), constant_values=n_modes)
+    sym = modes.ravel().astype(np.int64)
+    ctx = _mode_ctx_at(mp, np.arange(sym.size), shape, n_modes)
+    for g in grid_groups(tuple(shape)):
+        enc.encode(sym[g].astype(np.int32), _CAT, model.probs(ctx[g]))
+        model.update(ctx[g], sym[g])
 
 
 def decode_modes(dec: RangeDecoder, shape: tuple[int, int, int], n_modes: int) -> np.ndarray:
-    c, by, bx = shape
-    model = AdaptiveModel(c * (n_modes + 1), n_modes)
-    above = np.full((c, bx), n_modes, np.int64)
-    ch = np.repeat(np.arange(c), bx)
-    out = np.empty((c, by, bx), np.int64)
-    for r in range(by):
-        ctx = ch * (n_modes + 1) + above.ravel()
+    model = AdaptiveModel(n_mode_contexts(shape[0], n_modes), n_modes)
+    mp = np.full((shape[0] + 1, shape[1] + 1, shape[2] + 1), n_modes, np.int64)
+    out = np.empty(int(np.prod(shape)), np.int64)
+    for g in grid_groups(tuple(shape)):
+        ctx = _mode_ctx_at(mp, g, shape, n_modes)
         sym = np.asarray(dec.decode(_CAT, model.probs(ctx)), np.int64)
         if sym.max(initial=0) >= n_modes:
             raise ValueError("mode out of range")
         model.update(ctx, sym)
-        out[:, r] = sym.reshape(c, bx)
-        above = out[:, r]
-    return out
+        out[g] = sym
+        c, y, x = np.unravel_index(g, shape)
+        mp[c + 1, y + 1, x + 1] = sym
+    return out.reshape(shape)
 
 
 def encode_mvs(enc: RangeEncoder, mvs: np.ndarray, rng: int) -> None:

@@ -146,6 +146,22 @@ def decode_frame(code: FrameCode, prev: np.ndarray | None, qp: int | None, flags
     return unpadded(buf, h, w).astype(np.int64)
 
 
+def to_sub_grid(levels: np.ndarray, g) -> np.ndarray:
+    """Levels (C, nblk, S, 16) -> (C * H/4 * W/4, 16): 4x4 sub-blocks in raster order over the frame."""
+    c, s = levels.shape[0], g.n // 4
+    by, bx = g.shape
+    x = levels.reshape(c, by, bx, s, s, 16).transpose(0, 1, 3, 2, 4, 5)
+    return x.reshape(-1, 16)
+
+
+def from_sub_grid(rows: np.ndarray, g) -> np.ndarray:
+    """Inverse of :func:`to_sub_grid` -> (C, nblk, S, 16)."""
+    s = g.n // 4
+    by, bx = g.shape
+    x = rows.reshape(-1, by, s, bx, s, 16).transpose(0, 1, 3, 2, 4, 5)
+    return x.reshape(x.shape[0], by * bx, s * s, 16)
+
+
 _FRAME_HDR = struct.Struct("<BBB")
 
 
@@ -158,7 +174,7 @@ def write_frame(code: FrameCode, flags: tuple[bool, bool, bool], mv_range: int, 
     entropy.encode_modes(enc, code.modes.reshape(c, *g.shape), ms.n_modes)
     if ms.inter:
         entropy.encode_mvs(enc, code.mvs[code.modes == ms.inter_mode], mv_range)
-    entropy.encode_levels(enc, code.levels.reshape(-1, 16))
+    entropy.encode_levels(enc, to_sub_grid(code.levels, g), (c, h // 4, w // 4))
     words = enc.get_compressed()
     return _FRAME_HDR.pack(int(code.p_frame), code.n, mv_range) + words.astype("<u4").tobytes()
 
@@ -181,5 +197,5 @@ def read_frame(payload: bytes, flags: tuple[bool, bool, bool], shape) -> tuple[F
         sel = modes == ms.inter_mode
         mvs[sel] = entropy.decode_mvs(dec, int(sel.sum()), mv_range)
     nsub = (n // 4) ** 2
-    levels = entropy.decode_levels(dec, c * g.n_blocks * nsub).reshape(c, g.n_blocks, nsub, 16)
+    levels = from_sub_grid(entropy.decode_levels(dec, c * g.n_blocks * nsub, (c, h // 4, w // 4)), g)
     return FrameCode(n, bool(p), modes, levels, mvs), mv_range
