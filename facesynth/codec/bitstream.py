@@ -89,7 +89,8 @@ def encode_video(frames: np.ndarray, cfg: CodecConfig, mask: np.ndarray | None =
         else:
             p = prev if (i % cfg.gop) else None
             full = cfg.size_refresh <= 1 or i % cfg.size_refresh == 0 or (p is not None) not in last_size
-            batch = [encode_frame(x[i], p, cfg, wmask, None if full else (last_size[p is not None],))]
+            batch = [encode_frame(x[i], p, cfg, wmask, None if full else (last_size[p is not None],),
+                                  last_size.get(p is not None))]
             last_size[p is not None] = batch[0][0].n
         for code, rec in batch:
             payload = write_frame(code, flags, cfg.mv_range, x[i].shape)
@@ -119,7 +120,7 @@ def _intra_batch(xs: np.ndarray, i0: int, cfg: CodecConfig, wmask, last_size: di
     idx = [k for k in range(f) if cfg.size_refresh <= 1 or (i0 + k) % cfg.size_refresh == 0
            or (k == 0 and False not in last_size)]
     if idx:
-        res = encode_batch(xs[idx], None, cfg, wmask, [tuple(cfg.block_sizes)] * len(idx))
+        res = encode_batch(xs[idx], None, cfg, wmask, [tuple(cfg.block_sizes)] * len(idx), last_size.get(False))
         for k, r in zip(idx, res):
             out[k] = r
     sizes, cur = [], last_size.get(False)

@@ -64,32 +64,57 @@ def encoder_weights(n: int, pdp: bool, pvm: bool) -> np.ndarray:
 def est_bits(z: np.ndarray) -> np.ndarray:
     """Rough level bits of magnitudes (..., S, 16) -> (...): ``2 + 2 log2(1 + |l|)`` per
     non-zero level, 1 per 4x4 sub-block."""
-    lz = np.log2(z + 1.0)
-    nzc = np.count_nonzero(z, axis=(-1, -2))
-    return _C1 * lz.sum((-1, -2)) + _C0 * nzc + _CS * z.shape[-2]
+    t = np.log2(z + 1.0)
+    t += (_C0 / _C1) * np.minimum(z, 1.0)
+    return _C1 * t.reshape(*z.shape[:-2], -1).sum(-1) + _CS * z.shape[-2]
 
 
 def encode_frames(x: np.ndarray, prev: np.ndarray | None, cfg, weight: np.ndarray | None,
-                  sizes_per_frame: list[tuple[int, ...]], channels: int):
+                  sizes_per_frame: list[tuple[int, ...]], channels: int, start: int | None = None):
     """Encode F frames stacked along the channel axis: x (F*C, H, W) int64.
 
     ``prev`` (C, H, W) makes it a P-frame (then F = 1). Each frame keeps, among its
-    candidate sizes ``sizes_per_frame[f]``, the one of least total cost.
+    candidate sizes ``sizes_per_frame[f]``, the one of least total cost. With ``start``
+    (usually the size chosen for the previous frame of the same type) the search is
+    greedy: ``start`` first, then each neighbouring size outward for as long as the cost
+    keeps falling (the cost is near unimodal in the block size); without it the search
+    starts from the middle size. Frames with one or two candidate sizes try them all.
     Returns a list of (n, modes (C, nblk), levels (C, nblk, S, 16), mvs (C, nblk, 2),
     reconstruction (C, H, W)) per frame.
     """
     nf = len(sizes_per_frame)
     best: list = [None] * nf
     sads = sad_maps(x, prev, cfg.mv_range) if (prev is not None and cfg.inter) else None
-    for n in sorted(set().union(*sizes_per_frame)):
-        fr = [f for f in range(nf) if n in sizes_per_frame[f]]
+
+    def run(n, fr):
+        """Encode frames ``fr`` with size n; returns the frames whose best cost improved."""
+        if not fr:
+            return []
         rows = np.concatenate([np.arange(f * channels, (f + 1) * channels) for f in fr])
         modes, levels, mvs, rec, cost = encode_n(x[rows], prev, cfg, weight, n, sads, channels)
+        better = []
         for i, f in enumerate(fr):
             sl = slice(i * channels, (i + 1) * channels)
             tot = float(cost[sl].sum())
             if best[f] is None or tot < best[f][0]:
                 best[f] = (tot, (n, modes[sl], levels[sl], mvs[sl], rec[sl]))
+                better.append(f)
+        return better
+
+    every = sorted(set().union(*sizes_per_frame))
+    if start not in every:
+        start = every[len(every) // 2]  # no previous choice: start in the middle
+    greedy = [f for f in range(nf) if start in sizes_per_frame[f] and len(sizes_per_frame[f]) > 2]
+    for n in sorted(set().union(*sizes_per_frame)):  # exhaustive for the other frames
+        run(n, [f for f in range(nf) if f not in greedy and n in sizes_per_frame[f]])
+    if greedy:
+        run(start, greedy)
+        for step in (-1, 1):
+            alive = [f for f in greedy if best[f][1][0] == start]  # not improved the other way
+            for n in (sorted(set().union(*sizes_per_frame)))[::step]:
+                if (n - start) * step <= 0:
+                    continue
+                alive = run(n, [f for f in alive if n in sizes_per_frame[f]])
     return [b[1] for b in best]
 
 
@@ -148,7 +173,7 @@ def encode_n(x: np.ndarray, prev: np.ndarray | None, cfg, weight: np.ndarray | N
     chan = (np.arange(c) % channels)[:, None]
     mcnt = np.ones((c, entropy.n_mode_contexts(channels, nm), nm))  # running mode statistics per context
     sad_lam = np.sqrt(lam)  # SAD + sqrt(lambda) R for the pre-selection (H.264 reference encoder)
-    zlev = np.zeros((c, g.n_blocks, s_sub, 16))
+    zlev = np.zeros((c, g.n_blocks, s_sub, 16))  # levels, zigzag order
     mvs = np.zeros((c, g.n_blocks, 2), np.int64)
     is_inter = np.zeros((c, g.n_blocks), bool)
     cost = np.zeros(c)
@@ -182,7 +207,7 @@ def encode_n(x: np.ndarray, prev: np.ndarray | None, cfg, weight: np.ndarray | N
         np.floor(pred, out=pred)
         np.clip(pred, 0, 65535, out=pred)
         if lossless:
-            coef = (xw[:, :, None] - pred).reshape(c, b, kk, s_sub, 16)
+            coef = (xw[:, :, None] - pred).reshape(c, b, kk, s_sub, 16)[..., ZIGZAG]
             z = np.abs(coef)
             j = lam * est_bits(z)
         else:
@@ -204,7 +229,7 @@ def encode_n(x: np.ndarray, prev: np.ndarray | None, cfg, weight: np.ndarray | N
             err *= err
             d = err.reshape(c, b, kk, -1).sum(-1)
             j = d * wm[None, s:e, None] + lam * est_bits(z)
-        j += lam * np.take_along_axis(mbits, cand, -1)
+        j += lam * mbits.reshape(-1)[(np.arange(c * b).reshape(c, b, 1) * nm + cand)]
         if ms.inter:
             j = np.concatenate([j, (j_i[:, s:e] + lam * mbits[..., mp])[..., None]], -1)
         bl = np.argmin(j, -1)
@@ -226,7 +251,7 @@ def encode_n(x: np.ndarray, prev: np.ndarray | None, cfg, weight: np.ndarray | N
         buf[:, pix[s:e]] = r
         zlev[:, s:e] = zc
         cost += j[cidx, bidx, bl].sum(1)
-    levels = zlev[..., ZIGZAG].astype(np.int64)
+    levels = zlev.astype(np.int64)  # zigzag order already
     if ms.inter:
         levels[is_inter] = lev_i[is_inter]
         mvs[is_inter] = mvs_all[is_inter]

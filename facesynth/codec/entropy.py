@@ -46,10 +46,10 @@ class AdaptiveModel:
         return self.counts[ctx].astype(np.float32)
 
     def update(self, ctx: np.ndarray, sym: np.ndarray) -> None:
-        flat = np.bincount(ctx * self.n_sym + sym, minlength=self.counts.size)
-        self.counts += (flat.reshape(self.counts.shape) * 4)
-        big = self.counts.sum(1) > LIMIT
-        if big.any():
+        np.add.at(self.counts, (ctx, sym), 4)
+        big = ctx[self.counts[ctx].sum(1) > LIMIT]  # only updated contexts can pass the limit
+        if big.size:
+            big = np.unique(big)
             self.counts[big] = (self.counts[big] + 1) >> 1
 
 
@@ -104,26 +104,70 @@ def _dec_raw(dec: RangeDecoder, nbits: np.ndarray) -> np.ndarray:
 
 
 @lru_cache(maxsize=32)
-def grid_groups(shape: tuple[int, int, int]) -> tuple[np.ndarray, ...]:
-    """Flat indices into a (C, H, W) grid grouped by ``c + y + x`` (staggered anti-diagonals).
+def grid_plan(shape: tuple[int, int, int]) -> tuple[tuple[np.ndarray, ...], ...]:
+    """Coding order of a (C, H, W) grid: groups of equal ``c + y + x`` (staggered anti-diagonals).
 
     A cell's left and upper neighbours and the same cell of the previous channel all lie
     in the group before it, so symbols coded group by group may use them as context and
-    still decode one vectorised group at a time.
+    still decode one vectorised group at a time. Per group: (flat indices into the grid,
+    then flat indices into the grid padded by one at the front of each axis of: the cell,
+    the cell above, the cell to the left, the cell in the previous channel).
     """
     c, h, w = shape
     cc, yy, xx = np.meshgrid(np.arange(c), np.arange(h), np.arange(w), indexing="ij")
     key = (cc + yy + xx).ravel()
     order = np.argsort(key, kind="stable")
     ends = np.searchsorted(key[order], np.arange(key.max() + 2))
-    return tuple(order[ends[k]:ends[k + 1]] for k in range(key.max() + 1))
+    cc, yy, xx = cc.ravel(), yy.ravel(), xx.ravel()
+
+    def pad(ci, yi, xi):
+        return (ci * (h + 1) + yi) * (w + 1) + xi
+
+    out = []
+    for k in range(key.max() + 1):
+        g = order[ends[k]:ends[k + 1]]
+        ci, yi, xi = cc[g], yy[g], xx[g]
+        out.append((g, pad(ci + 1, yi + 1, xi + 1), pad(ci + 1, yi, xi + 1), pad(ci + 1, yi + 1, xi),
+                    pad(ci, yi + 1, xi + 1)))
+    return tuple(out)
 
 
-def _last_ctx(nzp: np.ndarray, idx: np.ndarray, shape) -> np.ndarray:
-    """Context of ``last`` (0..7): non-zero above, left, and in the previous channel.
-    ``nzp`` (C+1, H+1, W+1) holds ``last > 0`` at offset (1, 1, 1)."""
-    c, y, x = np.unravel_index(idx, shape)
-    return 4 * nzp[c + 1, y, x + 1] + 2 * nzp[c + 1, y + 1, x] + nzp[c, y + 1, x + 1]
+def grid_groups(shape: tuple[int, int, int]) -> tuple[np.ndarray, ...]:
+    """Flat indices of each group of :func:`grid_plan`."""
+    return tuple(p[0] for p in grid_plan(tuple(shape)))
+
+
+def _last_ctx(nzp: np.ndarray, above: np.ndarray, left: np.ndarray, prevc: np.ndarray) -> np.ndarray:
+    """Context of ``last`` (0..7): non-zero above, to the left, and in the previous channel
+    (``nzp``: flat padded ``last > 0``)."""
+    return 4 * nzp[above] + 2 * nzp[left] + nzp[prevc]
+
+
+def _grid_padded(values: np.ndarray, shape, fill: int) -> np.ndarray:
+    return np.pad(values.reshape(shape), ((1, 0), (1, 0), (1, 0)), constant_values=fill).ravel()
+
+
+def _enc_grid(enc: RangeEncoder, model: AdaptiveModel, sym: np.ndarray, ctx_pad: np.ndarray, shape, ctx_fn) -> None:
+    plan = grid_plan(tuple(shape))
+    for g, _, up, lf, pc in plan:
+        ctx = ctx_fn(ctx_pad, up, lf, pc)
+        enc.encode(sym[g].astype(np.int32), _CAT, model.probs(ctx))
+        model.update(ctx, sym[g])
+
+
+def _dec_grid(dec: RangeDecoder, model: AdaptiveModel, shape, ctx_fn, fill: int, to_ctx=None,
+              check: int | None = None) -> np.ndarray:
+    out = np.zeros(int(np.prod(shape)), np.int64)
+    ctx_pad = np.full((shape[0] + 1) * (shape[1] + 1) * (shape[2] + 1), fill, np.int64)
+    for g, me, up, lf, pc in grid_plan(tuple(shape)):
+        ctx = ctx_fn(ctx_pad, up, lf, pc)
+        v = np.asarray(dec.decode(_CAT, model.probs(ctx)), np.int64)
+        if check is not None and v.max(initial=0) >= check:
+            raise ValueError("symbol out of range")
+        model.update(ctx, v)
+        out[g] = v
+        ctx_pad[me] = v if to_ctx is None else to_ctx(v)
+    return out
 
 
 class _LevelModels:
@@ -152,11 +196,7 @@ def encode_levels(enc: RangeEncoder, levels: np.ndarray, shape: tuple[int, int, 
     if shape is None:
         _enc_adaptive(enc, m.last, np.zeros(len(lv), np.int64), last)
     else:
-        nzp = np.pad((last > 0).reshape(shape), ((1, 0), (1, 0), (1, 0))).astype(np.int64)
-        ctx = _last_ctx(nzp, np.arange(len(lv)), shape)
-        for g in grid_groups(tuple(shape)):
-            enc.encode(last[g].astype(np.int32), _CAT, m.last.probs(ctx[g]))
-            m.last.update(ctx[g], last[g])
+        _enc_grid(enc, m.last, last, _grid_padded((last > 0).astype(np.int64), shape, 0), shape, _last_ctx)
     nnz = np.zeros(len(lv), np.int64)
     prev = np.zeros(len(lv), np.int64)
     for k in range(16):
@@ -187,15 +227,7 @@ def decode_levels(dec: RangeDecoder, n_rows: int, shape: tuple[int, int, int] | 
     if shape is None:
         last = _dec_adaptive(dec, m.last, np.zeros(n_rows, np.int64))
     else:
-        last = np.zeros(n_rows, np.int64)
-        nzp = np.zeros((shape[0] + 1, shape[1] + 1, shape[2] + 1), np.int64)
-        for g in grid_groups(tuple(shape)):
-            ctx = _last_ctx(nzp, g, shape)
-            v = np.asarray(dec.decode(_CAT, m.last.probs(ctx)), np.int64)
-            m.last.update(ctx, v)
-            last[g] = v
-            c, y, x = np.unravel_index(g, shape)
-            nzp[c + 1, y + 1, x + 1] = v > 0
+        last = _dec_grid(dec, m.last, shape, _last_ctx, 0, lambda v: v > 0)
     lv = np.zeros((n_rows, 16), np.int64)
     nnz = np.zeros(n_rows, np.int64)
     prev = np.zeros(n_rows, np.int64)
@@ -231,38 +263,26 @@ def mode_ctx(above: np.ndarray, ch: np.ndarray, n_modes: int) -> np.ndarray:
     return ch * (n_modes + 1) + above
 
 
-def _mode_ctx_at(mp: np.ndarray, idx: np.ndarray, shape, n_modes: int) -> np.ndarray:
-    c, y, x = np.unravel_index(idx, shape)
-    return mode_ctx(mp[c + 1, y, x + 1], c, n_modes)
-
-
 def encode_modes(enc: RangeEncoder, modes: np.ndarray, n_modes: int) -> None:
-    """Modes (C, BY, BX) coded by staggered anti-diagonals (:func:`grid_groups`) in the
+    """Modes (C, BY, BX) coded by staggered anti-diagonals (:func:`grid_plan`) in the
     context of :func:`mode_ctx`."""
     shape = modes.shape
     model = AdaptiveModel(n_mode_contexts(shape[0], n_modes), n_modes)
-    mp = np.pad(modes.astype(np.int64), ((1, 0), (1, 0), (1, 0)), constant_values=n_modes)
-    sym = modes.ravel().astype(np.int64)
-    ctx = _mode_ctx_at(mp, np.arange(sym.size), shape, n_modes)
-    for g in grid_groups(tuple(shape)):
-        enc.encode(sym[g].astype(np.int32), _CAT, model.probs(ctx[g]))
-        model.update(ctx[g], sym[g])
+    _enc_grid(enc, model, modes.ravel().astype(np.int64), _grid_padded(modes.astype(np.int64), shape, n_modes),
+              shape, _mode_ctx_fn(shape, n_modes))
 
 
 def decode_modes(dec: RangeDecoder, shape: tuple[int, int, int], n_modes: int) -> np.ndarray:
     model = AdaptiveModel(n_mode_contexts(shape[0], n_modes), n_modes)
-    mp = np.full((shape[0] + 1, shape[1] + 1, shape[2] + 1), n_modes, np.int64)
-    out = np.empty(int(np.prod(shape)), np.int64)
-    for g in grid_groups(tuple(shape)):
-        ctx = _mode_ctx_at(mp, g, shape, n_modes)
-        sym = np.asarray(dec.decode(_CAT, model.probs(ctx)), np.int64)
-        if sym.max(initial=0) >= n_modes:
-            raise ValueError("mode out of range")
-        model.update(ctx, sym)
-        out[g] = sym
-        c, y, x = np.unravel_index(g, shape)
-        mp[c + 1, y + 1, x + 1] = sym
-    return out.reshape(shape)
+    return _dec_grid(dec, model, shape, _mode_ctx_fn(shape, n_modes), n_modes, check=n_modes).reshape(shape)
+
+
+def _mode_ctx_fn(shape, n_modes):
+    hw = (shape[1] + 1) * (shape[2] + 1)
+
+    def fn(mp, up, lf, pc):
+        return mode_ctx(mp[up], up // hw - 1, n_modes)  # channel from the padded index
+    return fn
 
 
 def encode_mvs(enc: RangeEncoder, mvs: np.ndarray, rng: int) -> None:

@@ -65,21 +65,23 @@ def mode_set(cfg_pdp: bool, cfg_pvm: bool, cfg_inter: bool, n: int, p_frame: boo
 
 
 def encode_frame(x: np.ndarray, prev: np.ndarray | None, cfg: CodecConfig,
-                 weight: np.ndarray | None = None, sizes: tuple[int, ...] | None = None
-                 ) -> tuple[FrameCode, np.ndarray]:
+                 weight: np.ndarray | None = None, sizes: tuple[int, ...] | None = None,
+                 start: int | None = None) -> tuple[FrameCode, np.ndarray]:
     """Encode one frame (C, H, W) int64; ``prev`` (C, H, W) makes it a P-frame.
 
-    ``sizes`` overrides ``cfg.block_sizes`` (the candidate block sizes tried).
+    ``sizes`` overrides ``cfg.block_sizes`` (the candidate block sizes tried); ``start``
+    makes the size search greedy from that size (:func:`encoder.encode_frames`).
     Returns the frame's code and its reconstruction (C, H, W) int64.
     """
-    return encode_batch(x[None], prev, cfg, weight, [tuple(sizes or cfg.block_sizes)])[0]
+    return encode_batch(x[None], prev, cfg, weight, [tuple(sizes or cfg.block_sizes)], start)[0]
 
 
 def encode_batch(xs: np.ndarray, prev: np.ndarray | None, cfg: CodecConfig, weight: np.ndarray | None,
-                 sizes_per_frame: list[tuple[int, ...]]) -> list[tuple[FrameCode, np.ndarray]]:
+                 sizes_per_frame: list[tuple[int, ...]], start: int | None = None
+                 ) -> list[tuple[FrameCode, np.ndarray]]:
     """Encode F independent frames xs (F, C, H, W) at once (F = 1 for a P-frame)."""
     f, c = xs.shape[:2]
-    out = encoder.encode_frames(xs.reshape(f * c, *xs.shape[2:]), prev, cfg, weight, sizes_per_frame, c)
+    out = encoder.encode_frames(xs.reshape(f * c, *xs.shape[2:]), prev, cfg, weight, sizes_per_frame, c, start)
     return [(FrameCode(n, prev is not None, modes, levels, mvs), rec) for n, modes, levels, mvs, rec in out]
 
 

@@ -143,16 +143,18 @@ def decode_residual(levels: np.ndarray, n: int, qp: int | None) -> np.ndarray:
     return from_sub4(sub, n)
 
 
-# --- the same transform as matrices on flattened 4x4 blocks (raster order), for the encoder
+# --- the same transform as matrices on flattened 4x4 blocks, for the encoder: inputs in
+# raster order, coefficients and levels in zigzag order
 
-FWD16 = np.kron(CF, CF).T.astype(np.float64)  # x (..., 16) @ FWD16 = forward4 flattened
-MF_TABLE = _MF[:, _POS.ravel()]  # (6, 16) quantiser multipliers per raster position
-PF16 = _PF.ravel()
+FWD16 = np.kron(CF, CF).T[:, ZIGZAG].astype(np.float64)  # x (..., 16) @ FWD16 = forward4, zigzag
+MF_TABLE = _MF[:, _POS.ravel()[ZIGZAG]]  # (6, 16) quantiser multipliers per zigzag position
+PF16 = _PF.ravel()[ZIGZAG]
 
 
 def rescale_scale(qp: int) -> np.ndarray:
-    """(16,) pixel-domain scale of one level (Parseval, see :func:`analyse_residual`)."""
-    return ((_V[qp % 6][_POS] << (qp // 6)) * _M / 64.0).ravel()
+    """(16,) pixel-domain scale of one level per zigzag position (Parseval, see
+    :func:`analyse_residual`)."""
+    return ((_V[qp % 6][_POS] << (qp // 6)) * _M / 64.0).ravel()[ZIGZAG]
 
 
 def _inverse_stage(axis: int) -> np.ndarray:
@@ -171,14 +173,15 @@ def _inverse_stage(axis: int) -> np.ndarray:
     return a
 
 
-_INV_ROWS, _INV_COLS = _inverse_stage(-1), _inverse_stage(-2)
+_ZZ2 = np.concatenate([ZIGZAG, 16 + ZIGZAG])
+_INV_ROWS_ZZ, _INV_COLS = _inverse_stage(-1)[_ZZ2], _inverse_stage(-2)
 
 
 def inverse_sub(z: np.ndarray, qp: int) -> np.ndarray:
-    """Signed levels (..., 16) in raster order (float) -> residual (..., 16), the exact
-    result of ``inverse4(dequantise(z))`` computed as two products in float64."""
-    d = z * (_V[qp % 6][_POS] << (qp // 6)).ravel()
-    y = np.concatenate([d, np.floor(d * 0.5)], -1) @ _INV_ROWS
+    """Signed levels (..., 16) in zigzag order (float) -> residual (..., 16) in raster order,
+    the exact result of ``inverse4(dequantise(z))`` computed as two products in float64."""
+    d = z * (_V[qp % 6][_POS] << (qp // 6)).ravel()[ZIGZAG]
+    y = np.concatenate([d, np.floor(d * 0.5)], -1) @ _INV_ROWS_ZZ
     y = np.concatenate([y, np.floor(y * 0.5)], -1) @ _INV_COLS
     y += 32.0
     y *= 1.0 / 64
