@@ -36,21 +36,34 @@ _UNI = Uniform()
 
 
 class AdaptiveModel:
-    """Frequency counts (contexts, symbols), flat at start, updated per chunk."""
+    """Frequency counts (contexts, symbols), flat at start, +4 per coded symbol after each
+    chunk, halved (rounding up) in a context whose total passes :data:`LIMIT`.
+
+    Counts are integers kept in float32 (exact: they stay below 2**18), the type
+    ``constriction`` takes, with their per-context totals alongside.
+    """
 
     def __init__(self, n_ctx: int, n_sym: int):
-        self.counts = np.ones((n_ctx, n_sym), np.int64)
+        self.counts = np.ones((n_ctx, n_sym), np.float32)
+        self.totals = np.full(n_ctx, float(n_sym), np.float32)
         self.n_sym = n_sym
 
     def probs(self, ctx: np.ndarray) -> np.ndarray:
-        return self.counts[ctx].astype(np.float32)
+        return self.counts[ctx]
 
     def update(self, ctx: np.ndarray, sym: np.ndarray) -> None:
-        np.add.at(self.counts, (ctx, sym), 4)
-        big = ctx[self.counts[ctx].sum(1) > LIMIT]  # only updated contexts can pass the limit
+        flat = self.counts.reshape(-1)
+        if 8 * len(ctx) > flat.size:
+            flat += 4 * np.bincount(ctx * self.n_sym + sym, minlength=flat.size).astype(np.float32)
+            self.totals += 4 * np.bincount(ctx, minlength=self.totals.size).astype(np.float32)
+        else:
+            np.add.at(flat, ctx * self.n_sym + sym, 4)
+            np.add.at(self.totals, ctx, 4)
+        big = ctx[self.totals[ctx] > LIMIT]  # only updated contexts can pass the limit
         if big.size:
             big = np.unique(big)
-            self.counts[big] = (self.counts[big] + 1) >> 1
+            self.counts[big] = np.floor((self.counts[big] + 1) * 0.5)
+            self.totals[big] = self.counts[big].sum(1)
 
 
 def _chunks(n: int):
