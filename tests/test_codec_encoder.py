@@ -88,3 +88,22 @@ def test_levels_with_neighbour_contexts_round_trip_and_pay_off(rng):
         sizes[key] = words.size
         np.testing.assert_array_equal(entropy.decode_levels(entropy.RangeDecoder(words), len(lv), shp), lv)
     assert sizes["grid"] < sizes["flat"]
+
+
+def test_adaptive_model_ages_counts_identically_on_both_sides(rng):
+    from facesynth.codec import entropy
+
+    n = 60000  # one context gets far more than LIMIT / 4 symbols: its counts are halved repeatedly
+    ctx = (rng.random(n) < 0.02).astype(np.int64)
+    sym = np.where(ctx == 0, (rng.random(n) < 0.1).astype(np.int64), rng.integers(0, 5, n))
+    m_enc, m_dec = entropy.AdaptiveModel(2, 5), entropy.AdaptiveModel(2, 5)
+    enc = entropy.RangeEncoder()
+    for s, e in entropy._chunks(n):
+        enc.encode(sym[s:e].astype(np.int32), entropy._CAT, m_enc.probs(ctx[s:e]))
+        m_enc.update(ctx[s:e], sym[s:e])
+    dec = entropy.RangeDecoder(enc.get_compressed())
+    out = np.concatenate([m_dec.update(ctx[s:e], v) or v for s, e in entropy._chunks(n)
+                          for v in [np.asarray(dec.decode(entropy._CAT, m_dec.probs(ctx[s:e])), np.int64)]])
+    np.testing.assert_array_equal(out, sym)
+    np.testing.assert_array_equal(m_enc.counts, m_dec.counts)
+    assert m_enc.counts[0].sum() <= entropy.LIMIT and m_enc.counts[0].sum() > entropy.LIMIT / 4  # aged, not reset

@@ -40,13 +40,14 @@ class AdaptiveModel:
     chunk, halved (rounding up) in a context whose total passes :data:`LIMIT`.
 
     Counts are integers kept in float32 (exact: they stay below 2**18), the type
-    ``constriction`` takes, with their per-context totals alongside.
+    ``constriction`` takes.
     """
 
     def __init__(self, n_ctx: int, n_sym: int):
         self.counts = np.ones((n_ctx, n_sym), np.float32)
-        self.totals = np.full(n_ctx, float(n_sym), np.float32)
         self.n_sym = n_sym
+        self.max_total = n_sym  # largest context total at the last check
+        self.pending = 0  # symbols counted since
 
     def probs(self, ctx: np.ndarray) -> np.ndarray:
         return self.counts[ctx]
@@ -54,16 +55,17 @@ class AdaptiveModel:
     def update(self, ctx: np.ndarray, sym: np.ndarray) -> None:
         flat = self.counts.reshape(-1)
         if 8 * len(ctx) > flat.size:
-            flat += 4 * np.bincount(ctx * self.n_sym + sym, minlength=flat.size).astype(np.float32)
-            self.totals += 4 * np.bincount(ctx, minlength=self.totals.size).astype(np.float32)
+            flat += np.bincount(ctx * self.n_sym + sym, minlength=flat.size).astype(np.float32) * 4
         else:
-            np.add.at(flat, ctx * self.n_sym + sym, 4)
-            np.add.at(self.totals, ctx, 4)
-        big = ctx[self.totals[ctx] > LIMIT]  # only updated contexts can pass the limit
-        if big.size:
-            big = np.unique(big)
-            self.counts[big] = np.floor((self.counts[big] + 1) * 0.5)
-            self.totals[big] = self.counts[big].sum(1)
+            np.add.at(flat, ctx * self.n_sym + sym, 4.0)
+        self.pending += len(ctx)
+        if self.max_total + 4 * self.pending > LIMIT:  # otherwise no context can have passed it
+            tot = self.counts.sum(1)
+            big = tot > LIMIT
+            if big.any():
+                self.counts[big] = np.floor((self.counts[big] + 1) * 0.5)
+                tot = self.counts.sum(1)
+            self.max_total, self.pending = float(tot.max()), 0
 
 
 def _chunks(n: int):
@@ -123,8 +125,8 @@ def grid_plan(shape: tuple[int, int, int]) -> tuple[tuple[np.ndarray, ...], ...]
     A cell's left and upper neighbours and the same cell of the previous channel all lie
     in the group before it, so symbols coded group by group may use them as context and
     still decode one vectorised group at a time. Per group: (flat indices into the grid,
-    then flat indices into the grid padded by one at the front of each axis of: the cell,
-    the cell above, the cell to the left, the cell in the previous channel).
+    then flat indices into the grid padded by one at the front of each axis of the cell
+    and (3, n) of the cells above, to the left and in the previous channel; the channels).
     """
     c, h, w = shape
     cc, yy, xx = np.meshgrid(np.arange(c), np.arange(h), np.arange(w), indexing="ij")
@@ -140,8 +142,8 @@ def grid_plan(shape: tuple[int, int, int]) -> tuple[tuple[np.ndarray, ...], ...]
     for k in range(key.max() + 1):
         g = order[ends[k]:ends[k + 1]]
         ci, yi, xi = cc[g], yy[g], xx[g]
-        out.append((g, pad(ci + 1, yi + 1, xi + 1), pad(ci + 1, yi, xi + 1), pad(ci + 1, yi + 1, xi),
-                    pad(ci, yi + 1, xi + 1)))
+        out.append((g, pad(ci + 1, yi + 1, xi + 1),
+                    np.stack([pad(ci + 1, yi, xi + 1), pad(ci + 1, yi + 1, xi), pad(ci, yi + 1, xi + 1)]), ci))
     return tuple(out)
 
 
@@ -150,10 +152,13 @@ def grid_groups(shape: tuple[int, int, int]) -> tuple[np.ndarray, ...]:
     return tuple(p[0] for p in grid_plan(tuple(shape)))
 
 
-def _last_ctx(nzp: np.ndarray, above: np.ndarray, left: np.ndarray, prevc: np.ndarray) -> np.ndarray:
+def _last_ctx(nzp: np.ndarray, nbrs: np.ndarray) -> np.ndarray:
     """Context of ``last`` (0..7): non-zero above, to the left, and in the previous channel
-    (``nzp``: flat padded ``last > 0``)."""
-    return 4 * nzp[above] + 2 * nzp[left] + nzp[prevc]
+    (``nzp``: flat padded ``last > 0``; ``nbrs`` (3, n): their flat padded indices)."""
+    return _LAST_W @ nzp[nbrs]
+
+
+_LAST_W = np.array([4, 2, 1])
 
 
 def _grid_padded(values: np.ndarray, shape, fill: int) -> np.ndarray:
@@ -162,8 +167,8 @@ def _grid_padded(values: np.ndarray, shape, fill: int) -> np.ndarray:
 
 def _enc_grid(enc: RangeEncoder, model: AdaptiveModel, sym: np.ndarray, ctx_pad: np.ndarray, shape, ctx_fn) -> None:
     plan = grid_plan(tuple(shape))
-    for g, _, up, lf, pc in plan:
-        ctx = ctx_fn(ctx_pad, up, lf, pc)
+    for g, _, nbrs, ch in plan:
+        ctx = ctx_fn(ctx_pad, nbrs, ch)
         enc.encode(sym[g].astype(np.int32), _CAT, model.probs(ctx))
         model.update(ctx, sym[g])
 
@@ -172,8 +177,8 @@ def _dec_grid(dec: RangeDecoder, model: AdaptiveModel, shape, ctx_fn, fill: int,
               check: int | None = None) -> np.ndarray:
     out = np.zeros(int(np.prod(shape)), np.int64)
     ctx_pad = np.full((shape[0] + 1) * (shape[1] + 1) * (shape[2] + 1), fill, np.int64)
-    for g, me, up, lf, pc in grid_plan(tuple(shape)):
-        ctx = ctx_fn(ctx_pad, up, lf, pc)
+    for g, me, nbrs, ch in grid_plan(tuple(shape)):
+        ctx = ctx_fn(ctx_pad, nbrs, ch)
         v = np.asarray(dec.decode(_CAT, model.probs(ctx)), np.int64)
         if check is not None and v.max(initial=0) >= check:
             raise ValueError("symbol out of range")
@@ -209,7 +214,8 @@ def encode_levels(enc: RangeEncoder, levels: np.ndarray, shape: tuple[int, int, 
     if shape is None:
         _enc_adaptive(enc, m.last, np.zeros(len(lv), np.int64), last)
     else:
-        _enc_grid(enc, m.last, last, _grid_padded((last > 0).astype(np.int64), shape, 0), shape, _last_ctx)
+        _enc_grid(enc, m.last, last, _grid_padded((last > 0).astype(np.int64), shape, 0), shape,
+                  lambda nzp, nbrs, ch: _last_ctx(nzp, nbrs))
     nnz = np.zeros(len(lv), np.int64)
     prev = np.zeros(len(lv), np.int64)
     for k in range(16):
@@ -240,7 +246,7 @@ def decode_levels(dec: RangeDecoder, n_rows: int, shape: tuple[int, int, int] | 
     if shape is None:
         last = _dec_adaptive(dec, m.last, np.zeros(n_rows, np.int64))
     else:
-        last = _dec_grid(dec, m.last, shape, _last_ctx, 0, lambda v: v > 0)
+        last = _dec_grid(dec, m.last, shape, lambda nzp, nbrs, ch: _last_ctx(nzp, nbrs), 0, lambda v: v > 0)
     lv = np.zeros((n_rows, 16), np.int64)
     nnz = np.zeros(n_rows, np.int64)
     prev = np.zeros(n_rows, np.int64)
@@ -291,10 +297,8 @@ def decode_modes(dec: RangeDecoder, shape: tuple[int, int, int], n_modes: int) -
 
 
 def _mode_ctx_fn(shape, n_modes):
-    hw = (shape[1] + 1) * (shape[2] + 1)
-
-    def fn(mp, up, lf, pc):
-        return mode_ctx(mp[up], up // hw - 1, n_modes)  # channel from the padded index
+    def fn(mp, nbrs, ch):
+        return mode_ctx(mp[nbrs[0]], ch, n_modes)
     return fn
 
 

@@ -124,7 +124,7 @@ def decode_frame(code: FrameCode, prev: np.ndarray | None, qp: int | None, flags
         add[is_i] = pi[is_i]
         lin = np.where(is_i, nh + 4, lin)
     o = g.order  # everything in wavefront order: each wave is a contiguous slice
-    res = decode_residual(code.levels[:, o], n, qp).astype(np.float64)
+    res = decode_residual(code.levels[:, o], n, qp, as_float=True)
     add, lin, plane = add[:, o], lin[:, o], plane[:, o]
     nb_idx, pix_idx = g.nb_idx[o], g.pix_idx[o]
     buf = padded(np.full(shape, MID, np.int64)).astype(np.float64)

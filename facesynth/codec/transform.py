@@ -130,17 +130,19 @@ def analyse_residual(res: np.ndarray, n: int, qp: int | None, intra: bool = True
     return z.reshape(*z.shape[:-2], 16)[..., ZIGZAG], d
 
 
-def decode_residual(levels: np.ndarray, n: int, qp: int | None) -> np.ndarray:
-    """Zigzag levels (..., (N/4)^2, 16) -> reconstructed residual (..., N*N)."""
-    sub = np.empty_like(levels)
-    sub[..., ZIGZAG] = levels
-    sub = sub.reshape(*levels.shape[:-1], 4, 4)
-    if qp is not None:
-        nz = sub.any((-1, -2))  # all-zero sub-blocks stay zero: transform only the others
-        out = np.zeros_like(sub)
-        out[nz] = inverse4(dequantise(sub[nz], qp))
-        sub = out
-    return from_sub4(sub, n)
+def decode_residual(levels: np.ndarray, n: int, qp: int | None, as_float: bool = False) -> np.ndarray:
+    """Zigzag levels (..., (N/4)^2, 16) -> reconstructed residual (..., N*N), int64 (or
+    float64 with the same integer values if ``as_float``)."""
+    if qp is None:
+        sub = np.empty_like(levels)
+        sub[..., ZIGZAG] = levels
+    else:  # the float matrix form of inverse4(dequantise(.)) (exact), for non-zero sub-blocks only
+        flat = levels.reshape(-1, 16)
+        nz = flat.any(1)
+        sub = np.zeros(flat.shape)
+        sub[nz] = inverse_sub(flat[nz].astype(np.float64), qp)
+    out = from_sub4(sub.reshape(*levels.shape[:-1], 4, 4), n)
+    return out.astype(np.float64 if as_float else np.int64, copy=False)
 
 
 # --- the same transform as matrices on flattened 4x4 blocks, for the encoder: inputs in
