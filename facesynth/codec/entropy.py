@@ -153,12 +153,12 @@ def grid_groups(shape: tuple[int, int, int]) -> tuple[np.ndarray, ...]:
 
 
 def _last_ctx(nzp: np.ndarray, nbrs: np.ndarray) -> np.ndarray:
-    """Context of ``last`` (0..7): non-zero above, to the left, and in the previous channel
-    (``nzp``: flat padded ``last > 0``; ``nbrs`` (3, n): their flat padded indices)."""
-    return _LAST_W @ nzp[nbrs]
+    """Context of ``last`` (0..17): ``min(last, 2)`` above and to the left, ``last > 0`` in
+    the previous channel (``nzp``: flat padded ``min(last, 2)``; ``nbrs`` (3, n): their
+    flat padded indices)."""
+    v = nzp[nbrs]
+    return 6 * v[0] + 2 * v[1] + np.minimum(v[2], 1)
 
-
-_LAST_W = np.array([4, 2, 1])
 
 
 def _grid_padded(values: np.ndarray, shape, fill: int) -> np.ndarray:
@@ -190,7 +190,7 @@ def _dec_grid(dec: RangeDecoder, model: AdaptiveModel, shape, ctx_fn, fill: int,
 
 class _LevelModels:
     def __init__(self):
-        self.last = AdaptiveModel(8, 17)
+        self.last = AdaptiveModel(18, 17)
         self.level = AdaptiveModel(16 * 3 * 3 * 2, ESC + 1)
         self.esc = AdaptiveModel(3, 48)
 
@@ -214,7 +214,7 @@ def encode_levels(enc: RangeEncoder, levels: np.ndarray, shape: tuple[int, int, 
     if shape is None:
         _enc_adaptive(enc, m.last, np.zeros(len(lv), np.int64), last)
     else:
-        _enc_grid(enc, m.last, last, _grid_padded((last > 0).astype(np.int64), shape, 0), shape,
+        _enc_grid(enc, m.last, last, _grid_padded(np.minimum(last, 2), shape, 0), shape,
                   lambda nzp, nbrs, ch: _last_ctx(nzp, nbrs))
     nnz = np.zeros(len(lv), np.int64)
     prev = np.zeros(len(lv), np.int64)
@@ -246,7 +246,7 @@ def decode_levels(dec: RangeDecoder, n_rows: int, shape: tuple[int, int, int] | 
     if shape is None:
         last = _dec_adaptive(dec, m.last, np.zeros(n_rows, np.int64))
     else:
-        last = _dec_grid(dec, m.last, shape, lambda nzp, nbrs, ch: _last_ctx(nzp, nbrs), 0, lambda v: v > 0)
+        last = _dec_grid(dec, m.last, shape, lambda nzp, nbrs, ch: _last_ctx(nzp, nbrs), 0, lambda v: np.minimum(v, 2))
     lv = np.zeros((n_rows, 16), np.int64)
     nnz = np.zeros(n_rows, np.int64)
     prev = np.zeros(n_rows, np.int64)
