@@ -32,10 +32,10 @@ import numpy as np
 
 from facesynth.codec import entropy, intra
 from facesynth.codec.blocks import (
-    MID, ModeSet, grid, motion_compensate, motion_search, padded, prev_maps, sad_maps, sub_perm, unpadded,
+    MID, ModeSet, grid, motion_compensate, motion_search, padded, sad_maps, sub_perm, unpadded,
 )
 from facesynth.codec.transform import (
-    FWD16, MF_TABLE, PF16, ZIGZAG, code_residual, inverse_sub, lagrangian, rescale_scale,
+    FWD16, MF_TABLE, PF16, ZIGZAG, inverse_sub, lagrangian, rescale_scale,
 )
 
 _C0, _C1, _CS = 2.0, 2.0, 1.0  # level rate model: C0 + C1 log2(1 + |l|) per non-zero, CS per sub-block
@@ -118,6 +118,39 @@ def encode_frames(x: np.ndarray, prev: np.ndarray | None, cfg, weight: np.ndarra
     return [b[1] for b in best]
 
 
+class _Quant:
+    """Quantiser of one QP and dead zone (1/3 intra, 1/6 inter) with RDOQ and RD cost."""
+
+    def __init__(self, qp: int, lam: float, inter: bool):
+        qbits = 15 + qp // 6
+        self.mf = MF_TABLE[qp % 6].astype(np.float64)
+        self.f = float((1 << qbits) // (6 if inter else 3))
+        self.iq = 2.0 ** -qbits
+        self.rm = rescale_scale(qp)
+        self.lam = lam
+
+    def __call__(self, coef: np.ndarray, wmb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Coefficients (..., S, 16) zigzag, block weights (...) -> (levels |z|, J = D wmb + lambda R).
+
+        RDOQ: each level is lowered by one where that lowers ``D + lambda R`` of that level
+        alone (R from :func:`est_bits`)."""
+        a = np.abs(coef)
+        z = a * self.mf
+        z += self.f
+        z *= self.iq
+        np.floor(z, out=z)
+        err = a * PF16 - z * self.rm
+        e1 = err + self.rm
+        dd = (e1 * e1 - err * err) * wmb[..., None, None]
+        dr = _C1 * (np.log2(np.maximum(z, 1.0)) - np.log2(z + 1.0)) - _C0 * (z == 1)
+        down = (z > 0) & (dd + self.lam * dr < 0)
+        z -= down
+        err = np.where(down, e1, err)
+        err *= err
+        d = err.reshape(*err.shape[:-2], -1).sum(-1)
+        return z, d * wmb + self.lam * est_bits(z)
+
+
 def encode_n(x: np.ndarray, prev: np.ndarray | None, cfg, weight: np.ndarray | None, n: int, sads=None,
              channels: int | None = None):
     """Encode (C, H, W) int64 with N x N blocks -> (modes, levels, mvs, reconstruction, cost (C,))."""
@@ -146,24 +179,28 @@ def encode_n(x: np.ndarray, prev: np.ndarray | None, cfg, weight: np.ndarray | N
     lossless = qp is None
     if not lossless:
         fx = (xs.reshape(-1, 16) @ FWD16).reshape(c, -1, s_sub, 16)  # source coefficients
-        qbits = 15 + qp // 6
-        mf = MF_TABLE[qp % 6].astype(np.float64)
-        fq = float((1 << qbits) // 3)
-        iq = 2.0 ** -qbits
-        rm = rescale_scale(qp)
+        quant = _Quant(qp, lam, inter=False)
     maps = None
-    if ms.pvm:
-        maps = prev_maps(padded(prev), g)[:, o][..., perm].astype(np.float64)  # (C, nblk, 4, NN)
-    if ms.inter:
+    if ms.pvm:  # the previous frame's pixel-varying maps prev - PDP_d(prev neighbours): (C, nblk, 4, NN)
+        pp = padded(prev).astype(np.float64)
+        nbp = pp[:, nbo]
+        maps = np.floor((nbp.reshape(-1, nbp.shape[-1]) @ encoder_weights(n, True, False)[:, -4 * nn:]) + 0.5)
+        maps = pp[:, pix][:, :, None, :] - maps.reshape(c, -1, 4, nn)
+    if ms.inter:  # motion-compensated candidates of all blocks at once
         mvs_r = motion_search(x, prev, n, cfg.mv_range, sads)
-        pi = motion_compensate(prev, mvs_r, n, cfg.mv_range)[:, o]
         mvs_all = mvs_r[:, o]
-        xb = xpad[:, pix_r]
-        lev_i, rr = code_residual(xb - pi, n, qp, intra=False)
-        rec_i = np.clip(pi + rr, 0, 65535)
+        pi = motion_compensate(prev, mvs_r, n, cfg.mv_range)[:, o][..., perm].astype(np.float64)
         mvbits = 2.0 * (np.abs(mvs_all) > 0).sum(-1) + 1.0
-        j_i = (((xb - rec_i) ** 2) * wpad[pix_r]).sum(-1) + lam * (est_bits(np.abs(lev_i)) + mvbits)
-        rec_i = rec_i[..., perm].astype(np.float64)
+        if lossless:
+            zc_i = (xs - pi).reshape(c, -1, s_sub, 16)[..., ZIGZAG]
+            j_i = lam * (est_bits(np.abs(zc_i)) + mvbits)
+            rec_i = xs
+        else:
+            coef_i = fx - (pi.reshape(-1, 16) @ FWD16).reshape(c, -1, s_sub, 16)
+            z_i, j_i = _Quant(qp, lam, inter=True)(coef_i, wm[None])
+            j_i += lam * mvbits
+            zc_i = np.copysign(z_i, coef_i)
+            rec_i = np.clip(pi + inverse_sub(zc_i, qp).reshape(c, -1, nn), 0, 65535)
     nm = ms.n_modes
     modes = np.full((c, g.n_blocks + 1), nm, np.int64)  # wave order; the last column: "no block above"
     pos = np.empty_like(o)
@@ -175,7 +212,6 @@ def encode_n(x: np.ndarray, prev: np.ndarray | None, cfg, weight: np.ndarray | N
     sad_lam = np.sqrt(lam)  # SAD + sqrt(lambda) R for the pre-selection (H.264 reference encoder)
     zlev = np.zeros((c, g.n_blocks, s_sub, 16))  # levels, zigzag order
     mvs = np.zeros((c, g.n_blocks, 2), np.int64)
-    is_inter = np.zeros((c, g.n_blocks), bool)
     cost = np.zeros(c)
     buf = np.full(xpad.shape, float(MID))
     cidx = np.arange(c)[:, None]
@@ -212,23 +248,7 @@ def encode_n(x: np.ndarray, prev: np.ndarray | None, cfg, weight: np.ndarray | N
             j = lam * est_bits(z)
         else:
             coef = fx[:, s:e, None] - (pred.reshape(-1, 16) @ FWD16).reshape(c, b, kk, s_sub, 16)
-            a = np.abs(coef)
-            z = a * mf
-            z += fq
-            z *= iq
-            np.floor(z, out=z)
-            ap = a * PF16
-            err = ap - z * rm
-            # RDOQ: lower a level by one where that lowers D + lambda R (each level's rate alone)
-            e1 = err + rm
-            dd = (e1 * e1 - err * err) * wm[None, s:e, None, None, None]
-            dr = _C1 * (np.log2(np.maximum(z, 1.0)) - np.log2(z + 1.0)) - _C0 * (z == 1)
-            down = (z > 0) & (dd + lam * dr < 0)
-            z -= down
-            err = np.where(down, e1, err)
-            err *= err
-            d = err.reshape(c, b, kk, -1).sum(-1)
-            j = d * wm[None, s:e, None] + lam * est_bits(z)
+            z, j = quant(coef, wm[None, s:e, None])
         j += lam * mbits.reshape(-1)[(np.arange(c * b).reshape(c, b, 1) * nm + cand)]
         if ms.inter:
             j = np.concatenate([j, (j_i[:, s:e] + lam * mbits[..., mp])[..., None]], -1)
@@ -243,7 +263,7 @@ def encode_n(x: np.ndarray, prev: np.ndarray | None, cfg, weight: np.ndarray | N
         if ms.inter:
             is_i = bl == kk
             r = np.where(is_i[..., None], rec_i[:, s:e], r)
-            is_inter[:, s:e] = is_i
+            zc = np.where(is_i[..., None, None], zc_i[:, s:e], zc)
             modes[:, s:e] = np.where(is_i, mp, cand[cidx, bidx, bi])
         else:
             modes[:, s:e] = cand[cidx, bidx, bi]
@@ -253,7 +273,7 @@ def encode_n(x: np.ndarray, prev: np.ndarray | None, cfg, weight: np.ndarray | N
         cost += j[cidx, bidx, bl].sum(1)
     levels = zlev.astype(np.int64)  # zigzag order already
     if ms.inter:
-        levels[is_inter] = lev_i[is_inter]
+        is_inter = modes[:, :-1] == mp
         mvs[is_inter] = mvs_all[is_inter]
     inv = np.empty_like(o)
     inv[o] = np.arange(len(o))  # back from wavefront order to raster block order
