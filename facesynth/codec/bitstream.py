@@ -89,8 +89,10 @@ def encode_video(frames: np.ndarray, cfg: CodecConfig, mask: np.ndarray | None =
         else:
             p = prev if (i % cfg.gop) else None
             full = cfg.size_refresh <= 1 or i % cfg.size_refresh == 0 or (p is not None) not in last_size
-            batch = [encode_frame(x[i], p, cfg, wmask, None if full else (last_size[p is not None],),
-                                  last_size.get(p is not None))]
+            # greedy size search from the last choice of this frame type (P-frames without
+            # one: from the largest size, which temporal prediction favours)
+            start = last_size.get(p is not None, max(cfg.block_sizes) if p is not None else None)
+            batch = [encode_frame(x[i], p, cfg, wmask, None if full else (last_size[p is not None],), start)]
             last_size[p is not None] = batch[0][0].n
         for code, rec in batch:
             payload = write_frame(code, flags, cfg.mv_range, x[i].shape)
