@@ -72,8 +72,8 @@ def speed(video_by_size: dict, qp: int, repeats: int = 3) -> dict:
     the 1-minute load average before the runs."""
     out = {"load_average_1min": os.getloadavg()[0], "repeats": repeats}
     for s, (vid, mask) in video_by_size.items():
-        for name, sizes in (("hip+pdp-intra", (4, 8, 16)), ("hip+pdp-intra", (4,)),
-                            ("hip+pdp+pvm-ippp", (4, 8, 16)), ("hip+pdp+pvm-ippp", (8,))):
+        for name, sizes in (("hip+pdp-intra", (8, 16)), ("hip+pdp-intra", (4, 8, 16)),
+                            ("hip+pdp+pvm-ippp", (8, 16)), ("hip+pdp+pvm-ippp", (4, 8, 16))):
             cfg = CodecConfig(qp=qp, block_sizes=sizes, **CONFIGS[name])
             enc_s, dec_s = [], []
             for _ in range(repeats):

@@ -190,7 +190,7 @@ def decode_video(data: bytes) -> tuple[np.ndarray, StreamInfo, dict]:
             raise FacesynthError(f"bitstream: CRC32 mismatch in frame {i} (corrupt stream)")
         off += ln
         try:
-            code, mvr = read_frame(payload, info.flags, shape)
+            code, mvr = read_frame(payload, info.flags, shape, info.qp is None)
             if code.p_frame != bool(i % info.gop) or mvr != info.mv_range:
                 raise ValueError("frame type or motion range disagrees with the header")
             rec = decode_frame(code, prev if code.p_frame else None, info.qp, info.flags, mvr, shape)

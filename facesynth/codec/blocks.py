@@ -66,13 +66,27 @@ def grid(n: int, height: int, width: int) -> Grid:
 
 
 @lru_cache(maxsize=None)
+def sub_order(n: int) -> np.ndarray:
+    """(S,) raster index of each 4x4 sub-block of an N x N block in the encoder's order:
+    8x8 quadrants in raster order, the four sub-blocks of each in raster order (the
+    identity for N <= 8), so that every 8x8 block is a contiguous run of samples."""
+    s = n // 4
+    if s <= 2:
+        return np.arange(s * s)
+    qy, qx, ay, ax = np.meshgrid(np.arange(s // 2), np.arange(s // 2), np.arange(2), np.arange(2), indexing="ij")
+    return ((2 * qy + ay) * s + 2 * qx + ax).ravel()
+
+
+@lru_cache(maxsize=None)
 def sub_perm(n: int) -> np.ndarray:
     """(N*N,) raster positions of a block's samples in sub-block-major order: the 4x4
-    sub-blocks in raster order, each in raster order (so (..., N*N) reshapes to
-    (..., (N/4)^2, 16) without a copy)."""
+    sub-blocks in :func:`sub_order`, each in raster order (so (..., N*N) reshapes to
+    (..., (N/4)^2, 16), and to (..., (N/8)^2, 64) 8x8 blocks, without a copy)."""
     s = n // 4
-    sy, sx, py, px = np.meshgrid(np.arange(s), np.arange(s), np.arange(4), np.arange(4), indexing="ij")
-    return ((sy * 4 + py) * n + sx * 4 + px).ravel()
+    sb = sub_order(n)
+    sy, sx = np.divmod(sb, s)
+    py, px = np.divmod(np.arange(16), 4)
+    return ((sy[:, None] * 4 + py[None, :]) * n + sx[:, None] * 4 + px[None, :]).ravel()
 
 
 def padded(frame: np.ndarray) -> np.ndarray:

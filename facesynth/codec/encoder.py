@@ -31,8 +31,9 @@ from functools import lru_cache
 import numpy as np
 
 from facesynth.codec import entropy, intra
+from facesynth.codec import transform8 as t8m
 from facesynth.codec.blocks import (
-    MID, ModeSet, grid, motion_compensate, motion_search, padded, sad_maps, sub_perm, unpadded,
+    MID, ModeSet, grid, motion_compensate, motion_search, padded, sad_maps, sub_order, sub_perm, unpadded,
 )
 from facesynth.codec.transform import (
     FWD16, MF_TABLE, PF16, ZIGZAG, inverse_sub, lagrangian, rescale_scale,
@@ -118,15 +119,30 @@ def encode_frames(x: np.ndarray, prev: np.ndarray | None, cfg, weight: np.ndarra
     return [b[1] for b in best]
 
 
-class _Quant:
-    """Quantiser of one QP and dead zone (1/3 intra, 1/6 inter) with RDOQ and RD cost."""
+def uses_t8(cfg, n: int) -> bool:
+    """Whether N x N blocks of a frame coded with ``cfg`` use the 8x8 transform."""
+    return bool(cfg.transform8) and n >= 8 and cfg.qp is not None
 
-    def __init__(self, qp: int, lam: float, inter: bool):
-        qbits = 15 + qp // 6
-        self.mf = MF_TABLE[qp % 6].astype(np.float64)
-        self.f = float((1 << qbits) // (6 if inter else 3))
-        self.iq = 2.0 ** -qbits
-        self.rm = rescale_scale(qp)
+
+class _Quant:
+    """Quantiser of one QP and dead zone (1/3 intra, 1/6 inter) with RDOQ and RD cost.
+
+    4x4 transform: H.264's integer multipliers; 8x8 transform: the orthonormal step of
+    :func:`~facesynth.codec.transform8.step` (the encoder's choice; only the decoder's
+    rescaling is normative)."""
+
+    def __init__(self, qp: int, lam: float, inter: bool, t8: bool = False):
+        if t8:
+            self.pf = t8m.PF64.reshape(4, 16)
+            self.rm = t8m.step(qp).reshape(4, 16)
+            self.mul = self.pf / self.rm
+            self.f = 1.0 / 6 if inter else 1.0 / 3
+        else:
+            qbits = 15 + qp // 6
+            self.mul = MF_TABLE[qp % 6] * 2.0 ** -qbits  # exact: a power-of-two scaling
+            self.f = ((1 << qbits) // (6 if inter else 3)) * 2.0 ** -qbits
+            self.pf = PF16
+            self.rm = rescale_scale(qp)
         self.lam = lam
 
     def __call__(self, coef: np.ndarray, wmb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -135,19 +151,21 @@ class _Quant:
         RDOQ: each level is lowered by one where that lowers ``D + lambda R`` of that level
         alone (R from :func:`est_bits`)."""
         a = np.abs(coef)
-        z = a * self.mf
+        shp = (*coef.shape[:-2], -1, *np.shape(self.rm)) if np.ndim(self.rm) == 2 else coef.shape
+        a = a.reshape(shp)  # 8x8 transform: (..., S/4, 4, 16)
+        z = a * self.mul
         z += self.f
-        z *= self.iq
         np.floor(z, out=z)
-        err = a * PF16 - z * self.rm
+        err = a * self.pf - z * self.rm
         e1 = err + self.rm
-        dd = (e1 * e1 - err * err) * wmb[..., None, None]
+        dd = (e1 * e1 - err * err) * wmb.reshape(*wmb.shape, *([1] * (a.ndim - wmb.ndim)))
         dr = _C1 * (np.log2(np.maximum(z, 1.0)) - np.log2(z + 1.0)) - _C0 * (z == 1)
         down = (z > 0) & (dd + self.lam * dr < 0)
         z -= down
         err = np.where(down, e1, err)
         err *= err
-        d = err.reshape(*err.shape[:-2], -1).sum(-1)
+        z = z.reshape(coef.shape)
+        d = err.reshape(*coef.shape[:-2], -1).sum(-1)
         return z, d * wmb + self.lam * est_bits(z)
 
 
@@ -177,9 +195,22 @@ def encode_n(x: np.ndarray, prev: np.ndarray | None, cfg, weight: np.ndarray | N
     mp = ms.n_predictive
     kk = mp if not cfg.rd_candidates else min(cfg.rd_candidates, mp)
     lossless = qp is None
+    t8 = uses_t8(cfg, n)
+    if t8:
+        def fwd(v):  # samples (..., NN) -> coefficients (..., S, 16): 8x8 blocks, 4 slots each
+            return (v.reshape(-1, 64) @ t8m.FWD64).reshape(*v.shape[:-1], s_sub, 16)
+
+        def inv(zc):  # signed levels (..., S, 16) -> residual (..., NN) in the encoder's sample order
+            return t8m.inverse_slots_float(zc.reshape(*zc.shape[:-2], -1, 64), qp).reshape(*zc.shape[:-2], nn)
+    else:
+        def fwd(v):
+            return (v.reshape(-1, 16) @ FWD16).reshape(*v.shape[:-1], s_sub, 16)
+
+        def inv(zc):
+            return inverse_sub(zc, qp).reshape(*zc.shape[:-2], nn)
     if not lossless:
-        fx = (xs.reshape(-1, 16) @ FWD16).reshape(c, -1, s_sub, 16)  # source coefficients
-        quant = _Quant(qp, lam, inter=False)
+        fx = fwd(xs)  # source coefficients (C, nblk, S, 16)
+        quant = _Quant(qp, lam, inter=False, t8=t8)
     maps = None
     if ms.pvm:  # the previous frame's pixel-varying maps prev - PDP_d(prev neighbours): (C, nblk, 4, NN)
         pp = padded(prev).astype(np.float64)
@@ -196,11 +227,11 @@ def encode_n(x: np.ndarray, prev: np.ndarray | None, cfg, weight: np.ndarray | N
             j_i = lam * (est_bits(np.abs(zc_i)) + mvbits)
             rec_i = xs
         else:
-            coef_i = fx - (pi.reshape(-1, 16) @ FWD16).reshape(c, -1, s_sub, 16)
-            z_i, j_i = _Quant(qp, lam, inter=True)(coef_i, wm[None])
+            coef_i = fx - fwd(pi)
+            z_i, j_i = _Quant(qp, lam, inter=True, t8=t8)(coef_i, wm[None])
             j_i += lam * mvbits
             zc_i = np.copysign(z_i, coef_i)
-            rec_i = np.clip(pi + inverse_sub(zc_i, qp).reshape(c, -1, nn), 0, 65535)
+            rec_i = np.clip(pi + inv(zc_i), 0, 65535)
     nm = ms.n_modes
     modes = np.full((c, g.n_blocks + 1), nm, np.int64)  # wave order; the last column: "no block above"
     pos = np.empty_like(o)
@@ -247,7 +278,7 @@ def encode_n(x: np.ndarray, prev: np.ndarray | None, cfg, weight: np.ndarray | N
             z = np.abs(coef)
             j = lam * est_bits(z)
         else:
-            coef = fx[:, s:e, None] - (pred.reshape(-1, 16) @ FWD16).reshape(c, b, kk, s_sub, 16)
+            coef = fx[:, s:e, None] - fwd(pred)
             z, j = quant(coef, wm[None, s:e, None])
         j += lam * mbits.reshape(-1)[(np.arange(c * b).reshape(c, b, 1) * nm + cand)]
         if ms.inter:
@@ -258,7 +289,7 @@ def encode_n(x: np.ndarray, prev: np.ndarray | None, cfg, weight: np.ndarray | N
         if lossless:
             r = x_rec = xw  # the residual is coded as is
         else:
-            x_rec = pred[cidx, bidx, bi] + inverse_sub(zc, qp).reshape(c, b, nn)
+            x_rec = pred[cidx, bidx, bi] + inv(zc)
             r = np.clip(x_rec, 0, 65535, out=x_rec)
         if ms.inter:
             is_i = bl == kk
@@ -271,7 +302,9 @@ def encode_n(x: np.ndarray, prev: np.ndarray | None, cfg, weight: np.ndarray | N
         buf[:, pix[s:e]] = r
         zlev[:, s:e] = zc
         cost += j[cidx, bidx, bl].sum(1)
-    levels = zlev.astype(np.int64)  # zigzag order already
+    if n == 16:
+        zlev = zlev[:, :, np.argsort(sub_order(n))]  # sub-blocks back in raster order
+    levels = zlev.astype(np.int64)
     if ms.inter:
         is_inter = modes[:, :-1] == mp
         mvs[is_inter] = mvs_all[is_inter]

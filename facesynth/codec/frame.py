@@ -33,7 +33,8 @@ class CodecConfig:
     tried on I-frames and every ``size_refresh``-th frame, the others reuse the last
     choice within the same frame type (0 or 1 = try all sizes on every frame);
     batch_frames : all-intra streams (gop 1) encode this many frames at once (the frames
-    are independent; the bitstream does not depend on it).
+    are independent; the bitstream does not depend on it); transform8 : 8x8 and 16x16
+    blocks use the 8x8 integer transform (:mod:`facesynth.codec.transform8`).
     """
 
     qp: int | None = 30
@@ -41,13 +42,14 @@ class CodecConfig:
     pvm: bool = True
     inter: bool = True
     gop: int = 1
-    block_sizes: tuple[int, ...] = (4, 8, 16)
+    block_sizes: tuple[int, ...] = (8, 16)  # 4x4 was never chosen with the 8x8 transform (docs/codec.md)
     mv_range: int = 2
     outside_weight: float = 0.05
     rd_candidates: int = 3
     lambda_scale: float = 1.0
     size_refresh: int = 4
     batch_frames: int = 8
+    transform8: bool = True
 
 
 @dataclass
@@ -58,6 +60,7 @@ class FrameCode:
     levels: np.ndarray  # (C, nblk, (N/4)^2, 16)
     mvs: np.ndarray  # (C, nblk, 2)
     stats: dict = field(default_factory=dict)
+    t8: bool = False  # residuals through the 8x8 transform
 
 
 def mode_set(cfg_pdp: bool, cfg_pvm: bool, cfg_inter: bool, n: int, p_frame: bool) -> ModeSet:
@@ -82,7 +85,8 @@ def encode_batch(xs: np.ndarray, prev: np.ndarray | None, cfg: CodecConfig, weig
     """Encode F independent frames xs (F, C, H, W) at once (F = 1 for a P-frame)."""
     f, c = xs.shape[:2]
     out = encoder.encode_frames(xs.reshape(f * c, *xs.shape[2:]), prev, cfg, weight, sizes_per_frame, c, start)
-    return [(FrameCode(n, prev is not None, modes, levels, mvs), rec) for n, modes, levels, mvs, rec in out]
+    return [(FrameCode(n, prev is not None, modes, levels, mvs, t8=encoder.uses_t8(cfg, n)), rec)
+            for n, modes, levels, mvs, rec in out]
 
 
 def decode_frame(code: FrameCode, prev: np.ndarray | None, qp: int | None, flags: tuple[bool, bool, bool],
@@ -124,7 +128,7 @@ def decode_frame(code: FrameCode, prev: np.ndarray | None, qp: int | None, flags
         add[is_i] = pi[is_i]
         lin = np.where(is_i, nh + 4, lin)
     o = g.order  # everything in wavefront order: each wave is a contiguous slice
-    res = decode_residual(code.levels[:, o], n, qp, as_float=True)
+    res = decode_residual(code.levels[:, o], n, qp, as_float=True, t8=code.t8)
     add, lin, plane = add[:, o], lin[:, o], plane[:, o]
     nb_idx, pix_idx = g.nb_idx[o], g.pix_idx[o]
     buf = padded(np.full(shape, MID, np.int64)).astype(np.float64)
@@ -178,17 +182,19 @@ def write_frame(code: FrameCode, flags: tuple[bool, bool, bool], mv_range: int, 
         entropy.encode_mvs(enc, code.mvs[code.modes == ms.inter_mode], mv_range)
     entropy.encode_levels(enc, to_sub_grid(code.levels, g), (c, h // 4, w // 4))
     words = enc.get_compressed()
-    return _FRAME_HDR.pack(int(code.p_frame), code.n, mv_range) + words.astype("<u4").tobytes()
+    return _FRAME_HDR.pack(int(code.p_frame), code.n | (128 * code.t8), mv_range) + words.astype("<u4").tobytes()
 
 
-def read_frame(payload: bytes, flags: tuple[bool, bool, bool], shape) -> tuple[FrameCode, int]:
+def read_frame(payload: bytes, flags: tuple[bool, bool, bool], shape, lossless: bool = False
+               ) -> tuple[FrameCode, int]:
     """Parse :func:`write_frame` output -> (FrameCode, mv_range). Raises ValueError if malformed."""
     c, h, w = shape
     if len(payload) < _FRAME_HDR.size or (len(payload) - _FRAME_HDR.size) % 4:
         raise ValueError("frame payload has a bad length")
     p, n, mv_range = _FRAME_HDR.unpack_from(payload)
-    if p not in (0, 1) or n not in (4, 8, 16) or h % n or w % n:
-        raise ValueError(f"bad frame header (type {p}, block size {n})")
+    t8, n = bool(n & 128), n & 127
+    if p not in (0, 1) or n not in (4, 8, 16) or h % n or w % n or (t8 and (n == 4 or lossless)):
+        raise ValueError(f"bad frame header (type {p}, block size {n}, 8x8 transform {t8})")
     ms = mode_set(*flags, n, bool(p))
     g = grid(n, h, w)
     words = np.frombuffer(payload, "<u4", offset=_FRAME_HDR.size).astype(np.uint32)
@@ -200,4 +206,4 @@ def read_frame(payload: bytes, flags: tuple[bool, bool, bool], shape) -> tuple[F
         mvs[sel] = entropy.decode_mvs(dec, int(sel.sum()), mv_range)
     nsub = (n // 4) ** 2
     levels = from_sub_grid(entropy.decode_levels(dec, c * g.n_blocks * nsub, (c, h // 4, w // 4)), g)
-    return FrameCode(n, bool(p), modes, levels, mvs), mv_range
+    return FrameCode(n, bool(p), modes, levels, mvs, t8=t8), mv_range

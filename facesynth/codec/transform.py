@@ -130,9 +130,19 @@ def analyse_residual(res: np.ndarray, n: int, qp: int | None, intra: bool = True
     return z.reshape(*z.shape[:-2], 16)[..., ZIGZAG], d
 
 
-def decode_residual(levels: np.ndarray, n: int, qp: int | None, as_float: bool = False) -> np.ndarray:
+def decode_residual(levels: np.ndarray, n: int, qp: int | None, as_float: bool = False,
+                     t8: bool = False) -> np.ndarray:
     """Zigzag levels (..., (N/4)^2, 16) -> reconstructed residual (..., N*N), int64 (or
-    float64 with the same integer values if ``as_float``)."""
+    float64 with the same integer values if ``as_float``). ``t8``: the levels are those of
+    the 8x8 transform (:mod:`facesynth.codec.transform8`), N = 8 or 16."""
+    if t8:
+        from facesynth.codec.blocks import sub_order, sub_perm
+        from facesynth.codec.transform8 import inverse_slots
+
+        z = levels[..., sub_order(n), :].reshape(*levels.shape[:-2], -1, 64)
+        out = np.empty((*levels.shape[:-2], n * n), np.int64)
+        out[..., sub_perm(n)] = inverse_slots(z, qp).reshape(*levels.shape[:-2], n * n)
+        return out.astype(np.float64 if as_float else np.int64, copy=False)
     if qp is None:
         sub = np.empty_like(levels)
         sub[..., ZIGZAG] = levels
