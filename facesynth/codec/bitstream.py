@@ -66,7 +66,7 @@ def encode_video(frames: np.ndarray, cfg: CodecConfig, mask: np.ndarray | None =
         raise FacesynthError(f"frames: unsupported shape {frames.shape}")
     if cfg.qp is not None and not 0 <= cfg.qp <= QP_MAX:
         raise FacesynthError(f"qp: expected 0..{QP_MAX}, got {cfg.qp}")
-    if cfg.gop < 1 or not 0 <= cfg.mv_range <= 32 or any(n not in (4, 8, 16) for n in cfg.block_sizes):
+    if cfg.gop < 1 or not 0 <= cfg.mv_range <= 32 or not cfg.sizes() or any(n not in (4, 8, 16) for n in cfg.sizes()):
         raise FacesynthError("codec config: gop >= 1, mv_range 0..32, block sizes from {4, 8, 16}")
     flags = (cfg.pdp, cfg.pvm, cfg.inter)
     fl = (cfg.qp is None) | 2 * cfg.pdp | 4 * cfg.pvm | 8 * cfg.inter | 16 * (bbox is not None)
@@ -91,7 +91,7 @@ def encode_video(frames: np.ndarray, cfg: CodecConfig, mask: np.ndarray | None =
             full = cfg.size_refresh <= 1 or i % cfg.size_refresh == 0 or (p is not None) not in last_size
             # greedy size search from the last choice of this frame type (P-frames without
             # one: from the largest size, which temporal prediction favours)
-            start = last_size.get(p is not None, max(cfg.block_sizes) if p is not None else None)
+            start = last_size.get(p is not None, max(cfg.sizes()) if p is not None else None)
             batch = [encode_frame(x[i], p, cfg, wmask, None if full else (last_size[p is not None],), start)]
             last_size[p is not None] = batch[0][0].n
         for code, rec in batch:
@@ -122,7 +122,7 @@ def _intra_batch(xs: np.ndarray, i0: int, cfg: CodecConfig, wmask, last_size: di
     idx = [k for k in range(f) if cfg.size_refresh <= 1 or (i0 + k) % cfg.size_refresh == 0
            or (k == 0 and False not in last_size)]
     if idx:
-        res = encode_batch(xs[idx], None, cfg, wmask, [tuple(cfg.block_sizes)] * len(idx), last_size.get(False))
+        res = encode_batch(xs[idx], None, cfg, wmask, [cfg.sizes()] * len(idx), last_size.get(False))
         for k, r in zip(idx, res):
             out[k] = r
     sizes, cur = [], last_size.get(False)

@@ -48,7 +48,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     r.add_argument("--qps", default="18,30,42,54")
     r.add_argument("--configs", default="hip-intra,hip+pdp-intra,hip+pdp+pvm",
                    help="comma list from facesynth.codec.rd.CONFIGS")
-    r.add_argument("--block-sizes", default="8,16")
+    r.add_argument("--block-sizes", default=None, help="comma list from 4, 8, 16 (default: 8,16 with "
+                   "the 8x8 transform, else 4,8,16)")
     r.add_argument("--no-transform8", action="store_true", help="4x4 transform for every block size")
     r.add_argument("--plot", type=Path, default=Path("codec_rd.png"))
     r.add_argument("--json", type=Path, help="also write the figures here")
@@ -58,12 +59,15 @@ def _codec_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--modes", choices=["hip", "hip+pdp", "hip+pdp-spatial"], default="hip+pdp")
     p.add_argument("--gop", type=int, default=1, help="1 = all intra; N = I then N-1 P-frames")
     p.add_argument("--no-inter", action="store_true", help="P-frames without motion compensation")
-    p.add_argument("--block-sizes", default="8,16")
+    p.add_argument("--block-sizes", default=None, help="comma list from 4, 8, 16 (default: 8,16 with "
+                   "the 8x8 transform, else 4,8,16)")
     p.add_argument("--no-transform8", action="store_true", help="4x4 transform for every block size")
     p.add_argument("--mv-range", type=int, default=2, help="full-search range in pixels")
 
 
-def _sizes(text: str) -> tuple[int, ...]:
+def _sizes(text: str | None) -> tuple[int, ...] | None:
+    if text is None:
+        return None
     try:
         out = tuple(int(s) for s in text.split(","))
     except ValueError:

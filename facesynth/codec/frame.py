@@ -26,7 +26,9 @@ class CodecConfig:
 
     qp : int or None (lossless); pdp : spatial PDP modes; pvm : temporal PDP (PVM) modes
     in P-frames; inter : motion-compensated prediction in P-frames; gop : frames per
-    group (1 = all intra); block_sizes : candidate N per frame; mv_range : full-search
+    group (1 = all intra); block_sizes : candidate N per frame (None: 8 and 16 with the 8x8
+    transform, where 4x4 blocks were never chosen on the ICT video, else 4, 8, 16, see
+    :meth:`sizes`); mv_range : full-search
     range in pixels; outside_weight : weight of pixels outside the mask in D;
     rd_candidates : full RD test only for this many modes of least SAD (0 = all);
     lambda_scale : multiplies the H.264 lambda(QP); size_refresh : all block sizes are
@@ -42,7 +44,7 @@ class CodecConfig:
     pvm: bool = True
     inter: bool = True
     gop: int = 1
-    block_sizes: tuple[int, ...] = (8, 16)  # 4x4 was never chosen with the 8x8 transform (docs/codec.md)
+    block_sizes: tuple[int, ...] | None = None
     mv_range: int = 2
     outside_weight: float = 0.05
     rd_candidates: int = 3
@@ -50,6 +52,13 @@ class CodecConfig:
     size_refresh: int = 4
     batch_frames: int = 8
     transform8: bool = True
+
+
+    def sizes(self) -> tuple[int, ...]:
+        """The candidate block sizes in effect."""
+        if self.block_sizes is not None:
+            return tuple(self.block_sizes)
+        return (8, 16) if (self.transform8 and self.qp is not None) else (4, 8, 16)
 
 
 @dataclass
@@ -72,11 +81,11 @@ def encode_frame(x: np.ndarray, prev: np.ndarray | None, cfg: CodecConfig,
                  start: int | None = None) -> tuple[FrameCode, np.ndarray]:
     """Encode one frame (C, H, W) int64; ``prev`` (C, H, W) makes it a P-frame.
 
-    ``sizes`` overrides ``cfg.block_sizes`` (the candidate block sizes tried); ``start``
+    ``sizes`` overrides ``cfg.sizes()`` (the candidate block sizes tried); ``start``
     makes the size search greedy from that size (:func:`encoder.encode_frames`).
     Returns the frame's code and its reconstruction (C, H, W) int64.
     """
-    return encode_batch(x[None], prev, cfg, weight, [tuple(sizes or cfg.block_sizes)], start)[0]
+    return encode_batch(x[None], prev, cfg, weight, [tuple(sizes or cfg.sizes())], start)[0]
 
 
 def encode_batch(xs: np.ndarray, prev: np.ndarray | None, cfg: CodecConfig, weight: np.ndarray | None,
