@@ -40,6 +40,8 @@ from facesynth.codec.transform import (
 )
 
 _C0, _C1, _CS = 2.0, 2.0, 1.0  # level rate model: C0 + C1 log2(1 + |l|) per non-zero, CS per sub-block
+_DR_MAX = 64  # rate change of lowering a level l by one, tabulated up to l = 64 (larger: as 64)
+_DR_TABLE = np.array([np.inf] + [_C1 * np.log2(v / (v + 1.0)) - _C0 * (v == 1) for v in range(1, _DR_MAX + 1)])
 
 
 @lru_cache(maxsize=None)
@@ -144,6 +146,7 @@ class _Quant:
             self.pf = PF16
             self.rm = rescale_scale(qp)
         self.lam = lam
+        self.lam_dr = lam * _DR_TABLE
 
     def __call__(self, coef: np.ndarray, wmb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Coefficients (..., S, 16) zigzag, block weights (...) -> (levels |z|, J = D wmb + lambda R).
@@ -156,16 +159,20 @@ class _Quant:
         z = a * self.mul
         z += self.f
         np.floor(z, out=z)
-        err = a * self.pf - z * self.rm
-        e1 = err + self.rm
-        dd = (e1 * e1 - err * err) * wmb.reshape(*wmb.shape, *([1] * (a.ndim - wmb.ndim)))
-        dr = _C1 * (np.log2(np.maximum(z, 1.0)) - np.log2(z + 1.0)) - _C0 * (z == 1)
-        down = (z > 0) & (dd + self.lam * dr < 0)
+        err = a * self.pf
+        err -= z * self.rm
+        err2 = err * err
+        err += self.rm
+        delta = err * err  # D after lowering, then its change
+        delta -= err2
+        gain = delta * wmb.reshape(*wmb.shape, *([1] * (a.ndim - wmb.ndim)))
+        gain += self.lam_dr[np.minimum(z, _DR_MAX).astype(np.intp)]
+        down = gain < 0
         z -= down
-        err = np.where(down, e1, err)
-        err *= err
+        delta *= down
+        err2 += delta
         z = z.reshape(coef.shape)
-        d = err.reshape(*coef.shape[:-2], -1).sum(-1)
+        d = err2.reshape(*coef.shape[:-2], -1).sum(-1)
         return z, d * wmb + self.lam * est_bits(z)
 
 
