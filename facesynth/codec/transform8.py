@@ -152,7 +152,16 @@ def _pass_float(d: np.ndarray) -> np.ndarray:
 def inverse_slots_float(z: np.ndarray, qp: int) -> np.ndarray:
     """:func:`inverse_slots` in float64 (exact: integers below 2**53, floors of exact
     halves and quarters): signed levels (..., 64) slot order -> residual (..., 64)."""
-    x = z.reshape(-1, 64) * dequant_scale(qp)
+    flat = z.reshape(-1, 64)
+    nz = flat.any(1)  # all-zero blocks stay zero: transform only the others
+    out = np.zeros(flat.shape)
+    if nz.any():
+        out[nz] = _inverse_rows(flat[nz], qp)
+    return out.reshape(*z.shape[:-1], 64)
+
+
+def _inverse_rows(z: np.ndarray, qp: int) -> np.ndarray:
+    x = z * dequant_scale(qp)
     d = np.empty_like(x)
     d[:, _SLOT_RASTER] = x
     d = _pass_float(d.reshape(-1, 8))  # rows
@@ -161,4 +170,4 @@ def inverse_slots_float(z: np.ndarray, qp: int) -> np.ndarray:
     d += 128.0
     d *= 1.0 / 256
     np.floor(d, out=d)
-    return d[:, _SAMPLE_RASTER].reshape(*z.shape[:-1], 64)
+    return d[:, _SAMPLE_RASTER]
