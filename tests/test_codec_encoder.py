@@ -37,6 +37,9 @@ def test_scaled_float_weights_round_like_the_integer_shift(n, rng):
     nb[:8] = 65535  # extremes
     nb[8:16] = 0
     pred = np.floor(nb.astype(float) @ encoder_weights(n, True, False) + 0.5).reshape(64, -1, n * n)
+    if n == 8:  # the encoder feeds the HIP 8x8 columns with the filtered samples
+        nbf = np.floor(nb.astype(float) @ (intra.filter8_matrix() * 0.25) + 0.5)
+        pred[:, :9] = np.floor(nbf @ encoder_weights(n, True, False)[:, :9 * 64] + 0.5).reshape(64, 9, 64)
     ref = intra.spatial_predictions(nb, n, pdp=True)  # HIP (Plane at slot 3 for 16) then PDP, clipped
     inv = np.argsort(sub_perm(n))
     got = np.clip(pred[..., inv], 0, 65535)

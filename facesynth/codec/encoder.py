@@ -199,6 +199,7 @@ def encode_n(x: np.ndarray, prev: np.ndarray | None, cfg, weight: np.ndarray | N
     wm = wpad[pix_r].mean(-1)
     ones = np.ones(nn)
     wmat = encoder_weights(n, ms.pdp, ms.pvm)
+    f8 = intra.filter8_matrix() * 0.25 if n == 8 else None
     mp = ms.n_predictive
     kk = mp if not cfg.rd_candidates else min(cfg.rd_candidates, mp)
     lossless = qp is None
@@ -256,7 +257,12 @@ def encode_n(x: np.ndarray, prev: np.ndarray | None, cfg, weight: np.ndarray | N
     for s, e in g.bounds:
         b = e - s
         nb = buf[:, nbo[s:e]]  # (C, b, K)
-        pred = (nb.reshape(-1, nb.shape[-1]) @ wmat).reshape(c, b, mp, nn)  # scaled, unrounded
+        if n == 8:  # HIP 8x8 modes predict from the filtered samples (exact: floor of quarters)
+            nbf = np.floor(nb.reshape(-1, nb.shape[-1]) @ f8 + 0.5)
+            pred = np.concatenate([nbf @ wmat[:, :9 * nn], nb.reshape(-1, nb.shape[-1]) @ wmat[:, 9 * nn:]], 1)
+            pred = pred.reshape(c, b, mp, nn)
+        else:
+            pred = (nb.reshape(-1, nb.shape[-1]) @ wmat).reshape(c, b, mp, nn)  # scaled, unrounded
         if n == 16:
             pred[:, :, 3] = intra.plane16(nb.astype(np.int64))[..., perm]
         if ms.pvm:

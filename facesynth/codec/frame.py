@@ -143,8 +143,11 @@ def decode_frame(code: FrameCode, prev: np.ndarray | None, qp: int | None, flags
     buf = padded(np.full(shape, MID, np.int64)).astype(np.float64)
     any_plane = plane.any()
     half, scale = 2.0 ** (intra.SHIFT - 1), 2.0 ** -intra.SHIFT
+    f8 = intra.filter8_matrix() * 0.25 if n == 8 else None
     for s, e in g.bounds:
         nbv = buf[:, nb_idx[s:e]]
+        if n == 8:  # HIP 8x8 modes (bank rows 0..8) predict from the filtered samples
+            nbv = np.where((lin[:, s:e] < 9)[..., None], np.floor(nbv @ f8 + 0.5), nbv)
         acc = np.matmul(nbv[:, :, None, :], bank[lin[:, s:e]])[:, :, 0]
         acc += half
         acc *= scale
