@@ -139,11 +139,6 @@ class ModeSet:
         return out + (["INTER"] if self.inter else [])
 
 
-def prev_maps(prev_buf: np.ndarray, g: Grid) -> np.ndarray:
-    """PVM maps of the previous reconstructed frame for every block: (C, nblk, 4, N*N)."""
-    return intra.pvm_maps(prev_buf[:, g.pix_idx], prev_buf[:, g.nb_idx], g.n)
-
-
 def sad_maps(cur: np.ndarray, prev: np.ndarray, rng: int) -> tuple[np.ndarray, np.ndarray]:
     """SAD of every 4x4 block for every integer displacement in [-rng, rng]^2.
 
