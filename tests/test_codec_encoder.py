@@ -110,3 +110,21 @@ def test_adaptive_model_ages_counts_identically_on_both_sides(rng):
     np.testing.assert_array_equal(out, sym)
     np.testing.assert_array_equal(m_enc.counts, m_dec.counts)
     assert m_enc.counts[0].sum() <= entropy.LIMIT and m_enc.counts[0].sum() > entropy.LIMIT / 4  # aged, not reset
+
+
+@pytest.mark.parametrize("kw", [
+    dict(qp=0, gop=3, pdp=False, pvm=True, inter=True),
+    dict(qp=87, gop=2, rd_candidates=0),
+    dict(qp=None, gop=3, block_sizes=(8, 16)),
+    dict(qp=45, gop=3, block_sizes=(4, 8, 16), transform8=False, mv_range=1),
+    dict(qp=33, gop=1, block_sizes=(16,), pdp=False, batch_frames=2, size_refresh=1),
+    dict(qp=51, gop=4, inter=False, block_sizes=(4, 16)),
+], ids=["qp0-pvm-no-pdp", "qp87-all-candidates", "lossless-8-16", "4x4-transform", "hip-16-batched", "pvm-no-inter"])
+def test_unusual_settings_stay_bit_exact(kw):
+    m = height_field_mesh(33, n_frames=4)
+    lay = build_layout(m["faces"], m["uv"], (32, 48))
+    vid, _ = geometry_video(lay, m["frames"])
+    data, rec, _ = encode_video(vid, CodecConfig(**kw), lay.mask)
+    np.testing.assert_array_equal(decode_video(data)[0], rec)
+    if kw["qp"] is None:
+        np.testing.assert_array_equal(rec, vid)
