@@ -123,13 +123,28 @@ def _ref_pdp(nb, n, mode):
     return np.array([out[y, x] for y in range(n) for x in range(n)])
 
 
+def _ref_filter8(nb):
+    """H.264 sec. 8.3.2.2.1 reference sample filtering, sample by sample (all available)."""
+    m, T, L = _split(nb, 8)
+    t = [T(i) for i in range(16)]
+    lft = [L(j) for j in range(8)]
+    tf = [(m + 2 * t[0] + t[1] + 2) >> 2] + [(t[x - 1] + 2 * t[x] + t[x + 1] + 2) >> 2 for x in range(1, 15)]
+    tf.append((t[14] + 3 * t[15] + 2) >> 2)
+    lf = [(m + 2 * lft[0] + lft[1] + 2) >> 2] + [(lft[y - 1] + 2 * lft[y] + lft[y + 1] + 2) >> 2 for y in range(1, 7)]
+    lf.append((lft[6] + 3 * lft[7] + 2) >> 2)
+    mf = (t[0] + 2 * m + lft[0] + 2) >> 2
+    return np.array([mf] + tf + lf, np.int64)
+
+
 @pytest.mark.parametrize("n", [4, 8])
 def test_nine_hip_modes_match_per_pixel_formulas(n, rng):
     for _ in range(3):
         nb = _nb(rng, n)
         pred = intra.spatial_predictions(nb[None], n, pdp=False)[0]
+        ref_nb = _ref_filter8(nb) if n == 8 else nb  # 8x8 modes predict from filtered samples
+        np.testing.assert_array_equal(intra.filter8(nb[None])[0] if n == 8 else nb, ref_nb)
         for mode in range(9):
-            np.testing.assert_array_equal(pred[mode], _ref_hip(nb, n, mode), err_msg=f"mode {mode}")
+            np.testing.assert_array_equal(pred[mode], _ref_hip(ref_nb, n, mode), err_msg=f"mode {mode}")
 
 
 def test_h264_4x4_textbook_values():

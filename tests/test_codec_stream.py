@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from facesynth.cli import main
-from facesynth.codec.bitstream import decode_video, encode_video
+from facesynth.codec.bitstream import VERSION, decode_video, encode_video
 from facesynth.codec.frame import CodecConfig
 from facesynth.codec.geometry import build_layout, geometry_video
 from facesynth.codec.rd import bd_rate
@@ -109,9 +109,14 @@ def test_corrupt_and_truncated_streams_are_rejected(video):
         except FacesynthError:
             pass
     # a forged header (valid CRC) claiming a million 60000x60000 frames: clean error, no huge allocation
-    hdr = struct.pack("<4sBBBBHHBHBI6d", b"FSGV", 1, 0, 3, 16, 60000, 60000, 30, 1, 2, 10**6, *([0.0] * 6))
+    hdr = struct.pack("<4sBBBBHHBHBI6d", b"FSGV", VERSION, 0, 3, 16, 60000, 60000, 30, 1, 2, 10**6, *([0.0] * 6))
     with pytest.raises(FacesynthError, match="truncated"):
         decode_video(hdr + struct.pack("<I", zlib.crc32(hdr)) + b"\0" * 100)
+    # a stream of another format version (its header CRC valid) is refused, not misread
+    old = bytearray(data[:hdr_len - 4])
+    old[4] = VERSION - 1
+    with pytest.raises(FacesynthError, match="unsupported header"):
+        decode_video(bytes(old) + struct.pack("<I", zlib.crc32(bytes(old))) + data[hdr_len:])
 
 
 def test_encoder_rejects_bad_input():
@@ -141,6 +146,10 @@ def test_cli_encode_decode_round_trip(tmp_path, video, capsys):
     assert main(["codec", "decode", str(tmp_path / "v.fsgv"), str(tmp_path / "d.npy")]) == 0
     dec = np.load(tmp_path / "d.npy")
     assert psnr(vid, dec, mask, peak=65535) == pytest.approx(enc["psnr_db"])
+    assert main(["codec", "encode", str(tmp_path / "v.npy"), str(tmp_path / "t4.fsgv"), "--qp", "30",
+                 "--no-transform8", "--block-sizes", "4,8,16"]) == 0
+    assert json.loads(capsys.readouterr().out.strip().splitlines()[-1])["bytes"] > 0
+    assert main(["codec", "decode", str(tmp_path / "t4.fsgv"), str(tmp_path / "t4.npy")]) == 0
     assert main(["codec", "encode", str(tmp_path / "v.npy"), str(tmp_path / "l.fsgv"), "--lossless"]) == 0
     assert main(["codec", "decode", str(tmp_path / "l.fsgv"), str(tmp_path / "l.npy")]) == 0
     np.testing.assert_array_equal(np.load(tmp_path / "l.npy"), vid)

@@ -20,12 +20,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from facesynth.codec.frame import CodecConfig, FrameCode, decode_frame, encode_frame, read_frame, write_frame
+from facesynth.codec.frame import (
+    CodecConfig, FrameCode, decode_frame, encode_batch, encode_frame, read_frame, write_frame,
+)
 from facesynth.codec.transform import QP_MAX
 from facesynth.errors import FacesynthError
 
 MAGIC = b"FSGV"
-VERSION = 1
+VERSION = 2  # 2: neighbour contexts for `last`, coded by staggered anti-diagonals
 _HDR = struct.Struct("<4sBBBBHHBHBI6d")
 _CHUNK = struct.Struct("<II")
 
@@ -64,7 +66,7 @@ def encode_video(frames: np.ndarray, cfg: CodecConfig, mask: np.ndarray | None =
         raise FacesynthError(f"frames: unsupported shape {frames.shape}")
     if cfg.qp is not None and not 0 <= cfg.qp <= QP_MAX:
         raise FacesynthError(f"qp: expected 0..{QP_MAX}, got {cfg.qp}")
-    if cfg.gop < 1 or not 0 <= cfg.mv_range <= 32 or any(n not in (4, 8, 16) for n in cfg.block_sizes):
+    if cfg.gop < 1 or not 0 <= cfg.mv_range <= 32 or not cfg.sizes() or any(n not in (4, 8, 16) for n in cfg.sizes()):
         raise FacesynthError("codec config: gop >= 1, mv_range 0..32, block sizes from {4, 8, 16}")
     flags = (cfg.pdp, cfg.pvm, cfg.inter)
     fl = (cfg.qp is None) | 2 * cfg.pdp | 4 * cfg.pvm | 8 * cfg.inter | 16 * (bbox is not None)
@@ -80,22 +82,60 @@ def encode_video(frames: np.ndarray, cfg: CodecConfig, mask: np.ndarray | None =
     mode_hist: dict[str, int] = {}
     t0 = time.perf_counter()
     last_size: dict[bool, int] = {}
-    for i in range(t):
-        p = prev if (i % cfg.gop) else None
-        full = cfg.size_refresh <= 1 or i % cfg.size_refresh == 0 or (p is not None) not in last_size
-        code, rec = encode_frame(x[i], p, cfg, wmask, None if full else (last_size[p is not None],))
-        last_size[p is not None] = code.n
-        payload = write_frame(code, flags, cfg.mv_range, x[i].shape)
-        out.append(_CHUNK.pack(len(payload), zlib.crc32(payload)))
-        out.append(payload)
-        _count_modes(mode_hist, code, flags)
-        recs.append(rec)
-        prev = rec
+    i = 0
+    while i < t:
+        if cfg.gop == 1:  # independent frames: a batch shares the wavefront loop
+            batch = _intra_batch(x[i:i + max(1, cfg.batch_frames)], i, cfg, wmask, last_size)
+        else:
+            p = prev if (i % cfg.gop) else None
+            full = cfg.size_refresh <= 1 or i % cfg.size_refresh == 0 or (p is not None) not in last_size
+            # greedy size search from the last choice of this frame type (P-frames without
+            # one: from the largest size, which temporal prediction favours)
+            start = last_size.get(p is not None, max(cfg.sizes()) if p is not None else None)
+            batch = [encode_frame(x[i], p, cfg, wmask, None if full else (last_size[p is not None],), start)]
+            last_size[p is not None] = batch[0][0].n
+        for code, rec in batch:
+            payload = write_frame(code, flags, cfg.mv_range, x[i].shape)
+            out.append(_CHUNK.pack(len(payload), zlib.crc32(payload)))
+            out.append(payload)
+            _count_modes(mode_hist, code, flags)
+            recs.append(rec)
+            prev = rec
+            i += 1
     enc_s = time.perf_counter() - t0
     rec = np.moveaxis(np.stack(recs), 1, -1)[:, :h, :w].astype(np.uint16)
     data = b"".join(out)
     stats = {"bytes": len(data), "bits_per_frame": 8 * len(data) / t, "encode_s": enc_s, "modes": mode_hist}
     return data, rec, stats
+
+
+def _intra_batch(xs: np.ndarray, i0: int, cfg: CodecConfig, wmask, last_size: dict) -> list:
+    """Encode consecutive I-frames xs (F, C, H, W) of an all-intra stream together.
+
+    Block sizes follow the sequential rule: frame ``i`` tries all sizes when
+    ``i % size_refresh == 0`` (or when no size was chosen yet), otherwise it reuses the
+    size of the frame before it. The refresh frames are coded first (all sizes, one
+    batch), then the others, grouped by the size they inherit.
+    """
+    f = len(xs)
+    out: list = [None] * f
+    idx = [k for k in range(f) if cfg.size_refresh <= 1 or (i0 + k) % cfg.size_refresh == 0
+           or (k == 0 and False not in last_size)]
+    if idx:
+        res = encode_batch(xs[idx], None, cfg, wmask, [cfg.sizes()] * len(idx), last_size.get(False))
+        for k, r in zip(idx, res):
+            out[k] = r
+    sizes, cur = [], last_size.get(False)
+    for k in range(f):
+        cur = out[k][0].n if out[k] is not None else cur
+        sizes.append(cur)
+    rest = [k for k in range(f) if out[k] is None]
+    if rest:
+        res = encode_batch(xs[rest], None, cfg, wmask, [(sizes[k],) for k in rest])
+        for k, r in zip(rest, res):
+            out[k] = r
+    last_size[False] = out[-1][0].n
+    return out
 
 
 def _count_modes(hist: dict, code: FrameCode, flags) -> None:
@@ -150,7 +190,7 @@ def decode_video(data: bytes) -> tuple[np.ndarray, StreamInfo, dict]:
             raise FacesynthError(f"bitstream: CRC32 mismatch in frame {i} (corrupt stream)")
         off += ln
         try:
-            code, mvr = read_frame(payload, info.flags, shape)
+            code, mvr = read_frame(payload, info.flags, shape, info.qp is None)
             if code.p_frame != bool(i % info.gop) or mvr != info.mv_range:
                 raise ValueError("frame type or motion range disagrees with the header")
             rec = decode_frame(code, prev if code.p_frame else None, info.qp, info.flags, mvr, shape)

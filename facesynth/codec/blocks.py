@@ -65,6 +65,30 @@ def grid(n: int, height: int, width: int) -> Grid:
     return Grid(n, height, width, nb_idx, pix_idx, waves, order, bounds)
 
 
+@lru_cache(maxsize=None)
+def sub_order(n: int) -> np.ndarray:
+    """(S,) raster index of each 4x4 sub-block of an N x N block in the encoder's order:
+    8x8 quadrants in raster order, the four sub-blocks of each in raster order (the
+    identity for N <= 8), so that every 8x8 block is a contiguous run of samples."""
+    s = n // 4
+    if s <= 2:
+        return np.arange(s * s)
+    qy, qx, ay, ax = np.meshgrid(np.arange(s // 2), np.arange(s // 2), np.arange(2), np.arange(2), indexing="ij")
+    return ((2 * qy + ay) * s + 2 * qx + ax).ravel()
+
+
+@lru_cache(maxsize=None)
+def sub_perm(n: int) -> np.ndarray:
+    """(N*N,) raster positions of a block's samples in sub-block-major order: the 4x4
+    sub-blocks in :func:`sub_order`, each in raster order (so (..., N*N) reshapes to
+    (..., (N/4)^2, 16), and to (..., (N/8)^2, 64) 8x8 blocks, without a copy)."""
+    s = n // 4
+    sb = sub_order(n)
+    sy, sx = np.divmod(sb, s)
+    py, px = np.divmod(np.arange(16), 4)
+    return ((sy[:, None] * 4 + py[None, :]) * n + sx[:, None] * 4 + px[None, :]).ravel()
+
+
 def padded(frame: np.ndarray) -> np.ndarray:
     """(C, H, W) -> (C, (H+1)*(W+1)) int64 with the constant border."""
     c, h, w = frame.shape
@@ -113,33 +137,6 @@ class ModeSet:
         out += list(intra.PDP_NAMES) if self.pdp else []
         out += [f"PVM-{m[4:]}" for m in intra.PDP_NAMES] if self.pvm else []
         return out + (["INTER"] if self.inter else [])
-
-
-def wave_predictions(buf: np.ndarray, nb_idx: np.ndarray, n: int, ms: ModeSet,
-                     maps: np.ndarray | None) -> np.ndarray:
-    """Predictions of all current-frame-dependent modes for the blocks of one wave.
-
-    buf : (C, (H+1)(W+1)) reconstructed samples so far; nb_idx : (b, K) neighbour indices
-    of the wave's blocks; maps : (C, b, 4, N*N) their PVM maps.
-    Returns (C, b, n_predictive, N*N) int64 in [0, 65535].
-    """
-    nb = buf[:, nb_idx]
-    raw = intra.apply_matrices(nb, "hip+pdp" if (ms.pdp or ms.pvm) else "hip", n)
-    nh = 3 if n == 16 else 9
-    parts = [raw[:, :, :nh]]
-    if n == 16:
-        parts.append(intra.plane16(nb)[:, :, None])
-    if ms.pdp:
-        parts.append(raw[:, :, nh:])
-    if ms.pvm:
-        parts.append(raw[:, :, nh:] + maps)
-    pred = np.concatenate(parts, 2) if len(parts) > 1 else parts[0]
-    return np.clip(pred, 0, 65535, out=pred)
-
-
-def prev_maps(prev_buf: np.ndarray, g: Grid) -> np.ndarray:
-    """PVM maps of the previous reconstructed frame for every block: (C, nblk, 4, N*N)."""
-    return intra.pvm_maps(prev_buf[:, g.pix_idx], prev_buf[:, g.nb_idx], g.n)
 
 
 def sad_maps(cur: np.ndarray, prev: np.ndarray, rng: int) -> tuple[np.ndarray, np.ndarray]:

@@ -48,7 +48,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     r.add_argument("--qps", default="18,30,42,54")
     r.add_argument("--configs", default="hip-intra,hip+pdp-intra,hip+pdp+pvm",
                    help="comma list from facesynth.codec.rd.CONFIGS")
-    r.add_argument("--block-sizes", default="4,8,16")
+    r.add_argument("--block-sizes", default=None, help="comma list from 4, 8, 16 (default: 8,16 with "
+                   "the 8x8 transform, else 4,8,16)")
+    r.add_argument("--no-transform8", action="store_true", help="4x4 transform for every block size")
     r.add_argument("--plot", type=Path, default=Path("codec_rd.png"))
     r.add_argument("--json", type=Path, help="also write the figures here")
 
@@ -57,11 +59,15 @@ def _codec_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--modes", choices=["hip", "hip+pdp", "hip+pdp-spatial"], default="hip+pdp")
     p.add_argument("--gop", type=int, default=1, help="1 = all intra; N = I then N-1 P-frames")
     p.add_argument("--no-inter", action="store_true", help="P-frames without motion compensation")
-    p.add_argument("--block-sizes", default="4,8,16")
+    p.add_argument("--block-sizes", default=None, help="comma list from 4, 8, 16 (default: 8,16 with "
+                   "the 8x8 transform, else 4,8,16)")
+    p.add_argument("--no-transform8", action="store_true", help="4x4 transform for every block size")
     p.add_argument("--mv-range", type=int, default=2, help="full-search range in pixels")
 
 
-def _sizes(text: str) -> tuple[int, ...]:
+def _sizes(text: str | None) -> tuple[int, ...] | None:
+    if text is None:
+        return None
     try:
         out = tuple(int(s) for s in text.split(","))
     except ValueError:
@@ -131,7 +137,8 @@ def run(args: argparse.Namespace) -> int:
         if args.gop < 1:
             raise FacesynthError(f"--gop: expected >= 1, got {args.gop}")
         cfg = CodecConfig(qp=None if args.lossless else args.qp, block_sizes=_sizes(args.block_sizes),
-                          mv_range=args.mv_range, **modes_config(args.modes, args.gop, not args.no_inter))
+                          mv_range=args.mv_range, transform8=not args.no_transform8,
+                          **modes_config(args.modes, args.gop, not args.no_inter))
         data, rec, st = encode_video(video, cfg, mask)
         write_bytes(args.output, data)
         st["psnr_db"] = psnr(video, rec, mask, peak=65535)
@@ -160,7 +167,7 @@ def run(args: argparse.Namespace) -> int:
         raise FacesynthError(f"--configs: unknown {unknown}; choose from {list(CONFIGS)}")
     qps = [int(q) for q in args.qps.split(",")]
     points = rd_sweep(video, mask, qps, {n: CONFIGS[n] for n in names},
-                      CodecConfig(block_sizes=_sizes(args.block_sizes)))
+                      CodecConfig(block_sizes=_sizes(args.block_sizes), transform8=not args.no_transform8))
     result = {"video_shape": list(video.shape), "qps": qps, "points": points,
               "bd_rate_vs_" + names[0]: {n: bd_between(points, names[0], n) for n in names[1:]}}
     plot_rd(points, args.plot, f"{video.shape[0]} frames {video.shape[1]}x{video.shape[2]}")

@@ -1,15 +1,10 @@
-"""Frame encoder and decoder: wavefront intra/inter prediction, residual coding, RD choice.
+"""Frame-level API: encoder settings, frame codes, the decoder and frame serialisation.
 
-For every wavefront (see :mod:`facesynth.codec.blocks`) the encoder forms all candidate
-predictions of all its blocks and channels at once, keeps the few of least mask-weighted
-SAD, transforms and quantises their residuals, and keeps per block and channel the mode of
-least ``J = D + lambda(QP) R`` (D: the SSD the levels will cause, from the transform
-domain by Parseval, times the block's mean mask weight; R: an estimate of the level bits).
-Only the chosen candidate is reconstructed, with the decoder's own residual function.
-The block size is chosen per frame by the same cost. The decoder
-entropy-decodes the whole frame first, rebuilds all residuals in one pass, then runs
-the wavefront with the same prediction code, so its output equals the encoder's
-reconstruction bit for bit.
+The encoder itself lives in :mod:`facesynth.codec.encoder` (wavefront prediction,
+transform-domain RD decisions, per-frame block-size choice). The decoder entropy-decodes
+the whole frame first, rebuilds all residuals in one pass, then runs the wavefront with
+the chosen modes only; its arithmetic (exact float64 sums of integers, floor, clips) is
+the encoder's, so its output equals the encoder's reconstruction bit for bit.
 """
 
 from __future__ import annotations
@@ -19,12 +14,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from facesynth.codec import entropy, intra
+from facesynth.codec import encoder, entropy, intra
 from facesynth.codec.intra import n_neighbours
-from facesynth.codec.blocks import (
-    MID, ModeSet, grid, motion_compensate, motion_search, padded, sad_maps, prev_maps, unpadded, wave_predictions,
-)
-from facesynth.codec.transform import analyse_residual, code_residual, decode_residual, lagrangian
+from facesynth.codec.blocks import MID, ModeSet, grid, motion_compensate, padded, unpadded
+from facesynth.codec.transform import decode_residual
 
 
 @dataclass
@@ -33,12 +26,17 @@ class CodecConfig:
 
     qp : int or None (lossless); pdp : spatial PDP modes; pvm : temporal PDP (PVM) modes
     in P-frames; inter : motion-compensated prediction in P-frames; gop : frames per
-    group (1 = all intra); block_sizes : candidate N per frame; mv_range : full-search
+    group (1 = all intra); block_sizes : candidate N per frame (None: 8 and 16 with the 8x8
+    transform, where 4x4 blocks were never chosen on the ICT video, else 4, 8, 16, see
+    :meth:`sizes`); mv_range : full-search
     range in pixels; outside_weight : weight of pixels outside the mask in D;
     rd_candidates : full RD test only for this many modes of least SAD (0 = all);
     lambda_scale : multiplies the H.264 lambda(QP); size_refresh : all block sizes are
     tried on I-frames and every ``size_refresh``-th frame, the others reuse the last
-    choice within the same frame type (0 or 1 = try all sizes on every frame).
+    choice within the same frame type (0 or 1 = try all sizes on every frame);
+    batch_frames : all-intra streams (gop 1) encode this many frames at once (the frames
+    are independent; the bitstream does not depend on it); transform8 : 8x8 and 16x16
+    blocks use the 8x8 integer transform (:mod:`facesynth.codec.transform8`).
     """
 
     qp: int | None = 30
@@ -46,12 +44,21 @@ class CodecConfig:
     pvm: bool = True
     inter: bool = True
     gop: int = 1
-    block_sizes: tuple[int, ...] = (4, 8, 16)
+    block_sizes: tuple[int, ...] | None = None
     mv_range: int = 2
     outside_weight: float = 0.05
     rd_candidates: int = 3
-    lambda_scale: float = 1.0
+    lambda_scale: float = 0.7  # on the H.264 lambda; measured optimum with the 8x8 transform
     size_refresh: int = 4
+    batch_frames: int = 8
+    transform8: bool = True
+
+
+    def sizes(self) -> tuple[int, ...]:
+        """The candidate block sizes in effect."""
+        if self.block_sizes is not None:
+            return tuple(self.block_sizes)
+        return (8, 16) if (self.transform8 and self.qp is not None) else (4, 8, 16)
 
 
 @dataclass
@@ -62,105 +69,33 @@ class FrameCode:
     levels: np.ndarray  # (C, nblk, (N/4)^2, 16)
     mvs: np.ndarray  # (C, nblk, 2)
     stats: dict = field(default_factory=dict)
+    t8: bool = False  # residuals through the 8x8 transform
 
 
 def mode_set(cfg_pdp: bool, cfg_pvm: bool, cfg_inter: bool, n: int, p_frame: bool) -> ModeSet:
     return ModeSet(n, cfg_pdp, cfg_pvm and p_frame, cfg_inter and p_frame)
 
 
-MODE_BITS = 2.5  # typical adaptive cost of a block's mode; enters the per-frame block-size choice
-
-
-def _est_bits(lev: np.ndarray) -> np.ndarray:
-    """Rough level bits (..., S, 16) -> (...): 2 + 2 log2(1 + |l|) per non-zero, 1 per sub-block."""
-    a = np.abs(lev)
-    b = np.where(a > 0, 2.0 + 2.0 * np.log2(1.0 + a), 0.0)
-    return b.sum((-1, -2)) + lev.shape[-2]
-
-
 def encode_frame(x: np.ndarray, prev: np.ndarray | None, cfg: CodecConfig,
-                 weight: np.ndarray | None = None, sizes: tuple[int, ...] | None = None
-                 ) -> tuple[FrameCode, np.ndarray]:
+                 weight: np.ndarray | None = None, sizes: tuple[int, ...] | None = None,
+                 start: int | None = None) -> tuple[FrameCode, np.ndarray]:
     """Encode one frame (C, H, W) int64; ``prev`` (C, H, W) makes it a P-frame.
 
-    ``sizes`` overrides ``cfg.block_sizes`` (the candidate block sizes tried).
+    ``sizes`` overrides ``cfg.sizes()`` (the candidate block sizes tried); ``start``
+    makes the size search greedy from that size (:func:`encoder.encode_frames`).
     Returns the frame's code and its reconstruction (C, H, W) int64.
     """
-    best = None
-    sads = sad_maps(x, prev, cfg.mv_range) if (prev is not None and cfg.inter) else None
-    for n in sizes or cfg.block_sizes:
-        code, rec, cost = _encode_n(x, prev, cfg, weight, n, sads)
-        if best is None or cost < best[2]:
-            best = (code, rec, cost)
-    return best[0], best[1]
+    return encode_batch(x[None], prev, cfg, weight, [tuple(sizes or cfg.sizes())], start)[0]
 
 
-def _encode_n(x, prev, cfg, weight, n, sads=None):
-    c, h, w = x.shape
-    g = grid(n, h, w)
-    ms = mode_set(cfg.pdp, cfg.pvm, cfg.inter, n, prev is not None)
-    qp = cfg.qp
-    lam = lagrangian(qp) * cfg.lambda_scale
-    xb = padded(x)[:, g.pix_idx]
-    wt = np.ones((h, w)) if weight is None else np.where(weight, 1.0, cfg.outside_weight)
-    wb = np.pad(wt, ((1, 0), (1, 0))).ravel()[g.pix_idx]
-    buf = padded(np.full_like(x, MID))
-    maps = prev_maps(padded(prev), g) if ms.pvm else None
-    nsub = (n // 4) ** 2
-    modes = np.zeros((c, g.n_blocks), np.int64)
-    levels = np.zeros((c, g.n_blocks, nsub, 16), np.int64)
-    mvs = np.zeros((c, g.n_blocks, 2), np.int64)
-    if ms.inter:
-        mvs_all = motion_search(x, prev, n, cfg.mv_range, sads)
-        pi = motion_compensate(prev, mvs_all, n, cfg.mv_range)
-        lev_i, rr = code_residual(xb - pi, n, qp, intra=False)
-        rec_i = np.clip(pi + rr, 0, 65535)
-        mvbits = 2.0 * (np.abs(mvs_all) > 0).sum(-1) + 1.0
-        j_i = (((xb - rec_i) ** 2) * wb).sum(-1) + lam * (_est_bits(lev_i) + mvbits)
-    total = 0.0
-    mp = ms.n_predictive
-    kk = mp if not cfg.rd_candidates else min(cfg.rd_candidates, mp)
-    ones = np.ones(n * n)
-    o = g.order  # wavefront order: each wave is a contiguous slice
-    xo, wo, nbo, pixo = xb[:, o], wb[o], g.nb_idx[o], g.pix_idx[o]
-    wm = wo.mean(-1)
-    mo = maps[:, o] if ms.pvm else None
-    if ms.inter:
-        j_i, rec_i, lev_i, mvs_all = j_i[:, o], rec_i[:, o], lev_i[:, o], mvs_all[:, o]
-    cidx = np.arange(c)[:, None]
-    for s, e in g.bounds:
-        pred = wave_predictions(buf, nbo[s:e], n, ms, mo[:, s:e] if ms.pvm else None)
-        xi = xo[:, s:e, None, :]
-        wi = wo[None, s:e, None, :]
-        bidx = np.arange(e - s)[None, :]
-        if kk < mp:  # prune to the kk modes of least weighted SAD before the full RD test
-            sad = (np.abs(xi - pred) * wi) @ ones
-            cand = np.argpartition(sad, kk - 1, axis=-1)[..., :kk]
-            pred = pred[cidx[..., None], bidx[..., None], cand]
-        else:
-            cand = np.broadcast_to(np.arange(mp), pred.shape[:3])
-        # D from the transform domain (Parseval), weighted by the block's mean mask weight;
-        # only the chosen candidate is inverse-transformed, with the decoder's own function
-        lev, dist = analyse_residual(xi - pred, n, qp)
-        j = dist * wm[None, s:e, None] + lam * _est_bits(lev)
-        if ms.inter:
-            j = np.concatenate([j, j_i[:, s:e, None]], -1)
-        bl = np.argmin(j, -1)
-        bi = np.minimum(bl, kk - 1)
-        b = cand[cidx, bidx, bi]
-        lv = lev[cidx, bidx, bi]
-        r = np.clip(pred[cidx, bidx, bi] + decode_residual(lv, n, qp), 0, 65535)
-        if ms.inter:
-            is_i = (bl == kk)
-            b = np.where(is_i, mp, b)
-            r = np.where(is_i[..., None], rec_i[:, s:e], r)
-            lv = np.where(is_i[..., None, None], lev_i[:, s:e], lv)
-            mvs[:, o[s:e]] = np.where(is_i[..., None], mvs_all[:, s:e], 0)
-        buf[:, pixo[s:e]] = r
-        modes[:, o[s:e]] = b
-        levels[:, o[s:e]] = lv
-        total += float(j[cidx, bidx, bl].sum()) + lam * MODE_BITS * bl.size
-    return FrameCode(n, prev is not None, modes, levels, mvs), unpadded(buf, h, w).copy(), total
+def encode_batch(xs: np.ndarray, prev: np.ndarray | None, cfg: CodecConfig, weight: np.ndarray | None,
+                 sizes_per_frame: list[tuple[int, ...]], start: int | None = None
+                 ) -> list[tuple[FrameCode, np.ndarray]]:
+    """Encode F independent frames xs (F, C, H, W) at once (F = 1 for a P-frame)."""
+    f, c = xs.shape[:2]
+    out = encoder.encode_frames(xs.reshape(f * c, *xs.shape[2:]), prev, cfg, weight, sizes_per_frame, c, start)
+    return [(FrameCode(n, prev is not None, modes, levels, mvs, t8=encoder.uses_t8(cfg, n)), rec)
+            for n, modes, levels, mvs, rec in out]
 
 
 def decode_frame(code: FrameCode, prev: np.ndarray | None, qp: int | None, flags: tuple[bool, bool, bool],
@@ -202,14 +137,17 @@ def decode_frame(code: FrameCode, prev: np.ndarray | None, qp: int | None, flags
         add[is_i] = pi[is_i]
         lin = np.where(is_i, nh + 4, lin)
     o = g.order  # everything in wavefront order: each wave is a contiguous slice
-    res = decode_residual(code.levels[:, o], n, qp).astype(np.float64)
+    res = decode_residual(code.levels[:, o], n, qp, as_float=True, t8=code.t8)
     add, lin, plane = add[:, o], lin[:, o], plane[:, o]
     nb_idx, pix_idx = g.nb_idx[o], g.pix_idx[o]
     buf = padded(np.full(shape, MID, np.int64)).astype(np.float64)
     any_plane = plane.any()
     half, scale = 2.0 ** (intra.SHIFT - 1), 2.0 ** -intra.SHIFT
+    f8 = intra.filter8_matrix() * 0.25 if n == 8 else None
     for s, e in g.bounds:
         nbv = buf[:, nb_idx[s:e]]
+        if n == 8:  # HIP 8x8 modes (bank rows 0..8) predict from the filtered samples
+            nbv = np.where((lin[:, s:e] < 9)[..., None], np.floor(nbv @ f8 + 0.5), nbv)
         acc = np.matmul(nbv[:, :, None, :], bank[lin[:, s:e]])[:, :, 0]
         acc += half
         acc *= scale
@@ -226,6 +164,22 @@ def decode_frame(code: FrameCode, prev: np.ndarray | None, qp: int | None, flags
     return unpadded(buf, h, w).astype(np.int64)
 
 
+def to_sub_grid(levels: np.ndarray, g) -> np.ndarray:
+    """Levels (C, nblk, S, 16) -> (C * H/4 * W/4, 16): 4x4 sub-blocks in raster order over the frame."""
+    c, s = levels.shape[0], g.n // 4
+    by, bx = g.shape
+    x = levels.reshape(c, by, bx, s, s, 16).transpose(0, 1, 3, 2, 4, 5)
+    return x.reshape(-1, 16)
+
+
+def from_sub_grid(rows: np.ndarray, g) -> np.ndarray:
+    """Inverse of :func:`to_sub_grid` -> (C, nblk, S, 16)."""
+    s = g.n // 4
+    by, bx = g.shape
+    x = rows.reshape(-1, by, s, bx, s, 16).transpose(0, 1, 3, 2, 4, 5)
+    return x.reshape(x.shape[0], by * bx, s * s, 16)
+
+
 _FRAME_HDR = struct.Struct("<BBB")
 
 
@@ -238,19 +192,21 @@ def write_frame(code: FrameCode, flags: tuple[bool, bool, bool], mv_range: int, 
     entropy.encode_modes(enc, code.modes.reshape(c, *g.shape), ms.n_modes)
     if ms.inter:
         entropy.encode_mvs(enc, code.mvs[code.modes == ms.inter_mode], mv_range)
-    entropy.encode_levels(enc, code.levels.reshape(-1, 16))
+    entropy.encode_levels(enc, to_sub_grid(code.levels, g), (c, h // 4, w // 4))
     words = enc.get_compressed()
-    return _FRAME_HDR.pack(int(code.p_frame), code.n, mv_range) + words.astype("<u4").tobytes()
+    return _FRAME_HDR.pack(int(code.p_frame), code.n | (128 * code.t8), mv_range) + words.astype("<u4").tobytes()
 
 
-def read_frame(payload: bytes, flags: tuple[bool, bool, bool], shape) -> tuple[FrameCode, int]:
+def read_frame(payload: bytes, flags: tuple[bool, bool, bool], shape, lossless: bool = False
+               ) -> tuple[FrameCode, int]:
     """Parse :func:`write_frame` output -> (FrameCode, mv_range). Raises ValueError if malformed."""
     c, h, w = shape
     if len(payload) < _FRAME_HDR.size or (len(payload) - _FRAME_HDR.size) % 4:
         raise ValueError("frame payload has a bad length")
     p, n, mv_range = _FRAME_HDR.unpack_from(payload)
-    if p not in (0, 1) or n not in (4, 8, 16) or h % n or w % n:
-        raise ValueError(f"bad frame header (type {p}, block size {n})")
+    t8, n = bool(n & 128), n & 127
+    if p not in (0, 1) or n not in (4, 8, 16) or h % n or w % n or (t8 and (n == 4 or lossless)):
+        raise ValueError(f"bad frame header (type {p}, block size {n}, 8x8 transform {t8})")
     ms = mode_set(*flags, n, bool(p))
     g = grid(n, h, w)
     words = np.frombuffer(payload, "<u4", offset=_FRAME_HDR.size).astype(np.uint32)
@@ -261,5 +217,5 @@ def read_frame(payload: bytes, flags: tuple[bool, bool, bool], shape) -> tuple[F
         sel = modes == ms.inter_mode
         mvs[sel] = entropy.decode_mvs(dec, int(sel.sum()), mv_range)
     nsub = (n // 4) ** 2
-    levels = entropy.decode_levels(dec, c * g.n_blocks * nsub).reshape(c, g.n_blocks, nsub, 16)
-    return FrameCode(n, bool(p), modes, levels, mvs), mv_range
+    levels = from_sub_grid(entropy.decode_levels(dec, c * g.n_blocks * nsub, (c, h // 4, w // 4)), g)
+    return FrameCode(n, bool(p), modes, levels, mvs, t8=t8), mv_range

@@ -10,8 +10,8 @@ to [0, 65535].
 Modes (index: name):
 
 - HIP, N = 4 and 8: the nine H.264 intra 4x4 / 8x8 modes (ITU-T H.264 sec. 8.3.1.2 and
-  8.3.2.2; 8x8 without the reference-sample low-pass filter) 0 V, 1 H, 2 DC, 3 DDL, 4 DDR,
-  5 VR, 6 HD, 7 VL, 8 HU.
+  8.3.2.2; at 8x8 the matrices apply to the low-pass filtered reference samples of
+  sec. 8.3.2.2.1, :func:`filter8`) 0 V, 1 H, 2 DC, 3 DDL, 4 DDR, 5 VR, 6 HD, 7 VL, 8 HU.
 - HIP, N = 16: the four H.264 intra 16x16 modes 0 V, 1 H, 2 DC, 3 Plane (sec. 8.3.3).
   Plane has nested rounding, so it is computed directly (:func:`plane16`), not as a matrix.
 - PDP (after Xia et al., progressive directional prediction): H, V, DDL, DDR with a
@@ -204,8 +204,42 @@ def plane16(nb: np.ndarray) -> np.ndarray:
     return (a[..., None] + bb[..., None] * (xx - 7) + cc[..., None] * (yy - 7) + 16) >> 5
 
 
+@lru_cache(maxsize=None)
+def filter8_matrix() -> np.ndarray:
+    """(25, 25) integer taps of the H.264 8x8 reference sample filter (sec. 8.3.2.2.1, all
+    samples available): ``nb' = (nb @ F + 2) >> 2``, [1 2 1] along the top row (its last
+    sample [1 3]) and the left column (its last sample [1 3]), the corner from its two
+    neighbours."""
+    f = np.zeros((25, 25), np.int64)
+    m, t, lft = 0, (lambda i: 1 + i), (lambda j: 17 + j)
+
+    def put(out, taps):
+        for i, w in taps:
+            f[i, out] += w
+
+    put(m, [(t(0), 1), (m, 2), (lft(0), 1)])
+    put(t(0), [(m, 1), (t(0), 2), (t(1), 1)])
+    for x in range(1, 15):
+        put(t(x), [(t(x - 1), 1), (t(x), 2), (t(x + 1), 1)])
+    put(t(15), [(t(14), 1), (t(15), 3)])
+    put(lft(0), [(m, 1), (lft(0), 2), (lft(1), 1)])
+    for y in range(1, 7):
+        put(lft(y), [(lft(y - 1), 1), (lft(y), 2), (lft(y + 1), 1)])
+    put(lft(7), [(lft(6), 1), (lft(7), 3)])
+    return f
+
+
+def filter8(nb: np.ndarray) -> np.ndarray:
+    """Filtered 8x8 reference samples (..., 25) int64 (the HIP 8x8 modes predict from these)."""
+    return (nb.astype(np.int64) @ filter8_matrix() + 2) >> 2
+
+
 def spatial_predictions(nb: np.ndarray, n: int, pdp: bool) -> np.ndarray:
-    """All spatial predictions (HIP then PDP) for nb (..., K) -> (..., modes, N*N), clipped."""
+    """All spatial predictions (HIP then PDP) for nb (..., K) -> (..., modes, N*N), clipped.
+    At 8x8 the HIP modes use the filtered samples (:func:`filter8`), PDP the raw ones."""
+    if n == 8:
+        parts = [apply_matrices(filter8(nb), "hip", n)] + ([apply_matrices(nb, "pdp", n)] if pdp else [])
+        return np.clip(np.concatenate(parts, -2), 0, 65535)
     pred = apply_matrices(nb, "hip+pdp" if pdp else "hip", n)
     if n == 16:
         hip = pred[..., :3, :]

@@ -130,14 +130,71 @@ def analyse_residual(res: np.ndarray, n: int, qp: int | None, intra: bool = True
     return z.reshape(*z.shape[:-2], 16)[..., ZIGZAG], d
 
 
-def decode_residual(levels: np.ndarray, n: int, qp: int | None) -> np.ndarray:
-    """Zigzag levels (..., (N/4)^2, 16) -> reconstructed residual (..., N*N)."""
-    sub = np.empty_like(levels)
-    sub[..., ZIGZAG] = levels
-    sub = sub.reshape(*levels.shape[:-1], 4, 4)
-    if qp is not None:
-        nz = sub.any((-1, -2))  # all-zero sub-blocks stay zero: transform only the others
-        out = np.zeros_like(sub)
-        out[nz] = inverse4(dequantise(sub[nz], qp))
-        sub = out
-    return from_sub4(sub, n)
+def decode_residual(levels: np.ndarray, n: int, qp: int | None, as_float: bool = False,
+                     t8: bool = False) -> np.ndarray:
+    """Zigzag levels (..., (N/4)^2, 16) -> reconstructed residual (..., N*N), int64 (or
+    float64 with the same integer values if ``as_float``). ``t8``: the levels are those of
+    the 8x8 transform (:mod:`facesynth.codec.transform8`), N = 8 or 16."""
+    if t8:
+        from facesynth.codec.blocks import sub_order, sub_perm
+        from facesynth.codec.transform8 import inverse_slots
+
+        z = levels[..., sub_order(n), :].reshape(*levels.shape[:-2], -1, 64)
+        out = np.empty((*levels.shape[:-2], n * n), np.int64)
+        out[..., sub_perm(n)] = inverse_slots(z, qp).reshape(*levels.shape[:-2], n * n)
+        return out.astype(np.float64 if as_float else np.int64, copy=False)
+    if qp is None:
+        sub = np.empty_like(levels)
+        sub[..., ZIGZAG] = levels
+    else:  # the float matrix form of inverse4(dequantise(.)) (exact), for non-zero sub-blocks only
+        flat = levels.reshape(-1, 16)
+        nz = flat.any(1)
+        sub = np.zeros(flat.shape)
+        sub[nz] = inverse_sub(flat[nz].astype(np.float64), qp)
+    out = from_sub4(sub.reshape(*levels.shape[:-1], 4, 4), n)
+    return out.astype(np.float64 if as_float else np.int64, copy=False)
+
+
+# --- the same transform as matrices on flattened 4x4 blocks, for the encoder: inputs in
+# raster order, coefficients and levels in zigzag order
+
+FWD16 = np.kron(CF, CF).T[:, ZIGZAG].astype(np.float64)  # x (..., 16) @ FWD16 = forward4, zigzag
+MF_TABLE = _MF[:, _POS.ravel()[ZIGZAG]]  # (6, 16) quantiser multipliers per zigzag position
+PF16 = _PF.ravel()[ZIGZAG]
+
+
+def rescale_scale(qp: int) -> np.ndarray:
+    """(16,) pixel-domain scale of one level per zigzag position (Parseval, see
+    :func:`analyse_residual`)."""
+    return ((_V[qp % 6][_POS] << (qp // 6)) * _M / 64.0).ravel()[ZIGZAG]
+
+
+def _inverse_stage(axis: int) -> np.ndarray:
+    """(32, 16) matrix of one inverse butterfly stage on ``[d, d >> 1]`` (flattened 4x4)."""
+    a = np.zeros((32, 16))
+    # out[0] = d0 + d2 + d1 + h3, out[1] = d0 - d2 + h1 - d3, out[2] = d0 - d2 - h1 + d3,
+    # out[3] = d0 + d2 - d1 - h3 (the butterfly of :func:`inverse4`, h = d >> 1)
+    taps = [[(0, 1), (2, 1), (1, 1), (19, 1)], [(0, 1), (2, -1), (17, 1), (3, -1)],
+            [(0, 1), (2, -1), (17, -1), (3, 1)], [(0, 1), (2, 1), (1, -1), (19, -1)]]
+    for line in range(4):
+        for out in range(4):
+            for src, wgt in taps[out]:
+                half, k = divmod(src, 16)
+                pos = (lambda t: 4 * line + t) if axis == -1 else (lambda t: 4 * t + line)
+                a[16 * half + pos(k), pos(out)] += wgt
+    return a
+
+
+_ZZ2 = np.concatenate([ZIGZAG, 16 + ZIGZAG])
+_INV_ROWS_ZZ, _INV_COLS = _inverse_stage(-1)[_ZZ2], _inverse_stage(-2)
+
+
+def inverse_sub(z: np.ndarray, qp: int) -> np.ndarray:
+    """Signed levels (..., 16) in zigzag order (float) -> residual (..., 16) in raster order,
+    the exact result of ``inverse4(dequantise(z))`` computed as two products in float64."""
+    d = z * (_V[qp % 6][_POS] << (qp // 6)).ravel()[ZIGZAG]
+    y = np.concatenate([d, np.floor(d * 0.5)], -1) @ _INV_ROWS_ZZ
+    y = np.concatenate([y, np.floor(y * 0.5)], -1) @ _INV_COLS
+    y += 32.0
+    y *= 1.0 / 64
+    return np.floor(y, out=y)
