@@ -37,6 +37,7 @@ class EriRenderer(Renderer):
 
     format = ERI_FORMAT
     input_name = "faps"
+    kind_name = "ERI"
 
     def __init__(self, model_path: str | os.PathLike, threads: int = 1, spin: bool = False):
         super().__init__(model_path, threads, spin)

@@ -79,6 +79,7 @@ class Renderer:
 
     format = FORMAT
     input_name = INPUT_NAME
+    kind_name = "synthesis"
 
     def __init__(self, model_path: str | os.PathLike, threads: int = 1, spin: bool = False):
         if int(threads) < 1:
@@ -92,7 +93,7 @@ class Renderer:
         if fmt != self.format:
             hint = {"facesynth.eri.onnx/1": " (an ERI model: use facesynth.runtime.EriRenderer)",
                     FORMAT: " (a landmark-driven model: use facesynth.runtime.Renderer)"}.get(fmt, "")
-            raise FacesynthError(f"{where}: not a {type(self).__name__} model (format {fmt!r}, expected {self.format!r}){hint}")
+            raise FacesynthError(f"{where}: not a facesynth {self.kind_name} model (format {fmt!r}, expected {self.format!r}){hint}")
         scheme = self.metadata.get("landmark_scheme")
         if scheme != LANDMARK_SCHEME:
             raise FacesynthError(f"{where}: landmark scheme {scheme!r}; this runtime feeds {LANDMARK_SCHEME!r} (68 points)")
