@@ -206,3 +206,21 @@ def test_real_lp_d6_model_on_lp_d10_matches_torch(shared_clip_dir, tmp_path):
         assert_parity(r, syn, faps)
     want, _ = syn.render(faps[:4])
     assert np.abs(r.render_frames(faps[:4], tgt.frame(row)).astype(int) - want).max() <= 1
+
+
+def test_hydra_entry_point_exports_eri(seq, model, target, tmp_path):
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    model.save(tmp_path / "run" / "eri")
+    cv2.imwrite(str(tmp_path / "b.png"), cv2.cvtColor(target[0], cv2.COLOR_RGB2BGR))
+    np.save(tmp_path / "b.npy", target[1][None])
+    script = Path(__file__).resolve().parents[1] / "export" / "export.py"
+    res = subprocess.run([sys.executable, str(script), f"run={tmp_path / 'run'}", f"out={tmp_path / 'h.onnx'}",
+                          f"target={tmp_path / 'b.png'}", f"target_landmarks={tmp_path / 'b.npy'}", "raw_ratios=true"],
+                         capture_output=True, text=True, cwd=tmp_path, timeout=300)
+    assert res.returncode == 0, res.stderr[-2000:]
+    summary = json.loads(res.stdout.strip().splitlines()[-1])
+    assert summary["max_abs_diff_vs_torch"] <= 1e-4 and summary["raw_ratios"] is True
+    assert_parity(EriRenderer(tmp_path / "h.onnx"), EriSynthesizer(model, *target, raw=True), _faps(seq, model))
