@@ -102,6 +102,12 @@ def test_graph_equals_synthesizer_in_torch(seq, model, target):
     np.testing.assert_allclose(got[2], want[2], rtol=1e-5, atol=1e-3)
     np.testing.assert_allclose(syn.textures(faps).numpy(), EriGraph(syn).textures(torch.from_numpy(faps)).numpy(),
                                atol=1e-5)
+    for v in VARIANTS:  # the kernel expansion over distinct support vectors = the bank's predictions
+        g = EriGraph(EriSynthesizer(model, *target, variant=v))
+        assert g.n_distinct <= 12 < g.n_support_vectors  # 12 training rows shared by the K machines
+        want = model.predict_coefficients(faps, v, clamp=False)
+        got = g.coefficients(torch.from_numpy(faps)).numpy()
+        np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-4 * np.abs(want).max())
 
 
 def test_fap_to_landmark_map_is_linear(model, target):

@@ -92,7 +92,7 @@ class EriGraph(nn.Module):
     def __init__(self, syn: EriSynthesizer, span: np.ndarray | None = None):
         super().__init__()
         m, cfg = syn.model, syn.model.config
-        self.bank = m.regressors[syn.variant]
+        self._dedupe_support_vectors(m.regressors[syn.variant])
         self.log_ratios, self.raw = bool(cfg.log), bool(syn.raw)
         self.eps, self.n_pix = float(cfg.eps), int(m.n_pixels)
         self.lo = 1.0 / cfg.clip
@@ -122,9 +122,41 @@ class EriGraph(nn.Module):
         span = export_spans(syn) if span is None else np.asarray(span)
         self.warp = ToTarget(m.reference, span, syn.canvas)
 
+    def _dedupe_support_vectors(self, b) -> None:
+        """The K machines of the bank share their support vectors (rows of the same training
+        FAPs): evaluate the kernel once per *distinct* vector (U rows) and sum the dual
+        weights of each machine per vector: (B, U) @ (U, K) instead of (B, sum_k n_k) @
+        (sum_k n_k, K) (on lp_d6, 300 frames, nu_rbf: U = 300 vs 19007 rows, 64x less)."""
+        sv, inverse = np.unique(b.sv.numpy().astype(np.float64), axis=0, return_inverse=True)
+        w = np.zeros((len(sv), b.weights.shape[1]))
+        np.add.at(w, inverse.reshape(-1), b.weights.numpy().astype(np.float64))
+        self.rbf, self.gamma = b.kernel != "linear", float(b.gamma)
+        self.n_support_vectors, self.n_distinct = int(len(b.sv)), int(len(sv))
+        svt = torch.from_numpy(sv.T.astype(np.float32))
+        self.register_buffer("svr_scale", (1.0 / b.x_std).reshape(1, -1))
+        self.register_buffer("svr_shift", (-b.x_mean / b.x_std).reshape(1, -1))
+        if self.rbf:  # exp(-g |z - s|^2) = exp(2g z.s - g |s|^2) exp(-g |z|^2)
+            self.register_buffer("sv_t", 2.0 * self.gamma * svt)
+            self.register_buffer("sv_norm", -self.gamma * (svt * svt).sum(0, keepdim=True))
+            self.register_buffer("svr_weights", torch.from_numpy(w.astype(np.float32)))
+        else:  # linear kernel: one (D, K) matrix
+            self.register_buffer("svr_weights", torch.from_numpy((sv.T @ w).astype(np.float32)))
+        self.register_buffer("svr_out_scale", b.y_scale.reshape(1, -1).clone())
+        self.register_buffer("svr_out_shift", (b.intercept * b.y_scale + b.y_mean).reshape(1, -1))
+
+    def coefficients(self, faps: torch.Tensor) -> torch.Tensor:
+        """The SVR bank as a kernel expansion over distinct support vectors: (B, 36) -> (B, K)."""
+        z = faps * self.svr_scale + self.svr_shift
+        if self.rbf:
+            arg = torch.matmul(z, self.sv_t) + self.sv_norm - self.gamma * (z * z).sum(1, keepdim=True)
+            out = torch.matmul(torch.exp(torch.clamp(arg, max=0.0)), self.svr_weights)
+        else:
+            out = torch.matmul(z, self.svr_weights)
+        return out * self.svr_out_scale + self.svr_out_shift
+
     def textures(self, faps: torch.Tensor) -> torch.Tensor:
         """Steps 2-3: (B, 36) FAPs -> B' (B, 3, M)."""
-        b = self.bank(faps)
+        b = self.coefficients(faps)
         b = torch.minimum(torch.maximum(b, -self.limit), self.limit)
         vals = torch.matmul(b, self.components).reshape(-1, 3, self.n_pix) + self.mean
         if not self.raw:
@@ -176,7 +208,8 @@ def export_eri(
         "reference_size": list(m.reference.size), "canvas_size": list(syn.canvas),
         "frame_size": list(syn.image.shape[:2]), "channels": 3, "data_fingerprint": m.fingerprint,
         "target_fingerprint": array_fingerprint(syn.image, syn.neutral), "feather": float(m.config.feather),
-        "eigeneri_components": int(m.pca.n_components), "support_vectors": int(len(graph.bank.sv)),
+        "eigeneri_components": int(m.pca.n_components), "support_vectors": graph.n_support_vectors,
+        "distinct_support_vectors": graph.n_distinct,
         "output_layout": OUTPUT_LAYOUT, "opset": opset, "n_scanline_events": graph.warp.n_candidates,
     }
     meta.update(metadata or {})
