@@ -1,6 +1,12 @@
 """Benchmark of the ERI model: training time and per-frame synthesis time (steps 2-5:
 SVR -> eigenERI -> R' x B_temp -> warp -> paste), printed as ONE JSON line.
 
+With the ONNX part (default; ``--no-onnx`` skips it) the synthesizer is also exported
+(``facesynth.eri.export``) and run with ONNX Runtime (``facesynth.runtime.EriRenderer``):
+``onnx``: frames/s and ms per frame of the graph (FAPs -> crop/mask/placement) at batch 1
+with 1 and 2 threads, batch-32 throughput, the same steps in torch eager at batch 1, the
+file size and the largest |ONNX - torch| crop difference on the driving FAPs.
+
     PYTHONPATH=. python bench/bench_eri.py                      # lp_d6, 300 training frames
     PYTHONPATH=. python bench/bench_eri.py --train-frames 756 --synth-frames 64 --variant eps_rbf
 
@@ -46,6 +52,8 @@ def main() -> None:
     p.add_argument("--variant", default=None, help="SVR variant used for synthesis (default: the model's)")
     p.add_argument("--batch-size", type=int, default=32)
     p.add_argument("--threads", type=int, default=1)
+    p.add_argument("--no-onnx", action="store_true", help="skip the ONNX export / ONNX Runtime figures")
+    p.add_argument("--reps", type=int, default=200, help="batch-1 frames timed per ONNX setting")
     a = p.parse_args()
     torch.set_num_threads(a.threads)
     path = shared_clip(a.clip)
@@ -73,6 +81,7 @@ def main() -> None:
     for s in range(0, len(faps), a.batch_size):
         syn.render(faps[s : s + a.batch_size], "geometry")
     geo_s = (time.perf_counter() - t3) / n
+    onnx = None if a.no_onnx else bench_onnx(syn, faps, a.reps)
     print(json.dumps({
         "bench": "eri", "data": seq.name if path else "synthetic (shared data absent)", "target": tseq.name,
         "train_frames": int(len(rows)), "train_seconds": round(train_s, 3), "fit_seconds": model.meta["fit_seconds"],
@@ -80,8 +89,58 @@ def main() -> None:
         "support_vectors": int(len(model.regressors[syn.variant].sv)), "step1_seconds": round(setup_s, 4),
         "synth_frames": n, "synthesis_ms_per_frame": round(1000 * synth_s, 2),
         "geometry_only_ms_per_frame": round(1000 * geo_s, 2), "frame_size": list(tseq.image_size),
-        "batch_size": a.batch_size, "threads": a.threads,
+        "batch_size": a.batch_size, "threads": a.threads, "onnx": onnx,
     }))
+
+
+def _per_frame(fn, n: int) -> float:
+    """Median-of-3 seconds per call of fn() over n calls each."""
+    times = []
+    for _ in range(3):
+        t = time.perf_counter()
+        for _ in range(n):
+            fn()
+        times.append((time.perf_counter() - t) / n)
+    return sorted(times)[1]
+
+
+def bench_onnx(syn: EriSynthesizer, faps: np.ndarray, reps: int) -> dict:
+    """ONNX Runtime vs torch eager figures of the exported ERI graph (see the module doc)."""
+    import tempfile
+
+    from facesynth.eri.export import export_eri, torch_reference
+    from facesynth.runtime import EriRenderer
+
+    with tempfile.TemporaryDirectory() as d:
+        path = export_eri(syn, os.path.join(d, "eri.onnx"))
+        size = os.path.getsize(path)
+        out: dict = {"model_bytes": size}
+        one = faps[:1]
+        for threads in (1, 2):
+            r = EriRenderer(path, threads=threads)
+            r.render(one)
+            s = _per_frame(lambda: r.render(one), max(reps // 3, 1))
+            out[f"batch1_threads{threads}_ms"] = round(1000 * s, 3)
+            out[f"batch1_threads{threads}_fps"] = round(1 / s, 1)
+        r = EriRenderer(path, threads=1)
+        b32 = np.resize(faps, (32, faps.shape[1]))
+        r.render(b32)
+        s = _per_frame(lambda: r.render(b32), 2)
+        out["batch32_threads1_fps"] = round(32 / s, 1)
+        crop, mask, _ = r.render(faps, copy=True)
+        t_crop, t_mask, _ = torch_reference(syn, faps)
+        out["max_abs_diff_vs_torch"] = float(np.abs((crop - t_crop) * mask * t_mask).max())
+        out["mask_pixels_differing"] = int((mask != t_mask).sum())
+        out["n_scanline_events"] = int(r.metadata["n_scanline_events"])
+        out["crop_size"] = list(r.crop_size)
+    nt = torch.get_num_threads()
+    torch.set_num_threads(1)
+    torch_reference(syn, one)
+    s = _per_frame(lambda: torch_reference(syn, one), max(reps // 10, 1))
+    torch.set_num_threads(nt)
+    out["torch_eager_batch1_threads1_ms"] = round(1000 * s, 3)
+    out["torch_eager_batch1_threads1_fps"] = round(1 / s, 1)
+    return out
 
 
 if __name__ == "__main__":

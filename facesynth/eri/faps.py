@@ -221,6 +221,14 @@ def faps_to_landmarks(neutral: np.ndarray, faps: np.ndarray) -> np.ndarray:
     ``faps`` (the anchors carry the rigid alignment).
     """
     neutral = _check(neutral, "neutral landmarks")[0].astype(np.float64)
+    return (neutral[None] + fap_displacements(neutral, faps)).astype(np.float32)
+
+
+def fap_displacements(neutral: np.ndarray, faps: np.ndarray) -> np.ndarray:
+    """Landmark displacements (N, 68, 2) float64 of :func:`faps_to_landmarks` (without the
+    float32 rounding). They are *linear* in the FAPs: ``fap_displacements(neutral,
+    np.eye(N_FAPS))`` is the exact Jacobian, used by the ONNX export."""
+    neutral = _check(neutral, "neutral landmarks")[0].astype(np.float64)
     f = np.asarray(faps, np.float64)
     if f.ndim == 1:
         f = f[None]
@@ -236,7 +244,7 @@ def faps_to_landmarks(neutral: np.ndarray, faps: np.ndarray) -> np.ndarray:
             disp[:, list(FEATURE_POINTS[fp])] = disp_fp[:, fp_i, None]
     interp, rest, ctrl = _interpolation(neutral)
     disp[:, rest] = np.einsum("rc,ncd->nrd", interp, disp[:, ctrl])
-    return (neutral[None] + disp).astype(np.float32)
+    return disp
 
 
 def _interpolation(neutral: np.ndarray) -> tuple[np.ndarray, list, list]:

@@ -6,10 +6,14 @@ Imports only numpy, onnxruntime and OpenCV (a test checks that torch stays unimp
     r = Renderer("model.onnx", threads=1)
     crops, masks, placements = r.render(landmarks)      # (B, 68, 2) frame pixels
     frame = r.render_frame(landmarks[0], background)     # uint8 (H, W, 3)
+
+    e = EriRenderer("eri.onnx")                          # an ERI model (one target face)
+    frames = e.render_frames(faps, target_image)         # (B, 36) MPEG-4 FAPs -> uint8 (B, H, W, 3)
 """
 
 from facesynth.imaging import composite
+from facesynth.runtime.eri import EriRenderer
 from facesynth.runtime.filters import OneEuroFilter, smooth_landmarks
 from facesynth.runtime.renderer import Renderer, read_metadata
 
-__all__ = ["OneEuroFilter", "Renderer", "composite", "read_metadata", "smooth_landmarks"]
+__all__ = ["EriRenderer", "OneEuroFilter", "Renderer", "composite", "read_metadata", "smooth_landmarks"]

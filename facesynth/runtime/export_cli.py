@@ -2,6 +2,10 @@
 
 The export code is torch-side (:mod:`facesynth.export_onnx`, imported only when this
 subcommand runs); the written model is checked once with ONNX Runtime against torch.
+
+With ``--target IMAGE_OR_DIR`` the run's ERI model is exported instead, for that target
+face (:mod:`facesynth.eri.export`; the target is named as in ``transfer-expression``):
+MPEG-4 FAPs (B, 36) -> the target's rendered face.
 """
 
 from __future__ import annotations
@@ -11,7 +15,7 @@ import json
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("run", help="training run directory (face_model/ and sadm/regressor.*)")
+    p.add_argument("run", help="training run directory (face_model/ and sadm/regressor.*; or eri/ with --target)")
     p.add_argument("--out", required=True, help="output .onnx file (written atomically)")
     p.add_argument("--opset", type=int, default=18, help="ONNX opset (default 18)")
     p.add_argument("--no-check", action="store_true", help="skip the ONNX Runtime vs torch check")
@@ -22,10 +26,26 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="instead of --components: keep the fewest components holding this fraction of the predicted variance")
     p.add_argument("--landmarks", default=None,
                    help="training landmarks (.npy (N, 68, 2)) for the compression (default: reloaded from RUN/config.yaml)")
+    eri = p.add_argument_group("ERI model (exported when --target is given)")
+    eri.add_argument("--target", metavar="IMAGE_OR_DIR",
+                     help="target neutral face: an image, or a folder in ingest layout (its neutral frame is used)")
+    eri.add_argument("--target-landmarks", metavar="L", help="landmarks of the target image (.npy (68, 2)/(N, 68, 2) or .pts)")
+    eri.add_argument("--target-frame", type=int, metavar="ROW", help="row of the target folder / landmarks used as neutral")
+    eri.add_argument("--variant", choices=["eps_linear", "eps_rbf", "nu_linear", "nu_rbf"], help="SVR variant (default: the model's)")
+    eri.add_argument("--raw-ratios", action="store_true", help="no edge confidence / brightening cap (as transfer-expression)")
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.target:
+        return run_eri(args)
     from facesynth.export_onnx import DEFAULT_COMPONENTS, check_export, export_run
+    from pathlib import Path
+
+    run_dir = Path(args.run)
+    if not (run_dir / "sadm").is_dir() and ((run_dir / "eri_model.json").is_file() or (run_dir / "eri" / "eri_model.json").is_file()):
+        from facesynth.errors import FacesynthError
+
+        raise FacesynthError(f"{run_dir}: holds an ERI model only; pass --target IMAGE_OR_DIR to export it for a target face")
 
     lm = None
     if args.landmarks:
@@ -37,5 +57,18 @@ def run(args: argparse.Namespace) -> int:
     summary = {"out": str(path), "bytes": path.stat().st_size, **meta, "opset": args.opset}
     if not args.no_check:
         summary["max_abs_diff_vs_torch"] = check_export(syn, path)
+    print(json.dumps(summary))
+    return 0
+
+
+def run_eri(args: argparse.Namespace) -> int:
+    from facesynth.eri.cli import _target
+    from facesynth.eri.export import check_eri_export, export_eri_run
+
+    image, landmarks, desc = _target(args)
+    path, syn, meta = export_eri_run(args.run, args.out, image, landmarks, args.variant, args.raw_ratios, args.opset)
+    summary = {"out": str(path), "bytes": path.stat().st_size, "target": desc, **meta}
+    if not args.no_check:
+        summary["max_abs_diff_vs_torch"] = check_eri_export(syn, path)
     print(json.dumps(summary))
     return 0

@@ -77,6 +77,10 @@ class Renderer:
     channels : int
     """
 
+    format = FORMAT
+    input_name = INPUT_NAME
+    kind_name = "synthesis"
+
     def __init__(self, model_path: str | os.PathLike, threads: int = 1, spin: bool = False):
         if int(threads) < 1:
             raise FacesynthError(f"threads must be >= 1, got {threads}")
@@ -86,15 +90,18 @@ class Renderer:
         self.metadata = _decode(self.session.get_modelmeta().custom_metadata_map)
         where = str(self.path)
         fmt = self.metadata.get("format")
-        if fmt != FORMAT:
-            raise FacesynthError(f"{where}: not a facesynth synthesis model (format {fmt!r}, expected {FORMAT!r})")
+        if fmt != self.format:
+            hint = {"facesynth.eri.onnx/1": " (an ERI model: use facesynth.runtime.EriRenderer)",
+                    FORMAT: " (a landmark-driven model: use facesynth.runtime.Renderer)"}.get(fmt, "")
+            raise FacesynthError(f"{where}: not a facesynth {self.kind_name} model (format {fmt!r}, expected {self.format!r}){hint}")
         scheme = self.metadata.get("landmark_scheme")
         if scheme != LANDMARK_SCHEME:
             raise FacesynthError(f"{where}: landmark scheme {scheme!r}; this runtime feeds {LANDMARK_SCHEME!r} (68 points)")
         inputs = [i.name for i in self.session.get_inputs()]
         outputs = [o.name for o in self.session.get_outputs()]
-        if inputs != [INPUT_NAME] or tuple(outputs) != OUTPUT_NAMES:
-            raise FacesynthError(f"{where}: inputs {inputs} / outputs {outputs}, expected [{INPUT_NAME}] / {list(OUTPUT_NAMES)}")
+        if inputs != [self.input_name] or tuple(outputs) != OUTPUT_NAMES:
+            raise FacesynthError(f"{where}: inputs {inputs} / outputs {outputs}, expected [{self.input_name}] / {list(OUTPUT_NAMES)}")
+        self.input_shape: tuple[int, ...] = (68, 2)
         self.channels = int(self.metadata.get("channels", 3))
         self.crop_size = tuple(int(s) for s in self.metadata.get("canvas_size", self.metadata.get("reference_size")))
         self._bindings: dict[int, tuple] = {}
@@ -133,9 +140,9 @@ class Renderer:
                 np.empty((batch, 1, h, w), np.float32),
                 np.empty((batch, 2, 3), np.float32),
             )
-            inp = np.empty((batch, 68, 2), np.float32)
+            inp = np.empty((batch, *self.input_shape), np.float32)
             io = self.session.io_binding()
-            io.bind_cpu_input(INPUT_NAME, inp)
+            io.bind_cpu_input(self.input_name, inp)
             for name, buf in zip(OUTPUT_NAMES, bufs):
                 io.bind_ortvalue_output(name, ort.OrtValue.ortvalue_from_numpy(buf))
             got = (io, inp, bufs)

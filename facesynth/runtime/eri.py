@@ -1,0 +1,101 @@
+"""Running an exported ERI model (``facesynth export RUN --target ...``) with ONNX Runtime.
+
+The model holds one target face: MPEG-4 FAPs (B, 36) -> the target's face crop, mask and
+placement in the target's frame; :meth:`EriRenderer.render_frames` pastes them into the
+target's neutral image (or other backgrounds of its size) as ``EriSynthesizer.render``
+does. numpy + onnxruntime + OpenCV only (no torch).
+"""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+
+from facesynth.errors import FacesynthError
+from facesynth.imaging import composite
+from facesynth.runtime.renderer import Renderer
+
+ERI_FORMAT = "facesynth.eri.onnx/1"
+
+
+class EriRenderer(Renderer):
+    """FAPs -> rendered target faces with an exported ERI model.
+
+    Parameters
+    ----------
+    model_path : path-like
+        An ONNX file written by ``facesynth export RUN --target ...``.
+    threads, spin : as :class:`Renderer`.
+
+    Attributes
+    ----------
+    n_faps : int, FAPs per frame (metadata ``n_faps``; columns in ``metadata["fap_names"]`` order)
+    frame_size : (H, W) of the target's frame (placements map into it)
+    feather : float, compositing edge width (the model's ``eri.feather``)
+    """
+
+    format = ERI_FORMAT
+    input_name = "faps"
+    kind_name = "ERI"
+
+    def __init__(self, model_path: str | os.PathLike, threads: int = 1, spin: bool = False):
+        super().__init__(model_path, threads, spin)
+        md = self.metadata
+        try:
+            self.n_faps = int(md["n_faps"])
+            self.frame_size = tuple(int(v) for v in md["frame_size"])
+        except (KeyError, TypeError, ValueError):
+            raise FacesynthError(f"{self.path}: ERI model metadata lacks n_faps / frame_size") from None
+        names = md.get("fap_names")
+        if not isinstance(names, list) or len(names) != self.n_faps:
+            raise FacesynthError(f"{self.path}: metadata fap_names does not list {self.n_faps} FAPs")
+        dims = self.session.get_inputs()[0].shape
+        if len(dims) != 2 or dims[1] != self.n_faps:
+            raise FacesynthError(f"{self.path}: input shape {dims}, expected (batch, {self.n_faps}) (metadata n_faps)")
+        self.input_shape = (self.n_faps,)
+        self.feather = float(md.get("feather", 3.0))
+
+    def __repr__(self) -> str:
+        return (f"EriRenderer({str(self.path)!r}, driver={self.metadata.get('driver')!r}, "
+                f"crop={self.crop_size}, frame={self.frame_size}, threads={self.threads})")
+
+    def validate(self, faps) -> np.ndarray:
+        """Check (B, n_faps) (or one (n_faps,)) finite real FAPs -> C-contiguous float32 (B, n_faps)."""
+        x = np.asarray(faps)
+        if x.dtype.kind not in "fiu":
+            raise FacesynthError(f"faps: expected a float array of MPEG-4 FAP values, got dtype {x.dtype}")
+        if x.ndim == 1:
+            x = x[None]
+        if x.ndim != 2 or x.shape[1] != self.n_faps or x.shape[0] < 1:
+            raise FacesynthError(f"faps: expected shape (B, {self.n_faps}) (this model's n_faps), got {tuple(np.shape(faps))}")
+        x = np.ascontiguousarray(x, np.float32)
+        if not np.isfinite(x).all():
+            bad = np.flatnonzero(~np.isfinite(x).all(axis=1))
+            raise FacesynthError(f"faps: NaN or infinite values in batch rows {bad[:10].tolist()}")
+        return x
+
+    def render(self, faps, copy: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(B, n_faps) FAPs -> crops float32 (B, 3, Hc, Wc) in [0, 1], masks float32
+        (B, 1, Hc, Wc) in {0, 1}, placements float32 (B, 2, 3) crop px -> frame px.
+        The arrays are this renderer's buffers unless ``copy`` (see :meth:`Renderer.render`)."""
+        return super().render(faps, copy)
+
+    def render_frames(self, faps, background: np.ndarray, feather: float | None = None) -> np.ndarray:
+        """Frames uint8 (B, H, W, 3): the rendered faces pasted into ``background`` (uint8
+        (H, W, 3) RGB of the target's frame size, normally the target's neutral image, or
+        (B, H, W, 3)), as ``EriSynthesizer.render`` (:func:`facesynth.imaging.composite`)."""
+        bg = np.asarray(background)
+        h, w = self.frame_size
+        if bg.dtype != np.uint8 or bg.ndim not in (3, 4) or bg.shape[-3:] != (h, w, 3):
+            raise FacesynthError(f"background: expected uint8 ({h}, {w}, 3) (the target's frame size), "
+                                 f"got {bg.dtype} {bg.shape}")
+        crops, masks, places = self.render(faps)
+        if bg.ndim == 4 and len(bg) != len(crops):
+            raise FacesynthError(f"background: {len(bg)} frames for a batch of {len(crops)}")
+        f = self.feather if feather is None else float(feather)
+        return np.stack([
+            composite(np.ascontiguousarray(crops[i].transpose(1, 2, 0)), masks[i, 0], places[i].astype(np.float64),
+                      bg[i] if bg.ndim == 4 else bg, f)
+            for i in range(len(crops))
+        ])
