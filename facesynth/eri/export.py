@@ -103,22 +103,26 @@ class EriGraph(nn.Module):
         conf = edge_confidence(torch.from_numpy(m.neutral_texture), m.sampler(), cfg.edge_tau)
         self.register_buffer("confidence", conf.float().reshape(1, 1, -1))
         self.register_buffer("base_eps", (syn.base.float() + self.eps).unsqueeze(0))  # (1, 3, M)
-        # landmarks = neutral + faps @ J^T, J exact in float64
+        # landmarks = neutral + faps @ J^T, J exact in float64; the geometry (landmarks, the
+        # similarity onto the canvas, the placement) runs in float64 (a few hundred values
+        # per frame) so the warp gets the float32 rounding of the exact canvas landmarks, as
+        # the torch path does: float32 canvas coordinates of ~400 px carry 3e-5 px of
+        # rounding that sharp texture edges turn into ~1e-4 colour differences
         jac = fap_displacements(syn.neutral, np.eye(N_FAPS)).reshape(N_FAPS, 136)  # row i = d landmarks / d f_i
         if np.abs(jac.reshape(N_FAPS, 68, 2)[:, list(RIGID_POINTS)]).max() > 0:
             raise FacesynthError("FAPs move the rigid points; the forehead cannot be baked into the export")
-        self.register_buffer("jacobian", torch.from_numpy(jac.astype(np.float32)))
-        self.register_buffer("neutral", torch.from_numpy(syn.neutral.reshape(1, 136).astype(np.float32)))
+        self.register_buffer("jacobian", torch.from_numpy(jac))
+        self.register_buffer("neutral", torch.from_numpy(syn.neutral.reshape(1, 136).astype(np.float64)))
         forehead = syn.extend(syn.neutral[None])[0, 68:]  # (F, 2): the neutral's (head pose = identity)
-        self.register_buffer("forehead", torch.from_numpy(np.ascontiguousarray(forehead, np.float32)).unsqueeze(0))
+        self.register_buffer("forehead", torch.from_numpy(np.ascontiguousarray(forehead, np.float64)).unsqueeze(0))
         # closed-form least-squares similarity onto the model geometry (as to_canvas)
         ref = np.asarray(m.reference.points, np.float64)
         mu = ref.mean(0)
         dc = ref - mu
         perp = np.stack([dc[:, 1], -dc[:, 0]], -1)
-        self.register_buffer("umeyama", torch.from_numpy(np.stack([dc.reshape(-1), perp.reshape(-1)], 1).astype(np.float32)))
-        self.register_buffer("to_m", torch.tensor([[1.0, 0.0, 0.0, 1.0], [0.0, 1.0, -1.0, 0.0]]))
-        self.register_buffer("ref_mean", torch.from_numpy((mu + syn.pad).astype(np.float32)).reshape(1, 1, 2))
+        self.register_buffer("umeyama", torch.from_numpy(np.stack([dc.reshape(-1), perp.reshape(-1)], 1)))
+        self.register_buffer("to_m", torch.tensor([[1.0, 0.0, 0.0, 1.0], [0.0, 1.0, -1.0, 0.0]], dtype=torch.float64))
+        self.register_buffer("ref_mean", torch.from_numpy(mu + syn.pad).reshape(1, 1, 2))
         span = export_spans(syn) if span is None else np.asarray(span)
         self.warp = ToTarget(m.reference, span, syn.canvas)
 
@@ -167,7 +171,7 @@ class EriGraph(nn.Module):
 
     def forward(self, faps: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         tex = self.textures(faps)
-        lm = (torch.matmul(faps, self.jacobian) + self.neutral).reshape(-1, 68, 2)
+        lm = (torch.matmul(faps.double(), self.jacobian) + self.neutral).reshape(-1, 68, 2)  # float64
         pts = torch.cat([lm, self.forehead + lm[:, :1] * 0.0], 1)  # (B, P, 2)
         mu = pts.mean(1, keepdim=True)
         s = pts - mu
@@ -175,11 +179,11 @@ class EriGraph(nn.Module):
         ab = torch.matmul(s.flatten(1), self.umeyama) / var  # (B, 2): a, b
         rot = torch.matmul(ab, self.to_m).reshape(-1, 2, 2)  # row-major [[a, b], [-b, a]]: canvas = s @ rot
         canvas = torch.matmul(s, rot) + self.ref_mean
-        crop, mask = self.warp(tex, canvas)
+        crop, mask = self.warp(tex, canvas.float())
         n2 = (ab * ab).sum(1, keepdim=True).unsqueeze(-1)  # (B, 1, 1)
         inv = rot / n2  # R^-1 = R^T / |s|^2; rot holds R^T
         t = mu.transpose(1, 2) - torch.matmul(inv, self.ref_mean.transpose(1, 2))
-        return crop, mask, torch.cat([inv, t], 2)
+        return crop, mask, torch.cat([inv, t], 2).float()
 
 
 def export_eri(

@@ -30,8 +30,8 @@ class ToTarget(nn.Module):
     triangle below it; columns are half-open on the right).
 
     Each pixel then reads its triangle's affine map (target -> reference pixels) from
-    per-frame tables indexed by (triangle, canvas column) -- ``u = u0[t, x] + u_y[t] y``,
-    likewise ``v`` -- and the 2x2 texture neighbourhood of its source point (bilinear,
+    per-frame tables indexed by (triangle, canvas column) -- ``u = u_c[t, x] + u_y[t] (y - y_0[t])``
+    with ``(x_0, y_0)`` the triangle's first vertex, likewise ``v`` -- and the 2x2 texture neighbourhood of its source point (bilinear,
     as ``grid_sample`` with ``align_corners=True``) with flat element gathers.
 
     Only the bounding box of the landmarks (of the whole batch, clipped to the canvas) is
@@ -42,7 +42,7 @@ class ToTarget(nn.Module):
     ScatterElements-add, CumSum, Range, Pad and elementwise ops): it exports to ONNX
     without loops or custom ops (the box makes the inner shapes data-dependent, which
     ONNX Runtime handles). Per image the cost is one event per (edge, column) it may cross
-    and 4 + 12 gathered values per box pixel; the column sum runs along the outer axis of a
+    and 5 + 12 gathered values per box pixel; the column sum runs along the outer axis of a
     (Hb + 1, Wb) buffer, which ONNX Runtime vectorises across the row (~10x faster than a
     sum along the rows).
 
@@ -115,15 +115,10 @@ class ToTarget(nn.Module):
         p_swap[3, 0] = p_swap[2, 1] = 1
         p_ab = np.zeros((4, 4), np.float32)  # -> det * [a1, b1, a2, b2] = [e2y, -e2x, -e1y, e1x]
         p_ab[3, 0], p_ab[2, 1], p_ab[1, 2], p_ab[0, 3] = 1, -1, -1, 1
-        p_v0 = np.zeros((6, 4), np.float32)  # -> v0x v0y v0x v0y
-        p_v0[0, 0] = p_v0[1, 1] = p_v0[0, 2] = p_v0[1, 3] = 1
-        p_c = np.array([[-1, 0], [-1, 0], [0, -1], [0, -1]], np.float32)  # -> c1, c2
         self.register_buffer("p_edges", torch.from_numpy(p_edges))
         self.register_buffer("p_swap", torch.from_numpy(p_swap))
         self.register_buffer("p_det", torch.tensor([[1.0], [-1.0]]))
         self.register_buffer("p_ab", torch.from_numpy(p_ab))
-        self.register_buffer("p_v0", torch.from_numpy(p_v0))
-        self.register_buffer("p_c", torch.from_numpy(p_c))
         # the texture raster: the reference mask's bounding box plus 2 px, reference pixels
         # outside the mask filled with their nearest mask pixel's value, so that bilinear
         # reads at the face boundary never mix in black
@@ -141,18 +136,14 @@ class ToTarget(nn.Module):
         self.raster_w = rw
         self.n_raster = rh * rw
         self.register_buffer("raster_fill", torch.from_numpy(fill.reshape(hr, wr)[r0:r1, c0:c1].reshape(-1).copy()))
-        # [u_x u_y u_1] = l1 (ref_1 - ref_0)_x + l2 (ref_2 - ref_0)_x + [0 0 ref_0x] (likewise v), with
-        # barycentric l_i = a_i x + b_i y + c_i; in raster coordinates (reference pixels minus the box origin)
+        # u = ref_0x + l1 (ref_1 - ref_0)_x + l2 (ref_2 - ref_0)_x (likewise v), with barycentric
+        # l_i = a_i (x - x_0) + b_i (y - y_0) taken relative to the target triangle's vertex 0, so
+        # that no large canvas coordinates cancel (float32 parity between torch and ONNX Runtime);
+        # in raster coordinates (reference pixels minus the box origin)
         rp = ref.points[tri].astype(np.float64) - np.array([c0, r0], np.float64)  # (T, 3, 2)
-        p_lin = np.zeros((6, 6), np.float32)  # [a1 b1 a2 b2 c1 c2] -> [a1 b1 c1 a2 b2 c2]
-        for src, dst in enumerate([0, 1, 3, 4, 2, 5]):
-            p_lin[src, dst] = 1
-        const = np.zeros((n_tri, 2, 3))
-        const[:, :, 2] = rp[:, 0]
-        self.register_buffer("p_lin", torch.from_numpy(p_lin))
         self.register_buffer("ref_d1", torch.from_numpy((rp[:, 1] - rp[:, 0]).astype(np.float32)[:, :, None]))  # (T, 2, 1)
         self.register_buffer("ref_d2", torch.from_numpy((rp[:, 2] - rp[:, 0]).astype(np.float32)[:, :, None]))
-        self.register_buffer("maps_const", torch.from_numpy(const.astype(np.float32)))  # (T, 2, 3)
+        self.register_buffer("ref_0", torch.from_numpy(rp[:, 0].astype(np.float32)[:, :, None]))  # (T, 2, 1)
         # per-pixel constants: column x, row y, table offset x - C W (tables are (T + 2, W))
         ys, xs = np.mgrid[0:h, 0:w].astype(np.float32)
         self.register_buffer("col_x", torch.arange(w, dtype=torch.float32))
@@ -234,42 +225,49 @@ class ToTarget(nn.Module):
 
     def affine_maps(self, vert: torch.Tensor, e: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Per-triangle affine maps, target canvas pixels -> raster pixels (reference pixels
-        minus the raster box origin), and the triangles' determinants.
+        minus the raster box origin), relative to each target triangle's vertex 0, and the
+        triangles' determinants.
 
         vert, e : from :meth:`coordinates`. Returns maps (B, T, 6): per triangle
-        [u_x, u_y, u_1, v_x, v_y, v_1] with u = u_x x + u_y y + u_1 (barycentric
-        interpolation), and det (B, T, 1) (> 0 for counter-clockwise target triangles).
+        [u_x, u_y, u_0, v_x, v_y, v_0] with u = u_0 + u_x (x - x_0) + u_y (y - y_0)
+        ((x_0, y_0) = ``vert[..., :2]``; barycentric interpolation), and det (B, T, 1)
+        (> 0 for counter-clockwise target triangles).
         """
         det = torch.matmul(e[..., :2] * torch.matmul(e, self.p_swap), self.p_det)  # (B, T, 1)
         inv = 1.0 / torch.where(det.abs() > 1e-12, det, 1.0)
-        ab = torch.matmul(e, self.p_ab) * inv  # (B, T, 4) a1 b1 a2 b2
-        cc = torch.matmul(ab * torch.matmul(vert, self.p_v0), self.p_c)  # (B, T, 2) c1 c2
-        lin = torch.matmul(torch.cat([ab, cc], -1), self.p_lin).reshape(-1, self.n_tri, 2, 1, 3)  # [[a1 b1 c1], [a2 b2 c2]]
-        maps = lin[:, :, 0] * self.ref_d1 + lin[:, :, 1] * self.ref_d2 + self.maps_const  # (B, T, 2, 3)
+        ab = (torch.matmul(e, self.p_ab) * inv).reshape(-1, self.n_tri, 2, 1, 2)  # [[a1 b1], [a2 b2]]
+        grad = ab[:, :, 0] * self.ref_d1 + ab[:, :, 1] * self.ref_d2  # (B, T, 2, 2): [[u_x u_y], [v_x v_y]]
+        maps = torch.cat([grad, self.ref_0 + grad[..., :1] * 0.0], -1)  # (B, T, 2, 3)
         return maps.reshape(-1, self.n_tri, 6), det
 
-    def source(self, maps: torch.Tensor, s: torch.Tensor, lo: torch.Tensor, hi: torch.Tensor,
+    def source(self, maps: torch.Tensor, origin: torch.Tensor, s: torch.Tensor, lo: torch.Tensor, hi: torch.Tensor,
                cols: torch.Tensor, rows: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Raster coordinates u, v (B, 1, Hb, Wb) of every box pixel given its code sum.
 
-        maps : (B, T, 6) from :meth:`affine_maps`; s : (B, 1, Hb, Wb) from :meth:`locate`;
-        lo, hi : the box; cols (Wb,), rows (Hb,): its canvas coordinates. Tables (B, (T + 2) Wb) indexed
-        by ``(s' - C) Wb + (x - x_lo)`` with s' = clamp(s, C, C + T + 1) hold u0 = u_x x + u_1
-        and u_y (likewise v); row 0 (no triangle) and row T + 1 (two or more triangles) map
-        to (0, 0).
+        maps : (B, T, 6) from :meth:`affine_maps`; origin : (B, T, 2) the triangles' vertex 0
+        (x_0, y_0); s : (B, 1, Hb, Wb) from :meth:`locate`; lo, hi : the box; cols (Wb,),
+        rows (Hb,): its canvas coordinates. Tables (B, (T + 2) Wb) indexed by
+        ``(s' - C) Wb + (x - x_lo)`` with s' = clamp(s, C, C + T + 1) hold
+        u_c = u_0 + u_x (x - x_0), u_y and y_0 (likewise v); u = u_c + u_y (y - y_0). Row 0
+        (no triangle) and row T + 1 (two or more triangles) map to (0, 0). Every product is
+        of a small offset (a pixel's distance to its triangle's vertex), so float32 rounding
+        stays at the level of the raster coordinates (<= 1e-5 px on a 400 px canvas).
         """
         tab = F.pad(maps, (0, 0, 1, 1))  # (B, T + 2, 6), row t + 1 = triangle t, rows 0 and T + 1 map to (0, 0)
+        org = F.pad(origin, (0, 0, 1, 1))  # (B, T + 2, 2)
         zero = cols * 0.0
-        u0 = (tab[..., 0:1] * cols + tab[..., 2:3]).flatten(1)  # (B, (T + 2) Wb)
+        dx = cols - org[..., 0:1]  # (B, T + 2, Wb)
+        u0 = (tab[..., 0:1] * dx + tab[..., 2:3]).flatten(1)  # (B, (T + 2) Wb)
         uy = (tab[..., 1:2] + zero).flatten(1)
-        v0 = (tab[..., 3:4] * cols + tab[..., 5:6]).flatten(1)
+        v0 = (tab[..., 3:4] * dx + tab[..., 5:6]).flatten(1)
         vy = (tab[..., 4:5] + zero).flatten(1)
+        y0 = (org[..., 1:2] + zero).flatten(1)
         wb = hi[0] - lo[0]
         offset = cols - (lo[0] + self.code_base * wb)  # (Wb,)
         index = (torch.clamp(s, self.code_base, self.code_base + self.n_tri + 1) * wb + offset).to(torch.int64).flatten(1)
-        y = rows.unsqueeze(1)  # (Hb, 1)
-        u = torch.gather(u0, 1, index).reshape_as(s) + torch.gather(uy, 1, index).reshape_as(s) * y
-        v = torch.gather(v0, 1, index).reshape_as(s) + torch.gather(vy, 1, index).reshape_as(s) * y
+        dy = rows.unsqueeze(1) - torch.gather(y0, 1, index).reshape_as(s)  # (B, 1, Hb, Wb)
+        u = torch.gather(u0, 1, index).reshape_as(s) + torch.gather(uy, 1, index).reshape_as(s) * dy
+        v = torch.gather(v0, 1, index).reshape_as(s) + torch.gather(vy, 1, index).reshape_as(s) * dy
         return u, v
 
     def bilinear(self, textures: torch.Tensor, u: torch.Tensor, v: torch.Tensor, inside: torch.Tensor) -> torch.Tensor:
@@ -307,7 +305,7 @@ class ToTarget(nn.Module):
         s = self.locate(ed, det, lo, hi, cols, rows).unsqueeze(1)  # (B, 1, Hb, Wb)
         cb = self.code_base
         inside = ((s > cb + 0.5) & (s < cb + self.n_tri + 0.5)).to(textures.dtype)
-        u, v = self.source(maps, s, lo, hi, cols, rows[:-1])
+        u, v = self.source(maps, vert[..., :2], s, lo, hi, cols, rows[:-1])
         img = self.bilinear(textures, u, v, inside)
         # ONNX Pad order: begins of (B, C, H, W), then ends
         pads = torch.cat([self.zero2, lo.flip(0), self.zero2, (self.canvas_max - hi).flip(0)]).to(torch.int64)
