@@ -188,6 +188,37 @@ def test_ceiling_study_on_real_clip(shared_clip_dir, tmp_path):
     assert res["mean_texture"] < res["train_to_B"] < res["oracle"]
     assert res["train_plus_A_to_B"] > res["train_to_B"] + 1.0  # measured +3.0 dB on lp_d3
     assert res["test_b_frames"] > 0
+    reg = res["regions"]["train_to_B"]
+    assert sum(reg[k]["pixel_share"] for k in ("eyes", "mouth_interior", "lips", "brows", "rest")) == pytest.approx(1.0)
+    assert sum(reg[k]["error_share"] for k in ("eyes", "mouth_interior", "lips", "brows", "rest")) == pytest.approx(1.0)
+    assert reg["eyes"]["psnr"] < reg["rest"]["psnr"]  # the eyes are the worst-predicted region
+    assert reg["eyes_interior_at_oracle"] > res["train_to_B"]
+
+
+def test_region_breakdown_closed_form():
+    """Regions are disjoint and cover the mask; shares and PSNRs match a hand computation."""
+    from facesynth.data.synthetic import make_synthetic_sequence
+    from facesynth.model import FaceModel, FaceModelConfig
+    from facesynth.sadm.ceiling import region_breakdown, region_masks
+
+    seq = make_synthetic_sequence(24, 128, seed=0)
+    model = FaceModel.fit(seq, FaceModelConfig(reference_width=64), progress=False)
+    masks = region_masks(model)
+    stack = np.stack(list(masks.values()))
+    assert stack.shape == (5, model.n_pixels) and (stack.sum(0) == 1).all()  # a partition of the mask
+    assert all(m.any() for m in masks.values())
+    c, n = model.n_channels, 3
+    true = np.random.default_rng(0).uniform(0.2, 0.8, (n, c * model.n_pixels))
+    eyes = np.tile(masks["eyes"], c)
+    pred = true + np.where(eyes, 0.1, 0.01)  # 10x the error amplitude in the eyes
+    oracle = true + 0.01
+    out = region_breakdown(model, pred, true, oracle)
+    ne, m = masks["eyes"].sum(), model.n_pixels
+    assert out["eyes"]["error_share"] == pytest.approx(100 * ne / (100 * ne + m - ne), rel=1e-6)
+    assert out["eyes"]["psnr"] == pytest.approx(20 * np.log10(255 / 25.5), abs=1e-6)
+    assert out["rest"]["psnr"] == pytest.approx(40.0, abs=1e-6) and out["rest"]["oracle_psnr"] == pytest.approx(40.0, abs=1e-6)
+    # the interior's error is already at the oracle's level; the eyes' swap leaves 0.01 everywhere
+    assert out["eyes_interior_at_oracle"] == pytest.approx(40.0, abs=1e-6)
 
 
 def test_ceiling_cli_reports_missing_clip(tmp_path):
