@@ -186,7 +186,7 @@ def test_ceiling_study_on_real_clip(shared_clip_dir, tmp_path):
 
     res = study(str(shared_clip_dir("lp_d3")), "krr")
     assert res["mean_texture"] < res["train_to_B"] < res["oracle"]
-    assert res["train_plus_A_to_B"] > res["train_to_B"] + 1.0  # measured +3.0 dB on lp_d3
+    assert res["train_plus_A_to_B"] > res["train_to_B"] + 1.0  # measured +2.6 dB on lp_d3
     assert res["test_b_frames"] > 0
     reg = res["regions"]["train_to_B"]
     assert sum(reg[k]["pixel_share"] for k in ("eyes", "mouth_interior", "lips", "brows", "rest")) == pytest.approx(1.0)
