@@ -89,7 +89,7 @@ def mse(a, b) -> float:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--clip", default="lp_d6")
-    ap.add_argument("--features", default="bs", choices=["bs", "landmarks", "bs+landmarks"])
+    ap.add_argument("--features", default="bs", choices=["bs", "landmarks", "bs+landmarks", "landmarks_rigid"])
     ap.add_argument("--random", action="store_true", help="random data even when the shared clip exists")
     ap.add_argument("--only", default="linear,poly2,mlp,svr,krr", help="comma-separated regressors")
     ap.add_argument("--search", action="store_true", help="also grid-search the default grids")

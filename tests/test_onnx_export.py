@@ -135,3 +135,16 @@ def test_hydra_entry_point(tmp_path):
     summary = json.loads(res.stdout.strip().splitlines()[-1])
     assert summary["regressor"] == "linear" and summary["max_abs_diff_vs_torch"] <= 1e-4
     _assert_parity(_ort(out), syn, driving_landmarks(seed=6, n=2))
+
+
+@pytest.mark.parametrize("features", ["landmarks", "landmarks_rigid"])
+def test_landmark_feature_kinds_export_with_parity(features, tmp_path):
+    """The landmark feature kinds (re-alignment on the rigid points included) trace to ONNX."""
+    from facesynth.sadm.regressors import KRRRegressor
+    from facesynth.sadm.synthesis import GlobalAppearance, ShapeFeatures, Synthesizer
+
+    model, lm, _, y = synthetic_model()
+    reg = KRRRegressor.fit(ShapeFeatures.numpy(model, lm, features), y)
+    syn = Synthesizer(model, GlobalAppearance(model, reg, features)).eval()
+    path = export_synthesizer(syn, tmp_path / f"{features}.onnx")
+    _assert_parity(_ort(path), syn, driving_landmarks(seed=5, n=5))

@@ -146,3 +146,33 @@ def test_train_model_eri_through_hydra(tmp_path):
     assert (tmp_path / "eri" / "eri_metrics.json").is_file() and (tmp_path / "eri" / "eri_report.md").is_file()
     assert metrics["config"]["variance"] == 0.97  # the eri/ group's defaults reached train_eri
     assert "kind: eri" in (tmp_path / "eri" / "config.yaml").read_text()
+
+
+def test_rigid_landmark_features_closed_form_invariance_and_locality(synthetic):
+    """``landmarks_rigid``: equals a numpy Umeyama fit on the rigid points applied to the frame
+    landmarks; invariant to a similarity of the input; moving the mouth changes only the
+    mouth's features (the 68-point Procrustes features change everywhere)."""
+    from facesynth.geometry import apply_affine, similarity_fit
+    from facesynth.sadm.synthesis import RIGID_POINTS, ShapeFeatures
+
+    seq, tr, te, model, tex_tr = synthetic
+    lm = seq.landmarks[te[:4]].astype(np.float64)
+    mean = model.shape_pca.mean.reshape(-1, 2)
+    r = list(RIGID_POINTS)
+    want = apply_affine(lm, similarity_fit(lm[:, r], mean[r])).reshape(len(lm), -1) - model.shape_pca.mean
+    want *= 100.0 / (mean[:, 0].max() - mean[:, 0].min())
+    got = ShapeFeatures.numpy(model, lm.astype(np.float32), "landmarks_rigid")
+    np.testing.assert_allclose(got, want, atol=2e-3)
+    a, s = 0.3, 1.7
+    moved = lm @ (s * np.array([[np.cos(a), np.sin(a)], [-np.sin(a), np.cos(a)]])) + [40.0, -25.0]
+    np.testing.assert_allclose(ShapeFeatures.numpy(model, moved.astype(np.float32), "landmarks_rigid"), got, atol=2e-3)
+    opened = lm.copy()
+    opened[:, 57:60, 1] += 6.0  # lower lip down
+    opened[:, 65:68, 1] += 6.0
+    for kind, others_fixed in (("landmarks_rigid", True), ("landmarks", False)):
+        d = np.abs(ShapeFeatures.numpy(model, opened.astype(np.float32), kind)
+                   - ShapeFeatures.numpy(model, lm.astype(np.float32), kind)).reshape(len(lm), 68, 2)
+        mouth = list(range(57, 60)) + list(range(65, 68))
+        rest = [i for i in range(68) if i not in mouth]
+        assert d[:, mouth].max() > 1.0
+        assert (d[:, rest].max() < 1e-3) == others_fixed

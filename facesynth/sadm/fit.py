@@ -41,7 +41,8 @@ SADM_FORMAT_VERSION = 1
 class SADMConfig:
     """How the mapping is trained (the Hydra ``sadm`` node).
 
-    features : 'bs' (the paper), 'landmarks' (aligned coordinates) or 'bs+landmarks'
+    features : 'bs' (the paper), 'landmarks' (aligned coordinates), 'bs+landmarks', or
+        'landmarks_rigid' (coordinates aligned on the eye corners and nose only)
     augment_sigma : std (frame pixels) of Gaussian noise added to copies of the
         training landmarks, targets unchanged: trains robustness to landmark noise
     augment_copies : number of noisy copies (0: no augmentation)

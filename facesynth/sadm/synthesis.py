@@ -17,7 +17,10 @@ from facesynth.model.face_model import FaceModel
 from facesynth.model.warp import ToTarget, apply_affine_t, invert_affine_t, similarity_to
 from facesynth.sadm.regressors.base import Regressor
 
-FEATURE_KINDS = ("bs", "landmarks", "bs+landmarks")
+FEATURE_KINDS = ("bs", "landmarks", "bs+landmarks", "landmarks_rigid")
+# iBUG-68 points that expressions barely move: nose bridge and base (27-35), eye corners
+# (36, 39, 42, 45). ``landmarks_rigid`` aligns on these alone.
+RIGID_POINTS = (27, 28, 29, 30, 31, 32, 33, 34, 35, 36, 39, 42, 45)
 
 
 class ShapeEncoder(nn.Module):
@@ -47,7 +50,13 @@ class ShapeEncoder(nn.Module):
 
 class ShapeFeatures(nn.Module):
     """Regressor inputs from the aligned shape: ``bs`` (b_s, the paper), ``landmarks``
-    (the aligned coordinates minus the mean, scaled to pixels of a 100-px face), or both.
+    (the aligned coordinates minus the mean, scaled to pixels of a 100-px face), or both;
+    ``landmarks_rigid``: as ``landmarks`` but the similarity alignment is re-fitted on
+    :data:`RIGID_POINTS` alone (the eye corners and the nose), so that an expression
+    (an open mouth, raised brows) does not shift, rotate or rescale the whole shape the
+    way a 68-point Procrustes fit does. A similarity of a similarity-aligned shape is a
+    similarity of the frame landmarks, so this equals aligning the frame landmarks on the
+    rigid points directly (least squares, Umeyama 1991).
 
     Forward: aligned (B, 68, 2), b_s (B, K_s) -> features (B, F).
     """
@@ -60,10 +69,16 @@ class ShapeFeatures(nn.Module):
         self.register_buffer("mean", torch.from_numpy(model.shape_pca.mean.copy()))
         mean = model.shape_pca.mean.reshape(-1, 2)
         self.scale = float(100.0 / (mean[:, 0].max() - mean[:, 0].min()))
+        if kind == "landmarks_rigid":
+            self.rigid = list(RIGID_POINTS)
+            self.register_buffer("rigid_mean", torch.from_numpy(mean[self.rigid].astype(np.float32).copy()))
 
     def forward(self, aligned: torch.Tensor, b_s: torch.Tensor) -> torch.Tensor:
         if self.kind == "bs":
             return b_s
+        if self.kind == "landmarks_rigid":
+            aligned = apply_affine_t(aligned, similarity_to(aligned[:, self.rigid], self.rigid_mean))
+            return (aligned.reshape(aligned.shape[0], -1) - self.mean) * self.scale
         lm = (aligned.reshape(aligned.shape[0], -1) - self.mean) * self.scale
         return lm if self.kind == "landmarks" else torch.cat([b_s, lm], 1)
 
