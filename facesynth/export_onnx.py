@@ -139,8 +139,6 @@ def export_synthesizer(syn: Synthesizer, path: str | os.PathLike, metadata: dict
     -------
     Path of the written file.
     """
-    import onnx
-
     path = Path(path)
     graph = SynthesisGraph(syn.eval()).eval()
     ref = syn.warp.ref_size
@@ -160,26 +158,39 @@ def export_synthesizer(syn: Synthesizer, path: str | os.PathLike, metadata: dict
     }
     meta.update(metadata or {})
     example = torch.from_numpy(_example_landmarks(syn))
+    save_graph(graph, example, path, INPUT_NAME, OUTPUT_NAMES, meta, opset,
+               "facesynth synthesis graph: landmarks -> face crop, mask, placement")
+    log.info("exported %s (%s regressor, %.1f MB)", path, meta["regressor"], path.stat().st_size / 1e6)
+    return path
+
+
+def save_graph(
+    graph: nn.Module, example: torch.Tensor, path: Path, input_name: str, output_names: tuple[str, ...],
+    meta: dict, opset: int, doc: str,
+) -> None:
+    """Trace ``graph`` on ``example`` into ``path`` (written atomically): dynamic batch axis
+    on the input and every output, the int32 index pass (its count is recorded as
+    ``int32_index_gathers``), producer, ``doc`` and ``meta`` as metadata properties
+    (strings, JSON for other values); the file passes ``onnx.checker``."""
+    import onnx
+
     with atomic_path(path) as tmp, warnings.catch_warnings():
         warnings.simplefilter("ignore")  # the TorchScript exporter's deprecation notices
         with torch.no_grad():
             torch.onnx.export(
-                graph, (example,), str(tmp), input_names=[INPUT_NAME], output_names=list(OUTPUT_NAMES),
-                dynamic_axes={INPUT_NAME: {0: "batch"}, **{k: {0: "batch"} for k in OUTPUT_NAMES}},
+                graph, (example,), str(tmp), input_names=[input_name], output_names=list(output_names),
+                dynamic_axes={input_name: {0: "batch"}, **{k: {0: "batch"} for k in output_names}},
                 opset_version=opset, dynamo=False, do_constant_folding=True,
             )
         model = onnx.load(str(tmp))
         meta.setdefault("int32_index_gathers", int32_indices(model))
-        model.producer_name = "facesynth"
-        model.producer_version = __version__
-        model.doc_string = "facesynth synthesis graph: landmarks -> face crop, mask, placement"
+        model.producer_name, model.producer_version = "facesynth", __version__
+        model.doc_string = doc
         for k, v in meta.items():
             entry = model.metadata_props.add()
             entry.key, entry.value = k, v if isinstance(v, str) else json.dumps(v)
         onnx.checker.check_model(model)
         onnx.save(model, str(tmp))
-    log.info("exported %s (%s regressor, %.1f MB)", path, meta["regressor"], path.stat().st_size / 1e6)
-    return path
 
 
 def _example_landmarks(syn: Synthesizer) -> np.ndarray:

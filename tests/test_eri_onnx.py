@@ -22,17 +22,7 @@ from facesynth.eri.faps import N_FAPS, fap_displacements, faps_to_landmarks
 from facesynth.eri.model import EriModel
 from facesynth.eri.synthesis import EriSynthesizer
 from facesynth.runtime import EriRenderer, Renderer, read_metadata
-from test_eri_model import CFG, _sequence
-
-
-@pytest.fixture(scope="module")
-def seq():
-    return _sequence()
-
-
-@pytest.fixture(scope="module")
-def model(seq):
-    return EriModel.fit(seq, np.arange(12), EriConfig(**CFG))
+from test_eri_model import CFG, _sequence, model, seq  # noqa: F401  (module fixtures: the same small ERI model)
 
 
 @pytest.fixture(scope="module")

@@ -31,10 +31,8 @@ Compositing into the frame (OpenCV warpAffine + feathering) stays outside the gr
 
 from __future__ import annotations
 
-import json
 import logging
 import os
-import warnings
 from pathlib import Path
 
 import numpy as np
@@ -47,9 +45,8 @@ from facesynth.eri.faps import FAP_NAMES, N_FAPS, RIGID_POINTS, fap_displacement
 from facesynth.eri.geometry import to_canvas
 from facesynth.eri.ratio import edge_confidence
 from facesynth.eri.synthesis import EriSynthesizer
-from facesynth.io import atomic_path
+from facesynth.export_onnx import save_graph
 from facesynth.model.warp import ToTarget, candidate_spans
-from facesynth.onnx_passes import int32_indices
 from facesynth.provenance import array_fingerprint
 
 log = logging.getLogger(__name__)
@@ -201,8 +198,6 @@ def export_eri(
     opset : int
     span : (T, 2) warp spans (default :func:`export_spans`)
     """
-    import onnx
-
     path = Path(path)
     graph = EriGraph(syn, span).eval()
     m = syn.model
@@ -219,23 +214,8 @@ def export_eri(
     meta.update(metadata or {})
     example = torch.zeros(2, N_FAPS)
     example[1] = torch.linspace(-50, 50, N_FAPS)
-    with atomic_path(path) as tmp, warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # the TorchScript exporter's deprecation notices
-        with torch.no_grad():
-            torch.onnx.export(
-                graph, (example,), str(tmp), input_names=[INPUT_NAME], output_names=list(OUTPUT_NAMES),
-                dynamic_axes={INPUT_NAME: {0: "batch"}, **{k: {0: "batch"} for k in OUTPUT_NAMES}},
-                opset_version=opset, dynamo=False, do_constant_folding=True,
-            )
-        model = onnx.load(str(tmp))
-        meta.setdefault("int32_index_gathers", int32_indices(model))
-        model.producer_name, model.producer_version = "facesynth", __version__
-        model.doc_string = "facesynth ERI graph: MPEG-4 FAPs -> target face crop, mask, placement"
-        for k, v in meta.items():
-            entry = model.metadata_props.add()
-            entry.key, entry.value = k, v if isinstance(v, str) else json.dumps(v)
-        onnx.checker.check_model(model)
-        onnx.save(model, str(tmp))
+    save_graph(graph, example, path, INPUT_NAME, OUTPUT_NAMES, meta, opset,
+               "facesynth ERI graph: MPEG-4 FAPs -> target face crop, mask, placement")
     log.info("exported %s (ERI, %s, %.1f MB)", path, syn.variant, path.stat().st_size / 1e6)
     return path
 

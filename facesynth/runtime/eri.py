@@ -14,7 +14,7 @@ import numpy as np
 
 from facesynth.errors import FacesynthError
 from facesynth.imaging import composite
-from facesynth.runtime.renderer import Renderer
+from facesynth.runtime.renderer import Renderer, check_batch
 
 ERI_FORMAT = "facesynth.eri.onnx/1"
 
@@ -62,18 +62,7 @@ class EriRenderer(Renderer):
 
     def validate(self, faps) -> np.ndarray:
         """Check (B, n_faps) (or one (n_faps,)) finite real FAPs -> C-contiguous float32 (B, n_faps)."""
-        x = np.asarray(faps)
-        if x.dtype.kind not in "fiu":
-            raise FacesynthError(f"faps: expected a float array of MPEG-4 FAP values, got dtype {x.dtype}")
-        if x.ndim == 1:
-            x = x[None]
-        if x.ndim != 2 or x.shape[1] != self.n_faps or x.shape[0] < 1:
-            raise FacesynthError(f"faps: expected shape (B, {self.n_faps}) (this model's n_faps), got {tuple(np.shape(faps))}")
-        x = np.ascontiguousarray(x, np.float32)
-        if not np.isfinite(x).all():
-            bad = np.flatnonzero(~np.isfinite(x).all(axis=1))
-            raise FacesynthError(f"faps: NaN or infinite values in batch rows {bad[:10].tolist()}")
-        return x
+        return check_batch(faps, "faps", (self.n_faps,), "MPEG-4 FAP values", "this model's n_faps")
 
     def render(self, faps, copy: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(B, n_faps) FAPs -> crops float32 (B, 3, Hc, Wc) in [0, 1], masks float32

@@ -57,6 +57,24 @@ def _session(path: Path, threads: int, spin: bool) -> ort.InferenceSession:
         raise FacesynthError(f"{path}: not a loadable ONNX model ({str(exc).splitlines()[0][:200]})") from None
 
 
+def check_batch(values, field: str, item: tuple[int, ...], unit: str, layout: str, nan_hint: str = "") -> np.ndarray:
+    """Validate a batch of model inputs: real dtype, shape (B, *item) (one (*item) is
+    promoted to a batch of 1), all finite. Returns C-contiguous float32 (B, *item); raises
+    FacesynthError naming ``field``, what was expected and the offending batch rows."""
+    x = np.asarray(values)
+    if x.dtype.kind not in "fiu":
+        raise FacesynthError(f"{field}: expected a float array of {unit}, got dtype {x.dtype}")
+    if x.ndim == len(item):
+        x = x[None]
+    if x.ndim != len(item) + 1 or x.shape[1:] != tuple(item) or x.shape[0] < 1:
+        raise FacesynthError(f"{field}: expected shape (B, {', '.join(map(str, item))}) ({layout}), got {tuple(np.shape(values))}")
+    x = np.ascontiguousarray(x, np.float32)
+    if not np.isfinite(x).all():
+        bad = np.flatnonzero(~np.isfinite(x.reshape(len(x), -1)).all(axis=1))
+        raise FacesynthError(f"{field}: NaN or infinite values in batch rows {bad[:10].tolist()}{nan_hint}")
+    return x
+
+
 class Renderer:
     """Landmarks -> rendered face crops with an exported facesynth model.
 
@@ -113,17 +131,8 @@ class Renderer:
     # ------------------------------------------------------------ validation
     def validate(self, landmarks) -> np.ndarray:
         """Check (B, 68, 2) (or one (68, 2)) finite real landmarks -> C-contiguous float32 (B, 68, 2)."""
-        x = np.asarray(landmarks)
-        if x.dtype.kind not in "fiu":
-            raise FacesynthError(f"landmarks: expected a float array of (x, y) pixels, got dtype {x.dtype}")
-        if x.ndim == 2:
-            x = x[None]
-        if x.ndim != 3 or x.shape[1:] != (68, 2) or x.shape[0] < 1:
-            raise FacesynthError(f"landmarks: expected shape (B, 68, 2) (iBUG 68 points, x y), got {tuple(np.shape(landmarks))}")
-        x = np.ascontiguousarray(x, np.float32)
-        if not np.isfinite(x).all():
-            bad = np.flatnonzero(~np.isfinite(x).all(axis=(1, 2)))
-            raise FacesynthError(f"landmarks: NaN or infinite values in batch rows {bad[:10].tolist()} (drop frames without a face)")
+        x = check_batch(landmarks, "landmarks", (68, 2), "(x, y) pixels", "iBUG 68 points, x y",
+                        " (drop frames without a face)")
         extent = (x.max(1) - x.min(1)).max(1)  # (B,) larger side of each face's bounding box
         if (extent < 1.0).any():
             bad = np.flatnonzero(extent < 1.0)
