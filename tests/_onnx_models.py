@@ -64,3 +64,14 @@ def driving_landmarks(seed: int = 0, n: int = 6) -> np.ndarray:
         rot = s * np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
         out.append((p - c) @ rot.T + c + rng.uniform(-20, 20, 2))
     return np.stack(out).astype(np.float32)
+
+
+def real_linear_synthesizer(seq, rows: np.ndarray) -> Synthesizer:
+    """A linear SADM synthesizer fitted on ``rows`` of a real clip (40 appearance components)."""
+    from facesynth.sadm.regressors import LinearRegressor
+
+    model = FaceModel.fit(seq, FaceModelConfig(n_appearance=40), rows=rows, progress=False)
+    tex = model.sample_textures(seq, rows)
+    reg = LinearRegressor.fit(model.shape_params(seq.landmarks[rows], clamp=True), model.appearance_params(tex))
+    return Synthesizer(model, GlobalAppearance(model, reg)).eval()
+

@@ -14,7 +14,7 @@ import onnxruntime as ort
 import pytest
 import torch
 
-from _onnx_models import driving_landmarks, exported, synthetic_model, synthetic_synthesizer
+from _onnx_models import driving_landmarks, exported, real_linear_synthesizer, synthetic_model, synthetic_synthesizer
 from facesynth.errors import FacesynthError
 from facesynth.export_onnx import (
     METADATA_KEYS, SynthesisGraph, export_run, export_synthesizer, load_synthesizer, save_run_synthesizer,
@@ -87,16 +87,9 @@ def test_metadata_opset_and_dynamic_axis(onnx_dir):
 def test_real_landmarks_match_torch(shared_clip_dir, tmp_path):
     """A model fitted on lp_d6 frames, driven by lp_d6 landmarks it did not see."""
     from facesynth.data import load_sequence
-    from facesynth.model import FaceModel, FaceModelConfig
-    from facesynth.sadm.regressors import LinearRegressor
-    from facesynth.sadm.synthesis import GlobalAppearance, Synthesizer
 
     seq = load_sequence(shared_clip_dir("lp_d6"))
-    rows = np.arange(0, 240, 6)
-    model = FaceModel.fit(seq, FaceModelConfig(n_appearance=40), rows=rows, progress=False)
-    tex = model.sample_textures(seq, rows)
-    reg = LinearRegressor.fit(model.shape_params(seq.landmarks[rows], clamp=True), model.appearance_params(tex))
-    syn = Synthesizer(model, GlobalAppearance(model, reg)).eval()
+    syn = real_linear_synthesizer(seq, np.arange(0, 240, 6))
     path = export_synthesizer(syn, tmp_path / "lp_d6.onnx")
     test_rows = np.arange(3, len(seq), 16)  # ~63 frames across the whole clip
     _assert_parity(_ort(path), syn, seq.landmarks[test_rows])

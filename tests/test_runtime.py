@@ -13,7 +13,7 @@ import onnx
 import pytest
 import torch
 
-from _onnx_models import driving_landmarks, exported, synthetic_synthesizer
+from _onnx_models import driving_landmarks, exported, real_linear_synthesizer, synthetic_synthesizer
 from facesynth.errors import FacesynthError
 from facesynth.runtime import OneEuroFilter, Renderer, composite, smooth_landmarks
 from facesynth.runtime.app import default_size, latency_summary, parse_size, render_frames
@@ -195,3 +195,50 @@ def test_app_writes_video_matching_torch(model_path, tmp_path):
     assert main(args[:-2] + ["--smooth"]) == 0
     assert main(["app", "--model", str(model_path), "--video", str(tmp_path / "none.mp4"), "--out", str(tmp_path / "x.mp4")]) == 2
     assert not (tmp_path / "x.mp4").exists()
+
+
+def _read_video(path) -> list[np.ndarray]:
+    cap = cv2.VideoCapture(str(path))
+    frames = []
+    while True:
+        ok, f = cap.read()
+        if not ok:
+            return frames
+        frames.append(cv2.cvtColor(f, cv2.COLOR_BGR2RGB))
+
+
+def test_app_on_lp_d6_matches_torch(shared_clip_dir, tmp_path):
+    """``facesynth app`` driven by lp_d6 landmarks with a model fitted on other lp_d6 frames,
+    the real video beside it: the frames it encodes equal torch's rendering + composite."""
+    from facesynth.cli import main
+    from facesynth.data import load_sequence
+    from facesynth.export_onnx import export_synthesizer
+    from facesynth.imaging import composite as torch_side_composite
+
+    clip = shared_clip_dir("lp_d6")
+    seq = load_sequence(clip)
+    syn = real_linear_synthesizer(seq, np.arange(0, 240, 6))
+    model_path = export_synthesizer(syn, tmp_path / "lp_d6.onnx")
+    lm = seq.landmarks[:12].astype(np.float32)  # the app reads the first frames of the driver video
+    np.save(tmp_path / "lm.npy", lm)
+    out, sheet = tmp_path / "out.mp4", tmp_path / "sheet.png"
+    assert main(["app", "--model", str(model_path), "--landmarks", str(tmp_path / "lm.npy"), "--out", str(out),
+                 "--size", "480x480", "--side-by-side", "--driver-video", str(clip / "video.mp4"),
+                 "--no-progress", "--contact-sheet", str(sheet)]) == 0
+    frames = _read_video(out)
+    assert len(frames) == 12 and frames[0].shape == (480, 960, 3)
+    assert cv2.imread(str(sheet)) is not None
+    bg = np.full((480, 480, 3), 128, np.uint8)
+    ours = list(render_frames(Renderer(model_path), lm, bg))
+    with torch.no_grad():
+        crop, mask, place = syn(torch.from_numpy(lm))
+    for i in range(0, 12, 3):
+        ref = torch_side_composite(crop[i].permute(1, 2, 0).numpy(), mask[i, 0].numpy(), place[i].numpy().astype(np.float64), bg)
+        assert np.abs(ours[i].astype(int) - ref.astype(int)).max() <= 1
+        assert (ref != bg).any(axis=2).mean() > 0.1  # a face was drawn
+        decoded = frames[i][:, 480:].astype(float)
+        assert 10 * np.log10(255**2 / np.mean((decoded - ref) ** 2)) > 28  # mp4v is lossy
+        # the driver half is the real video frame
+        real = seq.frame(i)
+        assert 10 * np.log10(255**2 / np.mean((frames[i][:, :480].astype(float) - real) ** 2)) > 25
+
