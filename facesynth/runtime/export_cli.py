@@ -12,6 +12,9 @@ from __future__ import annotations
 
 import argparse
 import json
+from pathlib import Path
+
+from facesynth.errors import FacesynthError
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -39,12 +42,9 @@ def run(args: argparse.Namespace) -> int:
     if args.target:
         return run_eri(args)
     from facesynth.export_onnx import DEFAULT_COMPONENTS, check_export, export_run
-    from pathlib import Path
 
     run_dir = Path(args.run)
     if not (run_dir / "sadm").is_dir() and ((run_dir / "eri_model.json").is_file() or (run_dir / "eri" / "eri_model.json").is_file()):
-        from facesynth.errors import FacesynthError
-
         raise FacesynthError(f"{run_dir}: holds an ERI model only; pass --target IMAGE_OR_DIR to export it for a target face")
 
     lm = None
