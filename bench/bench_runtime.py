@@ -1,7 +1,7 @@
 """Runtime benchmark: exported synthesis models in ONNX Runtime vs torch eager.
 
 Fits a face model on a real clip (default lp_d6, every 2nd frame), fits every registered
-SADM regressor on it with the default SADM settings (``fit_sadm``), exports each twice --
+SADM regressor on it with the settings of ``train.py regressor=NAME`` (``train_defaults``), exports each twice --
 uncompressed and with the export's appearance compression (``--components``, default the
 export default 40: the components of largest predicted variance over the training
 landmarks, the rest folded into the mean) -- and measures, at the model's reference size:
@@ -123,6 +123,7 @@ def main(argv=None) -> int:
     from facesynth.data import load_sequence, shared_clip
     from facesynth.export_onnx import DEFAULT_COMPONENTS, compress_for_export, export_synthesizer
     from facesynth.model import FaceModel, FaceModelConfig
+    from facesynth.config import train_defaults
     from facesynth.sadm.fit import fit_sadm
     from facesynth.sadm.regressors import REGISTRY
 
@@ -152,7 +153,8 @@ def main(argv=None) -> int:
     for name in names:
         entry: dict = {}
         t0 = time.perf_counter()
-        sadm = fit_sadm(model, seq, rows, tex, name)
+        rname, params, sadm_cfg = train_defaults(name)  # as train.py regressor=NAME
+        sadm = fit_sadm(model, seq, rows, tex, rname, params, sadm_cfg)
         entry["fit_s"] = round(time.perf_counter() - t0, 2)
         entry["summary"] = sadm.regressor.summary()
         syn = sadm.synthesizer()

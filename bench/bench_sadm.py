@@ -21,14 +21,12 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=1)
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
-    from hydra import compose, initialize_config_dir
-    from pathlib import Path
 
-    from facesynth.config import register_configs, regressor_params
+    from facesynth.config import train_defaults
     from facesynth.data import load_sequence, shared_clip, temporal_split
     from facesynth.eval.metrics import psnr
     from facesynth.model import FaceModel, FaceModelConfig
-    from facesynth.sadm.fit import SADMConfig, fit_sadm
+    from facesynth.sadm.fit import fit_sadm
 
     if shared_clip(args.clip) is None:
         from facesynth.data.synthetic import make_synthetic_sequence
@@ -41,16 +39,12 @@ def main() -> None:
     model, tex_tr = FaceModel.fit_with_textures(seq, FaceModelConfig(), rows=tr, progress=False)
     model_s = time.perf_counter() - t0
     tex_te = model.sample_textures(seq, te)
-    register_configs()
     result = {"bench": "sadm", "data": name, "train_frames": len(tr), "test_frames": len(te),
               "face_model_fit_s": round(model_s, 2), "threads": args.threads, "regressors": {}}
-    conf_dir = str(Path(__file__).resolve().parents[1] / "conf")
     for reg in args.only.split(","):
-        with initialize_config_dir(config_dir=conf_dir, version_base="1.3"):
-            cfg = compose(config_name="config", overrides=[f"regressor={reg}"])
-        rname, params = regressor_params(cfg.regressor)
+        rname, params, sadm_cfg = train_defaults(reg)
         t = time.perf_counter()
-        sadm = fit_sadm(model, seq, tr, tex_tr, rname, params, SADMConfig(**cfg.sadm), seed=0)
+        sadm = fit_sadm(model, seq, tr, tex_tr, rname, params, sadm_cfg, seed=0)
         fit_s = time.perf_counter() - t
         syn = sadm.synthesizer()
         lm1 = torch.from_numpy(seq.landmarks[te[:1]])

@@ -82,6 +82,18 @@ def test_config_typos_fail_early():
         _compose(["regressor.rigde=3"])
 
 
+def test_train_defaults_are_what_train_py_composes():
+    """Scripts calling fit_sadm directly get the Hydra defaults of train.py: the regressor's
+    yaml hyper-parameters and the SADM settings it sets (krr: 1 px augmentation)."""
+    from facesynth.config import train_defaults
+
+    name, params, sadm_cfg = train_defaults("krr")
+    assert name == "krr" and params["kernel"] == "matern32" and params["alpha"] == 0.5
+    assert sadm_cfg.augment_sigma == 1.0 and sadm_cfg.features == "landmarks"
+    name, params, sadm_cfg = train_defaults("linear")
+    assert name == "linear" and sadm_cfg.augment_sigma == 2.0
+
+
 def test_run_directory_metrics_and_reevaluation(tmp_path):
     from facesynth.cli import main
     from facesynth.pipeline import run_training
