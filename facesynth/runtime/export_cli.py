@@ -40,35 +40,52 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     if args.target:
-        return run_eri(args)
-    from facesynth.export_onnx import DEFAULT_COMPONENTS, check_export, export_run
+        summary = export_eri_model(args.run, args.out, args.target, args.target_landmarks, args.target_frame,
+                                   args.variant, args.raw_ratios, args.opset, not args.no_check)
+    else:
+        from facesynth.export_onnx import DEFAULT_COMPONENTS
 
-    run_dir = Path(args.run)
-    if not (run_dir / "sadm").is_dir() and ((run_dir / "eri_model.json").is_file() or (run_dir / "eri" / "eri_model.json").is_file()):
-        raise FacesynthError(f"{run_dir}: holds an ERI model only; pass --target IMAGE_OR_DIR to export it for a target face")
+        lm = None
+        if args.landmarks:
+            from facesynth.data import load_landmarks
 
-    lm = None
-    if args.landmarks:
-        from facesynth.data import load_landmarks
-
-        lm = load_landmarks(args.landmarks)
-    comps = DEFAULT_COMPONENTS if args.components is None else args.components
-    path, syn, meta = export_run(args.run, args.out, args.opset, comps, args.predicted_variance, lm)
-    summary = {"out": str(path), "bytes": path.stat().st_size, **meta, "opset": args.opset}
-    if not args.no_check:
-        summary["max_abs_diff_vs_torch"] = check_export(syn, path)
+            lm = load_landmarks(args.landmarks)
+        comps = DEFAULT_COMPONENTS if args.components is None else args.components
+        summary = export_model(args.run, args.out, args.opset, comps, args.predicted_variance, lm, not args.no_check)
     print(json.dumps(summary))
     return 0
 
 
-def run_eri(args: argparse.Namespace) -> int:
+def export_model(run_dir, out, opset: int, components: int | None, predicted_variance: float | None,
+                 landmarks=None, check: bool = True) -> dict:
+    """Export a run's landmark-driven synthesis model (``facesynth export`` and
+    ``export/export.py``); returns the JSON summary (file, size, metadata, and the ONNX
+    Runtime vs torch difference when ``check``)."""
+    from facesynth.export_onnx import check_export, export_run
+
+    run_dir = Path(run_dir)
+    if not (run_dir / "sadm").is_dir() and ((run_dir / "eri_model.json").is_file() or (run_dir / "eri" / "eri_model.json").is_file()):
+        raise FacesynthError(f"{run_dir}: holds an ERI model only; pass --target IMAGE_OR_DIR to export it for a target face")
+    path, syn, meta = export_run(run_dir, out, opset, components, predicted_variance, landmarks)
+    summary = {"out": str(path), "bytes": path.stat().st_size, **meta, "opset": opset}
+    if check:
+        summary["max_abs_diff_vs_torch"] = check_export(syn, path)
+    return summary
+
+
+def export_eri_model(run_dir, out, target, target_landmarks=None, target_frame: int | None = None,
+                     variant: str | None = None, raw_ratios: bool = False, opset: int = 18, check: bool = True) -> dict:
+    """Export a run's ERI model for one target face (named as in ``transfer-expression``);
+    returns the JSON summary, as :func:`export_model`."""
+    from types import SimpleNamespace
+
     from facesynth.eri.cli import _target
     from facesynth.eri.export import check_eri_export, export_eri_run
 
-    image, landmarks, desc = _target(args)
-    path, syn, meta = export_eri_run(args.run, args.out, image, landmarks, args.variant, args.raw_ratios, args.opset)
-    summary = {"out": str(path), "bytes": path.stat().st_size, "target": desc, **meta}
-    if not args.no_check:
+    image, landmarks, desc = _target(SimpleNamespace(target=str(target), target_landmarks=target_landmarks,
+                                                     target_frame=target_frame))
+    path, syn, meta = export_eri_run(run_dir, out, image, landmarks, variant, raw_ratios, opset)
+    summary = {"out": str(path), "bytes": path.stat().st_size, "target": desc, **meta, "opset": opset}
+    if check:
         summary["max_abs_diff_vs_torch"] = check_eri_export(syn, path)
-    print(json.dumps(summary))
-    return 0
+    return summary
