@@ -25,6 +25,7 @@ import torch
 
 from facesynth.data import load_sequence, shared_clip, temporal_split
 from facesynth.eval.metrics import psnr
+from facesynth.eval.sadm_eval import noisy_landmarks
 from facesynth.model import FaceModel, FaceModelConfig
 from facesynth.runtime.filters import smooth_landmarks
 from facesynth.sadm.regressors import REGISTRY, CONFIGS
@@ -56,13 +57,6 @@ class Clip:
         """PSNR of predicted b_g (N, K_g) -- or of predicted textures (N, C*M) -- vs ``tex``."""
         t = b if b.shape[1] == tex.shape[1] else self.model.texture_from_params(np.clip(b, -self.lim, self.lim))
         return psnr(np.clip(t, 0, 1) * 255.0, np.clip(tex, 0, 1) * 255.0)
-
-
-def noisy(lm, sigma, seed=0):
-    if sigma == 0:
-        return lm
-    rng = np.random.default_rng([seed, int(round(sigma * 1000))])
-    return (lm + rng.normal(0, sigma, lm.shape)).astype(np.float32)
 
 
 def copies(lm, sigma=1.0, n=4, seed=0):
@@ -321,7 +315,7 @@ def main() -> None:
             for mode in ("val", "test"):
                 rows, y, ev, tex = c.split(mode)
                 pred = VARIANTS[v](c, rows, y)
-                s0, s2 = (c.score(pred(noisy(c.lm[ev], s)), tex) for s in (0, 2))
+                s0, s2 = (c.score(pred(noisy_landmarks(c.lm[ev], s, 0)), tex) for s in (0, 2))
                 out.setdefault(v, {}).setdefault(name, {})[mode] = [round(s0, 2), round(s0 - s2, 2)]
     print(json.dumps({"bench": "sadm_study", "variants": out}))
 

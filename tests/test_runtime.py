@@ -159,6 +159,16 @@ def test_app_helpers():
     assert latency_summary([(0.001, 0.002)] * 10)["model_ms"]["p50"] == 1.0
 
 
+def _read_video(path) -> list[np.ndarray]:
+    cap = cv2.VideoCapture(str(path))
+    frames = []
+    while True:
+        ok, f = cap.read()
+        if not ok:
+            return frames
+        frames.append(cv2.cvtColor(f, cv2.COLOR_BGR2RGB))
+
+
 def test_app_writes_video_matching_torch(model_path, tmp_path):
     from facesynth.cli import main
     from facesynth.imaging import composite as torch_side_composite
@@ -171,13 +181,7 @@ def test_app_writes_video_matching_torch(model_path, tmp_path):
     args = ["app", "--model", str(model_path), "--landmarks", str(tmp_path / "lm.npy"), "--out", str(out),
             "--size", "240x220", "--side-by-side", "--no-progress", "--contact-sheet", str(sheet)]
     assert main(args) == 0
-    cap = cv2.VideoCapture(str(out))
-    frames = []
-    while True:
-        ok, f = cap.read()
-        if not ok:
-            break
-        frames.append(cv2.cvtColor(f, cv2.COLOR_BGR2RGB))
+    frames = _read_video(out)
     assert len(frames) == 8 and frames[0].shape == (220, 480, 3)
     assert cv2.imread(str(sheet)) is not None
     # the frames the app encodes equal the torch renderer + composite (before lossy encoding)
@@ -195,16 +199,6 @@ def test_app_writes_video_matching_torch(model_path, tmp_path):
     assert main(args[:-2] + ["--smooth"]) == 0
     assert main(["app", "--model", str(model_path), "--video", str(tmp_path / "none.mp4"), "--out", str(tmp_path / "x.mp4")]) == 2
     assert not (tmp_path / "x.mp4").exists()
-
-
-def _read_video(path) -> list[np.ndarray]:
-    cap = cv2.VideoCapture(str(path))
-    frames = []
-    while True:
-        ok, f = cap.read()
-        if not ok:
-            return frames
-        frames.append(cv2.cvtColor(f, cv2.COLOR_BGR2RGB))
 
 
 def test_app_on_lp_d6_matches_torch(shared_clip_dir, tmp_path):

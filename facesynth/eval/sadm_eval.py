@@ -44,7 +44,8 @@ def _key(s: float) -> str:
     return str(int(s)) if float(s).is_integer() else str(s)
 
 
-def _noisy(lm: np.ndarray, sigma: float, seed: int) -> np.ndarray:
+def noisy_landmarks(lm: np.ndarray, sigma: float, seed: int) -> np.ndarray:
+    """(N, 68, 2) landmarks plus seeded Gaussian noise of ``sigma`` px (the evaluation's noise; sigma 0: unchanged)."""
     if sigma == 0:
         return lm
     rng = np.random.default_rng([seed, int(round(sigma * 1000))])
@@ -97,7 +98,7 @@ def evaluate_sadm(
     psnr_ref = {"sadm": {}, "mean_texture": {}, "oracle": {}}
     pred0 = None
     for s, k in zip(cfg.noise, keys):
-        pred = _predict(syn, _noisy(lm_te, s, seed), cfg.batch_size)
+        pred = _predict(syn, noisy_landmarks(lm_te, s, seed), cfg.batch_size)
         pred0 = pred if s == 0 else pred0
         psnr_ref["sadm"][k] = _psnr01(pred, tex_te)
         psnr_ref["mean_texture"][k] = _psnr01(mean_tex, tex_te)
@@ -122,7 +123,7 @@ def evaluate_sadm(
         mean_tr = np.broadcast_to(np.clip(model.appearance_pca.mean, 0, 1), tex_tr.shape)
         oracle_tr = np.clip(model.texture_from_params(model.appearance_params(tex_tr)), 0, 1)
         metrics["psnr_train_ref"] = {
-            "sadm": {k: _psnr01(_predict(syn, _noisy(seq.landmarks[train_rows], s, seed + 1), cfg.batch_size), tex_tr)
+            "sadm": {k: _psnr01(_predict(syn, noisy_landmarks(seq.landmarks[train_rows], s, seed + 1), cfg.batch_size), tex_tr)
                      for s, k in zip(cfg.noise, keys)},
             "mean_texture": {k: _psnr01(mean_tr, tex_tr) for k in keys},
             "oracle": {k: _psnr01(oracle_tr, tex_tr) for k in keys},
@@ -150,7 +151,7 @@ def _frame_level(sadm, syn, seq, rows, tex_te, oracle, cfg, seed, keys):
         region = cv2.warpAffine(clean_mask[j], clean_place[j], (w, h)) > 0.999
         region = cv2.erode(region.astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
         for s, k in zip(cfg.noise, keys):
-            lmn = _noisy(lm[j : j + 1], s, seed + 17 * j)
+            lmn = noisy_landmarks(lm[j : j + 1], s, seed + 17 * j)
             texs = np.concatenate([_predict(syn, lmn, 1) if t is None else t[j : j + 1] for t in sources.values()])
             crops, masks, places = model.render(texs, np.repeat(lmn, len(texs), 0))
             for i, name in enumerate(sources):
