@@ -1,24 +1,30 @@
 """Runtime benchmark: exported synthesis models in ONNX Runtime vs torch eager.
 
 Fits a face model on a real clip (default lp_d6, every 2nd frame), fits every registered
-SADM regressor on it with the settings of ``train.py regressor=NAME`` (``train_defaults``), exports each twice --
-uncompressed and with the export's appearance compression (``--components``, default the
-export default 40: the components of largest predicted variance over the training
-landmarks, the rest folded into the mean) -- and measures, at the model's reference size:
+SADM regressor on it with the settings of ``train.py regressor=NAME`` (``train_defaults``), exports each three times --
+``uncompressed`` (every component, float32 basis), ``compressed`` (the export's appearance
+compression, ``--components``, default the export default 40: the components of largest
+predicted variance over the training landmarks, the rest folded into the mean; float32
+basis) and ``default`` (what ``facesynth export`` writes: compressed, and the basis in int8,
+:mod:`facesynth.sadm.quantize`) -- and measures, at the model's reference size:
 
 * per-frame latency at batch 1 with 1 and 2 threads (median and p90 wall clock, and the
   median CPU time of the calling process, which is less affected by other load; also the
-  best of the medians of 5 consecutive rounds, the figure least affected by other jobs);
+  best of the medians of 10 consecutive rounds, the figure least affected by other jobs);
 * throughput at batch 32 (frames/s, 1 thread);
 * the same for torch eager (``Synthesizer.forward``, ``torch.set_num_threads``);
 * model file size, support vectors (SVR), appearance components, peak RSS;
-* the compression's effect: PSNR of the compressed vs the full texture over the training
-  landmarks (the figure the export records) and the held-out texture PSNR (odd frames,
-  which the model never saw) of both models against the real textures.
+* the compression's and the int8 basis' effect: PSNR of the compressed vs the full and of
+  the int8 vs the float32 texture over the training landmarks (the figures the export
+  records), and the held-out texture PSNR (odd frames, which the model never saw) of every
+  variant against the real textures.
+
+``summary`` repeats the headline: batch-1 one-thread frames/s (wall, CPU, best round) of the
+default export per regressor.
 
 Prints ONE JSON line.
 
-    PYTHONPATH=. python bench/bench_runtime.py [--regressors linear,mlp] [--components 40] [--reps 300]
+    PYTHONPATH=. python bench/bench_runtime.py [--regressors linear,mlp] [--components 40] [--reps 1000]
 """
 
 from __future__ import annotations
@@ -37,7 +43,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 
-ROUNDS = 5  # repetitions are split into this many rounds; the best round median is reported too
+ROUNDS = 10  # repetitions are split into this many rounds; the best round median is reported too
 
 
 def _times(fn, reps: int, warmup: int = 5) -> dict:
@@ -116,12 +122,13 @@ def main(argv=None) -> int:
     p.add_argument("--n-appearance", type=int, default=None, help="appearance components (default: the model default)")
     p.add_argument("--components", type=int, default=None, help="components kept by the compressed export (default: export default)")
     p.add_argument("--regressors", default="", help="comma-separated names (default: every registered one)")
-    p.add_argument("--reps", type=int, default=300, help="batch-1 repetitions per setting")
+    p.add_argument("--reps", type=int, default=1000,
+                   help="batch-1 repetitions per setting (about a second each: a median robust to shorter bursts of other load)")
     p.add_argument("--reps32", type=int, default=20, help="batch-32 repetitions")
     args = p.parse_args(argv)
 
     from facesynth.data import load_sequence, shared_clip
-    from facesynth.export_onnx import DEFAULT_COMPONENTS, compress_for_export, export_synthesizer
+    from facesynth.export_onnx import DEFAULT_COMPONENTS, compress_for_export, export_synthesizer, quantize_for_export
     from facesynth.model import FaceModel, FaceModelConfig
     from facesynth.config import train_defaults
     from facesynth.sadm.fit import fit_sadm
@@ -147,7 +154,7 @@ def main(argv=None) -> int:
         "reference_size": list(model.reference.size), "n_shape": model.shape_pca.n_components,
         "n_appearance": model.appearance_pca.n_components, "n_triangles": model.reference.n_triangles,
         "components_kept": keep, "cpu_count": os.cpu_count(), "loadavg_at_start": [round(v, 2) for v in os.getloadavg()],
-        "model_fit_s": round(fit_s, 1), "regressors": {},
+        "model_fit_s": round(fit_s, 1), "summary": {}, "regressors": {},
     }
     tmp = Path(tempfile.mkdtemp(prefix="bench_runtime_"))
     for name in names:
@@ -159,14 +166,18 @@ def main(argv=None) -> int:
         entry["summary"] = sadm.regressor.summary()
         syn = sadm.synthesizer()
         small, info = compress_for_export(syn, train_lm, keep)
-        for tag, s_ in (("uncompressed", syn), ("compressed", small)):
+        default, q_info = quantize_for_export(small, train_lm)
+        for tag, s_ in (("uncompressed", syn), ("compressed", small), ("default", default)):
             path = export_synthesizer(s_, tmp / f"{name}_{tag}.onnx", {"data_fingerprint": model.fingerprint})
             res = {"appearance_components": int(s_.appearance.components.shape[0]),
+                   "appearance_basis": "float32" if s_.appearance.basis is None else "int8",
                    "heldout_texture_psnr_db": _heldout_psnr(s_, lm[held], tex_held)}
             res.update(_measure(s_, path, lm, args.reps, args.reps32))
             entry[tag] = res
         entry["compression"] = {k: v for k, v in info.items() if k != "kept_components"}
+        entry["quantization"] = q_info
         out["regressors"][name] = entry
+        out["summary"][name] = entry["default"]["onnxruntime"]["frames_per_s_batch1_threads1"]
     out["loadavg_at_end"] = [round(v, 2) for v in os.getloadavg()]
     out["peak_rss_mb"] = round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1)
     print(json.dumps(out))

@@ -1,6 +1,6 @@
 """Hydra entry point of the ONNX export (the same code as ``facesynth export``).
 
-    python export/export.py run=outputs/RUN out=model.onnx [opset=18] [check=false] [components=40] [predicted_variance=0.999]
+    python export/export.py run=outputs/RUN out=model.onnx [opset=18] [check=false] [components=40] [predicted_variance=0.999] [basis=int8|float32]
     python export/export.py run=outputs/RUN out=eri.onnx target=B.png target_landmarks=B.npy [variant=nu_rbf] [raw_ratios=true]
 """
 
@@ -28,7 +28,8 @@ def main(cfg: DictConfig) -> None:
         else:
             comps = None if cfg.components is None else int(cfg.components)
             q = None if cfg.predicted_variance is None else float(cfg.predicted_variance)
-            summary = export_model(cfg.run, cfg.out, int(cfg.opset), comps, q, check=bool(cfg.check))
+            summary = export_model(cfg.run, cfg.out, int(cfg.opset), comps, q, check=bool(cfg.check),
+                                   basis=str(cfg.get("basis", "int8")))
     except FacesynthError as exc:
         print(f"error: {exc}", file=sys.stderr)
         sys.exit(2)

@@ -17,6 +17,7 @@ The ONNX file records its opset and metadata properties (see :data:`METADATA_KEY
 
 from __future__ import annotations
 
+import functools
 import json
 import logging
 import os
@@ -89,7 +90,6 @@ class SynthesisGraph(nn.Module):
             self.n_tex = int(app.mean.shape[0]) // int(app.channels)  # a Python int: no Shape op when traced
             self.register_buffer("app_limit", app.limit.clone())
             self.register_buffer("app_mean", app.mean.clone())
-            self.register_buffer("app_components", app.components.clone())
 
     def forward(self, landmarks: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         mu = landmarks.mean(1, keepdim=True)  # (B, 1, 2)
@@ -104,7 +104,8 @@ class SynthesisGraph(nn.Module):
         if self.global_appearance:
             b_g = self.appearance.regressor(self.appearance.features(aligned, b_s))
             b_g = torch.minimum(torch.maximum(b_g, -self.app_limit), self.app_limit)
-            tex = torch.clamp(torch.matmul(b_g, self.app_components) + self.app_mean, 0.0, 1.0)
+            # float32 matmul, or the int8 basis (MatMulInteger; facesynth.sadm.quantize)
+            tex = torch.clamp(self.appearance.deviation(b_g) + self.app_mean, 0.0, 1.0)
             tex = tex.reshape(-1, self.channels, self.n_tex)
         else:
             tex = torch.clamp(self.appearance(aligned, b_s), 0.0, 1.0)
@@ -156,6 +157,8 @@ def export_synthesizer(syn: Synthesizer, path: str | os.PathLike, metadata: dict
         "opset": opset,
         "n_scanline_events": syn.warp.n_candidates,
     }
+    if isinstance(syn.appearance, GlobalAppearance):
+        meta["appearance_basis"] = "float32" if syn.appearance.basis is None else "int8"
     meta.update(metadata or {})
     example = torch.from_numpy(_example_landmarks(syn))
     save_graph(graph, example, path, INPUT_NAME, OUTPUT_NAMES, meta, opset,
@@ -227,6 +230,8 @@ def save_run_synthesizer(run_dir: str | os.PathLike, model, regressor, features:
 
 
 DEFAULT_COMPONENTS = 40  # appearance components kept at export (see docs/runtime.md for the measurements)
+BASIS_KINDS = ("int8", "float32")
+DEFAULT_BASIS = "int8"  # the exported appearance basis (facesynth.sadm.quantize; docs/runtime.md)
 
 
 def training_landmarks(run_dir: str | os.PathLike) -> np.ndarray:
@@ -275,16 +280,43 @@ def compress_for_export(
     return out, info
 
 
+def quantize_for_export(syn: Synthesizer, landmarks, basis: str = DEFAULT_BASIS) -> tuple[Synthesizer, dict]:
+    """Apply :func:`facesynth.sadm.quantize.quantize_synthesizer` when ``basis`` is "int8"
+    and return the metadata that records it (``appearance_basis`` and, measured over
+    ``landmarks`` (array or callable), ``quantization_psnr_vs_float_db``). "float32": unchanged."""
+    if basis not in BASIS_KINDS:
+        raise FacesynthError(f"appearance basis must be one of {BASIS_KINDS}, got {basis!r}")
+    if not isinstance(syn.appearance, GlobalAppearance):
+        return syn, {}
+    if basis == "float32":
+        return syn, {"appearance_basis": "float32"}
+    if not torch.isfinite(syn.appearance.limit).all():
+        log.warning("int8 basis needs the appearance clamping limits (this model has clamping off): float32 basis kept")
+        return syn, {"appearance_basis": "float32"}
+    from facesynth.sadm.quantize import quantize_synthesizer
+
+    try:
+        lm = landmarks() if callable(landmarks) else landmarks
+    except FacesynthError as exc:  # the measurement is optional; quantizing needs no landmarks
+        log.info("int8 basis: not measured against the float basis (%s)", exc)
+        lm = None
+    return quantize_synthesizer(syn, lm)
+
+
 def export_run(
     run_dir: str | os.PathLike, out: str | os.PathLike, opset: int = OPSET,
     components: int | None = DEFAULT_COMPONENTS, predicted_variance: float | None = None, landmarks=None,
+    basis: str = DEFAULT_BASIS,
 ) -> tuple[Path, Synthesizer, dict]:
     """``facesynth export RUN --out model.onnx``: load a run, compress its appearance
-    (:func:`compress_for_export`; ``landmarks`` default: the run's training landmarks) and
-    export it. Returns the file, the exported (compressed) synthesizer and the metadata."""
+    (:func:`compress_for_export`; ``landmarks`` default: the run's training landmarks),
+    quantize its basis (:func:`quantize_for_export`) and export it. Returns the file, the
+    exported (compressed, quantized) synthesizer and the metadata."""
     syn, meta = load_synthesizer(run_dir)
-    lm = landmarks if landmarks is not None else (lambda: training_landmarks(run_dir))
+    lm = functools.cache(lambda: landmarks if landmarks is not None else training_landmarks(run_dir))  # loaded once, if needed
     syn, info = compress_for_export(syn, lm, components, predicted_variance)
+    meta.update(info)
+    syn, info = quantize_for_export(syn, lm, basis)
     meta.update(info)
     return export_synthesizer(syn, out, meta, opset), syn, meta
 

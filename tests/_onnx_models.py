@@ -75,3 +75,23 @@ def real_linear_synthesizer(seq, rows: np.ndarray) -> Synthesizer:
     reg = LinearRegressor.fit(model.shape_params(seq.landmarks[rows], clamp=True), model.appearance_params(tex))
     return Synthesizer(model, GlobalAppearance(model, reg)).eval()
 
+
+
+def assert_export_matches(path, syn: Synthesizer, lm: np.ndarray, tol: float = 1e-4) -> float:
+    """Run the ONNX file ``path`` (one thread) and ``syn`` in torch on (B, 68, 2) ``lm``:
+    crops equal within ``tol`` where both masks are set, masks equal but for float-rounding
+    flips at the outline, placements within 1e-3. Returns the largest crop difference."""
+    import onnxruntime as ort
+
+    so = ort.SessionOptions()
+    so.intra_op_num_threads = 1
+    sess = ort.InferenceSession(str(path), so, providers=["CPUExecutionProvider"])
+    crop, mask, place = sess.run(None, {"landmarks": lm})
+    with torch.no_grad():
+        t_crop, t_mask, t_place = (t.numpy() for t in syn(torch.from_numpy(lm)))
+    assert crop.shape == t_crop.shape and mask.shape == t_mask.shape and place.shape == (len(lm), 2, 3)
+    assert (mask != t_mask).mean() < 1e-3
+    diff = float(np.abs((crop - t_crop) * mask * t_mask).max())
+    assert diff <= tol
+    np.testing.assert_allclose(place, t_place, atol=1e-3)
+    return diff

@@ -4,11 +4,10 @@ every component is kept, ONNX parity of the compressed model, recorded metadata,
 from __future__ import annotations
 
 import numpy as np
-import onnxruntime as ort
 import pytest
 import torch
 
-from _onnx_models import driving_landmarks, synthetic_model, synthetic_synthesizer
+from _onnx_models import assert_export_matches, driving_landmarks, synthetic_model, synthetic_synthesizer
 from facesynth.errors import FacesynthError
 from facesynth.export_onnx import export_run, export_synthesizer, save_run_synthesizer
 from facesynth.sadm.compress import choose_components, compress_synthesizer, predicted_params
@@ -84,15 +83,7 @@ def test_compressed_export_matches_compressed_torch(name, tmp_path):
     syn = synthetic_synthesizer(name)
     small, _ = compress_synthesizer(syn, synthetic_model()[1], keep=2)
     path = export_synthesizer(small, tmp_path / "small.onnx")
-    lm = driving_landmarks(seed=7, n=4)
-    so = ort.SessionOptions()
-    so.intra_op_num_threads = 1
-    crop, mask, place = ort.InferenceSession(str(path), so, providers=["CPUExecutionProvider"]).run(None, {"landmarks": lm})
-    with torch.no_grad():
-        t_crop, t_mask, t_place = small(torch.from_numpy(lm))
-    assert np.abs((crop - t_crop.numpy()) * mask).max() <= 1e-4
-    assert (mask != t_mask.numpy()).mean() < 1e-3
-    np.testing.assert_allclose(place, t_place.numpy(), atol=1e-3)
+    assert_export_matches(path, small, driving_landmarks(seed=7, n=4))
 
 
 def test_export_run_records_compression(tmp_path):

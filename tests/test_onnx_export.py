@@ -19,6 +19,7 @@ from facesynth.errors import FacesynthError
 from facesynth.export_onnx import (
     METADATA_KEYS, SynthesisGraph, export_run, export_synthesizer, load_synthesizer, save_run_synthesizer,
 )
+from facesynth.sadm.quantize import quantize_synthesizer
 from facesynth.sadm.regressors import REGISTRY
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -84,12 +85,16 @@ def test_metadata_opset_and_dynamic_axis(onnx_dir):
     assert not ops & {"Loop", "If", "Scan"} and all(n.domain in ("", "ai.onnx") for n in m.graph.node)
 
 
-def test_real_landmarks_match_torch(shared_clip_dir, tmp_path):
-    """A model fitted on lp_d6 frames, driven by lp_d6 landmarks it did not see."""
+@pytest.mark.parametrize("basis", ["float32", "int8"])
+def test_real_landmarks_match_torch(basis, shared_clip_dir, tmp_path):
+    """A model fitted on lp_d6 frames, driven by lp_d6 landmarks it did not see (float32
+    basis, and the int8 basis of the default export)."""
     from facesynth.data import load_sequence
 
     seq = load_sequence(shared_clip_dir("lp_d6"))
     syn = real_linear_synthesizer(seq, np.arange(0, 240, 6))
+    if basis == "int8":
+        syn = quantize_synthesizer(syn)[0]
     path = export_synthesizer(syn, tmp_path / "lp_d6.onnx")
     test_rows = np.arange(3, len(seq), 16)  # ~63 frames across the whole clip
     _assert_parity(_ort(path), syn, seq.landmarks[test_rows])
@@ -103,9 +108,14 @@ def test_run_round_trip_cli_and_errors(tmp_path):
     loaded, meta = load_synthesizer(run)
     assert meta["regressor"] == "linear" and meta["data_fingerprint"] == syn.face_model.fingerprint
     lm = driving_landmarks(seed=5, n=3)
-    _assert_parity(_ort(export_run(run, tmp_path / "a.onnx")[0]), syn, lm)
+    path, exported_syn, meta = export_run(run, tmp_path / "a.onnx")  # the default export: int8 basis
+    assert meta["appearance_basis"] == "int8" and exported_syn.appearance.basis is not None
+    _assert_parity(_ort(path), exported_syn, lm)
     assert main(["export", str(run), "--out", str(tmp_path / "b.onnx")]) == 0
-    _assert_parity(_ort(tmp_path / "b.onnx"), loaded, lm)
+    _assert_parity(_ort(tmp_path / "b.onnx"), quantize_synthesizer(loaded)[0], lm)
+    assert main(["export", str(run), "--out", str(tmp_path / "f.onnx"), "--basis", "float32"]) == 0
+    _assert_parity(_ort(tmp_path / "f.onnx"), loaded, lm)
+    assert "MatMulInteger" not in {n.op_type for n in onnx.load(str(tmp_path / "f.onnx")).graph.node}
     with pytest.raises(FacesynthError, match="not found"):
         load_synthesizer(tmp_path / "nope")
     (tmp_path / "empty").mkdir()
@@ -127,7 +137,8 @@ def test_hydra_entry_point(tmp_path):
     assert res.returncode == 0, res.stderr[-2000:]
     summary = json.loads(res.stdout.strip().splitlines()[-1])
     assert summary["regressor"] == "linear" and summary["max_abs_diff_vs_torch"] <= 1e-4
-    _assert_parity(_ort(out), syn, driving_landmarks(seed=6, n=2))
+    assert summary["appearance_basis"] == "int8"
+    _assert_parity(_ort(out), quantize_synthesizer(syn)[0], driving_landmarks(seed=6, n=2))
 
 
 @pytest.mark.parametrize("features", ["landmarks", "landmarks_rigid"])

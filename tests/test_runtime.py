@@ -208,10 +208,11 @@ def test_app_on_lp_d6_matches_torch(shared_clip_dir, tmp_path):
     from facesynth.data import load_sequence
     from facesynth.export_onnx import export_synthesizer
     from facesynth.imaging import composite as torch_side_composite
+    from facesynth.sadm.quantize import quantize_synthesizer
 
     clip = shared_clip_dir("lp_d6")
     seq = load_sequence(clip)
-    syn = real_linear_synthesizer(seq, np.arange(0, 240, 6))
+    syn = quantize_synthesizer(real_linear_synthesizer(seq, np.arange(0, 240, 6)))[0]  # as the default export
     model_path = export_synthesizer(syn, tmp_path / "lp_d6.onnx")
     lm = seq.landmarks[:12].astype(np.float32)  # the app reads the first frames of the driver video
     np.save(tmp_path / "lm.npy", lm)

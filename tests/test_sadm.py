@@ -118,15 +118,19 @@ def test_run_directory_metrics_and_reevaluation(tmp_path):
     for row in ("sadm", "mean_texture", "oracle"):
         for k in ("0", "2"):
             assert again["psnr_ref"][row][k] == pytest.approx(metrics["psnr_ref"][row][k], abs=1e-6)
-    # the run exports to ONNX and onnxruntime renders what torch renders
+    # the run exports to ONNX (default: int8 basis, measured on the run's training landmarks)
+    # and onnxruntime renders what torch renders with the same basis
     from facesynth.runtime import Renderer
+    from facesynth.sadm.quantize import quantize_synthesizer
 
     assert main(["export", str(tmp_path / "run"), "--out", str(tmp_path / "m.onnx")]) == 0
+    r = Renderer(tmp_path / "m.onnx")
+    assert r.metadata["appearance_basis"] == "int8" and float(r.metadata["quantization_psnr_vs_float_db"]) > 40
     sadm = load_sadm(tmp_path / "run")
     lm = make_synthetic_sequence(64, 192, seed=0).landmarks[-4:]
-    crop, mask, place = Renderer(tmp_path / "m.onnx").render(lm)
+    crop, mask, place = r.render(lm)
     with torch.no_grad():
-        t_crop, t_mask, t_place = sadm.synthesizer()(torch.from_numpy(lm))
+        t_crop, t_mask, t_place = quantize_synthesizer(sadm.synthesizer())[0](torch.from_numpy(lm))
     both = mask * t_mask.numpy()
     assert np.abs((crop - t_crop.numpy()) * both).max() <= 1e-4
     np.testing.assert_allclose(place, t_place.numpy(), atol=1e-3)

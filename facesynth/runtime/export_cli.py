@@ -27,6 +27,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "landmarks, the rest folded into the mean (default 40; 0 = all, no compression)")
     p.add_argument("--predicted-variance", type=float, default=None,
                    help="instead of --components: keep the fewest components holding this fraction of the predicted variance")
+    p.add_argument("--basis", choices=["int8", "float32"], default="int8",
+                   help="appearance basis storage: int8 (default; 4x smaller, integer matmul, its PSNR against "
+                        "float32 is measured and recorded) or float32")
     p.add_argument("--landmarks", default=None,
                    help="training landmarks (.npy (N, 68, 2)) for the compression (default: reloaded from RUN/config.yaml)")
     eri = p.add_argument_group("ERI model (exported when --target is given)")
@@ -51,13 +54,14 @@ def run(args: argparse.Namespace) -> int:
 
             lm = load_landmarks(args.landmarks)
         comps = DEFAULT_COMPONENTS if args.components is None else args.components
-        summary = export_model(args.run, args.out, args.opset, comps, args.predicted_variance, lm, not args.no_check)
+        summary = export_model(args.run, args.out, args.opset, comps, args.predicted_variance, lm, not args.no_check,
+                               args.basis)
     print(json.dumps(summary))
     return 0
 
 
 def export_model(run_dir, out, opset: int, components: int | None, predicted_variance: float | None,
-                 landmarks=None, check: bool = True) -> dict:
+                 landmarks=None, check: bool = True, basis: str = "int8") -> dict:
     """Export a run's landmark-driven synthesis model (``facesynth export`` and
     ``export/export.py``); returns the JSON summary (file, size, metadata, and the ONNX
     Runtime vs torch difference when ``check``)."""
@@ -66,7 +70,7 @@ def export_model(run_dir, out, opset: int, components: int | None, predicted_var
     run_dir = Path(run_dir)
     if not (run_dir / "sadm").is_dir() and ((run_dir / "eri_model.json").is_file() or (run_dir / "eri" / "eri_model.json").is_file()):
         raise FacesynthError(f"{run_dir}: holds an ERI model only; pass --target IMAGE_OR_DIR to export it for a target face")
-    path, syn, meta = export_run(run_dir, out, opset, components, predicted_variance, landmarks)
+    path, syn, meta = export_run(run_dir, out, opset, components, predicted_variance, landmarks, basis)
     summary = {"out": str(path), "bytes": path.stat().st_size, **meta, "opset": opset}
     if check:
         summary["max_abs_diff_vs_torch"] = check_export(syn, path)

@@ -129,6 +129,8 @@ def compress_synthesizer(
     ``compression_psnr_vs_full_db``: PSNR (peak 1) of the compressed vs the full texture
     (clipped to [0, 1], reference mask pixels) over ``landmarks``.
     """
+    if getattr(syn.appearance, "basis", None) is not None:
+        raise FacesynthError("appearance compression: compress before quantizing the basis (this synthesizer is int8)")
     landmarks = np.asarray(landmarks, np.float32)
     if landmarks.ndim != 3 or landmarks.shape[1:] != (68, 2):
         raise FacesynthError(f"appearance compression: landmarks must be (N, 68, 2), got {landmarks.shape}")

@@ -94,7 +94,12 @@ class ShapeFeatures(nn.Module):
 
 
 class GlobalAppearance(nn.Module):
-    """Shape features -> b_g (regressor) -> clamp -> texture (B, C, M) via the appearance PCA."""
+    """Shape features -> b_g (regressor) -> clamp -> texture (B, C, M) via the appearance PCA.
+
+    ``basis``: None (``b_g @ components`` in float32), or the export's int8 basis
+    (:class:`facesynth.sadm.quantize.Int8Basis`, set by ``quantize_synthesizer``) mapping
+    b_g (B, K) to the deviation from the mean texture (B, C M).
+    """
 
     def __init__(self, model: FaceModel, regressor: Regressor, features: str = "bs", clamp: bool = True):
         super().__init__()
@@ -106,6 +111,11 @@ class GlobalAppearance(nn.Module):
         self.register_buffer("components", torch.from_numpy(pca.components.copy()))
         lim = model.config.clamp_k * np.sqrt(pca.eigenvalues) if clamp else np.full(pca.n_components, np.inf)
         self.register_buffer("limit", torch.from_numpy(lim.astype(np.float32)))
+        self.basis: nn.Module | None = None
+
+    def deviation(self, b_g: torch.Tensor) -> torch.Tensor:
+        """Texture deviation from the mean (B, C M) of clamped coefficients b_g (B, K)."""
+        return torch.matmul(b_g, self.components) if self.basis is None else self.basis(b_g)
 
     def params(self, aligned: torch.Tensor, b_s: torch.Tensor) -> torch.Tensor:
         """b_g (B, K_g), clamped."""
@@ -113,7 +123,7 @@ class GlobalAppearance(nn.Module):
         return torch.clamp(b_g, -self.limit, self.limit)
 
     def forward(self, aligned: torch.Tensor, b_s: torch.Tensor) -> torch.Tensor:
-        tex = self.mean + torch.matmul(self.params(aligned, b_s), self.components)
+        tex = self.mean + self.deviation(self.params(aligned, b_s))
         return tex.reshape(tex.shape[0], self.channels, -1)
 
 

@@ -1,0 +1,149 @@
+"""Int8 appearance basis for deployment: the (K x C M) appearance matmul in 8-bit integers.
+
+At batch 1 the appearance reconstruction ``b_g @ P`` reads the whole (K, C M) basis every
+frame: 7 MB of float32 at K = 40 on lp_d6, more than a core's L2 cache, so its cost swings
+with whatever else shares the L3 (measured 100 us with the basis cached, about 500 us once
+other processes have evicted it; see docs/runtime.md). Stored as int8 it is 1.76 MB, and
+ONNX Runtime runs it as one standard ``MatMulInteger`` (u8 x s8, the VNNI path of MLAS).
+
+Static symmetric quantization with a known input range (Jacob et al., "Quantization and
+Training of Neural Networks for Efficient Integer-Arithmetic-Only Inference", CVPR 2018):
+
+* coefficients: b_g is clamped to +-limit_k (3 sigma of component k), so
+  ``a_k = round(127 b_k / limit_k)`` is an integer in [-127, 127] (no per-frame scale);
+* basis: ``W = diag(limit / 127) P`` is each component's contribution per coefficient step,
+  quantized per texture element (column): ``s_n = max_k |W_kn| / 127``,
+  ``q_kn = round(W_kn / s_n)`` in [-127, 127];
+* texture: ``mean + s * (a @ q)``. ``a @ q`` is exact in int32 (and in float32: every
+  partial sum is an integer below 2^24 for K < 1040), so the torch graph (:class:`Int8Basis`
+  in eager mode) and ONNX Runtime compute the same numbers.
+
+The cost is two rounding errors of at most half a step each, measured by
+:func:`quantize_synthesizer` as the PSNR of the int8 vs the float texture over the
+training landmarks (recorded in the exported file).
+"""
+
+from __future__ import annotations
+
+import copy
+
+import numpy as np
+import torch
+from torch import nn
+
+from facesynth.errors import FacesynthError
+from facesynth.sadm.synthesis import GlobalAppearance, Synthesizer
+
+LEVELS = 127  # symmetric int8: codes in [-127, 127]
+_ZERO_POINT = 128  # coefficient codes travel as uint8 a + 128 (MatMulInteger's u8 x s8 path)
+
+
+def quantize_columns(weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Symmetric per-column int8 quantization.
+
+    Parameters
+    ----------
+    weights : (K, D) float array
+
+    Returns
+    -------
+    codes : (K, D) int8 in [-127, 127]
+    scale : (D,) float32, ``weights ~= codes * scale`` (a column of zeros gets scale 1)
+    """
+    w = np.asarray(weights, np.float64)
+    if w.ndim != 2 or not np.isfinite(w).all():
+        raise FacesynthError(f"int8 quantization: weights must be a finite 2-D array, got shape {w.shape}")
+    scale = np.abs(w).max(0) / LEVELS
+    scale = np.where(scale > 0, scale, 1.0).astype(np.float32)
+    codes = np.clip(np.rint(w / scale.astype(np.float64)), -LEVELS, LEVELS).astype(np.int8)
+    return codes, scale
+
+
+class _Int8MatMul(torch.autograd.Function):
+    """``(round(b * coef_scale) @ codes) * col_scale``, exported as standard ONNX integer ops
+    (Mul, Round, Add, Cast, MatMulInteger, Cast, Mul); torch eager computes the same integers."""
+
+    @staticmethod
+    def forward(ctx, b, coef_scale, codes_f, codes, col_scale):
+        a = torch.round(b * coef_scale)
+        return torch.matmul(a, codes_f) * col_scale
+
+    @staticmethod
+    def symbolic(g, b, coef_scale, codes_f, codes, col_scale):
+        a = g.op("Round", g.op("Mul", b, coef_scale))
+        zp = g.op("Constant", value_t=torch.tensor(_ZERO_POINT, dtype=torch.uint8))
+        a_u8 = g.op("Cast", g.op("Add", a, g.op("Constant", value_t=torch.tensor(float(_ZERO_POINT)))), to_i=2)  # UINT8
+        acc = g.op("MatMulInteger", a_u8, codes, zp)
+        return g.op("Mul", g.op("Cast", acc, to_i=1), col_scale)  # FLOAT
+
+
+class Int8Basis(nn.Module):
+    """Appearance deviation from int8 codes: b (B, K) clamped coefficients -> (B, D).
+
+    Buffers: ``coef_scale`` (K,) = 127 / limit, ``codes`` (K, D) int8, ``codes_f`` the same
+    codes as float32 (torch's matmul), ``col_scale`` (D,). Build with :meth:`from_basis`.
+    """
+
+    def __init__(self, coef_scale: torch.Tensor, codes: torch.Tensor, col_scale: torch.Tensor):
+        super().__init__()
+        self.register_buffer("coef_scale", coef_scale.float())
+        self.register_buffer("codes", codes.to(torch.int8))
+        self.register_buffer("codes_f", codes.float())
+        self.register_buffer("col_scale", col_scale.float())
+
+    @classmethod
+    def from_basis(cls, components: np.ndarray, limit: np.ndarray) -> "Int8Basis":
+        """Quantize a (K, D) basis whose coefficients are clamped to +-``limit`` (K,) (finite, > 0)."""
+        lim = np.asarray(limit, np.float64)
+        if not (np.isfinite(lim).all() and (lim > 0).all()):
+            raise FacesynthError("int8 appearance basis: needs finite, positive clamping limits for every "
+                                 "component (the model was built with clamping off); export with --basis float32")
+        codes, scale = quantize_columns(np.asarray(components, np.float64) * (lim / LEVELS)[:, None])
+        return cls(torch.from_numpy((LEVELS / lim).astype(np.float32)), torch.from_numpy(codes), torch.from_numpy(scale))
+
+    def dequantized(self) -> torch.Tensor:
+        """(K, D) float64 basis this module applies to unrounded coefficients."""
+        return self.codes_f.double() * self.col_scale.double() / self.coef_scale.double()[:, None]
+
+    def forward(self, b: torch.Tensor) -> torch.Tensor:
+        return _Int8MatMul.apply(b, self.coef_scale, self.codes_f, self.codes, self.col_scale)
+
+
+def quantize_synthesizer(syn: Synthesizer, landmarks: np.ndarray | None = None) -> tuple[Synthesizer, dict]:
+    """A copy of ``syn`` whose appearance basis is int8 (:class:`Int8Basis`).
+
+    Parameters
+    ----------
+    syn : Synthesizer with a :class:`GlobalAppearance` (compressed or not) and finite limits
+    landmarks : (N, 68, 2) frame landmarks to measure the effect on (the training frames), optional
+
+    Returns
+    -------
+    (Synthesizer, info): info records ``appearance_basis`` ("int8"), ``appearance_basis_bytes``
+    and, with landmarks, ``quantization_psnr_vs_float_db``: PSNR (peak 1) of the int8 vs the
+    float texture (clipped to [0, 1]) over them.
+    """
+    app = syn.appearance
+    if not isinstance(app, GlobalAppearance):
+        raise FacesynthError("int8 appearance basis: needs a global (PCA) appearance model")
+    if app.basis is not None:
+        raise FacesynthError("int8 appearance basis: the synthesizer is already quantized")
+    basis = Int8Basis.from_basis(app.components.double().numpy(), app.limit.double().numpy())
+    new_app = copy.copy(app)
+    new_app._buffers = dict(app._buffers)
+    new_app._modules = dict(app._modules)
+    new_app.basis = basis
+    out = copy.copy(syn)
+    out._modules = dict(syn._modules)
+    out.appearance = new_app
+    out.eval()
+    info = {"appearance_basis": "int8", "appearance_basis_bytes": int(basis.codes.numel())}
+    if landmarks is not None:
+        from facesynth.sadm.compress import texture_psnr
+
+        lm = np.asarray(landmarks, np.float32)
+        lm = lm[np.isfinite(lm).all(axis=(1, 2))]
+        if len(lm):
+            info["quantization_psnr_vs_float_db"] = texture_psnr(syn, out, lm)
+            info["quantization_frames"] = int(len(lm))
+    return out, info
