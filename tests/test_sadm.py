@@ -17,6 +17,7 @@ from facesynth.data.synthetic import make_synthetic_sequence
 from facesynth.eval.sadm_eval import EvalConfig, evaluate_sadm
 from facesynth.model import FaceModel, FaceModelConfig
 from facesynth.sadm.fit import SADMConfig, fit_sadm, load_sadm, save_sadm
+from facesynth.sadm.regressors import REGISTRY
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY = ["data.n_frames=64", "data.size=192", "eval.noise=[0,2]", "eval.max_test_frames=3"]
@@ -92,6 +93,15 @@ def test_train_defaults_are_what_train_py_composes():
     assert sadm_cfg.augment_sigma == 1.0 and sadm_cfg.features == "landmarks"
     name, params, sadm_cfg = train_defaults("linear")
     assert name == "linear" and sadm_cfg.augment_sigma == 2.0
+
+
+@pytest.mark.parametrize("name", sorted(REGISTRY))
+def test_fit_sadm_defaults_are_train_py_defaults(name):
+    """fit_sadm without a config trains with the SADM settings train.py composes for the
+    regressor (the class's sadm_defaults and conf/regressor/NAME.yaml agree)."""
+    from facesynth.config import train_defaults
+
+    assert SADMConfig(**REGISTRY[name].sadm_defaults) == train_defaults(name)[2]
 
 
 def test_run_directory_metrics_and_reevaluation(tmp_path):

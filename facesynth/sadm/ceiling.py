@@ -103,11 +103,12 @@ def study(clip: str, regressor: str = "krr", params: dict | None = None, train_f
     """The figures of the module docstring for one clip (a folder readable by load_sequence).
 
     ``params``: regressor hyper-parameters (default: the regressor's config defaults);
-    ``sadm_params``: :class:`~facesynth.sadm.fit.SADMConfig` fields (default: its defaults,
-    i.e. 2 px augmentation)."""
+    ``sadm_params``: :class:`~facesynth.sadm.fit.SADMConfig` fields (default: those
+    ``fit_sadm`` uses for the regressor, e.g. 1 px augmentation for krr)."""
     from facesynth.data import load_sequence, temporal_split
     from facesynth.model import FaceModel, FaceModelConfig
     from facesynth.sadm.fit import SADMConfig, fit_sadm
+    from facesynth.sadm.regressors import REGISTRY
 
     seq = load_sequence(clip)
     tr, te = temporal_split(len(seq), train_fraction)
@@ -125,7 +126,8 @@ def study(clip: str, regressor: str = "krr", params: dict | None = None, train_f
     oracle_b = model.texture_from_params(model.appearance_params(tex_b))
     regions = {}
     for key, rows, tex in (("train_to_B", tr, tex_tr), ("train_plus_A_to_B", np.r_[tr, rows_a], np.concatenate([tex_tr, tex_a]))):
-        sadm = fit_sadm(model, seq, rows, tex, regressor, params, SADMConfig(**(sadm_params or {})))
+        sadm = fit_sadm(model, seq, rows, tex, regressor, params,
+                        SADMConfig(**{**getattr(REGISTRY.get(regressor), "sadm_defaults", {}), **(sadm_params or {})}))
         b = sadm.predict_params(lm_b)
         out[key] = psnr_ref(model, b, tex_b)
         regions[key] = region_breakdown(model, model.texture_from_params(b), tex_b, oracle_b)

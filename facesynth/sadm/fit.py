@@ -123,10 +123,12 @@ def fit_sadm(
     ----------
     textures : (len(rows), C * M) float32 training textures (as from model.sample_textures)
     name, params : regressor name in the registry and its hyper-parameters
+    config : SADM settings; default ``SADMConfig`` with the regressor's ``sadm_defaults``
+        (krr: 1 px augmentation), as ``train.py regressor=NAME`` composes them
     """
-    cfg = config or SADMConfig()
     if name not in REGISTRY:
         raise FacesynthError(f"unknown regressor '{name}' (available: {', '.join(sorted(REGISTRY))})")
+    cfg = config or SADMConfig(**REGISTRY[name].sadm_defaults)
     params = dict(params or {})
     rows = np.asarray(rows)
     lm = seq.landmarks[rows]

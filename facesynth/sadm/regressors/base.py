@@ -36,6 +36,9 @@ class Regressor(nn.Module):
     """Base class. Subclasses implement ``fit``, ``forward``, ``config_dict``, ``from_state``."""
 
     name: ClassVar[str] = "base"
+    # SADM settings this regressor trains with unless a config says otherwise (fields of
+    # facesynth.sadm.fit.SADMConfig); conf/regressor/NAME.yaml sets the same for train.py
+    sadm_defaults: ClassVar[dict[str, Any]] = {}
 
     @classmethod
     def fit(

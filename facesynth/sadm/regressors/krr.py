@@ -108,6 +108,7 @@ class KRRRegressor(Regressor):
     """Forward: (B, D_in) raw inputs -> (B, D_out) raw outputs."""
 
     config_class = KRRConfig
+    sadm_defaults = {"augment_sigma": 1.0}  # the smallest sigma keeping the 0 -> 2 px loss <= 1 dB (conf/regressor/krr.yaml)
 
     def __init__(self, config: KRRConfig, tensors: dict[str, torch.Tensor], info: dict | None = None):
         super().__init__()
