@@ -156,28 +156,29 @@ def main(argv=None) -> int:
         "components_kept": keep, "cpu_count": os.cpu_count(), "loadavg_at_start": [round(v, 2) for v in os.getloadavg()],
         "model_fit_s": round(fit_s, 1), "summary": {}, "regressors": {},
     }
-    tmp = Path(tempfile.mkdtemp(prefix="bench_runtime_"))
-    for name in names:
-        entry: dict = {}
-        t0 = time.perf_counter()
-        rname, params, sadm_cfg = train_defaults(name)  # as train.py regressor=NAME
-        sadm = fit_sadm(model, seq, rows, tex, rname, params, sadm_cfg)
-        entry["fit_s"] = round(time.perf_counter() - t0, 2)
-        entry["summary"] = sadm.regressor.summary()
-        syn = sadm.synthesizer()
-        small, info = compress_for_export(syn, train_lm, keep)
-        default, q_info = quantize_for_export(small, train_lm)
-        for tag, s_ in (("uncompressed", syn), ("compressed", small), ("default", default)):
-            path = export_synthesizer(s_, tmp / f"{name}_{tag}.onnx", {"data_fingerprint": model.fingerprint})
-            res = {"appearance_components": int(s_.appearance.components.shape[0]),
-                   "appearance_basis": "float32" if s_.appearance.basis is None else "int8",
-                   "heldout_texture_psnr_db": _heldout_psnr(s_, lm[held], tex_held)}
-            res.update(_measure(s_, path, lm, args.reps, args.reps32))
-            entry[tag] = res
-        entry["compression"] = {k: v for k, v in info.items() if k != "kept_components"}
-        entry["quantization"] = q_info
-        out["regressors"][name] = entry
-        out["summary"][name] = entry["default"]["onnxruntime"]["frames_per_s_batch1_threads1"]
+    with tempfile.TemporaryDirectory(prefix="bench_runtime_") as tmp_dir:  # the exported files are removed
+        tmp = Path(tmp_dir)
+        for name in names:
+            entry: dict = {}
+            t0 = time.perf_counter()
+            rname, params, sadm_cfg = train_defaults(name)  # as train.py regressor=NAME
+            sadm = fit_sadm(model, seq, rows, tex, rname, params, sadm_cfg)
+            entry["fit_s"] = round(time.perf_counter() - t0, 2)
+            entry["summary"] = sadm.regressor.summary()
+            syn = sadm.synthesizer()
+            small, info = compress_for_export(syn, train_lm, keep)
+            default, q_info = quantize_for_export(small, train_lm)
+            for tag, s_ in (("uncompressed", syn), ("compressed", small), ("default", default)):
+                path = export_synthesizer(s_, tmp / f"{name}_{tag}.onnx", {"data_fingerprint": model.fingerprint})
+                res = {"appearance_components": int(s_.appearance.components.shape[0]),
+                       "appearance_basis": "float32" if s_.appearance.basis is None else "int8",
+                       "heldout_texture_psnr_db": _heldout_psnr(s_, lm[held], tex_held)}
+                res.update(_measure(s_, path, lm, args.reps, args.reps32))
+                entry[tag] = res
+            entry["compression"] = {k: v for k, v in info.items() if k != "kept_components"}
+            entry["quantization"] = q_info
+            out["regressors"][name] = entry
+            out["summary"][name] = entry["default"]["onnxruntime"]["frames_per_s_batch1_threads1"]
     out["loadavg_at_end"] = [round(v, 2) for v in os.getloadavg()]
     out["peak_rss_mb"] = round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1)
     print(json.dumps(out))

@@ -64,6 +64,18 @@ def test_int8_basis_is_the_integer_closed_form():
     np.testing.assert_allclose(basis.dequantized().numpy(), codes * scale / basis.coef_scale.numpy().astype(np.float64)[:, None])
 
 
+def test_int8_basis_sums_exactly_beyond_float32_range():
+    """With K > 1040 components the integer sums pass 2^24; torch sums them in float64."""
+    k, d = 1100, 4
+    basis = Int8Basis.from_basis(np.ones((k, d)), np.ones(k))  # every code 127
+    b = np.ones((1, k), np.float32)  # every coefficient code 127: sum 1100 * 127^2 > 2^24
+    with torch.no_grad():
+        got = basis(torch.from_numpy(b)).double().numpy()
+    expect = k * 127 * 127 * basis.col_scale.numpy().astype(np.float64)
+    np.testing.assert_allclose(got[0], expect, rtol=1e-7)
+    assert k * 127 * 127 > 2**24
+
+
 def test_int8_basis_needs_finite_limits():
     with pytest.raises(FacesynthError, match="finite, positive clamping limits.*--basis float32"):
         Int8Basis.from_basis(np.ones((2, 4)), np.array([1.0, np.inf]))
@@ -105,6 +117,8 @@ def test_quantize_errors_and_float_fallback():
         quantize_synthesizer(q)
     with pytest.raises(FacesynthError, match="compress before quantizing"):
         compress_synthesizer(q, train, keep=2)
+    with pytest.raises(FacesynthError, match=r"landmarks must be \(N, 68, 2\), got \(68, 2\)"):
+        quantize_synthesizer(syn, train[0])
     with pytest.raises(FacesynthError, match="appearance basis must be one of"):
         quantize_for_export(syn, train, "int4")
     same, info = quantize_for_export(syn, train, "float32")

@@ -15,8 +15,8 @@ Training of Neural Networks for Efficient Integer-Arithmetic-Only Inference", CV
   quantized per texture element (column): ``s_n = max_k |W_kn| / 127``,
   ``q_kn = round(W_kn / s_n)`` in [-127, 127];
 * texture: ``mean + s * (a @ q)``. ``a @ q`` is exact in int32 (and in float32: every
-  partial sum is an integer below 2^24 for K < 1040), so the torch graph (:class:`Int8Basis`
-  in eager mode) and ONNX Runtime compute the same numbers.
+  partial sum is an integer below 2^24 for K <= 1040; torch sums in float64 above), so the
+  torch graph (:class:`Int8Basis` in eager mode) and ONNX Runtime compute the same numbers.
 
 The cost is two rounding errors of at most half a step each, measured by
 :func:`quantize_synthesizer` as the PSNR of the int8 vs the float texture over the
@@ -35,6 +35,7 @@ from facesynth.errors import FacesynthError
 from facesynth.sadm.synthesis import GlobalAppearance, Synthesizer
 
 LEVELS = 127  # symmetric int8: codes in [-127, 127]
+EXACT_FLOAT32_K = 2**24 // (LEVELS * LEVELS) + 1  # 1041: below it a @ q is exact in float32
 _ZERO_POINT = 128  # coefficient codes travel as uint8 a + 128 (MatMulInteger's u8 x s8 path)
 
 
@@ -66,6 +67,8 @@ class _Int8MatMul(torch.autograd.Function):
     @staticmethod
     def forward(ctx, b, coef_scale, codes_f, codes, col_scale):
         a = torch.round(b * coef_scale)
+        if codes_f.shape[0] >= EXACT_FLOAT32_K:  # partial sums may pass 2^24: sum exactly in float64
+            return (torch.matmul(a.double(), codes_f.double()) * col_scale.double()).to(b.dtype)
         return torch.matmul(a, codes_f) * col_scale
 
     @staticmethod
@@ -142,6 +145,8 @@ def quantize_synthesizer(syn: Synthesizer, landmarks: np.ndarray | None = None) 
         from facesynth.sadm.compress import texture_psnr
 
         lm = np.asarray(landmarks, np.float32)
+        if lm.ndim != 3 or lm.shape[1:] != (68, 2):
+            raise FacesynthError(f"int8 appearance basis: landmarks must be (N, 68, 2), got {lm.shape}")
         lm = lm[np.isfinite(lm).all(axis=(1, 2))]
         if len(lm):
             info["quantization_psnr_vs_float_db"] = texture_psnr(syn, out, lm)
