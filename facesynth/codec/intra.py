@@ -64,6 +64,13 @@ class _Basis:
         return self.M() if j < 0 else self.e(1 + 2 * self.n + j)
 
 
+class _Transposed:
+    """A :class:`_Basis` seen transposed: top and left neighbours swapped."""
+
+    def __init__(self, b: _Basis):
+        self.n, self.T, self.L, self.M = b.n, b.L, b.T, b.M
+
+
 def _hip_pixel(b: _Basis, mode: int, y: int, x: int) -> tuple[np.ndarray, int]:
     """(weights, shift) of one pixel of a nine-mode H.264 predictor (N = 4 or 8)."""
     n, T, L, M = b.n, b.T, b.L, b.M
@@ -92,15 +99,8 @@ def _hip_pixel(b: _Basis, mode: int, y: int, x: int) -> tuple[np.ndarray, int]:
         if z == -1:
             return L(0) + 2 * M() + T(0), 2
         return L(y - 2 * x - 1) + 2 * L(y - 2 * x - 2) + L(y - 2 * x - 3), 2
-    if mode == 6:  # horizontal-down
-        z = 2 * y - x
-        if z >= 0 and z % 2 == 0:
-            return L(y - (x >> 1) - 1) + L(y - (x >> 1)), 1
-        if z >= 0:
-            return L(y - (x >> 1) - 2) + 2 * L(y - (x >> 1) - 1) + L(y - (x >> 1)), 2
-        if z == -1:
-            return L(0) + 2 * M() + T(0), 2
-        return T(x - 2 * y - 1) + 2 * T(x - 2 * y - 2) + T(x - 2 * y - 3), 2
+    if mode == 6:  # horizontal-down: vertical-right transposed (x <-> y, top <-> left)
+        return _hip_pixel(_Transposed(b), 5, x, y)
     if mode == 7:  # vertical-left
         if y % 2 == 0:
             return T(x + (y >> 1)) + T(x + (y >> 1) + 1), 1
