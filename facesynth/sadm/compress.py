@@ -146,18 +146,13 @@ def compress_synthesizer(
     mean = app.mean.double()
     if len(drop):
         mean = mean + torch.from_numpy(b[:, drop].mean(0)) @ comps[torch.from_numpy(drop)]
-    new_app = copy.copy(app)  # shallow: fresh module dicts below
-    new_app._buffers = dict(app._buffers)
-    new_app._modules = dict(app._modules)
+    new_app = app.shallow_copy()
     keep_t = torch.from_numpy(keep_idx)
     new_app.regressor = select_outputs(app.regressor, keep_idx, k_all)
     new_app.mean = mean.float()
     new_app.components = app.components[keep_t].contiguous()
     new_app.limit = app.limit[keep_t].contiguous()
-    out = copy.copy(syn)
-    out._modules = dict(syn._modules)
-    out.appearance = new_app
-    out.eval()
+    out = syn.with_appearance(new_app)
     var = b.var(0)
     info = {
         "appearance_components_full": int(k_all),

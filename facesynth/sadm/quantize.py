@@ -25,7 +25,6 @@ training landmarks (recorded in the exported file).
 
 from __future__ import annotations
 
-import copy
 
 import numpy as np
 import torch
@@ -132,14 +131,9 @@ def quantize_synthesizer(syn: Synthesizer, landmarks: np.ndarray | None = None) 
     if app.basis is not None:
         raise FacesynthError("int8 appearance basis: the synthesizer is already quantized")
     basis = Int8Basis.from_basis(app.components.double().numpy(), app.limit.double().numpy())
-    new_app = copy.copy(app)
-    new_app._buffers = dict(app._buffers)
-    new_app._modules = dict(app._modules)
+    new_app = app.shallow_copy()
     new_app.basis = basis
-    out = copy.copy(syn)
-    out._modules = dict(syn._modules)
-    out.appearance = new_app
-    out.eval()
+    out = syn.with_appearance(new_app)
     info = {"appearance_basis": "int8", "appearance_basis_bytes": int(basis.codes.numel())}
     if landmarks is not None:
         from facesynth.sadm.compress import texture_psnr

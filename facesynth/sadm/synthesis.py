@@ -9,6 +9,8 @@ Pasting the crop into a frame (feathered) is :func:`composite`, outside the grap
 
 from __future__ import annotations
 
+import copy
+
 import numpy as np
 import torch
 from torch import nn
@@ -113,6 +115,14 @@ class GlobalAppearance(nn.Module):
         self.register_buffer("limit", torch.from_numpy(lim.astype(np.float32)))
         self.basis: nn.Module | None = None
 
+    def shallow_copy(self) -> "GlobalAppearance":
+        """A copy sharing every tensor and submodule, whose buffers and submodules can be
+        replaced without touching this one (export-time variants: compression, int8)."""
+        out = copy.copy(self)
+        out._buffers = dict(self._buffers)
+        out._modules = dict(self._modules)
+        return out
+
     def deviation(self, b_g: torch.Tensor) -> torch.Tensor:
         """Texture deviation from the mean (B, C M) of clamped coefficients b_g (B, K)."""
         return torch.matmul(b_g, self.components) if self.basis is None else self.basis(b_g)
@@ -143,6 +153,13 @@ class Synthesizer(nn.Module):
         self.appearance = appearance
         self.warp = ToTarget(model.reference, model.span)
         self.register_buffer("ref_points", torch.from_numpy(model.reference.points.copy()))
+
+    def with_appearance(self, appearance: nn.Module) -> "Synthesizer":
+        """A copy (eval mode) with another appearance model, sharing everything else."""
+        out = copy.copy(self)
+        out._modules = dict(self._modules)
+        out.appearance = appearance
+        return out.eval()
 
     def texture(self, landmarks: torch.Tensor) -> torch.Tensor:
         """Predicted reference-frame texture (B, C, M), clipped to [0, 1]."""
