@@ -1,8 +1,9 @@
 """Train and evaluate a per-subject facesynth model (Hydra).
 
-    python train.py                                   # synthetic subject, linear SADM
+    python train.py                                   # synthetic subject, krr SADM (the default regressor)
     python train.py data=video data.path=DIR regressor=svr
-    python train.py -m regressor=linear,poly2,mlp,svr data=video data.path=DIR   # sweep + table
+    python train.py -m regressor=krr,linear,poly2,mlp,svr data=video data.path=DIR   # sweep + table
+    python train.py model=eri data=video data.path=DIR                          # an ERI model instead
 """
 
 import logging
@@ -13,8 +14,10 @@ import hydra
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
-from facesynth.config import register_configs
 from facesynth.errors import FacesynthError
+from facesynth.runs.config import register_configs
+from facesynth.runs.rundir import summary_lines
+from facesynth.runs.training import run_training
 
 register_configs()
 log = logging.getLogger("train")
@@ -22,8 +25,6 @@ log = logging.getLogger("train")
 
 @hydra.main(version_base="1.3", config_path="conf", config_name="config")
 def main(cfg: DictConfig) -> None:
-    from facesynth.pipeline import run_training, summary_lines
-
     out_dir = HydraConfig.get().runtime.output_dir
     try:
         metrics = run_training(cfg, out_dir)

@@ -18,7 +18,6 @@ import json
 import os
 import sys
 import time
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -28,7 +27,11 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from facesynth.codec.bitstream import decode_video, encode_video  # noqa: E402
 from facesynth.codec.frame import CodecConfig  # noqa: E402
 from facesynth.codec.geometry import (  # noqa: E402
-    build_layout, geometry_video, rasterise, sample_vertices, vertex_solver,
+    build_layout,
+    geometry_video,
+    rasterise,
+    sample_vertices,
+    vertex_solver,
 )
 from facesynth.codec.rd import CONFIGS, bd_between, bd_rate, plot_rd, rd_sweep  # noqa: E402
 from facesynth.codec.sources import ict_blendshape_sequence  # noqa: E402

@@ -2,7 +2,7 @@
 SVR -> eigenERI -> R' x B_temp -> warp -> paste), printed as ONE JSON line.
 
 With the ONNX part (default; ``--no-onnx`` skips it) the synthesizer is also exported
-(``facesynth.eri.export``) and run with ONNX Runtime (``facesynth.runtime.EriRenderer``):
+(``facesynth.onnx.eri``) and run with ONNX Runtime (``facesynth.runtime.EriRenderer``):
 ``onnx``: frames/s and ms per frame of the graph (FAPs -> crop/mask/placement) at batch 1
 with 1 and 2 threads, batch-32 throughput, the same steps in torch eager at batch 1, the
 file size and the largest |ONNX - torch| crop difference on the driving FAPs.
@@ -108,7 +108,7 @@ def bench_onnx(syn: EriSynthesizer, faps: np.ndarray, reps: int) -> dict:
     """ONNX Runtime vs torch eager figures of the exported ERI graph (see the module doc)."""
     import tempfile
 
-    from facesynth.eri.export import export_eri, torch_reference
+    from facesynth.onnx.eri import export_eri, torch_reference
     from facesynth.runtime import EriRenderer
 
     with tempfile.TemporaryDirectory() as d:
@@ -119,7 +119,7 @@ def bench_onnx(syn: EriSynthesizer, faps: np.ndarray, reps: int) -> dict:
         for threads in (1, 2):
             r = EriRenderer(path, threads=threads)
             r.render(one)
-            s = _per_frame(lambda: r.render(one), max(reps // 3, 1))
+            s = _per_frame(lambda r=r: r.render(one), max(reps // 3, 1))
             out[f"batch1_threads{threads}_ms"] = round(1000 * s, 3)
             out[f"batch1_threads{threads}_fps"] = round(1 / s, 1)
         r = EriRenderer(path, threads=1)

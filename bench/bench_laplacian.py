@@ -80,7 +80,7 @@ def timing(args) -> dict:
 
 def methods(args) -> dict:
     from facesynth.data import load_landmarks
-    from facesynth.mesh.transfer import TransferConfig, Transfer
+    from facesynth.mesh.transfer import Transfer, TransferConfig
 
     mesh_dir = shared_mesh_dir()
     m = load_mesh(mesh_dir / "ict_face_9409_neutral.obj")
@@ -122,7 +122,7 @@ def methods(args) -> dict:
             if plain is None:
                 plain = Vs
             else:
-                entry["rms_vs_plain_cm"] = float(np.sqrt(np.mean([np.mean((a - b) ** 2) for a, b in zip(Vs, plain)])))
+                entry["rms_vs_plain_cm"] = float(np.sqrt(np.mean([np.mean((a - b) ** 2) for a, b in zip(Vs, plain, strict=True)])))
             res[clip][method] = entry
     return res
 

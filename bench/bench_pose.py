@@ -129,9 +129,9 @@ def smoothing(args) -> dict:
         p = solve_pose(X, q[POSE_LANDMARKS], K, "epnp")
         raw.append((p.R, p.t))
         smooth.append(f(p.R, p.t, i / meta["fps"]))
-    step = lambda seq: np.median([rotation_angle_deg(a[0], b[0]) for a, b in zip(seq[:-1], seq[1:])])  # noqa: E731
-    tstep = lambda seq: np.median([np.linalg.norm(a[1] - b[1]) for a, b in zip(seq[:-1], seq[1:])])  # noqa: E731
-    dev = [rotation_angle_deg(a[0], b[0]) for a, b in zip(raw, smooth)]
+    step = lambda seq: np.median([rotation_angle_deg(a[0], b[0]) for a, b in zip(seq[:-1], seq[1:], strict=True)])  # noqa: E731
+    tstep = lambda seq: np.median([np.linalg.norm(a[1] - b[1]) for a, b in zip(seq[:-1], seq[1:], strict=True)])  # noqa: E731
+    dev = [rotation_angle_deg(a[0], b[0]) for a, b in zip(raw, smooth, strict=True)]
     return {"clip": args.clip, "frames": len(raw), "rot_step_deg_median_raw": float(step(raw)),
             "rot_step_deg_median_smoothed": float(step(smooth)), "trans_step_cm_median_raw": float(tstep(raw)),
             "trans_step_cm_median_smoothed": float(tstep(smooth)), "smoothed_vs_raw_deg_p95": float(np.percentile(dev, 95)),
@@ -148,7 +148,8 @@ def markdown(out: dict) -> str:
     ]
     for method, by_sigma in out["results"].items():
         for sigma, m in by_sigma.items():
-            f = lambda k, d=2: f"{m[k]['mean']:.{d}f} +- {m[k]['std']:.{d}f}"  # noqa: E731
+            def f(k, d=2, m=m):
+                return f"{m[k]['mean']:.{d}f} +- {m[k]['std']:.{d}f}"
             lines.append(f"| {method} | {sigma} | {f('reproj_px')} | {f('rot_deg')} | {f('trans_cm')} | "
                          f"{100 * m['trans_rel']['mean']:.2f} +- {100 * m['trans_rel']['std']:.2f} | "
                          f"{100 * m['focal_rel']['mean']:.1f} | {m['ms']['mean']:.2f} |")

@@ -28,8 +28,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from facesynth.sadm.regressors import CONFIGS, DEFAULT_GRIDS, REGISTRY, search
-from facesynth.sadm.regressors._common import tail_holdout
+from facesynth.regressors import CONFIGS, DEFAULT_GRIDS, REGISTRY, search
+from facesynth.regressors._common import tail_holdout
 
 
 def clip_data(name: str, features: str):

@@ -83,7 +83,7 @@ def _measure(syn, path, lm, reps: int, reps32: int) -> dict:
     ort_res = {}
     for threads in (1, 2):
         r = Renderer(path, threads=threads)
-        ort_res[f"batch1_threads{threads}"] = _times(lambda i: r.render(lm[i % n: i % n + 1]), reps)
+        ort_res[f"batch1_threads{threads}"] = _times(lambda i, r=r: r.render(lm[i % n: i % n + 1]), reps)
     r = Renderer(path, threads=1)
     starts = np.arange(0, n - 32, 32)
     ort_res["batch32_threads1"] = _throughput(lambda i: r.render(lm[starts[i % len(starts)]:][:32]), reps32, 32)
@@ -128,11 +128,12 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
 
     from facesynth.data import load_sequence, shared_clip
-    from facesynth.export_onnx import DEFAULT_COMPONENTS, compress_for_export, export_synthesizer, quantize_for_export
     from facesynth.model import FaceModel, FaceModelConfig
-    from facesynth.config import train_defaults
+    from facesynth.onnx.config import DEFAULT_COMPONENTS
+    from facesynth.onnx.synthesis import compress_for_export, export_synthesizer, quantize_for_export
+    from facesynth.regressors import REGISTRY
+    from facesynth.runs.config import train_defaults
     from facesynth.sadm.fit import fit_sadm
-    from facesynth.sadm.regressors import REGISTRY
 
     clip = shared_clip(args.clip)
     if clip is None:

@@ -22,10 +22,10 @@ def main() -> None:
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
 
-    from facesynth.config import train_defaults
     from facesynth.data import load_sequence, shared_clip, temporal_split
-    from facesynth.eval.metrics import psnr
+    from facesynth.metrics import psnr
     from facesynth.model import FaceModel, FaceModelConfig
+    from facesynth.runs.config import train_defaults
     from facesynth.sadm.fit import fit_sadm
 
     if shared_clip(args.clip) is None:

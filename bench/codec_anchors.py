@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from facesynth.eval.metrics import psnr
+from facesynth.metrics import psnr
 
 
 def available() -> dict[str, bool]:

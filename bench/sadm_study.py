@@ -24,13 +24,29 @@ import scipy.linalg
 import torch
 
 from facesynth.data import load_sequence, shared_clip, temporal_split
-from facesynth.eval.metrics import psnr
 from facesynth.eval.sadm_eval import noisy_landmarks
+from facesynth.metrics import psnr
 from facesynth.model import FaceModel, FaceModelConfig
+from facesynth.regressors import CONFIGS, REGISTRY
+from facesynth.regressors.linear import LinearConfig, LinearRegressor
 from facesynth.runtime.filters import smooth_landmarks
-from facesynth.sadm.regressors import REGISTRY, CONFIGS
-from facesynth.sadm.regressors.linear import LinearConfig, LinearRegressor
 from facesynth.sadm.synthesis import RIGID_POINTS, ShapeFeatures
+
+
+def _kernel(kind: str, d2: np.ndarray) -> np.ndarray:
+    """Kernel values of scaled squared distances ``d2`` (gamma and width applied)."""
+    r = np.sqrt(d2)
+    if kind == "rbf":
+        return np.exp(-d2)
+    if kind == "laplacian":
+        return np.exp(-r)
+    if kind == "matern32":
+        return (1 + np.sqrt(3) * r) * np.exp(-np.sqrt(3) * r)
+    if kind == "matern52":
+        return (1 + np.sqrt(5) * r + 5 / 3 * r * r) * np.exp(-np.sqrt(5) * r)
+    if kind == "rq":
+        return 1.0 / (1 + d2 / 2)
+    raise KeyError(kind)
 
 
 class Clip:
@@ -77,11 +93,7 @@ class KRR:
         d2 = np.maximum((a * a).sum(1)[:, None] + (b * b).sum(1)[None] - 2 * a @ b.T, 0) * self.g
         out = 0.0
         for w in self.widths:
-            r = np.sqrt(d2 * w)
-            out = out + {"rbf": lambda: np.exp(-d2 * w), "laplacian": lambda: np.exp(-r),
-                         "matern32": lambda: (1 + np.sqrt(3) * r) * np.exp(-np.sqrt(3) * r),
-                         "matern52": lambda: (1 + np.sqrt(5) * r + 5 / 3 * r * r) * np.exp(-np.sqrt(5) * r),
-                         "rq": lambda: 1.0 / (1 + d2 * w / 2)}[self.kernel]()
+            out = out + _kernel(self.kernel, d2 * w)
         return out / len(self.widths)
 
     def z(self, x):

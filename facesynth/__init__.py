@@ -1,9 +1,16 @@
 """facesynth: learning-based facial expression synthesis.
 
-The package layout follows the pipeline, and data flows one way through it::
+The package layout follows the pipeline (docs/architecture.md draws it; the imports obey
+it, checked by tests/test_layers.py)::
 
-    data -> model -> sadm / eri -> mesh -> codec
-                       \\-> runtime (ONNX, torch-free)      eval (metrics, reports)
+    top      cli (facesynth.cli, every */cli.py)  runs (train.py)  eval  onnx (export)
+    stages   data -> model -> sadm <- regressors      (2D: shape -> appearance)
+                          -> eri  <- regressors      (2D: expression ratio images)
+             data -> mesh                            (3D wing: pose, Laplacian transfer)
+             data -> codec                           (geometry-video wing)
+    runtime  torch-free: exported ONNX models, the talking-head app (reads data, ground)
+    ground   errors, io, metrics, landmarks, geometry, imaging, provenance, contract,
+             artifact, ops
 
 Conventions used everywhere:
 

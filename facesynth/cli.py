@@ -22,7 +22,7 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "transfer-expression": ("facesynth.eri.cli", "drive a target face with a driver's expressions via ratio images"),
     "transfer3d": ("facesynth.mesh.cli", "drive a 3D face mesh with head pose and expressions from landmarks"),
     "codec": ("facesynth.codec.cli", "encode/decode geometry videos with the PDP codec; RD sweeps"),
-    "export": ("facesynth.runtime.export_cli", "export a trained run to one ONNX file"),
+    "export": ("facesynth.onnx.cli", "export a trained run to one ONNX file"),
     "app": ("facesynth.runtime.app", "render a talking-head video from landmarks with ONNX Runtime"),
 }
 

@@ -8,12 +8,12 @@ from pathlib import Path
 
 import numpy as np
 import torch
-
 from _faces import face_sequence_arrays
+
 from facesynth.data import FaceSequence
 from facesynth.data.frames import ArrayFrames
 from facesynth.model import FaceModel, FaceModelConfig
-from facesynth.sadm.regressors import REGISTRY
+from facesynth.regressors import REGISTRY
 from facesynth.sadm.synthesis import GlobalAppearance, Synthesizer
 
 
@@ -43,7 +43,7 @@ def synthetic_synthesizer(name: str = "linear") -> Synthesizer:
 
 def exported(name: str, directory: Path) -> Path:
     """The ONNX file of :func:`synthetic_synthesizer` (exported once per directory)."""
-    from facesynth.export_onnx import export_synthesizer
+    from facesynth.onnx.synthesis import export_synthesizer
 
     path = Path(directory) / f"synthetic_{name}.onnx"
     if not path.is_file():
@@ -68,11 +68,11 @@ def driving_landmarks(seed: int = 0, n: int = 6) -> np.ndarray:
 
 def real_linear_synthesizer(seq, rows: np.ndarray) -> Synthesizer:
     """A linear SADM synthesizer fitted on ``rows`` of a real clip (40 appearance components)."""
-    from facesynth.sadm.regressors import LinearRegressor
+    from facesynth.regressors import LinearRegressor
 
     model = FaceModel.fit(seq, FaceModelConfig(n_appearance=40), rows=rows, progress=False)
     tex = model.sample_textures(seq, rows)
-    reg = LinearRegressor.fit(model.shape_params(seq.landmarks[rows], clamp=True), model.appearance_params(tex))
+    reg = LinearRegressor.fit(model.shape_params(seq.landmarks[rows], clamp=True), model.appearance_params(tex), {"ridge": 0.0})
     return Synthesizer(model, GlobalAppearance(model, reg)).eval()
 
 

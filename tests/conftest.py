@@ -9,6 +9,9 @@ import numpy as np
 import pytest
 
 from facesynth.data.shared import shared_clip, shared_data_dir, shared_mesh_dir
+from facesynth.eri.config import EriConfig
+from facesynth.eri.model import EriModel
+from tests._eri import CFG, _sequence
 
 
 @pytest.fixture(scope="session")
@@ -43,3 +46,15 @@ def shared_mesh() -> Path:
 @pytest.fixture
 def rng() -> np.random.Generator:
     return np.random.default_rng(0)
+
+
+@pytest.fixture(scope="module")
+def seq():
+    """The small synthetic ERI subject (tests/_eri.py): 16 frames, mouth opening darkens the chin."""
+    return _sequence()
+
+
+@pytest.fixture(scope="module")
+def model(seq):
+    """An ERI model fitted on the first 12 frames of ``seq`` (tests/_eri.py's CFG)."""
+    return EriModel.fit(seq, np.arange(12), EriConfig(**CFG))

@@ -8,8 +8,8 @@ from facesynth.codec.bitstream import decode_video, encode_video
 from facesynth.codec.blocks import sub_order, sub_perm
 from facesynth.codec.encoder import encoder_weights
 from facesynth.codec.frame import CodecConfig
-from facesynth.codec.sources import height_field_mesh
 from facesynth.codec.geometry import build_layout, geometry_video
+from facesynth.codec.sources import height_field_mesh
 from facesynth.codec.transform import FWD16, ZIGZAG, dequantise, forward4, inverse4, inverse_sub, to_sub4
 
 

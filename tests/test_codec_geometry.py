@@ -2,11 +2,18 @@ import numpy as np
 import pytest
 
 from facesynth.codec.geometry import (
-    PEAK16, Quantiser, build_layout, fill_outside, geometry_video, rasterise, sample_vertices, vertex_solver,
+    PEAK16,
+    Quantiser,
+    build_layout,
+    fill_outside,
+    geometry_video,
+    rasterise,
+    sample_vertices,
+    vertex_solver,
 )
 from facesynth.codec.sources import height_field_mesh, ict_blendshape_sequence
 from facesynth.errors import FacesynthError
-from facesynth.eval.metrics import psnr
+from facesynth.metrics import psnr
 
 
 def _affine_mesh(n=9):

@@ -13,7 +13,7 @@ from facesynth.codec.geometry import build_layout, geometry_video
 from facesynth.codec.rd import bd_rate
 from facesynth.codec.sources import height_field_mesh
 from facesynth.errors import FacesynthError
-from facesynth.eval.metrics import psnr
+from facesynth.metrics import psnr
 
 
 @pytest.fixture(scope="module")

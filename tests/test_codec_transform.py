@@ -5,7 +5,16 @@ import pytest
 
 from facesynth.codec import entropy
 from facesynth.codec.transform import (
-    CF, code_residual, decode_residual, dequantise, forward4, from_sub4, inverse4, qstep, quantise, to_sub4,
+    CF,
+    code_residual,
+    decode_residual,
+    dequantise,
+    forward4,
+    from_sub4,
+    inverse4,
+    qstep,
+    quantise,
+    to_sub4,
 )
 
 # H.264 post-scaling factors: a^2, ab/2, b^2/4 with a = 1/2, b = sqrt(2/5); the standard's

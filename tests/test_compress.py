@@ -6,10 +6,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
-
 from _onnx_models import assert_export_matches, driving_landmarks, synthetic_model, synthetic_synthesizer
+
 from facesynth.errors import FacesynthError
-from facesynth.export_onnx import export_run, export_synthesizer, save_run_synthesizer
+from facesynth.onnx.synthesis import export_run, export_synthesizer
+from facesynth.runs.rundir import save_run_synthesizer
 from facesynth.sadm.compress import choose_components, compress_synthesizer, predicted_params
 
 NAMES = ("linear", "poly2", "mlp", "svr")
@@ -56,7 +57,7 @@ def test_all_components_kept_is_the_full_model(name):
     lm = driving_landmarks(seed=4, n=4)
     with torch.no_grad():
         a, b = syn(torch.from_numpy(lm)), full(torch.from_numpy(lm))
-    for x, y in zip(a, b):
+    for x, y in zip(a, b, strict=True):
         np.testing.assert_allclose(x.numpy(), y.numpy(), atol=1e-6)
     assert info["compression_psnr_vs_full_db"] > 120 and info["kept_predicted_variance"] == pytest.approx(1.0)
     # ... and the untouched original still has every component
@@ -110,7 +111,7 @@ def test_export_run_records_compression(tmp_path):
 def test_training_landmarks_from_run_config(tmp_path):
     from facesynth.data import temporal_split
     from facesynth.data.synthetic import make_synthetic_sequence
-    from facesynth.export_onnx import training_landmarks
+    from facesynth.runs.rundir import training_landmarks
 
     (tmp_path / "config.yaml").write_text(
         "seed: 3\ndata:\n  kind: synthetic\n  n_frames: 12\n  size: 96\n  max_frames: 0\n"

@@ -4,7 +4,13 @@ import numpy as np
 import pytest
 
 from facesynth.data import (
-    FaceSequence, load_landmarks, load_sequence, read_pts, save_landmarks, temporal_split, write_pts,
+    FaceSequence,
+    load_landmarks,
+    load_sequence,
+    read_pts,
+    save_landmarks,
+    temporal_split,
+    write_pts,
 )
 from facesynth.errors import FacesynthError
 

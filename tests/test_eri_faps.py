@@ -3,11 +3,18 @@
 import numpy as np
 import pytest
 
-from facesynth.errors import FacesynthError
 from facesynth.eri.faps import (
-    FAP_NAMES, FAP_TABLE, FEATURE_POINTS, N_FAPS, compute_faps, face_axes, fapu, faps_to_landmarks,
+    FAP_NAMES,
+    FAP_TABLE,
+    FEATURE_POINTS,
+    N_FAPS,
+    compute_faps,
+    face_axes,
+    faps_to_landmarks,
+    fapu,
 )
 from facesynth.eri.geometry import extend, forehead_points, mouth_open, open_mouth, select_neutral
+from facesynth.errors import FacesynthError
 from facesynth.geometry import apply_affine
 from tests._faces import face_sequence_arrays, face_template, random_similarity
 

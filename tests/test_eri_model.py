@@ -10,9 +10,6 @@ import pytest
 import torch
 
 from facesynth.cli import main
-from facesynth.data import FaceSequence
-from facesynth.data.frames import ArrayFrames
-from facesynth.errors import FacesynthError, MissingExtraError
 from facesynth.eri.config import EriConfig
 from facesynth.eri.driving import VARIANTS, SVRBank, fit_variant
 from facesynth.eri.faps import N_FAPS
@@ -21,36 +18,12 @@ from facesynth.eri.ratio import apply_ratio, gaussian_in_mask, ratio_images
 from facesynth.eri.render import write_video
 from facesynth.eri.synthesis import EriSynthesizer
 from facesynth.eri.train import train_eri
-from facesynth.eval.metrics import psnr
+from facesynth.errors import FacesynthError, MissingExtraError
+from facesynth.metrics import psnr
 from facesynth.model.reference import ReferenceFrame
 from facesynth.model.warp import ToReference
-from tests._faces import face_sequence_arrays, face_template, smooth_image
-
-CFG = dict(width=64, neutral_index=0, batch_size=8, compare=[])
-
-
-def _sequence(n=16, seed=0) -> FaceSequence:
-    """Frames of one smooth 'face' whose lower half darkens as the mouth opens."""
-    _, lm = face_sequence_arrays(n, seed)
-    lm[0] = face_template()
-    base = smooth_image(180, 180, seed)
-    ys = np.arange(180)[:, None, None]
-    frames = []
-    for i in range(n):
-        open_ = float(lm[i, 57, 1] - lm[i, 51, 1] - (lm[0, 57, 1] - lm[0, 51, 1]))
-        gain = 1.0 - 0.02 * open_ * (ys > 120)
-        frames.append((np.clip(base * gain, 0, 1) * 255).astype(np.uint8))
-    return FaceSequence.from_arrays(lm, ArrayFrames(np.stack(frames)), name="synthetic")
-
-
-@pytest.fixture(scope="module")
-def seq():
-    return _sequence()
-
-
-@pytest.fixture(scope="module")
-def model(seq):
-    return EriModel.fit(seq, np.arange(12), EriConfig(**CFG))
+from tests._eri import CFG, _sequence
+from tests._faces import face_template
 
 
 def test_ratio_of_the_neutral_frame_is_one(seq, model):

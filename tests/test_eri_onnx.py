@@ -14,15 +14,15 @@ import pytest
 import torch
 
 from facesynth.cli import main
-from facesynth.errors import FacesynthError
 from facesynth.eri.config import EriConfig
 from facesynth.eri.driving import VARIANTS
-from facesynth.eri.export import METADATA_KEYS, EriGraph, export_eri, torch_reference
 from facesynth.eri.faps import N_FAPS, fap_displacements, faps_to_landmarks
 from facesynth.eri.model import EriModel
 from facesynth.eri.synthesis import EriSynthesizer
+from facesynth.errors import FacesynthError
+from facesynth.onnx.eri import METADATA_KEYS, EriGraph, export_eri, torch_reference
 from facesynth.runtime import EriRenderer, Renderer, read_metadata
-from test_eri_model import CFG, _sequence, model, seq  # noqa: F401  (module fixtures: the same small ERI model)
+from tests._eri import CFG, _sequence
 
 
 @pytest.fixture(scope="module")

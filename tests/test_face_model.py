@@ -2,12 +2,12 @@ import json
 
 import numpy as np
 import pytest
-
 from _faces import face_sequence_arrays
+
 from facesynth.data import FaceSequence
 from facesynth.data.frames import ArrayFrames
 from facesynth.errors import FacesynthError
-from facesynth.eval.metrics import psnr
+from facesynth.metrics import psnr
 from facesynth.model import FaceModel, FaceModelConfig, load_face_model, save_face_model
 from facesynth.model.artifact import MANIFEST
 

@@ -9,7 +9,11 @@ from facesynth.errors import FacesynthError
 from facesynth.mesh.deform import LaplacianDeformer, LaplacianSystem
 from facesynth.mesh.io import check_mesh_manifold, load_landmark_map, load_mesh
 from facesynth.mesh.laplacian import (
-    boundary_vertices, cotangent_laplacian, distortion, face_adjacency, uniform_laplacian,
+    boundary_vertices,
+    cotangent_laplacian,
+    distortion,
+    face_adjacency,
+    uniform_laplacian,
 )
 
 

@@ -13,14 +13,13 @@ import onnx
 import onnxruntime as ort
 import pytest
 import torch
-
 from _onnx_models import driving_landmarks, exported, real_linear_synthesizer, synthetic_model, synthetic_synthesizer
+
 from facesynth.errors import FacesynthError
-from facesynth.export_onnx import (
-    METADATA_KEYS, SynthesisGraph, export_run, export_synthesizer, load_synthesizer, save_run_synthesizer,
-)
+from facesynth.onnx.synthesis import METADATA_KEYS, SynthesisGraph, export_run, export_synthesizer
+from facesynth.regressors import REGISTRY
+from facesynth.runs.rundir import load_synthesizer, save_run_synthesizer
 from facesynth.sadm.quantize import quantize_synthesizer
-from facesynth.sadm.regressors import REGISTRY
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -144,7 +143,7 @@ def test_hydra_entry_point(tmp_path):
 @pytest.mark.parametrize("features", ["landmarks", "landmarks_rigid"])
 def test_landmark_feature_kinds_export_with_parity(features, tmp_path):
     """The landmark feature kinds (re-alignment on the rigid points included) trace to ONNX."""
-    from facesynth.sadm.regressors import KRRRegressor
+    from facesynth.regressors import KRRRegressor
     from facesynth.sadm.synthesis import GlobalAppearance, ShapeFeatures, Synthesizer
 
     model, lm, _, y = synthetic_model()

@@ -1,4 +1,4 @@
-"""facesynth.onnx_passes.int32_indices: int64 index chains of GatherElements become int32,
+"""facesynth.onnx.passes.int32_indices: int64 index chains of GatherElements become int32,
 same outputs in ONNX Runtime; chains with outside consumers are left alone."""
 
 from __future__ import annotations
@@ -8,7 +8,7 @@ import onnx
 import onnxruntime as ort
 from onnx import TensorProto, helper, numpy_helper
 
-from facesynth.onnx_passes import int32_indices
+from facesynth.onnx.passes import int32_indices
 
 
 def _model(share: bool):
@@ -88,6 +88,6 @@ def test_shared_chain_between_gathers_rewritten_together():
     assert int32_indices(m) == 2
     onnx.checker.check_model(m)
     assert {numpy_helper.to_array(t).dtype for t in m.graph.initializer} == {np.dtype(np.int32)}
-    for got, exp in zip(run(m), want):
+    for got, exp in zip(run(m), want, strict=True):
         np.testing.assert_array_equal(got, exp)
     np.testing.assert_array_equal(want[1], -feed["data"][:, [0, 3, 4, 9]])

@@ -1,11 +1,11 @@
 import numpy as np
 import pytest
+from _faces import face_template, random_similarity
 from sklearn.decomposition import PCA as SkPCA
 
-from _faces import face_template, random_similarity
 from facesynth.errors import FacesynthError
-from facesynth.model.pca import PCAModel
 from facesynth.geometry import apply_affine, invert_affine, similarity_fit
+from facesynth.model.pca import PCAModel
 from facesynth.model.procrustes import generalised_procrustes
 
 

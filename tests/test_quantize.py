@@ -10,13 +10,13 @@ import numpy as np
 import onnx
 import pytest
 import torch
-
 from _onnx_models import assert_export_matches, driving_landmarks, synthetic_model, synthetic_synthesizer
+
 from facesynth.errors import FacesynthError
-from facesynth.export_onnx import export_synthesizer, quantize_for_export
+from facesynth.onnx.synthesis import export_synthesizer, quantize_for_export
+from facesynth.regressors import REGISTRY
 from facesynth.sadm.compress import compress_synthesizer
 from facesynth.sadm.quantize import Int8Basis, quantize_columns, quantize_synthesizer
-from facesynth.sadm.regressors import REGISTRY
 
 
 def _texture(syn, lm):

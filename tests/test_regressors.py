@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from facesynth.errors import FacesynthError
-from facesynth.sadm.regressors import (
+from facesynth.regressors import (
     CONFIGS,
     DEFAULT_GRIDS,
     REGISTRY,
@@ -55,7 +55,7 @@ def fitted(key):
 # ------------------------------------------------------------------ linear
 def test_linear_equals_closed_form_eq5():
     x, y = smooth_problem(n=120, d_in=5, d_out=7)
-    reg = LinearRegressor.fit(x, y)
+    reg = LinearRegressor.fit(x, y, {"ridge": 0.0})  # the paper's plain least squares
     # A = G S^T (S S^T)^-1 on centred data (columns are frames), bias = mean_G - A mean_S
     s = (x - x.mean(0)).T
     g = (y - y.mean(0)).T
@@ -82,7 +82,7 @@ def test_poly2_equals_sklearn_pipeline(n, d_in, ridge):
     from sklearn.preprocessing import PolynomialFeatures, StandardScaler
 
     x, y = smooth_problem(n=n, d_in=d_in)
-    reg = Poly2Regressor.fit(x, y, Poly2Config(ridge=ridge, relative_ridge=False))
+    reg = Poly2Regressor.fit(x, y, Poly2Config(ridge=ridge, relative_ridge=False, input_components=None))
     ref = make_pipeline(StandardScaler(), PolynomialFeatures(2, include_bias=False), Ridge(alpha=ridge)).fit(x, y)
     x_new = smooth_problem(n=50, d_in=d_in, seed=1)[0]
     np.testing.assert_allclose(reg.predict(x_new), ref.predict(x_new), atol=1e-4 * y.std(0).max())
@@ -109,7 +109,8 @@ def test_poly2_without_standardise_or_linear_terms():
     from sklearn.preprocessing import PolynomialFeatures
 
     x, y = smooth_problem(n=150, d_in=3)
-    reg = Poly2Regressor.fit(x, y, {"ridge": 0.2, "relative_ridge": False, "standardise": False, "include_linear": False})
+    reg = Poly2Regressor.fit(x, y, {"ridge": 0.2, "relative_ridge": False, "standardise": False, "include_linear": False,
+                                    "input_components": None})
     quad = PolynomialFeatures(2, include_bias=False).fit_transform(x)[:, 3:]  # drop the linear block
     ref = Ridge(alpha=0.2).fit(quad, y)
     np.testing.assert_allclose(reg.predict(x), ref.predict(quad), atol=1e-4 * y.std(0).max())
@@ -119,11 +120,11 @@ def test_poly2_relative_ridge_scales_by_mean_feature_energy():
     from sklearn.preprocessing import PolynomialFeatures, StandardScaler
 
     x, y = smooth_problem(n=120, d_in=4)
-    rel = Poly2Regressor.fit(x, y, {"ridge": 0.5})  # relative_ridge=True is the default
+    rel = Poly2Regressor.fit(x, y, {"ridge": 0.5, "input_components": None})  # relative_ridge=True is the default
     phi = PolynomialFeatures(2, include_bias=False).fit_transform(StandardScaler().fit_transform(x))
     unit = ((phi - phi.mean(0)) ** 2).sum() / len(x)  # trace(Phi_c^T Phi_c) / N
     assert rel.lam == pytest.approx(0.5 * unit)
-    ab = Poly2Regressor.fit(x, y, {"ridge": 0.5 * unit, "relative_ridge": False})
+    ab = Poly2Regressor.fit(x, y, {"ridge": 0.5 * unit, "relative_ridge": False, "input_components": None})
     np.testing.assert_allclose(rel.predict(x), ab.predict(x), atol=1e-5 * y.std())
 
 
@@ -194,7 +195,7 @@ def test_mlp_holds_out_the_last_rows_when_no_validation_slice(monkeypatch):
     x, y = smooth_problem(n=100)
     seen = {}
     cfg = MLPConfig(hidden=[8], max_epochs=2, patience=1, val_fraction=0.2)
-    import facesynth.sadm.regressors.mlp as mlp_mod
+    import facesynth.regressors.mlp as mlp_mod
 
     real = mlp_mod.standardiser
 
@@ -341,5 +342,5 @@ def test_search_poly2_relative_ridge_is_passed_through():
     assert all(r["config"]["relative_ridge"] for r in table)
     # the same settings with absolute ridge give the same scores
     _, table_abs = search("poly2", x[:90], y[:90], x[90:], y[90:], {"ridge_rel": [0.1, 10.0]}, {"relative_ridge": False})
-    for a, b in zip(table, table_abs):
+    for a, b in zip(table, table_abs, strict=True):
         assert a["val_mse"] == pytest.approx(b["val_mse"], rel=1e-5)

@@ -12,8 +12,8 @@ import numpy as np
 import onnx
 import pytest
 import torch
-
 from _onnx_models import driving_landmarks, exported, real_linear_synthesizer, synthetic_synthesizer
+
 from facesynth.errors import FacesynthError
 from facesynth.runtime import OneEuroFilter, Renderer, composite, smooth_landmarks
 from facesynth.runtime.app import default_size, latency_summary, parse_size, render_frames
@@ -27,7 +27,7 @@ def model_path(tmp_path_factory):
 
 
 def test_runtime_never_imports_torch():
-    code = ("import sys, facesynth.runtime, facesynth.runtime.app, facesynth.runtime.export_cli; "
+    code = ("import sys, facesynth.runtime, facesynth.runtime.app, facesynth.onnx.cli; "
             "from facesynth.runtime import Renderer; assert 'torch' not in sys.modules, 'torch imported'")
     res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, timeout=120,
                          env={"PYTHONPATH": str(ROOT), "PATH": "/usr/bin:/bin"})
@@ -206,8 +206,8 @@ def test_app_on_lp_d6_matches_torch(shared_clip_dir, tmp_path):
     the real video beside it: the frames it encodes equal torch's rendering + composite."""
     from facesynth.cli import main
     from facesynth.data import load_sequence
-    from facesynth.export_onnx import export_synthesizer
     from facesynth.imaging import composite as torch_side_composite
+    from facesynth.onnx.synthesis import export_synthesizer
     from facesynth.sadm.quantize import quantize_synthesizer
 
     clip = shared_clip_dir("lp_d6")

@@ -11,13 +11,13 @@ import pytest
 import torch
 from hydra import compose, initialize_config_dir
 
-from facesynth.config import register_configs
 from facesynth.data import temporal_split
 from facesynth.data.synthetic import make_synthetic_sequence
 from facesynth.eval.sadm_eval import EvalConfig, evaluate_sadm
 from facesynth.model import FaceModel, FaceModelConfig
+from facesynth.regressors import REGISTRY
+from facesynth.runs.config import register_configs
 from facesynth.sadm.fit import SADMConfig, fit_sadm, load_sadm, save_sadm
-from facesynth.sadm.regressors import REGISTRY
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY = ["data.n_frames=64", "data.size=192", "eval.noise=[0,2]", "eval.max_test_frames=3"]
@@ -64,7 +64,7 @@ def test_save_load_round_trip(synthetic, tmp_path):
     lm = torch.from_numpy(seq.landmarks[te[:4]])
     with torch.no_grad():
         a, b = sadm.synthesizer()(lm), back.synthesizer()(lm)
-    for x, y in zip(a, b):
+    for x, y in zip(a, b, strict=True):
         torch.testing.assert_close(x, y)
 
 
@@ -86,7 +86,7 @@ def test_config_typos_fail_early():
 def test_train_defaults_are_what_train_py_composes():
     """Scripts calling fit_sadm directly get the Hydra defaults of train.py: the regressor's
     yaml hyper-parameters and the SADM settings it sets (krr: 1 px augmentation)."""
-    from facesynth.config import train_defaults
+    from facesynth.runs.config import train_defaults
 
     name, params, sadm_cfg = train_defaults("krr")
     assert name == "krr" and params["kernel"] == "matern32" and params["alpha"] == 0.5
@@ -99,14 +99,31 @@ def test_train_defaults_are_what_train_py_composes():
 def test_fit_sadm_defaults_are_train_py_defaults(name):
     """fit_sadm without a config trains with the SADM settings train.py composes for the
     regressor (the class's sadm_defaults and conf/regressor/NAME.yaml agree)."""
-    from facesynth.config import train_defaults
+    from facesynth.runs.config import train_defaults
 
     assert SADMConfig(**REGISTRY[name].sadm_defaults) == train_defaults(name)[2]
 
 
+@pytest.mark.parametrize("name", sorted(REGISTRY))
+def test_composed_regressor_config_is_its_dataclass_defaults(name):
+    """One source of defaults: train.py regressor=NAME trains with exactly the fields and
+    values of the regressor's config dataclass (the yaml only selects it), and fit_sadm /
+    make_config without parameters build the same config."""
+    from dataclasses import asdict
+
+    from facesynth.runs.config import train_defaults
+    from facesynth.sadm.fit import make_config
+
+    got_name, params, _ = train_defaults(name)
+    want = asdict(REGISTRY[name].config_class())
+    assert got_name == name
+    assert {k: (list(v) if isinstance(v, tuple) else v) for k, v in want.items()} == params
+    assert asdict(make_config(name, {})) == want
+
+
 def test_run_directory_metrics_and_reevaluation(tmp_path):
     from facesynth.cli import main
-    from facesynth.pipeline import run_training
+    from facesynth.runs.training import run_training
 
     cfg = _compose(TINY)
     metrics = run_training(cfg, tmp_path / "run")
@@ -163,9 +180,19 @@ def test_train_reports_bad_data_path(tmp_path):
     assert proc.returncode == 2 and "no such file or folder" in proc.stderr
 
 
+def test_train_model_eri_uses_the_runs_temporal_split(tmp_path):
+    """model=eri honours data.train_fraction and data.gap (no split of its own)."""
+    from facesynth.runs.training import run_training
+
+    cfg = _compose(["model=eri", "data.n_frames=40", "data.size=192", "eri.compare=[]", "eri.eval_frames=2",
+                    "data.train_fraction=0.5", "data.gap=3"])
+    metrics = run_training(cfg, tmp_path / "eri")
+    assert (metrics["train_frames"], metrics["test_frames"]) == (20, 17)
+
+
 def test_train_model_eri_through_hydra(tmp_path):
     """``train.py model=eri`` composes the eri/ group and writes the ERI run."""
-    from facesynth.pipeline import run_training
+    from facesynth.runs.training import run_training
 
     cfg = _compose(["model=eri", "data.n_frames=48", "data.size=192", "eri.compare=[]"])
     metrics = run_training(cfg, tmp_path / "eri")

@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from facesynth.errors import FacesynthError
-from facesynth.sadm.regressors import DEFAULT_GRIDS, REGISTRY, KRRConfig, KRRRegressor, LinearRegressor, search
+from facesynth.regressors import DEFAULT_GRIDS, REGISTRY, KRRConfig, KRRRegressor, LinearRegressor, search
 
 
 def _data(n=160, d=6, seed=0):
@@ -161,7 +161,7 @@ def test_hydra_regressor_krr_composes():
 
     from hydra import compose, initialize_config_dir
 
-    from facesynth.config import register_configs, regressor_params
+    from facesynth.runs.config import register_configs, regressor_params
 
     register_configs()
     root = Path(__file__).resolve().parents[1]

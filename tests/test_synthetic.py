@@ -71,10 +71,7 @@ def test_pose_matches_opencv_similarity_and_controls_recovered(rng):
 
 
 def test_landmarks_follow_controls():
-    eye = np.zeros((2, 4)); eye[1, 3] = 1
-    jaw = np.zeros((2, 4)); jaw[1, 0] = 1
-    smile = np.zeros((2, 4)); smile[1, 1] = 1
-    brow = np.zeros((2, 4)); brow[1, 2] = 1
+    eye, jaw, smile, brow = (np.eye(4)[[0, k]] * [[0], [1]] for k in (3, 0, 1, 2))  # rows: neutral, control k at 1
 
     def ear(p):  # eye aspect ratio (Soukupova & Cech 2016), right eye
         return (np.linalg.norm(p[37] - p[41]) + np.linalg.norm(p[38] - p[40])) / (2 * np.linalg.norm(p[36] - p[39]))
@@ -91,7 +88,7 @@ def test_landmarks_follow_controls():
 
 def _patch_mean(frames, cx, cy, hw, hh):
     return np.array([f[int(y - hh):int(y + hh) + 1, int(x - hw):int(x + hw) + 1].mean()
-                     for f, x, y in zip(frames, cx, cy)])
+                     for f, x, y in zip(frames, cx, cy, strict=True)])
 
 
 def test_forehead_darkens_with_brow_raise(seq):
@@ -107,7 +104,7 @@ def test_mouth_darkens_when_jaw_opens(seq):
     cx, cy = 0.5 * (L[:, 48, 0] + L[:, 54, 0]), 0.5 * (L[:, 51, 1] + L[:, 57, 1])
     hw, hh = 0.5 * (L[:, 54, 0] - L[:, 48, 0]), 0.5 * (L[:, 57, 1] - L[:, 51, 1])
     dark = np.array([(f[int(y - b):int(y + b) + 1, int(x - a):int(x + a) + 1] < 50).mean()
-                     for f, x, y, a, b in zip(g, cx, cy, hw, hh)])
+                     for f, x, y, a, b in zip(g, cx, cy, hw, hh, strict=True)])
     jaw = c[:, CONTROL_NAMES.index("jaw_open")]
     assert np.corrcoef(dark, jaw)[0, 1] > 0.7
     assert dark[jaw > 0.8].mean() > 2 * dark[jaw < 0.05].mean()
@@ -121,14 +118,14 @@ def test_eye_region_changes_when_eyes_close(seq):
         ctr = 0.5 * (L[:, a] + L[:, b])
         hw, hh = 0.2 * iod, 0.12 * iod
         # contrast of the eye region (sclera vs iris): the lid covers both as the eye closes
-        contrast = np.array([f[int(y - hh):int(y + hh) + 1, int(x - hw):int(x + hw) + 1].std() for f, (x, y) in zip(g, ctr)])
+        contrast = np.array([f[int(y - hh):int(y + hh) + 1, int(x - hw):int(x + hw) + 1].std() for f, (x, y) in zip(g, ctr, strict=True)])
         assert np.corrcoef(contrast, close)[0, 1] < -0.75
 
 
 def test_smile_folds_and_cheeks_from_rendering_alone():
     # Same pose, noise off: only the smile control differs -> pixels change in the
     # nasolabial/cheek area beyond the mouth polygon, and rendering is a pure function of landmarks.
-    ctrl = np.zeros((2, 4)); ctrl[1, 1] = 1
+    ctrl = np.eye(4)[[0, 1]] * [[0], [1]]  # rows: neutral, smile at 1
     lm = synthetic_landmarks(ctrl, size=SIZE)
     img = render_faces(lm, SIZE, noise_sigma=0).astype(np.float32).mean(-1)
     again = render_faces(lm[1:], SIZE, seed=9, noise_sigma=0)

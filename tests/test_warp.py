@@ -5,11 +5,11 @@ import cv2
 import numpy as np
 import pytest
 import torch
-
 from _faces import face_template, smooth_image
-from facesynth.eval.metrics import psnr
+
+from facesynth.metrics import psnr
 from facesynth.model.reference import ReferenceFrame
-from facesynth.model.warp import ToReference, ToTarget, candidate_spans, similarity_to, apply_affine_t, invert_affine_t
+from facesynth.model.warp import ToReference, ToTarget, apply_affine_t, candidate_spans, invert_affine_t, similarity_to
 
 
 @pytest.fixture(scope="module")

@@ -21,7 +21,14 @@ from dataclasses import dataclass
 import numpy as np
 
 from facesynth.codec.frame import (
-    CodecConfig, FrameCode, decode_frame, encode_batch, encode_frame, read_frame, write_frame,
+    CodecConfig,
+    FrameCode,
+    decode_frame,
+    encode_batch,
+    encode_frame,
+    mode_set,
+    read_frame,
+    write_frame,
 )
 from facesynth.codec.transform import QP_MAX
 from facesynth.errors import FacesynthError
@@ -123,7 +130,7 @@ def _intra_batch(xs: np.ndarray, i0: int, cfg: CodecConfig, wmask, last_size: di
            or (k == 0 and False not in last_size)]
     if idx:
         res = encode_batch(xs[idx], None, cfg, wmask, [cfg.sizes()] * len(idx), last_size.get(False))
-        for k, r in zip(idx, res):
+        for k, r in zip(idx, res, strict=True):
             out[k] = r
     sizes, cur = [], last_size.get(False)
     for k in range(f):
@@ -132,18 +139,16 @@ def _intra_batch(xs: np.ndarray, i0: int, cfg: CodecConfig, wmask, last_size: di
     rest = [k for k in range(f) if out[k] is None]
     if rest:
         res = encode_batch(xs[rest], None, cfg, wmask, [(sizes[k],) for k in rest])
-        for k, r in zip(rest, res):
+        for k, r in zip(rest, res, strict=True):
             out[k] = r
     last_size[False] = out[-1][0].n
     return out
 
 
 def _count_modes(hist: dict, code: FrameCode, flags) -> None:
-    from facesynth.codec.frame import mode_set
-
     names = mode_set(*flags, code.n, code.p_frame).names()
     cnt = np.bincount(code.modes.ravel(), minlength=len(names))
-    for name, k in zip(names, cnt):
+    for name, k in zip(names, cnt, strict=True):
         if k == 0:
             continue
         key = f"{name}@{code.n}" if name.startswith("HIP") else name

@@ -61,7 +61,7 @@ def grid(n: int, height: int, width: int) -> Grid:
     waves = tuple(np.nonzero(t == k)[0] for k in range(int(t.max()) + 1))
     order = np.concatenate(waves)
     ends = np.cumsum([len(wv) for wv in waves])
-    bounds = tuple(zip((ends - np.array([len(wv) for wv in waves])).tolist(), ends.tolist()))
+    bounds = tuple(zip((ends - np.array([len(wv) for wv in waves])).tolist(), ends.tolist(), strict=True))
     return Grid(n, height, width, nb_idx, pix_idx, waves, order, bounds)
 
 

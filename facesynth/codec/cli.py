@@ -119,8 +119,8 @@ def run(args: argparse.Namespace) -> int:
     from facesynth.codec.bitstream import decode_video, encode_video
     from facesynth.codec.frame import CodecConfig
     from facesynth.codec.rd import CONFIGS, bd_between, modes_config, plot_rd, rd_sweep
-    from facesynth.eval.metrics import psnr
     from facesynth.io import atomic_path, write_bytes, write_json
+    from facesynth.metrics import psnr
 
     if args.action == "geometry":
         vid, mask, q = _ict_video(args.frames, args.size, args.seed)

@@ -33,10 +33,25 @@ import numpy as np
 from facesynth.codec import entropy, intra
 from facesynth.codec import transform8 as t8m
 from facesynth.codec.blocks import (
-    MID, ModeSet, grid, motion_compensate, motion_search, padded, sad_maps, sub_order, sub_perm, unpadded,
+    MID,
+    ModeSet,
+    grid,
+    motion_compensate,
+    motion_search,
+    padded,
+    sad_maps,
+    sub_order,
+    sub_perm,
+    unpadded,
 )
 from facesynth.codec.transform import (
-    FWD16, MF_TABLE, PF16, ZIGZAG, inverse_sub, lagrangian, rescale_scale,
+    FWD16,
+    MF_TABLE,
+    PF16,
+    ZIGZAG,
+    inverse_sub,
+    lagrangian,
+    rescale_scale,
 )
 
 _C0, _C1, _CS = 2.0, 2.0, 1.0  # level rate model: C0 + C1 log2(1 + |l|) per non-zero, CS per sub-block

@@ -20,8 +20,8 @@ from __future__ import annotations
 
 from functools import lru_cache
 
-import numpy as np
 import constriction
+import numpy as np
 
 Categorical = constriction.stream.model.Categorical
 Uniform = constriction.stream.model.Uniform

@@ -15,8 +15,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from facesynth.codec import encoder, entropy, intra
-from facesynth.codec.intra import n_neighbours
 from facesynth.codec.blocks import MID, ModeSet, grid, motion_compensate, padded, unpadded
+from facesynth.codec.intra import n_neighbours
 from facesynth.codec.transform import decode_residual
 
 

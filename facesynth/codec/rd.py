@@ -15,7 +15,8 @@ from scipy.interpolate import PchipInterpolator
 
 from facesynth.codec.bitstream import decode_video, encode_video
 from facesynth.codec.frame import CodecConfig
-from facesynth.eval.metrics import psnr
+from facesynth.io import atomic_path
+from facesynth.metrics import psnr
 
 # Named configurations compared by the benchmark: everything else equal.
 CONFIGS: dict[str, dict] = {
@@ -104,7 +105,6 @@ def plot_rd(points: dict[str, list[dict]], path: str | Path, title: str = "") ->
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from facesynth.io import atomic_path
 
     fig, ax = plt.subplots(figsize=(6, 4.2))
     for name, pts in points.items():

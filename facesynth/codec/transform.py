@@ -15,6 +15,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from facesynth.codec.blocks import sub_order, sub_perm
+from facesynth.codec.transform8 import inverse_slots
+
 QP_MAX = 87
 
 _MF = np.array([[13107, 5243, 8066], [11916, 4660, 7490], [10082, 4194, 6554],
@@ -136,9 +139,6 @@ def decode_residual(levels: np.ndarray, n: int, qp: int | None, as_float: bool =
     float64 with the same integer values if ``as_float``). ``t8``: the levels are those of
     the 8x8 transform (:mod:`facesynth.codec.transform8`), N = 8 or 16."""
     if t8:
-        from facesynth.codec.blocks import sub_order, sub_perm
-        from facesynth.codec.transform8 import inverse_slots
-
         z = levels[..., sub_order(n), :].reshape(*levels.shape[:-2], -1, 64)
         out = np.empty((*levels.shape[:-2], n * n), np.int64)
         out[..., sub_perm(n)] = inverse_slots(z, qp).reshape(*levels.shape[:-2], n * n)
@@ -169,6 +169,11 @@ def rescale_scale(qp: int) -> np.ndarray:
     return ((_V[qp % 6][_POS] << (qp // 6)) * _M / 64.0).ravel()[ZIGZAG]
 
 
+def _tap_pos(axis: int, line: int, t: int) -> int:
+    """Raster index in a 4x4 block of tap ``t`` on ``line``: along the row (axis -1) or the column."""
+    return 4 * line + t if axis == -1 else 4 * t + line
+
+
 def _inverse_stage(axis: int) -> np.ndarray:
     """(32, 16) matrix of one inverse butterfly stage on ``[d, d >> 1]`` (flattened 4x4)."""
     a = np.zeros((32, 16))
@@ -180,8 +185,7 @@ def _inverse_stage(axis: int) -> np.ndarray:
         for out in range(4):
             for src, wgt in taps[out]:
                 half, k = divmod(src, 16)
-                pos = (lambda t: 4 * line + t) if axis == -1 else (lambda t: 4 * t + line)
-                a[16 * half + pos(k), pos(out)] += wgt
+                a[16 * half + _tap_pos(axis, line, k), _tap_pos(axis, line, out)] += wgt
     return a
 
 

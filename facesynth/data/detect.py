@@ -30,6 +30,7 @@ import cv2
 import numpy as np
 
 from facesynth.errors import FacesynthError, MissingExtraError
+from facesynth.landmarks import N_LANDMARKS
 
 PREDICTOR_FILE = "shape_predictor_68_face_landmarks.dat"
 SOURCES = ("hog_up0", "hog_up1", "previous_box", "miss")
@@ -181,8 +182,8 @@ class LandmarkDetector:
 
     def landmarks(self, rgb: np.ndarray, box: np.ndarray) -> np.ndarray:
         """float32 (68, 2) landmarks in the box (integer-valued, as dlib returns them)."""
-        l, t, r, b = (int(round(v)) for v in box)
-        shape = self._predictor(np.ascontiguousarray(rgb), self._dlib.rectangle(l, t, r, b))
+        left, top, right, bottom = (int(round(v)) for v in box)
+        shape = self._predictor(np.ascontiguousarray(rgb), self._dlib.rectangle(left, top, right, bottom))
         return np.array([[p.x, p.y] for p in shape.parts()], np.float32)
 
 
@@ -212,7 +213,7 @@ def detect_landmarks(
     det = detector or LandmarkDetector()
     lms, boxes, sources, n_faces = [], [], [], []
     t_det = t_lm = 0.0
-    nan_lm = np.full((68, 2), np.nan, np.float32)
+    nan_lm = np.full((N_LANDMARKS, 2), np.nan, np.float32)
     for i, rgb in enumerate(frames):
         if rgb is None:
             lms.append(nan_lm)
@@ -234,7 +235,7 @@ def detect_landmarks(
         if on_frame is not None:
             on_frame(i, source)
     return Detections(
-        landmarks=np.stack(lms).astype(np.float32) if lms else np.zeros((0, 68, 2), np.float32),
+        landmarks=np.stack(lms).astype(np.float32) if lms else np.zeros((0, N_LANDMARKS, 2), np.float32),
         boxes=np.stack(boxes).astype(np.float32) if boxes else np.zeros((0, 4), np.float32),
         sources=sources,
         n_faces=np.asarray(n_faces, dtype=np.int64),

@@ -5,6 +5,8 @@ from __future__ import annotations
 import argparse
 import json
 
+from facesynth.errors import FacesynthError
+
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.description = (
@@ -34,7 +36,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from facesynth.data.ingest import ingest_video
-    from facesynth.errors import FacesynthError
 
     if args.max_side < 32:
         raise FacesynthError(f"--max-side must be >= 32, got {args.max_side}")

@@ -13,9 +13,10 @@ import numpy as np
 
 from facesynth.errors import FacesynthError
 from facesynth.io import write_text
+from facesynth.landmarks import N_LANDMARKS
 
 
-def read_pts(path: str | os.PathLike, n_points: int | None = 68) -> np.ndarray:
+def read_pts(path: str | os.PathLike, n_points: int | None = N_LANDMARKS) -> np.ndarray:
     """Read one ``.pts`` file.
 
     Returns

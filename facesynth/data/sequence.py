@@ -10,11 +10,11 @@ import numpy as np
 
 from facesynth.data.frames import FrameSource
 from facesynth.errors import FacesynthError
+from facesynth.landmarks import DEFAULT_SCHEME, N_LANDMARKS
 from facesynth.provenance import array_fingerprint
 
 log = logging.getLogger(__name__)
 
-N_LANDMARKS = 68
 
 
 def validate_landmarks(landmarks: np.ndarray, where: str, allow_nan_rows: bool = False) -> np.ndarray:
@@ -34,7 +34,7 @@ def validate_landmarks(landmarks: np.ndarray, where: str, allow_nan_rows: bool =
         lm = lm[None]
     if lm.ndim != 3 or lm.shape[1:] != (N_LANDMARKS, 2):
         raise FacesynthError(
-            f"{where}: landmarks must have shape (N, {N_LANDMARKS}, 2) in iBUG 68-point order, got {lm.shape}"
+            f"{where}: landmarks must have shape (N, {N_LANDMARKS}, 2) ({DEFAULT_SCHEME.description}), got {lm.shape}"
         )
     if not np.issubdtype(lm.dtype, np.number):
         raise FacesynthError(f"{where}: landmarks must be numeric, got dtype {lm.dtype}")

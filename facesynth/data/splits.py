@@ -7,8 +7,10 @@ import numpy as np
 
 from facesynth.errors import FacesynthError
 
+TRAIN_FRACTION = 0.75  # the default share of leading frames that trains (data.train_fraction)
 
-def temporal_split(n: int, train_fraction: float = 0.75, gap: int = 0) -> tuple[np.ndarray, np.ndarray]:
+
+def temporal_split(n: int, train_fraction: float = TRAIN_FRACTION, gap: int = 0) -> tuple[np.ndarray, np.ndarray]:
     """Split ``n`` consecutive frames into a leading training part and a trailing test part.
 
     Parameters

@@ -30,11 +30,17 @@ from facesynth.data.frames import ArrayFrames
 from facesynth.data.sequence import FaceSequence, validate_landmarks
 from facesynth.data.synthetic_draw import Alpha, DrawFrame, Shaded, bbox, bezier, blend
 from facesynth.data.synthetic_shape import (
-    CONTROL_NAMES, MEAN_SHAPE, estimate_pose_and_controls,
-    pose_matrices, shapes_from_controls, smooth_controls, smooth_head_motion,
+    CONTROL_NAMES,
+    MEAN_SHAPE,
+    estimate_pose_and_controls,
+    pose_matrices,
+    shapes_from_controls,
+    smooth_controls,
+    smooth_head_motion,
 )
 from facesynth.errors import FacesynthError
 from facesynth.geometry import apply_affine, invert_affine
+from facesynth.landmarks import BROWS, INNER_LIPS, JAW, LEFT_BROW, LEFT_EYE, OUTER_LIPS, RIGHT_BROW, RIGHT_EYE
 
 __all__ = ["CONTROL_NAMES", "make_synthetic_sequence", "render_faces", "synthetic_landmarks"]
 
@@ -80,7 +86,7 @@ def _render_one(L: np.ndarray, c: np.ndarray, f: DrawFrame, background: np.ndarr
     y0 = 0.5 * (L[0, 1] + L[16, 1])
     th = np.linspace(0, np.pi, 24)
     arc = np.stack([0.46 * np.cos(th) * (L[16, 0] - L[0, 0]) / 0.9, y0 - 0.5 * np.sin(th)], 1)
-    face = f.poly(np.concatenate([L[:17], arc[1:-1]]))
+    face = f.poly(np.concatenate([L[list(JAW)], arc[1:-1]]))
     face_a = face.a
     blend(img, face, skin)
     # hairline fringe over the upper forehead
@@ -95,7 +101,7 @@ def _render_one(L: np.ndarray, c: np.ndarray, f: DrawFrame, background: np.ndarr
             f.shade_blob(img, 0.20 * smile, sgn * 0.25, 0.72, 0.05, 0.04, mask=face_a)
 
     # forehead wrinkles: horizontal line pattern, contrast grows with brow raise
-    top = L[17:27, 1].min()
+    top = L[list(BROWS), 1].min()
     if brow > 0.005:
         s = f.box([[-0.3, top - 0.2], [0.3, top - 0.2], [-0.3, top], [0.3, top]], 0.01)
         Us, Vs = U[s], V[s]
@@ -128,7 +134,7 @@ def _render_one(L: np.ndarray, c: np.ndarray, f: DrawFrame, background: np.ndarr
     blend(img, f.line(ala, 0.008, blur=0.004), _SKIN * 0.5, 0.25)
 
     # eyes: sclera, iris clipped by the lids, upper-lid skin, lashes, crease
-    for idx in (np.arange(36, 42), np.arange(42, 48)):
+    for idx in (np.array(RIGHT_EYE), np.array(LEFT_EYE)):
         e = L[idx]
         eye = f.poly(e)
         blend(img, eye, _SCLERA)
@@ -154,17 +160,17 @@ def _render_one(L: np.ndarray, c: np.ndarray, f: DrawFrame, background: np.ndarr
         blend(img, f.line(e[[3, 4, 5, 0]], 0.006), np.array([0.45, 0.3, 0.28], np.float32), 0.35)
 
     # brows: tapered filled bands around the brow points
-    for idx in (np.arange(17, 22), np.arange(22, 27)):
+    for idx in (np.array(RIGHT_BROW), np.array(LEFT_BROW)):
         b = L[idx]
         thick = np.linspace(0.010, 0.019, 5) if idx[0] == 17 else np.linspace(0.019, 0.010, 5)
         off = np.stack([0 * thick, thick], 1)
         blend(img, f.poly(np.concatenate([b - off, (b + off)[::-1]])), _BROW, 0.92)
 
     # mouth: lips, dark interior, upper and lower teeth, lip line
-    blend(img, f.poly(L[48:60]), Shaded(_LIP, shade))
+    blend(img, f.poly(L[list(OUTER_LIPS)]), Shaded(_LIP, shade))
     upper = np.concatenate([L[48:55], L[[64, 63, 62, 61, 60]]])
     blend(img, f.poly(upper), Shaded(_LIP * 0.85, shade))
-    inner = f.poly(L[60:68])
+    inner = f.poly(L[list(INNER_LIPS)])
     blend(img, inner, _MOUTH)
     if jaw_open > 0.005 and (s := bbox(inner.a)) is not None:
         Us, Vs, ia, sub = U[s], V[s], inner.a[s], img[s]

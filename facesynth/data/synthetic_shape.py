@@ -21,6 +21,7 @@ import numpy as np
 from scipy.ndimage import gaussian_filter1d
 
 from facesynth.geometry import apply_affine, invert_affine, similarity_fit
+from facesynth.landmarks import RIGID_INNER
 
 CONTROL_NAMES = ("jaw_open", "smile", "brow_raise", "eye_close")
 
@@ -49,7 +50,7 @@ MIRROR = np.array(
     + [54, 53, 52, 51, 50, 49, 48, 59, 58, 57, 56, 55] + [64, 63, 62, 61, 60, 67, 66, 65]
 )
 # Points no control moves: eye corners, nose bridge, nose tip and wings.
-RIGID = np.array([27, 28, 29, 30, 31, 33, 35, 36, 39, 42, 45])
+RIGID = np.array(RIGID_INNER)
 
 
 def _mean_shape() -> np.ndarray:

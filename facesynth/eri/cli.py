@@ -38,17 +38,20 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--fps", type=float, help="output frame rate (default: the driver's)")
 
 
-def _target(args) -> tuple[np.ndarray, np.ndarray, str]:
-    """The target's neutral image (uint8 RGB) and (68, 2) landmarks, and a description."""
+def load_target(target, target_landmarks=None, target_frame: int | None = None) -> tuple[np.ndarray, np.ndarray, str]:
+    """The target's neutral image (uint8 RGB) and (68, 2) landmarks, and a description.
+
+    ``target``: an image (landmarks from ``target_landmarks``, row ``target_frame``, or
+    detected) or a folder in ingest layout (row ``target_frame``, default automatic)."""
     from facesynth.data import load_landmarks, load_sequence
     from facesynth.eri.geometry import select_neutral
 
-    path = Path(args.target)
+    path = Path(target)
     if path.is_dir():
         seq = load_sequence(path)
         if not seq.has_frames:
             raise FacesynthError(f"{path}: target folder has landmarks but no video/images")
-        row = args.target_frame if args.target_frame is not None else select_neutral(seq.landmarks)[0]
+        row = target_frame if target_frame is not None else select_neutral(seq.landmarks)[0]
         if not 0 <= row < len(seq):
             raise FacesynthError(f"--target-frame {row} is outside {path} (0..{len(seq) - 1})")
         return seq.frame(row), seq.landmarks[row], f"{path} row {row}"
@@ -60,12 +63,12 @@ def _target(args) -> tuple[np.ndarray, np.ndarray, str]:
     if bgr is None:
         raise FacesynthError(f"{path}: unreadable image")
     img = cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
-    if args.target_landmarks:
-        lm = load_landmarks(args.target_landmarks)
-        row = args.target_frame or 0
+    if target_landmarks:
+        lm = load_landmarks(target_landmarks)
+        row = target_frame or 0
         if not 0 <= row < len(lm) or not np.isfinite(lm[row]).all():
-            raise FacesynthError(f"{args.target_landmarks}: no valid landmarks at row {row}")
-        return img, lm[row], f"{path} with {args.target_landmarks}"
+            raise FacesynthError(f"{target_landmarks}: no valid landmarks at row {row}")
+        return img, lm[row], f"{path} with {target_landmarks}"
     return img, _detect(img, path), f"{path} (landmarks detected)"
 
 
@@ -94,7 +97,7 @@ def run(args) -> int:
     from facesynth.eri.synthesis import EriSynthesizer
 
     model = EriModel.load(args.eri)
-    image, landmarks, target_desc = _target(args)
+    image, landmarks, target_desc = load_target(args.target, args.target_landmarks, args.target_frame)
     driver = load_sequence(args.driver)
     if args.driver_neutral is not None:
         if not 0 <= args.driver_neutral < len(driver):

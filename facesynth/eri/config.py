@@ -1,13 +1,15 @@
 """Structured configuration of the ERI model (the Hydra ``eri/`` group fills it).
 
 Every knob of training, the ratio images, the eigenERI PCA, the SVR driving model and
-synthesis lives here; ``conf/eri/default.yaml`` mirrors these defaults.
+synthesis lives here, with its default; ``conf/eri/default.yaml`` only selects it.
 """
 
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field, fields
 from typing import Any, Mapping
+
+from omegaconf import DictConfig, OmegaConf
 
 from facesynth.errors import FacesynthError
 
@@ -51,8 +53,8 @@ class EriConfig:
         ``span_safety`` sizes the warp's candidate blocks; ``feather`` is the
         compositing edge width (frame pixels); ``batch_size`` frames per batch.
     Evaluation
-        ``train_fraction`` and ``gap`` of the temporal split; ``eval_frames`` caps the
-        number of test frames rendered for the PSNR figures (0 = all).
+        ``eval_frames`` caps the number of test frames rendered for the PSNR figures
+        (0 = all); the temporal split is the run's (``data.train_fraction``, ``data.gap``).
     """
 
     neutral_index: int | None = None
@@ -83,8 +85,6 @@ class EriConfig:
     span_safety: float = 1.5
     feather: float = 3.0
     batch_size: int = 32
-    train_fraction: float = 0.75
-    gap: int = 0
     eval_frames: int = 0
 
     def __post_init__(self):
@@ -106,13 +106,8 @@ class EriConfig:
             return cls()
         if isinstance(d, cls):
             return d
-        try:  # OmegaConf DictConfig -> plain dict
-            from omegaconf import DictConfig, OmegaConf
-
-            if isinstance(d, DictConfig):
-                d = OmegaConf.to_container(d, resolve=True)
-        except ImportError:  # pragma: no cover - hydra-core is a dependency
-            pass
+        if isinstance(d, DictConfig):
+            d = OmegaConf.to_container(d, resolve=True)
         known = {f.name for f in fields(cls)}
         unknown = sorted(set(d) - known)
         if unknown:

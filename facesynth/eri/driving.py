@@ -21,7 +21,8 @@ import numpy as np
 import torch
 
 from facesynth.errors import FacesynthError
-from facesynth.sadm.regressors.base import Regressor
+from facesynth.metrics import ncc
+from facesynth.regressors.base import Regressor
 
 VARIANTS = {"eps_linear": ("eps", "linear"), "eps_rbf": ("eps", "rbf"), "nu_linear": ("nu", "linear"), "nu_rbf": ("nu", "rbf")}
 
@@ -128,8 +129,6 @@ def coefficient_scores(pred: np.ndarray, true: np.ndarray) -> dict:
     """The paper's Fig. 5 figures for (N, K) predicted vs true coefficients: mean squared
     error (raw units, and normalised by each coefficient's test variance) and the squared
     correlation coefficient r^2, averaged over the K coefficients (and per coefficient)."""
-    from facesynth.eval.metrics import ncc
-
     p, t = np.asarray(pred, np.float64), np.asarray(true, np.float64)
     mse_k = ((p - t) ** 2).mean(0)
     var_k = t.var(0)

@@ -72,6 +72,7 @@ import numpy as np
 
 from facesynth.errors import FacesynthError
 from facesynth.geometry import apply_affine, similarity_fit
+from facesynth.landmarks import FAP_ANCHORS, N_LANDMARKS, RIGID_FAP
 
 FEATURE_POINTS: dict[str, tuple[int, ...]] = {
     "2.1": (8,), "2.2": (62,), "2.3": (66,), "2.4": (64,), "2.5": (60,), "2.6": (63,), "2.7": (61,),
@@ -124,12 +125,12 @@ FAP_TABLE: tuple[tuple[int, str, str, str, str], ...] = (
 FAP_NAMES = tuple(row[1] for row in FAP_TABLE)
 N_FAPS = len(FAP_TABLE)
 FAPU_NAMES = ("ES", "ENS", "MNS", "MW", "IRISD")
-RIGID_POINTS = (27, 28, 29, 30, 33, 36, 39, 42, 45)
+RIGID_POINTS = RIGID_FAP  # no FAP moves them: the head pose is fitted on them
 # Landmarks held still by the inverse (besides the FAP-driven ones) when interpolating the rest.
-ANCHOR_POINTS = (0, 16, 27, 28, 29, 30, 33, 36, 39, 42, 45)
+ANCHOR_POINTS = FAP_ANCHORS
 
 _FP_IDS = tuple(FEATURE_POINTS)
-_FP_MATRIX = np.zeros((len(_FP_IDS), 68))
+_FP_MATRIX = np.zeros((len(_FP_IDS), N_LANDMARKS))
 for _i, _fp in enumerate(_FP_IDS):
     _FP_MATRIX[_i, list(FEATURE_POINTS[_fp])] = 1.0 / len(FEATURE_POINTS[_fp])
 _DIR = {"left": (0, 1.0), "right": (0, -1.0), "down": (1, 1.0), "up": (1, -1.0)}
@@ -159,7 +160,7 @@ def face_axes(neutral: np.ndarray) -> np.ndarray:
 def fapu(neutral: np.ndarray) -> np.ndarray:
     """FAP units of a (68, 2) neutral face: (5,) float64 in pixels / 1024, order ``FAPU_NAMES``."""
     neutral = _check(neutral, "neutral landmarks")[0]
-    fp = {k: v for k, v in zip(_FP_IDS, _fp(neutral))}
+    fp = {k: v for k, v in zip(_FP_IDS, _fp(neutral), strict=True)}
     down = face_axes(neutral)[1]
     pupils = 0.5 * (fp["3.5"] + fp["3.6"])
     units = np.array([
@@ -170,7 +171,7 @@ def fapu(neutral: np.ndarray) -> np.ndarray:
         0.5 * (np.linalg.norm(fp["3.1"] - fp["3.3"]) + np.linalg.norm(fp["3.2"] - fp["3.4"])),
     ]) / 1024.0
     if not (units > 0).all():
-        bad = [n for n, u in zip(FAPU_NAMES, units) if not u > 0]
+        bad = [n for n, u in zip(FAPU_NAMES, units, strict=True) if not u > 0]
         raise FacesynthError(
             f"neutral landmarks: FAP units {bad} are not positive (eyes closed, mouth above the nose or "
             "a degenerate face?); choose another neutral frame"
@@ -238,7 +239,7 @@ def fap_displacements(neutral: np.ndarray, faps: np.ndarray) -> np.ndarray:
     comp = np.zeros((len(f), len(_FP_IDS), 2))
     np.add.at(comp, (slice(None), _FAP_FP, _FAP_AXIS), f * _FAP_SIGN * units[_FAP_UNIT])
     disp_fp = comp @ axes  # back to image axes, (N, n_fp, 2)
-    disp = np.zeros((len(f), 68, 2))
+    disp = np.zeros((len(f), N_LANDMARKS, 2))
     for fp_i, fp in enumerate(_FP_IDS):
         if fp_i in set(_FAP_FP.tolist()):
             disp[:, list(FEATURE_POINTS[fp])] = disp_fp[:, fp_i, None]
@@ -258,7 +259,7 @@ def _interpolation(neutral: np.ndarray) -> tuple[np.ndarray, list, list]:
     from scipy.interpolate import RBFInterpolator
 
     ctrl = sorted(set(_DRIVEN) | set(ANCHOR_POINTS))
-    rest = [i for i in range(68) if i not in ctrl]
+    rest = [i for i in range(N_LANDMARKS) if i not in ctrl]
     basis = [i for i in ctrl if not 60 <= i <= 67]
     scale = np.linalg.norm(neutral.max(0) - neutral.min(0))
     pts = (neutral - neutral.mean(0)) / scale
@@ -272,7 +273,7 @@ def _check(landmarks: np.ndarray, where: str) -> np.ndarray:
     lm = np.asarray(landmarks)
     if lm.ndim == 2:
         lm = lm[None]
-    if lm.ndim != 3 or lm.shape[1:] != (68, 2):
+    if lm.ndim != 3 or lm.shape[1:] != (N_LANDMARKS, 2):
         raise FacesynthError(f"{where}: expected (N, 68, 2) or (68, 2) iBUG landmarks, got shape {lm.shape}")
     if not np.isfinite(lm).all():
         raise FacesynthError(f"{where}: landmarks contain NaN/inf")

@@ -9,21 +9,15 @@ from __future__ import annotations
 
 import numpy as np
 
-from facesynth.errors import FacesynthError
 from facesynth.eri.faps import face_axes, head_pose
+from facesynth.errors import FacesynthError
 from facesynth.geometry import apply_affine, similarity_fit
+from facesynth.landmarks import BROWS, EYES, N_LANDMARKS, inter_ocular
 from facesynth.model.procrustes import generalised_procrustes
 
 N_FOREHEAD = 10
-BROWS = tuple(range(17, 27))
-INNER_UPPER = (61, 62, 63)
+INNER_UPPER = (61, 62, 63)  # inner-lip points facing INNER_LOWER across the mouth opening
 INNER_LOWER = (67, 66, 65)
-
-
-def inter_ocular(landmarks: np.ndarray) -> np.ndarray:
-    """Outer-eye-corner distance (36-45) of (..., 68, 2) landmarks -> (...)."""
-    lm = np.asarray(landmarks, np.float64)
-    return np.linalg.norm(lm[..., 45, :] - lm[..., 36, :], axis=-1)
 
 
 def mouth_open(landmarks: np.ndarray) -> np.ndarray:
@@ -68,7 +62,7 @@ def forehead_points(neutral: np.ndarray, fraction: float) -> np.ndarray:
     pupil-line-to-chin distance up the face's vertical axis."""
     neutral = np.asarray(neutral, np.float64)
     down = face_axes(neutral)[1]
-    eyes = neutral[36:48].mean(0)
+    eyes = neutral[list(EYES)].mean(0)
     height = fraction * float((neutral[8] - eyes) @ down)
     return neutral[list(BROWS)] - height * down
 
@@ -94,18 +88,18 @@ def open_mouth(points: np.ndarray, gap: float) -> np.ndarray:
     pts = np.asarray(points, np.float64).copy()
     if gap <= 0:
         return pts
-    down = face_axes(pts[:68])[1]
-    step = 0.5 * gap * inter_ocular(pts[:68])
-    for idx, w in zip((61, 62, 63), (0.7, 1.0, 0.7)):
+    down = face_axes(pts[:N_LANDMARKS])[1]
+    step = 0.5 * gap * inter_ocular(pts[:N_LANDMARKS])
+    for idx, w in zip((61, 62, 63), (0.7, 1.0, 0.7), strict=True):
         pts[idx] -= w * step * down
-    for idx, w in zip((67, 66, 65), (0.7, 1.0, 0.7)):
+    for idx, w in zip((67, 66, 65), (0.7, 1.0, 0.7), strict=True):
         pts[idx] += w * step * down
     return pts
 
 
 def upright(points: np.ndarray) -> np.ndarray:
     """Rotate (P, 2) points about their centroid so that the eye axis is horizontal."""
-    x = face_axes(np.asarray(points, np.float64)[:68])[0]
+    x = face_axes(np.asarray(points, np.float64)[:N_LANDMARKS])[0]
     c = np.asarray(points, np.float64).mean(0)
     rot = np.array([[x[0], x[1]], [-x[1], x[0]]])
     return (np.asarray(points, np.float64) - c) @ rot.T + c

@@ -10,7 +10,6 @@ linear and RBF kernels predicting eigenERI coefficients from FAPs).
 
 from __future__ import annotations
 
-import json
 import logging
 import os
 import time
@@ -19,22 +18,19 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from safetensors.numpy import load_file, save_file
 from tqdm.auto import tqdm
 
-from facesynth import __version__
+from facesynth.artifact import manifest_field, read_manifest, read_tensors, save_artifact
 from facesynth.data.sequence import FaceSequence
-from facesynth.errors import FacesynthError
 from facesynth.eri.config import SVR_VARIANTS, EriConfig
 from facesynth.eri.driving import SVRBank, fit_variant
 from facesynth.eri.faps import FAP_NAMES, compute_faps, fapu
 from facesynth.eri.geometry import extend, forehead_points, open_mouth, select_neutral, to_canvas, upright
 from facesynth.eri.ratio import ratio_images, sample_textures
-from facesynth.io import atomic_path, write_json
+from facesynth.errors import FacesynthError
 from facesynth.model.pca import PCAModel
 from facesynth.model.reference import ReferenceFrame
 from facesynth.model.warp import ToReference, candidate_spans
-from facesynth.provenance import package_versions
 
 log = logging.getLogger(__name__)
 
@@ -201,8 +197,6 @@ class EriModel:
     # ------------------------------------------------------------ save / load
     def save(self, directory: str | os.PathLike, extra: dict | None = None) -> Path:
         """Write ``eri_model.safetensors`` + ``eri_model.json`` into ``directory`` (atomically)."""
-        d = Path(directory)
-        d.mkdir(parents=True, exist_ok=True)
         t = {"neutral_landmarks": self.neutral_landmarks, "forehead": np.asarray(self.forehead, np.float32),
              "reference_points": self.reference.points, "triangles": self.reference.triangles.astype(np.int64),
              "span": self.span.astype(np.int64), "neutral_texture": self.neutral_texture,
@@ -212,17 +206,12 @@ class EriModel:
         for name, reg in self.regressors.items():
             regs[name] = reg.config_dict()
             t.update({f"reg.{name}.{k}": v.numpy() for k, v in reg.state_dict().items()})
-        with atomic_path(d / TENSORS) as tmp:
-            save_file({k: np.ascontiguousarray(v) for k, v in t.items()}, str(tmp))
-        write_json(d / MANIFEST, {
-            "format": FORMAT, "format_version": FORMAT_VERSION, "facesynth_version": __version__,
-            "created": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), "config": self.config.to_dict(),
-            "neutral_index": self.neutral_index, "reference_size": list(self.reference.size),
-            "pca_total_variance": self.pca.total_variance, "driver": self.driver, "regressors": regs,
-            "fap_names": list(FAP_NAMES), "data_fingerprint": self.fingerprint, "packages": package_versions(),
+        return save_artifact(directory, TENSORS, MANIFEST, t, {
+            "config": self.config.to_dict(), "neutral_index": self.neutral_index,
+            "reference_size": list(self.reference.size), "pca_total_variance": self.pca.total_variance,
+            "driver": self.driver, "regressors": regs, "fap_names": list(FAP_NAMES), "data_fingerprint": self.fingerprint,
             "meta": self.meta, **(extra or {}),
-        })
-        return d
+        }, FORMAT, FORMAT_VERSION)
 
     @classmethod
     def load(cls, directory: str | os.PathLike) -> "EriModel":
@@ -230,26 +219,20 @@ class EriModel:
         d = Path(directory)
         if not (d / MANIFEST).is_file() and (d / "eri" / MANIFEST).is_file():
             d = d / "eri"
-        if not (d / MANIFEST).is_file():
-            raise FacesynthError(f"{d}: not an ERI model directory ({MANIFEST} missing)")
-        try:
-            m = json.loads((d / MANIFEST).read_text())
-        except json.JSONDecodeError as exc:
-            raise FacesynthError(f"{d / MANIFEST}: invalid JSON ({exc})") from None
-        if m.get("format") != FORMAT or m.get("format_version") != FORMAT_VERSION:
-            raise FacesynthError(f"{d / MANIFEST}: format {m.get('format')!r} v{m.get('format_version')}, "
-                                 f"expected {FORMAT!r} v{FORMAT_VERSION}; retrain with this facesynth")
+        m = read_manifest(d, MANIFEST, FORMAT, FORMAT_VERSION, "ERI model")
+        where = d / MANIFEST
         if m.get("fap_names") != list(FAP_NAMES):
-            raise FacesynthError(f"{d / MANIFEST}: FAP table differs from this facesynth's; retrain")
+            raise FacesynthError(f"{where}: FAP table differs from this facesynth's; retrain")
+        t = read_tensors(d, TENSORS, m, "ERI model")
         try:
-            t = load_file(str(d / TENSORS))
-        except Exception as exc:  # safetensors raises several types
-            raise FacesynthError(f"{d / TENSORS}: unreadable tensors ({exc})") from None
-        ref = ReferenceFrame(t["reference_points"], tuple(m["reference_size"]), t["triangles"])
-        pca = PCAModel(t["pca_mean"], t["pca_components"], t["pca_eigenvalues"], m["pca_total_variance"])
-        regs = {}
-        for name, conf in m["regressors"].items():
-            pre = f"reg.{name}."
-            regs[name] = SVRBank.from_state(conf, {k[len(pre):]: torch.from_numpy(v) for k, v in t.items() if k.startswith(pre)})
-        return cls(EriConfig.from_dict(m["config"]), int(m["neutral_index"]), t["neutral_landmarks"], t["forehead"], ref,
-                   t["span"], t["neutral_texture"], pca, regs, m["driver"], m.get("data_fingerprint", ""), m.get("meta", {}))
+            ref = ReferenceFrame(t["reference_points"], tuple(manifest_field(m, "reference_size", where)), t["triangles"])
+            pca = PCAModel(t["pca_mean"], t["pca_components"], t["pca_eigenvalues"], manifest_field(m, "pca_total_variance", where))
+            regs = {}
+            for name, conf in manifest_field(m, "regressors", where).items():
+                pre = f"reg.{name}."
+                regs[name] = SVRBank.from_state(conf, {k[len(pre):]: torch.from_numpy(v) for k, v in t.items() if k.startswith(pre)})
+            return cls(EriConfig.from_dict(manifest_field(m, "config", where)), int(manifest_field(m, "neutral_index", where)),
+                       t["neutral_landmarks"], t["forehead"], ref, t["span"], t["neutral_texture"], pca, regs,
+                       manifest_field(m, "driver", where), m.get("data_fingerprint", ""), m.get("meta", {}))
+        except KeyError as exc:
+            raise FacesynthError(f"{d / TENSORS}: tensor {exc} missing") from None

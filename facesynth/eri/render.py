@@ -68,7 +68,7 @@ def contact_sheet(
     crop of ``size`` px (driver crops around its own landmarks (n, 68, 2); the target
     crops around ``target_lm`` (n, 68, 2))."""
     rows = []
-    for d, dl, g, e, tl in zip(driver, driver_lm, geometry, eri, target_lm):
+    for d, dl, g, e, tl in zip(driver, driver_lm, geometry, eri, target_lm, strict=True):
         tb = face_box(tl, g.shape)
         rows.append(np.concatenate([crop(d, face_box(dl, d.shape), size), crop(g, tb, size), crop(e, tb, size)], 1))
     sheet = np.concatenate(rows, 0)

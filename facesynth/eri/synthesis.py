@@ -25,8 +25,8 @@ from facesynth.eri.model import EriModel
 from facesynth.eri.ratio import apply_ratio, edge_confidence, sample_textures, to_multiplier
 from facesynth.errors import FacesynthError
 from facesynth.geometry import apply_affine, invert_affine
-from facesynth.model.warp import ToTarget, candidate_spans
 from facesynth.imaging import composite
+from facesynth.model.warp import ToTarget, candidate_spans
 
 MODES = ("eri", "geometry")
 

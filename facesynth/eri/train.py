@@ -1,7 +1,7 @@
 """Training and evaluation of an ERI model on one subject (``python train.py model=eri``).
 
-:func:`train_eri` splits the sequence in time (first ``train_fraction`` trains, the rest
-tests), fits :class:`EriModel`, and writes into ``out_dir``:
+:func:`train_eri` takes the run's temporal split (``data.train_fraction``, ``data.gap``),
+fits :class:`EriModel`, and writes into ``out_dir``:
 
 * ``eri/`` - the model artifact (``EriModel.save``);
 * ``eri_metrics.json`` - every figure below, the config, package versions, fingerprint;
@@ -30,11 +30,13 @@ from facesynth.eri.model import EriModel
 from facesynth.eri.synthesis import EriSynthesizer
 from facesynth.io import write_json, write_text
 from facesynth.provenance import package_versions
+from facesynth.regressors import REGISTRY
 
 log = logging.getLogger(__name__)
 
 
-def train_eri(cfg, seq: FaceSequence, out_dir, seed: int = 0) -> dict:
+def train_eri(cfg, seq: FaceSequence, out_dir, seed: int = 0,
+              split: tuple[np.ndarray, np.ndarray] | None = None) -> dict:
     """Train, evaluate and write an ERI run.
 
     Parameters
@@ -43,6 +45,7 @@ def train_eri(cfg, seq: FaceSequence, out_dir, seed: int = 0) -> dict:
     seq : FaceSequence with frames
     out_dir : path of the run directory (created)
     seed : fixes every random choice (SADM comparison regressors; libsvm is deterministic)
+    split : (train rows, test rows) of ``seq``; default :func:`temporal_split` with its defaults
 
     Returns
     -------
@@ -54,7 +57,7 @@ def train_eri(cfg, seq: FaceSequence, out_dir, seed: int = 0) -> dict:
     out.mkdir(parents=True, exist_ok=True)
     np.random.seed(seed)
     torch.manual_seed(seed)
-    train, test = temporal_split(len(seq), cfg.train_fraction, cfg.gap)
+    train, test = temporal_split(len(seq)) if split is None else (np.asarray(split[0]), np.asarray(split[1]))
     t0 = time.perf_counter()
     model = EriModel.fit(seq, train, cfg, progress=True)
     train_s = time.perf_counter() - t0
@@ -82,10 +85,6 @@ def train_eri(cfg, seq: FaceSequence, out_dir, seed: int = 0) -> dict:
 
 def _compare(cfg: EriConfig, model: EriModel, faps: np.ndarray, true: np.ndarray, seed: int) -> dict:
     """SADM regressors named in ``cfg.compare`` on standardised FAPs (absent names are skipped)."""
-    try:
-        from facesynth.sadm.regressors import REGISTRY
-    except ImportError:  # pragma: no cover
-        return {}
     x, y = model.training["faps"], model.training["coefficients"]
     mu, sd = x.mean(0), x.std(0) + 1e-8
     n_val = max(1, int(round(len(x) * cfg.val_fraction)))
@@ -133,7 +132,7 @@ def evaluate_synthesis(model: EriModel, seq: FaceSequence, rows, true_coeffs: np
         for k, img in (("geometry", geo), ("eri", eri), ("eri_raw", eri_raw), ("eri_true_coefficients", orc)):
             err = (img.astype(np.float64) - bg) ** 2 * m
             sse[k] += float(err.sum())
-            per_frame[k] += [_psnr(e.sum() / max(mm.sum(), 1)) for e, mm in zip(err, m)]
+            per_frame[k] += [_psnr(e.sum() / max(mm.sum(), 1)) for e, mm in zip(err, m, strict=True)]
     res = {k: _psnr(v / max(count, 1)) for k, v in sse.items()}
     gain = np.array(per_frame["eri"]) - np.array(per_frame["geometry"])
     return {
@@ -167,7 +166,8 @@ def report_markdown(m: dict) -> str:
         "|---|---:|---:|---:|---:|---:|---:|",
     ]
     for name, row in m["coefficients"].items():
-        lines.append(f"| {name} | {row['mse']:.4g} | {row['nmse']:.3f} | {row['r2']:.3f} | {row['r2_first5']:.3f} | {row['explained_variance']:.3f} | "
+        lines.append(f"| {name} | {row['mse']:.4g} | {row['nmse']:.3f} | {row['r2']:.3f} | {row['r2_first5']:.3f} | "
+                     f"{row['explained_variance']:.3f} | "
                      f"{row.get('support_vectors', '-')} |")
     s = m["synthesis"]
     p = s["psnr_db"]

@@ -19,27 +19,20 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from omegaconf import OmegaConf
-
-    from facesynth.data import temporal_split
     from facesynth.eval.sadm_eval import EvalConfig, evaluate_sadm
     from facesynth.io import write_json
-    from facesynth.pipeline import load_data, summary_lines
+    from facesynth.runs.rundir import read_config, run_data, summary_lines
     from facesynth.sadm.fit import load_sadm
 
     sadm = load_sadm(args.run)
-    cfg_path = args.run / "config.yaml"
-    if not cfg_path.is_file():
-        raise FacesynthError(f"{args.run}: config.yaml missing (not a train.py run directory)")
-    cfg = OmegaConf.load(cfg_path)
+    cfg = read_config(args.run)
     if args.data is not None:
         cfg.data.kind, cfg.data.path = "video", str(args.data)
     try:
         noise = [float(s) for s in args.noise.split(",") if s.strip()]
     except ValueError:
         raise FacesynthError(f"--noise: expected comma-separated numbers, got {args.noise!r}") from None
-    seq = load_data(cfg.data, int(cfg.seed))
-    tr, te = temporal_split(len(seq), float(cfg.data.train_fraction), int(cfg.data.gap))
+    seq, tr, te = run_data(cfg)
     ecfg = EvalConfig(noise=noise, frame_level=not args.no_frame, max_test_frames=args.max_test_frames)
     metrics, _ = evaluate_sadm(sadm, seq, tr, te, ecfg, int(cfg.seed))
     metrics["evaluated_data"] = {"name": seq.name, "fingerprint": seq.fingerprint}

@@ -32,7 +32,7 @@ def write_plots(metrics: dict, extras: dict, out_dir: str | os.PathLike) -> list
     d.mkdir(parents=True, exist_ok=True)
     written = []
     fig, axes = plt.subplots(1, 2 if "psnr_frame" in metrics else 1, figsize=(10, 3.5), squeeze=False)
-    for ax, key, title in zip(axes[0], ("psnr_ref", "psnr_frame"), ("reference frame", "original frame")):
+    for ax, key, title in zip(axes[0], ("psnr_ref", "psnr_frame"), ("reference frame", "original frame"), strict=False):
         for name, row in metrics.get(key, {}).items():
             xs = [float(k) for k in row]
             ax.plot(xs, list(row.values()), marker="o", label=name)

@@ -22,9 +22,9 @@ import numpy as np
 import torch
 
 from facesynth.data.sequence import FaceSequence
-from facesynth.eval.metrics import ncc, psnr
-from facesynth.sadm.fit import SADM
 from facesynth.imaging import composite
+from facesynth.metrics import ncc, psnr
+from facesynth.sadm.fit import SADM
 
 
 @dataclass
@@ -97,7 +97,7 @@ def evaluate_sadm(
     keys = [_key(s) for s in cfg.noise]
     psnr_ref = {"sadm": {}, "mean_texture": {}, "oracle": {}}
     pred0 = None
-    for s, k in zip(cfg.noise, keys):
+    for s, k in zip(cfg.noise, keys, strict=True):
         pred = _predict(syn, noisy_landmarks(lm_te, s, seed), cfg.batch_size)
         pred0 = pred if s == 0 else pred0
         psnr_ref["sadm"][k] = _psnr01(pred, tex_te)
@@ -124,7 +124,7 @@ def evaluate_sadm(
         oracle_tr = np.clip(model.texture_from_params(model.appearance_params(tex_tr)), 0, 1)
         metrics["psnr_train_ref"] = {
             "sadm": {k: _psnr01(_predict(syn, noisy_landmarks(seq.landmarks[train_rows], s, seed + 1), cfg.batch_size), tex_tr)
-                     for s, k in zip(cfg.noise, keys)},
+                     for s, k in zip(cfg.noise, keys, strict=True)},
             "mean_texture": {k: _psnr01(mean_tr, tex_tr) for k in keys},
             "oracle": {k: _psnr01(oracle_tr, tex_tr) for k in keys},
         }
@@ -150,7 +150,7 @@ def _frame_level(sadm, syn, seq, rows, tex_te, oracle, cfg, seed, keys):
         h, w = frame.shape[:2]
         region = cv2.warpAffine(clean_mask[j], clean_place[j], (w, h)) > 0.999
         region = cv2.erode(region.astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
-        for s, k in zip(cfg.noise, keys):
+        for s, k in zip(cfg.noise, keys, strict=True):
             lmn = noisy_landmarks(lm[j : j + 1], s, seed + 17 * j)
             texs = np.concatenate([_predict(syn, lmn, 1) if t is None else t[j : j + 1] for t in sources.values()])
             crops, masks, places = model.render(texs, np.repeat(lmn, len(texs), 0))

@@ -23,7 +23,12 @@ import numpy as np
 import scipy.sparse as sp
 
 from facesynth.mesh.laplacian import (
-    cotangent_laplacian, edges, face_adjacency, face_centroid_operator, face_normals, vertex_normals,
+    cotangent_laplacian,
+    edges,
+    face_adjacency,
+    face_centroid_operator,
+    face_normals,
+    vertex_normals,
 )
 
 

@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from facesynth.errors import FacesynthError
+from facesynth.landmarks import N_LANDMARKS
 
 
 @dataclass
@@ -94,15 +95,15 @@ def load_landmark_map(path: str | os.PathLike, n_vertices: int) -> np.ndarray:
     mp = doc.get("map") if isinstance(doc, dict) else None
     if not isinstance(mp, dict):
         raise FacesynthError(f"{path}: expected an object with a 'map' of 1-based iBUG keys -> vertex")
-    out = np.full(68, -1, np.int64)
+    out = np.full(N_LANDMARKS, -1, np.int64)
     for key, v in mp.items():
         try:
             k = int(key)
             v = int(v)
         except (TypeError, ValueError):
             raise FacesynthError(f"{path}: map entry {key!r}: {v!r} is not integer") from None
-        if not 1 <= k <= 68:
-            raise FacesynthError(f"{path}: map key {k} outside the 1-based iBUG range 1..68")
+        if not 1 <= k <= N_LANDMARKS:
+            raise FacesynthError(f"{path}: map key {k} outside the 1-based iBUG range 1..{N_LANDMARKS}")
         if not 0 <= v < n_vertices:
             raise FacesynthError(f"{path}: map entry {k} -> vertex {v} exceeds the mesh (0..{n_vertices - 1})")
         out[k - 1] = v

@@ -19,6 +19,7 @@ import scipy.linalg
 
 from facesynth.errors import FacesynthError
 from facesynth.mesh.camera import project, projection_matrix
+from facesynth.mesh.epnp import epnp
 
 METHODS = ("dlt", "ndlt", "epnp", "cv-epnp", "cv-sqpnp", "cv-iterative")
 
@@ -166,8 +167,6 @@ def solve_pose(X: np.ndarray, x: np.ndarray, K: np.ndarray | None = None, method
     X, x = _check_correspondences(X, x, 4 if method != "cv-iterative" else 6)
     K = np.asarray(K, float)
     if method == "epnp":
-        from facesynth.mesh.epnp import epnp
-
         R, t = epnp(X, x, K)
         return Pose(R, t, K)
     import cv2

@@ -107,7 +107,7 @@ def contact_sheet(rows: list[np.ndarray], labels: list[str], path: str | os.Path
     """Columns of [video; posed overlay; frontal; frontal zoomed on brows and eyes] for
     each picked frame, written as PNG."""
     cols = []
-    for row, text in zip(rows, labels):
+    for row, text in zip(rows, labels, strict=True):
         h, w3 = row.shape[:2]
         w = w3 // 3
         parts = [cv2.resize(row[:, i * w:(i + 1) * w], (tile, tile * h // w), interpolation=cv2.INTER_AREA) for i in range(3)]

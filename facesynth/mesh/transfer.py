@@ -32,6 +32,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from facesynth.errors import FacesynthError
+from facesynth.landmarks import POSE_POINTS, RIGID_INNER
 from facesynth.mesh.camera import back_project, default_intrinsics, from_camera, project, projection_matrix, to_camera
 from facesynth.mesh.deform import DeformInfo, LaplacianDeformer
 from facesynth.mesh.io import FaceMesh
@@ -40,9 +41,9 @@ from facesynth.mesh.pose import Pose, solve_pose
 
 #: iBUG indices (0-based) that move little with expression: outline at ear height,
 #: nose bridge and base, eye corners. Used for the head pose.
-POSE_LANDMARKS = np.array([0, 1, 15, 16, 27, 28, 29, 30, 31, 32, 33, 34, 35, 36, 39, 42, 45])
+POSE_LANDMARKS = np.array(POSE_POINTS)
 #: Inner rigid points used for the 2D similarity alignment of the reference frame.
-ALIGN_LANDMARKS = np.array([27, 28, 29, 30, 31, 33, 35, 36, 39, 42, 45])
+ALIGN_LANDMARKS = np.array(RIGID_INNER)
 MOVEMENTS = ("transformation", "projection")
 
 

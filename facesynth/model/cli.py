@@ -22,7 +22,7 @@ def run(args: argparse.Namespace) -> int:
     import numpy as np
 
     from facesynth.data import load_sequence, temporal_split
-    from facesynth.eval.metrics import psnr
+    from facesynth.metrics import psnr
     from facesynth.model import FaceModel, FaceModelConfig, save_face_model
 
     if args.data == "synthetic":

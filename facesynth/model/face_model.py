@@ -19,8 +19,8 @@ from tqdm.auto import tqdm
 
 from facesynth.data.sequence import FaceSequence, validate_landmarks
 from facesynth.errors import FacesynthError
-from facesynth.model.pca import PCAModel
 from facesynth.geometry import apply_affine, similarity_fit
+from facesynth.model.pca import PCAModel
 from facesynth.model.procrustes import generalised_procrustes
 from facesynth.model.reference import ReferenceFrame
 from facesynth.model.warp import ToReference, ToTarget, apply_affine_t, candidate_spans, invert_affine_t, similarity_to
@@ -223,7 +223,7 @@ class FaceModel:
         import cv2
 
         out = np.empty_like(images)
-        for i, (img, s) in enumerate(zip(images, self.frame_scale(landmarks))):
+        for i, (img, s) in enumerate(zip(images, self.frame_scale(landmarks), strict=True)):
             out[i] = cv2.GaussianBlur(img, (0, 0), s / 2) if s > 1 else img
         return out
 

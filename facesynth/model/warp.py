@@ -31,7 +31,6 @@ from facesynth.model.reference import ReferenceFrame
 from facesynth.model.warp_target import ToTarget, candidate_spans  # noqa: F401  (re-exported)
 
 
-
 def to_grid(xy: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
     """Pixel (x, y) -> grid_sample's [-1, 1] coordinates (align_corners=True). Shape kept."""
     h, w = size

@@ -10,6 +10,7 @@ from torch import nn
 from torch.nn import functional as F
 
 from facesynth.model.reference import ReferenceFrame
+from facesynth.ops import pad_by_tensor, sum4
 
 
 class ToTarget(nn.Module):
@@ -43,8 +44,8 @@ class ToTarget(nn.Module):
     without loops or custom ops (the box makes the inner shapes data-dependent, which
     ONNX Runtime handles). Per image the cost is one event per (edge, column) it may cross
     and 5 + 12 gathered values per box pixel; the column sum runs along the outer axis of a
-    (Hb + 1, Wb) buffer, which ONNX Runtime vectorises across the row (~10x faster than a
-    sum along the rows).
+    (Hb + 1, Wb) buffer, which ONNX Runtime vectorises across the row (much faster than a
+    sum along the rows; docs/runtime.md).
 
     Parameters
     ----------
@@ -106,7 +107,7 @@ class ToTarget(nn.Module):
         # affine maps: vertices [x0 y0 x1 y1 x2 y2] -> edge vectors etc. (linear maps)
         vert = np.stack([2 * tri, 2 * tri + 1], -1).reshape(n_tri, 6)
         # one element gather of the flat landmarks: triangle vertices (T * 6), then edge end points (4 E)
-        # (GatherElements: a row Gather costs ~8 ns per index in ONNX Runtime)
+        # (GatherElements: row Gathers are far slower per index in ONNX Runtime; docs/runtime.md)
         self.register_buffer("coord_index", torch.from_numpy(np.concatenate([vert.reshape(-1), edge_coords])[None]))
         p_edges = np.zeros((6, 4), np.float32)  # -> e1x e1y e2x e2y
         for j, (a, b) in enumerate([(2, 0), (3, 1), (4, 0), (5, 1)]):
@@ -290,11 +291,7 @@ class ToTarget(nn.Module):
         for table in self._fill_tables(c):  # one raster per channel, all read with the same index
             raster = torch.gather(flat, 1, zero + table)  # (B, R)
             taps = torch.gather(raster, 1, index).reshape_as(weights)
-            # the 4-term sum: in ONNX a (1, 4) matmul (ONNX Runtime's ReduceSum over axis 1 is ~7x
-            # slower); in torch a sum (a BLAS matmul here stalls torch's thread pool on busy cores)
-            prod = taps * weights
-            summed = torch.matmul(self.ones4, prod) if torch.onnx.is_in_onnx_export() else prod.sum(1, keepdim=True)
-            out.append(summed.reshape_as(inside))
+            out.append(sum4(self.ones4, taps * weights).reshape_as(inside))
         return out[0] if c == 1 else torch.cat(out, 1)
 
     def forward(self, textures: torch.Tensor, target: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -309,7 +306,7 @@ class ToTarget(nn.Module):
         img = self.bilinear(textures, u, v, inside)
         # ONNX Pad order: begins of (B, C, H, W), then ends
         pads = torch.cat([self.zero2, lo.flip(0), self.zero2, (self.canvas_max - hi).flip(0)]).to(torch.int64)
-        return _pad(img, pads), _pad(inside, pads)
+        return pad_by_tensor(img, pads), pad_by_tensor(inside, pads)
 
     def clipped_triangles(self, target: torch.Tensor) -> torch.Tensor:
         """bool (B, T): triangles wider than their ``span`` (their edges may miss columns)."""
@@ -339,25 +336,6 @@ def candidate_spans(ref: ReferenceFrame, shapes: np.ndarray, safety: float = 1.3
     corners = pts[:, ref.triangles]  # (N, T, 3, 2)
     span = np.floor(corners.max(2) - corners.min(2)).max(0) + 2  # largest bbox + rounding
     return np.ceil(span * safety).astype(np.int64)
-
-
-class _Pad(torch.autograd.Function):
-    """Zero padding of a 4-D tensor by a pads *tensor* in ONNX order (begins of the four axes,
-    then ends), exported as one ONNX ``Pad`` whose pads are computed in the graph (``F.pad``
-    takes Python ints, which tracing would freeze into constants)."""
-
-    @staticmethod
-    def forward(ctx, x: torch.Tensor, pads: torch.Tensor) -> torch.Tensor:
-        p = [int(v) for v in pads.tolist()]
-        return F.pad(x, [p[3], p[7], p[2], p[6], p[1], p[5], p[0], p[4]])
-
-    @staticmethod
-    def symbolic(g, x, pads):
-        return g.op("Pad", x, pads, mode_s="constant")
-
-
-def _pad(x: torch.Tensor, pads: torch.Tensor) -> torch.Tensor:
-    return _Pad.apply(x, pads)
 
 
 def _nearest_inside(mask: np.ndarray) -> np.ndarray:

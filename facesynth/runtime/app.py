@@ -22,8 +22,8 @@ import cv2
 import numpy as np
 
 from facesynth.errors import FacesynthError, MissingExtraError
-from facesynth.io import atomic_path
 from facesynth.imaging import composite
+from facesynth.io import atomic_path
 
 log = logging.getLogger(__name__)
 GREY = 128

@@ -12,11 +12,10 @@ import os
 
 import numpy as np
 
+from facesynth.contract import ERI_FORMAT, ERI_INPUT
 from facesynth.errors import FacesynthError
 from facesynth.imaging import composite
 from facesynth.runtime.renderer import Renderer, check_batch
-
-ERI_FORMAT = "facesynth.eri.onnx/1"
 
 
 class EriRenderer(Renderer):
@@ -36,7 +35,7 @@ class EriRenderer(Renderer):
     """
 
     format = ERI_FORMAT
-    input_name = "faps"
+    input_name = ERI_INPUT
     kind_name = "ERI"
 
     def __init__(self, model_path: str | os.PathLike, threads: int = 1, spin: bool = False):

@@ -16,13 +16,9 @@ import numpy as np
 import onnxruntime as ort
 
 from facesynth import __version__
+from facesynth.contract import FORMAT_HINTS, LANDMARK_SCHEME, N_LANDMARKS, OUTPUT_NAMES, SYNTHESIS_FORMAT, SYNTHESIS_INPUT
 from facesynth.errors import FacesynthError
 from facesynth.imaging import composite
-
-FORMAT = "facesynth.synthesis.onnx/1"
-LANDMARK_SCHEME = "ibug68"
-INPUT_NAME = "landmarks"
-OUTPUT_NAMES = ("crop", "mask", "placement")
 
 
 def read_metadata(model_path: str | os.PathLike) -> dict:
@@ -95,8 +91,8 @@ class Renderer:
     channels : int
     """
 
-    format = FORMAT
-    input_name = INPUT_NAME
+    format = SYNTHESIS_FORMAT
+    input_name = SYNTHESIS_INPUT
     kind_name = "synthesis"
 
     def __init__(self, model_path: str | os.PathLike, threads: int = 1, spin: bool = False):
@@ -109,17 +105,16 @@ class Renderer:
         where = str(self.path)
         fmt = self.metadata.get("format")
         if fmt != self.format:
-            hint = {"facesynth.eri.onnx/1": " (an ERI model: use facesynth.runtime.EriRenderer)",
-                    FORMAT: " (a landmark-driven model: use facesynth.runtime.Renderer)"}.get(fmt, "")
+            hint = f" ({FORMAT_HINTS[fmt]})" if fmt in FORMAT_HINTS else ""
             raise FacesynthError(f"{where}: not a facesynth {self.kind_name} model (format {fmt!r}, expected {self.format!r}){hint}")
         scheme = self.metadata.get("landmark_scheme")
         if scheme != LANDMARK_SCHEME:
-            raise FacesynthError(f"{where}: landmark scheme {scheme!r}; this runtime feeds {LANDMARK_SCHEME!r} (68 points)")
+            raise FacesynthError(f"{where}: landmark scheme {scheme!r}; this runtime feeds {LANDMARK_SCHEME!r} ({N_LANDMARKS} points)")
         inputs = [i.name for i in self.session.get_inputs()]
         outputs = [o.name for o in self.session.get_outputs()]
         if inputs != [self.input_name] or tuple(outputs) != OUTPUT_NAMES:
             raise FacesynthError(f"{where}: inputs {inputs} / outputs {outputs}, expected [{self.input_name}] / {list(OUTPUT_NAMES)}")
-        self.input_shape: tuple[int, ...] = (68, 2)
+        self.input_shape: tuple[int, ...] = (N_LANDMARKS, 2)
         self.channels = int(self.metadata.get("channels", 3))
         self.crop_size = tuple(int(s) for s in self.metadata.get("canvas_size", self.metadata.get("reference_size")))
         self._bindings: dict[int, tuple] = {}
@@ -131,12 +126,12 @@ class Renderer:
     # ------------------------------------------------------------ validation
     def validate(self, landmarks) -> np.ndarray:
         """Check (B, 68, 2) (or one (68, 2)) finite real landmarks -> C-contiguous float32 (B, 68, 2)."""
-        x = check_batch(landmarks, "landmarks", (68, 2), "(x, y) pixels", "iBUG 68 points, x y",
+        x = check_batch(landmarks, "landmarks", (N_LANDMARKS, 2), "(x, y) pixels", f"{LANDMARK_SCHEME} points, x y",
                         " (drop frames without a face)")
         extent = (x.max(1) - x.min(1)).max(1)  # (B,) larger side of each face's bounding box
         if (extent < 1.0).any():
             bad = np.flatnonzero(extent < 1.0)
-            raise FacesynthError(f"landmarks: degenerate faces (all 68 points within 1 px) in batch rows {bad[:10].tolist()}")
+            raise FacesynthError(f"landmarks: degenerate faces (all {N_LANDMARKS} points within 1 px) in batch rows {bad[:10].tolist()}")
         return x
 
     # -------------------------------------------------------------- running
@@ -152,7 +147,7 @@ class Renderer:
             inp = np.empty((batch, *self.input_shape), np.float32)
             io = self.session.io_binding()
             io.bind_cpu_input(self.input_name, inp)
-            for name, buf in zip(OUTPUT_NAMES, bufs):
+            for name, buf in zip(OUTPUT_NAMES, bufs, strict=True):
                 io.bind_ortvalue_output(name, ort.OrtValue.ortvalue_from_numpy(buf))
             got = (io, inp, bufs)
             self._bindings[batch] = got

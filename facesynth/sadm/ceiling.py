@@ -41,21 +41,25 @@ import argparse
 import json
 import sys
 
+import cv2
 import numpy as np
+
+from facesynth.data import load_sequence, temporal_split
+from facesynth.io import write_text
+from facesynth.landmarks import INNER_LIPS, LEFT_BROW, LEFT_EYE, OUTER_LIPS, RIGHT_BROW, RIGHT_EYE
+from facesynth.metrics import psnr
+from facesynth.model import FaceModel, FaceModelConfig
+from facesynth.sadm.fit import SADMConfig, fit_sadm
 
 
 def psnr_ref(model, b: np.ndarray, tex: np.ndarray) -> float:
     """PSNR (peak 255) of the textures of parameters ``b`` (N, K_g) vs ``tex`` (N, C*M)."""
-    from facesynth.eval.metrics import psnr
-
     return psnr(np.clip(model.texture_from_params(b), 0, 1) * 255.0, np.clip(tex, 0, 1) * 255.0)
 
 
 def region_masks(model) -> dict[str, np.ndarray]:
     """Boolean (M,) masks over the model's reference-frame mask pixels, one per region
     (``eyes``, ``mouth_interior``, ``lips``, ``brows``, ``rest``; disjoint, covering all M)."""
-    import cv2
-
     ref = model.reference
     h, w = ref.size
     pts = ref.points
@@ -68,10 +72,11 @@ def region_masks(model) -> dict[str, np.ndarray]:
             m = cv2.dilate(m, np.ones((2 * dilate + 1,) * 2, np.uint8))
         return m.reshape(-1)[index].astype(bool)
 
-    eyes = poly(list(range(36, 42)), 3) | poly(list(range(42, 48)), 3)
-    interior = poly(list(range(60, 68)), 1) & ~eyes
-    lips = poly(list(range(48, 60)), 2) & ~interior & ~eyes
-    brows = (poly([17, 18, 19, 20, 21, 39, 38, 37, 36]) | poly([22, 23, 24, 25, 26, 45, 44, 43, 42])) & ~eyes & ~interior & ~lips
+    eyes = poly(list(RIGHT_EYE), 3) | poly(list(LEFT_EYE), 3)
+    interior = poly(list(INNER_LIPS), 1) & ~eyes
+    lips = poly(list(OUTER_LIPS), 2) & ~interior & ~eyes
+    # each brow closed by its eye's upper lid
+    brows = (poly(list(RIGHT_BROW) + [39, 38, 37, 36]) | poly(list(LEFT_BROW) + [45, 44, 43, 42])) & ~eyes & ~interior & ~lips
     rest = ~(eyes | interior | lips | brows)
     return {"eyes": eyes, "mouth_interior": interior, "lips": lips, "brows": brows, "rest": rest}
 
@@ -105,11 +110,6 @@ def study(clip: str, regressor: str = "krr", params: dict | None = None, train_f
     ``params``: regressor hyper-parameters (default: the regressor's config defaults);
     ``sadm_params``: :class:`~facesynth.sadm.fit.SADMConfig` fields (default: those
     ``fit_sadm`` uses for the regressor, e.g. 1 px augmentation for krr)."""
-    from facesynth.data import load_sequence, temporal_split
-    from facesynth.model import FaceModel, FaceModelConfig
-    from facesynth.sadm.fit import SADMConfig, fit_sadm
-    from facesynth.sadm.regressors import REGISTRY
-
     seq = load_sequence(clip)
     tr, te = temporal_split(len(seq), train_fraction)
     model, tex_tr = FaceModel.fit_with_textures(seq, FaceModelConfig(), rows=tr, progress=False)
@@ -126,8 +126,7 @@ def study(clip: str, regressor: str = "krr", params: dict | None = None, train_f
     oracle_b = model.texture_from_params(model.appearance_params(tex_b))
     regions = {}
     for key, rows, tex in (("train_to_B", tr, tex_tr), ("train_plus_A_to_B", np.r_[tr, rows_a], np.concatenate([tex_tr, tex_a]))):
-        sadm = fit_sadm(model, seq, rows, tex, regressor, params,
-                        SADMConfig(**{**getattr(REGISTRY.get(regressor), "sadm_defaults", {}), **(sadm_params or {})}))
+        sadm = fit_sadm(model, seq, rows, tex, regressor, params, SADMConfig(**(sadm_params or {})))
         b = sadm.predict_params(lm_b)
         out[key] = psnr_ref(model, b, tex_b)
         regions[key] = region_breakdown(model, model.texture_from_params(b), tex_b, oracle_b)
@@ -153,8 +152,6 @@ def main(argv=None) -> int:
     line = json.dumps(_rounded(res))
     print(line)
     if args.json:
-        from facesynth.io import write_text
-
         write_text(args.json, line + "\n")
     return 0
 

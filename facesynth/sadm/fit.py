@@ -1,7 +1,7 @@
-"""Fitting a shape-appearance dependence mapping (SADM) on a face model, and the run
-directory layout that training, evaluation and export share::
+"""Fitting a shape-appearance dependence mapping (SADM) on a face model, and its artifact
+(the run directory's part of it; the whole layout is :mod:`facesynth.runs.rundir`)::
 
-    RUN/face_model/         the face model artifact (facesynth.model.save_face_model)
+    RUN/face_model/         the face model artifact (facesynth.model.artifact)
     RUN/sadm/sadm.json      regressor name + hyper-parameters, SADM settings, provenance
     RUN/sadm/regressor.safetensors
 
@@ -13,28 +13,27 @@ this project builds on; the other regressors replace that map.
 
 from __future__ import annotations
 
-import json
 import logging
 import os
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
+from typing import Optional
 
 import numpy as np
 import torch
-from safetensors.torch import load_file, save_file
 
-from facesynth import __version__
+from facesynth.artifact import manifest_field, read_manifest, read_tensors, save_artifact
 from facesynth.data.sequence import FaceSequence
 from facesynth.errors import FacesynthError
-from facesynth.io import atomic_path, write_json
 from facesynth.model.artifact import load_face_model, save_face_model
 from facesynth.model.face_model import FaceModel
-from facesynth.provenance import package_versions
-from facesynth.sadm.regressors import REGISTRY, Regressor
+from facesynth.regressors import REGISTRY, Regressor, search
+from facesynth.sadm.compress import compress_synthesizer
 from facesynth.sadm.synthesis import GlobalAppearance, ShapeEncoder, ShapeFeatures, Synthesizer
 
 log = logging.getLogger(__name__)
-SADM_FORMAT_VERSION = 1
+SADM_FORMAT, SADM_FORMAT_VERSION = "facesynth.sadm", 1
+SADM_TENSORS, SADM_MANIFEST = "regressor.safetensors", "sadm.json"
 
 
 @dataclass
@@ -44,7 +43,8 @@ class SADMConfig:
     features : 'bs' (the paper), 'landmarks' (aligned coordinates), 'bs+landmarks', or
         'landmarks_rigid' (coordinates aligned on the eye corners and nose only)
     augment_sigma : std (frame pixels) of Gaussian noise added to copies of the
-        training landmarks, targets unchanged: trains robustness to landmark noise
+        training landmarks, targets unchanged: trains robustness to landmark noise;
+        None = the regressor's own (``sadm_defaults``: 2 px, krr 1 px)
     augment_copies : number of noisy copies (0: no augmentation)
     search : grid-search the regressor's hyper-parameters on the validation slice
     val_fraction : the last fraction of the training segment used as validation
@@ -52,7 +52,7 @@ class SADMConfig:
     """
 
     features: str = "landmarks"
-    augment_sigma: float = 2.0
+    augment_sigma: Optional[float] = None
     augment_copies: int = 4
     search: bool = False
     val_fraction: float = 0.15
@@ -81,8 +81,6 @@ class SADM:
         """The synthesizer with only the appearance components of largest predicted variance
         over ``landmarks`` (N, 68, 2) (the training frames); the rest are folded into the
         mean. Returns ``(Synthesizer, info)``; see :func:`facesynth.sadm.compress.compress_synthesizer`."""
-        from facesynth.sadm.compress import compress_synthesizer
-
         return compress_synthesizer(self.synthesizer(), landmarks, keep, predicted_variance)
 
     def features(self, landmarks: np.ndarray) -> np.ndarray:
@@ -97,14 +95,21 @@ class SADM:
             return app.params(*enc(torch.from_numpy(np.asarray(landmarks, np.float32)))).numpy()
 
 
-def _make_config(name: str, params: dict):
-    """The config dataclass of regressor ``name`` filled with ``params``."""
-    from facesynth.sadm.regressors import CONFIGS
-
+def make_config(name: str, params: dict):
+    """The config dataclass of regressor ``name`` filled with ``params`` (its defaults elsewhere)."""
     try:
-        return CONFIGS[name](**params)
+        return REGISTRY[name].config_class(**params)
     except TypeError as exc:
         raise FacesynthError(f"regressor '{name}': bad hyper-parameters {params}: {exc}") from None
+
+
+def resolve_sadm_config(name: str, config: SADMConfig | None = None) -> SADMConfig:
+    """``config`` (default ``SADMConfig()``) with its None fields set from regressor
+    ``name``'s ``sadm_defaults``; FacesynthError for an unknown regressor."""
+    if name not in REGISTRY:
+        raise FacesynthError(f"unknown regressor '{name}' (available: {', '.join(sorted(REGISTRY))})")
+    cfg = config or SADMConfig()
+    return replace(cfg, **{k: v for k, v in REGISTRY[name].sadm_defaults.items() if getattr(cfg, k) is None})
 
 
 def fit_sadm(
@@ -112,7 +117,7 @@ def fit_sadm(
     seq: FaceSequence,
     rows: np.ndarray,
     textures: np.ndarray,
-    name: str = "linear",
+    name: str,
     params: dict | None = None,
     config: SADMConfig | None = None,
     seed: int = 0,
@@ -123,12 +128,10 @@ def fit_sadm(
     ----------
     textures : (len(rows), C * M) float32 training textures (as from model.sample_textures)
     name, params : regressor name in the registry and its hyper-parameters
-    config : SADM settings; default ``SADMConfig`` with the regressor's ``sadm_defaults``
-        (krr: 1 px augmentation), as ``train.py regressor=NAME`` composes them
+    config : SADM settings (default ``SADMConfig()``); fields left None take the regressor's
+        ``sadm_defaults`` (krr: 1 px augmentation), as in ``train.py regressor=NAME``
     """
-    if name not in REGISTRY:
-        raise FacesynthError(f"unknown regressor '{name}' (available: {', '.join(sorted(REGISTRY))})")
-    cfg = config or SADMConfig(**REGISTRY[name].sadm_defaults)
+    cfg = resolve_sadm_config(name, config)
     params = dict(params or {})
     rows = np.asarray(rows)
     lm = seq.landmarks[rows]
@@ -150,60 +153,54 @@ def fit_sadm(
 
     table: list = []
     if cfg.search:
-        from facesynth.sadm.regressors.search import DEFAULT_GRIDS, search
-
         if n_val < 2:
             raise FacesynthError("search needs a validation slice: raise sadm.val_fraction")
         x_fit, y_fit = design(fit_idx)
         best, table = search(name, x_fit, y_fit, features(lm[val_idx]), y[val_idx],
-                             DEFAULT_GRIDS.get(name, {}), _make_config(name, params), seed)
+                             REGISTRY[name].search_grid, make_config(name, params), seed)
         params = {**params, **(asdict(best) if hasattr(best, "__dataclass_fields__") else dict(best))}
         log.info("search for %s picked %s", name, params)
     x, yy = design(np.arange(len(rows)))
     torch.manual_seed(seed)
     x_val = features(lm[val_idx]) if n_val else None
-    reg = REGISTRY[name].fit(x, yy, _make_config(name, params), x_val, y[val_idx] if n_val else None, seed=seed)
+    reg = REGISTRY[name].fit(x, yy, make_config(name, params), x_val, y[val_idx] if n_val else None, seed=seed)
     return SADM(model, reg.eval(), name, cfg, reg.config_dict(), table)
 
 
 def save_sadm(sadm: SADM, run_dir: str | os.PathLike, extra: dict | None = None) -> Path:
-    """Write the face model and the mapping into ``run_dir`` (atomic per file)."""
+    """Write the face model (``run_dir/face_model/``) and the mapping (``run_dir/sadm/``:
+    ``sadm.json`` + ``regressor.safetensors``), atomic per file."""
     d = Path(run_dir)
     save_face_model(sadm.model, d / "face_model")
-    (d / "sadm").mkdir(parents=True, exist_ok=True)
-    with atomic_path(d / "sadm" / "regressor.safetensors") as tmp:
-        save_file({k: v.contiguous() for k, v in sadm.regressor.state_dict().items()}, str(tmp))
-    write_json(d / "sadm" / "sadm.json", {
-        "format_version": SADM_FORMAT_VERSION,
-        "facesynth_version": __version__,
+    tensors = {k: v.detach().contiguous().numpy() for k, v in sadm.regressor.state_dict().items()}
+    save_artifact(d / "sadm", SADM_TENSORS, SADM_MANIFEST, tensors, {
         "regressor": sadm.name,
         "regressor_config": sadm.regressor_config,
         "regressor_summary": sadm.regressor.summary(),
         "sadm": asdict(sadm.config),
         "search_table": sadm.search_table,
         "data_fingerprint": sadm.model.fingerprint,
-        "packages": package_versions(),
         **(extra or {}),
-    })
+    }, SADM_FORMAT, SADM_FORMAT_VERSION)
     return d
 
 
 def load_sadm(run_dir: str | os.PathLike) -> SADM:
     """Load a run written by :func:`save_sadm` (or by ``train.py``)."""
     d = Path(run_dir)
-    meta_path = d / "sadm" / "sadm.json"
-    if not meta_path.is_file():
-        raise FacesynthError(f"{d}: not a training run (sadm/sadm.json missing)")
-    meta = json.loads(meta_path.read_text())
-    if meta.get("format_version") != SADM_FORMAT_VERSION:
-        raise FacesynthError(
-            f"{meta_path}: SADM format version {meta.get('format_version')} is not supported by facesynth "
-            f"{__version__} (reads version {SADM_FORMAT_VERSION}); retrain the run"
-        )
-    name = meta["regressor"]
+    if not (d / "sadm" / SADM_MANIFEST).is_file():
+        raise FacesynthError(f"{d}: not a training run (sadm/{SADM_MANIFEST} missing)")
+    meta = read_manifest(d / "sadm", SADM_MANIFEST, SADM_FORMAT, SADM_FORMAT_VERSION, "SADM")
+    where = d / "sadm" / SADM_MANIFEST
+    name = manifest_field(meta, "regressor", where)
     if name not in REGISTRY:
-        raise FacesynthError(f"{meta_path}: regressor '{name}' is not available in this build")
+        raise FacesynthError(f"{where}: regressor '{name}' is not available in this build")
     model = load_face_model(d / "face_model")
-    reg = REGISTRY[name].from_state(meta["regressor_config"], load_file(str(d / "sadm" / "regressor.safetensors")))
-    cfg = SADMConfig(**{k: v for k, v in meta["sadm"].items() if k in SADMConfig.__dataclass_fields__})
-    return SADM(model, reg.eval(), name, cfg, meta["regressor_config"], meta.get("search_table", []))
+    tensors = read_tensors(d / "sadm", SADM_TENSORS, meta, "SADM regressor")
+    conf = manifest_field(meta, "regressor_config", where)
+    try:
+        reg = REGISTRY[name].from_state(conf, {k: torch.from_numpy(v) for k, v in tensors.items()})
+    except (KeyError, TypeError, ValueError, RuntimeError) as exc:
+        raise FacesynthError(f"{d / 'sadm' / SADM_TENSORS}: does not fit regressor {name!r} ({exc})") from None
+    cfg = SADMConfig(**{k: v for k, v in manifest_field(meta, "sadm", where).items() if k in SADMConfig.__dataclass_fields__})
+    return SADM(model, reg.eval(), name, cfg, conf, meta.get("search_table", []))

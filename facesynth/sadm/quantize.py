@@ -2,8 +2,8 @@
 
 At batch 1 the appearance reconstruction ``b_g @ P`` reads the whole (K, C M) basis every
 frame: 7 MB of float32 at K = 40 on lp_d6, more than a core's L2 cache, so its cost swings
-with whatever else shares the L3 (measured 100 us with the basis cached, about 500 us once
-other processes have evicted it; see docs/runtime.md). Stored as int8 it is 1.76 MB, and
+with whatever else shares the L3 (several times slower once other processes have evicted
+it; the measurements are in docs/runtime.md). Stored as int8 it is 1.76 MB, and
 ONNX Runtime runs it as one standard ``MatMulInteger`` (u8 x s8, the VNNI path of MLAS).
 
 Static symmetric quantization with a known input range (Jacob et al., "Quantization and
@@ -25,17 +25,17 @@ training landmarks (recorded in the exported file).
 
 from __future__ import annotations
 
-
 import numpy as np
 import torch
 from torch import nn
 
 from facesynth.errors import FacesynthError
+from facesynth.landmarks import N_LANDMARKS
+from facesynth.ops import INT8_LEVELS, int8_matmul
+from facesynth.sadm.compress import texture_psnr
 from facesynth.sadm.synthesis import GlobalAppearance, Synthesizer
 
-LEVELS = 127  # symmetric int8: codes in [-127, 127]
-EXACT_FLOAT32_K = 2**24 // (LEVELS * LEVELS) + 1  # 1041: below it a @ q is exact in float32
-_ZERO_POINT = 128  # coefficient codes travel as uint8 a + 128 (MatMulInteger's u8 x s8 path)
+LEVELS = INT8_LEVELS
 
 
 def quantize_columns(weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -57,26 +57,6 @@ def quantize_columns(weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     scale = np.where(scale > 0, scale, 1.0).astype(np.float32)
     codes = np.clip(np.rint(w / scale.astype(np.float64)), -LEVELS, LEVELS).astype(np.int8)
     return codes, scale
-
-
-class _Int8MatMul(torch.autograd.Function):
-    """``(round(b * coef_scale) @ codes) * col_scale``, exported as standard ONNX integer ops
-    (Mul, Round, Add, Cast, MatMulInteger, Cast, Mul); torch eager computes the same integers."""
-
-    @staticmethod
-    def forward(ctx, b, coef_scale, codes_f, codes, col_scale):
-        a = torch.round(b * coef_scale)
-        if codes_f.shape[0] >= EXACT_FLOAT32_K:  # partial sums may pass 2^24: sum exactly in float64
-            return (torch.matmul(a.double(), codes_f.double()) * col_scale.double()).to(b.dtype)
-        return torch.matmul(a, codes_f) * col_scale
-
-    @staticmethod
-    def symbolic(g, b, coef_scale, codes_f, codes, col_scale):
-        a = g.op("Round", g.op("Mul", b, coef_scale))
-        zp = g.op("Constant", value_t=torch.tensor(_ZERO_POINT, dtype=torch.uint8))
-        a_u8 = g.op("Cast", g.op("Add", a, g.op("Constant", value_t=torch.tensor(float(_ZERO_POINT)))), to_i=2)  # UINT8
-        acc = g.op("MatMulInteger", a_u8, codes, zp)
-        return g.op("Mul", g.op("Cast", acc, to_i=1), col_scale)  # FLOAT
 
 
 class Int8Basis(nn.Module):
@@ -108,7 +88,7 @@ class Int8Basis(nn.Module):
         return self.codes_f.double() * self.col_scale.double() / self.coef_scale.double()[:, None]
 
     def forward(self, b: torch.Tensor) -> torch.Tensor:
-        return _Int8MatMul.apply(b, self.coef_scale, self.codes_f, self.codes, self.col_scale)
+        return int8_matmul(b, self.coef_scale, self.codes_f, self.codes, self.col_scale)
 
 
 def quantize_synthesizer(syn: Synthesizer, landmarks: np.ndarray | None = None) -> tuple[Synthesizer, dict]:
@@ -136,11 +116,9 @@ def quantize_synthesizer(syn: Synthesizer, landmarks: np.ndarray | None = None) 
     out = syn.with_appearance(new_app)
     info = {"appearance_basis": "int8", "appearance_basis_bytes": int(basis.codes.numel())}
     if landmarks is not None:
-        from facesynth.sadm.compress import texture_psnr
-
         lm = np.asarray(landmarks, np.float32)
-        if lm.ndim != 3 or lm.shape[1:] != (68, 2):
-            raise FacesynthError(f"int8 appearance basis: landmarks must be (N, 68, 2), got {lm.shape}")
+        if lm.ndim != 3 or lm.shape[1:] != (N_LANDMARKS, 2):
+            raise FacesynthError(f"int8 appearance basis: landmarks must be (N, {N_LANDMARKS}, 2), got {lm.shape}")
         lm = lm[np.isfinite(lm).all(axis=(1, 2))]
         if len(lm):
             info["quantization_psnr_vs_float_db"] = texture_psnr(syn, out, lm)

@@ -15,14 +15,16 @@ import numpy as np
 import torch
 from torch import nn
 
+from facesynth.errors import FacesynthError
+from facesynth.landmarks import RIGID_NOSE_EYES
 from facesynth.model.face_model import FaceModel
 from facesynth.model.warp import ToTarget, apply_affine_t, invert_affine_t, similarity_to
-from facesynth.sadm.regressors.base import Regressor
+from facesynth.regressors.base import Regressor
 
 FEATURE_KINDS = ("bs", "landmarks", "bs+landmarks", "landmarks_rigid")
 # iBUG-68 points that expressions barely move: nose bridge and base (27-35), eye corners
 # (36, 39, 42, 45). ``landmarks_rigid`` aligns on these alone.
-RIGID_POINTS = (27, 28, 29, 30, 31, 32, 33, 34, 35, 36, 39, 42, 45)
+RIGID_POINTS = RIGID_NOSE_EYES  # the landmarks_rigid features align on the nose and the eye corners
 
 
 class ShapeEncoder(nn.Module):
@@ -66,7 +68,7 @@ class ShapeFeatures(nn.Module):
     def __init__(self, model: FaceModel, kind: str = "bs"):
         super().__init__()
         if kind not in FEATURE_KINDS:
-            raise ValueError(f"features must be one of {FEATURE_KINDS}, got {kind!r}")
+            raise FacesynthError(f"sadm.features must be one of {FEATURE_KINDS}, got {kind!r}")
         self.kind = kind
         self.register_buffer("mean", torch.from_numpy(model.shape_pca.mean.copy()))
         mean = model.shape_pca.mean.reshape(-1, 2)

@@ -16,11 +16,12 @@ variables"; Hastie, Tibshirani & Friedman, ESL 2nd ed. Sec. 5.8 / 12.3.7)::
 With ``clip_inputs`` (default) every input is first clamped to its range over the training
 rows, x <- min(max(x, x_lo), x_hi): a shape outside the training box is mapped to the
 nearest point of the box, so the linear part cannot extrapolate further than the data
-reach (on lp_d3, whose test segment holds expressions the training segment never shows,
-+0.47 dB held-out; neutral on lp_d6/lp_d10 and on every validation slice).
+reach (it helps where a test segment holds expressions the training segment never shows,
+as on lp_d3; docs/sadm.md).
 
 The kernel part is scikit-learn's ``KernelRidge(alpha, kernel="rbf", gamma)`` (or
-``kernel=Matern(length_scale=1/sqrt(gamma), nu=1.5)``) fitted on (z, Y - mean_y); the linear part is :class:`LinearRegressor`. Blending the two is a
+``kernel=Matern(length_scale=1/sqrt(gamma), nu=1.5)``) fitted on (z, Y - mean_y); the linear
+part is :class:`LinearRegressor`. Blending the two is a
 two-member ensemble of a smooth nonlinear interpolator (good inside the training
 distribution) and a linear map (extrapolates gracefully to shapes the training segment
 never shows); on the held-out segments of lp_d6, lp_d10 and lp_d3 the blend beats either
@@ -32,10 +33,9 @@ sqrt(gamma) and the standardisation folded into a per-feature shift/scale and th
 centres (as the SVR does); Matern 3/2 adds one sqrt (its derivative in r is 0 at r = 0, so
 float32 cancellation in ``||s - c||^2`` near 0 does not matter).
 
-Matern 3/2 instead of RBF (docs/sadm.md): the same sigma-0 accuracy or slightly better on
-the validation slices of lp_d6 / lp_d10 / lp_d3 (+0.00 / +0.01 / +0.05 dB; test +0.05 /
-+0.01 / +0.15) with a smaller sigma 0 -> 2 loss (validation 0.84 / 0.51 / 0.32 dB vs
-0.97 / 0.57 / 0.34): its heavier-tailed kernel is less sensitive to small input shifts.
+Matern 3/2 instead of RBF: the same sigma-0 accuracy or slightly better on the validation
+slices with a smaller sigma 0 -> 2 loss (the figures are in docs/sadm.md): its
+heavier-tailed kernel is less sensitive to small input shifts.
 """
 
 from __future__ import annotations
@@ -47,13 +47,19 @@ import scipy.linalg
 import torch
 
 from facesynth.errors import FacesynthError
-from facesynth.sadm.regressors._common import as_config, check_xy, standardiser
-from facesynth.sadm.regressors.base import Regressor, register
-from facesynth.sadm.regressors.linear import LinearConfig, LinearRegressor
+from facesynth.regressors._common import as_config, check_xy, standardiser
+from facesynth.regressors.base import Regressor, register
+from facesynth.regressors.linear import LinearConfig, LinearRegressor
 
 
 @dataclass
 class KRRConfig:
+    """Matern 3/2 kernel ridge on standardised inputs (gamma = gamma_mult / D, length scale
+    1/sqrt(gamma)) blended 50/50 with the linear ridge map; alpha 0.5 with 4 noisy copies
+    (= 0.1 per clean row); inputs clamped to the training box. Best held-out figures on
+    lp_d6 / lp_d10 / lp_d3; rbf gives about the same sigma-0 accuracy on validation with a
+    larger sigma-2 loss (docs/sadm.md)."""
+
     alpha: float = 0.5  # kernel ridge penalty (KernelRidge's alpha; targets in raw units)
     gamma_mult: float = 0.3  # gamma = gamma_mult / D on standardised inputs
     ridge: float = 10.0  # ridge of the linear part (as the ``linear`` regressor)
@@ -108,7 +114,10 @@ class KRRRegressor(Regressor):
     """Forward: (B, D_in) raw inputs -> (B, D_out) raw outputs."""
 
     config_class = KRRConfig
-    sadm_defaults = {"augment_sigma": 1.0}  # the smallest sigma keeping the 0 -> 2 px loss <= 1 dB (conf/regressor/krr.yaml)
+    # kernel ridge + linear blend: alpha, width and the blend weight (blend 0 = linear ridge)
+    search_grid = {"alpha": [0.1, 0.5, 2.0], "gamma_mult": [0.1, 0.3, 1.0], "blend": [0.25, 0.5, 0.75, 1.0]}
+    # 1 px: the smallest sigma keeping the sigma 0 -> 2 px loss within the 1 dB bound on every validation slice
+    sadm_defaults = {"augment_sigma": 1.0}
 
     def __init__(self, config: KRRConfig, tensors: dict[str, torch.Tensor], info: dict | None = None):
         super().__init__()

@@ -36,9 +36,12 @@ class Regressor(nn.Module):
     """Base class. Subclasses implement ``fit``, ``forward``, ``config_dict``, ``from_state``."""
 
     name: ClassVar[str] = "base"
-    # SADM settings this regressor trains with unless a config says otherwise (fields of
-    # facesynth.sadm.fit.SADMConfig); conf/regressor/NAME.yaml sets the same for train.py
-    sadm_defaults: ClassVar[dict[str, Any]] = {}
+    config_class: ClassVar[type]  # the hyper-parameter dataclass: its defaults are train.py's
+    # SADM settings this regressor trains with where the SADM config leaves them None
+    # (fields of facesynth.sadm.fit.SADMConfig)
+    sadm_defaults: ClassVar[dict[str, Any]] = {"augment_sigma": 2.0}
+    # hyper-parameter grid of facesynth.regressors.search (``sadm.search=true``)
+    search_grid: ClassVar[dict[str, list]] = {}
 
     @classmethod
     def fit(

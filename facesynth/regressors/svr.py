@@ -26,8 +26,8 @@ import torch
 from joblib import Parallel, delayed
 
 from facesynth.errors import FacesynthError
-from facesynth.sadm.regressors._common import as_config, check_xy, standardiser
-from facesynth.sadm.regressors.base import Regressor, register
+from facesynth.regressors._common import as_config, check_xy, standardiser
+from facesynth.regressors.base import Regressor, register
 
 
 @dataclass
@@ -73,6 +73,8 @@ class SVRRegressor(Regressor):
     """Forward: (B, D_in) raw inputs -> (B, D_out) raw outputs (exact SVM decision function)."""
 
     config_class = SVRConfig
+    # gamma_mult reaches below 0.25: on lp_d6 the best value was 0.25, the low edge of {0.25..2}
+    search_grid = {"C": [0.01, 0.03, 0.1, 0.3, 1.0, 3.0, 10.0], "gamma_mult": [0.0625, 0.125, 0.25, 0.5, 1.0, 2.0]}
 
     def __init__(self, config: SVRConfig, tensors: dict[str, torch.Tensor], info: dict):
         super().__init__()

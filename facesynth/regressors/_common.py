@@ -10,6 +10,8 @@ import numpy as np
 
 from facesynth.errors import FacesynthError
 
+LOG_RIDGE = [1e-3, 1e-2, 1e-1, 1.0, 10.0, 100.0, 1e3]  # the relative-ridge search grid (key ridge_rel) of linear and poly2
+
 
 def as_config(cls: type, config: Any, where: str):
     """Coerce ``config`` (None, a ``cls`` instance, a mapping or an OmegaConf node) to ``cls``.

@@ -4,8 +4,7 @@
 computes every per-pixel index (the map-table index, the 2x2 bilinear neighbours shared by
 the colour channels) in int64. ONNX ``GatherElements`` accepts int32 indices; computing the
 index chains in int32 halves the memory traffic of their integer nodes and of the gathers'
-index reads (measured 6% of the batch-1 latency of the earlier graph with unshared chains,
-about 10% of the current one, whose chains are shared by several gathers). Values are unchanged as long as
+index reads (the saving is measured in docs/runtime.md). Values are unchanged as long as
 they fit in int32, which is checked for every constant in the chain (canvas-sized indices
 are far below 2^31).
 """

@@ -22,48 +22,21 @@ from typing import Any
 import numpy as np
 
 from facesynth.errors import FacesynthError
-from facesynth.sadm.regressors._common import as_config, check_xy
-from facesynth.sadm.regressors.base import REGISTRY
-
-_LOG_RIDGE = [1e-3, 1e-2, 1e-1, 1.0, 10.0, 100.0, 1e3]
-
-#: Default grids per regressor (wide on purpose: a first study found the best SVR C at the
-#: low edge of {0.3, 3, 30}).
-DEFAULT_GRIDS: dict[str, dict[str, list]] = {
-    "linear": {"ridge_rel": list(_LOG_RIDGE)},
-    "poly2": {"ridge_rel": list(_LOG_RIDGE)},
-    # gamma_mult reaches below 0.25: on lp_d6 the best value WAS 0.25 = the low edge of {0.25..2}
-    "svr": {"C": [0.01, 0.03, 0.1, 0.3, 1.0, 3.0, 10.0], "gamma_mult": [0.0625, 0.125, 0.25, 0.5, 1.0, 2.0]},
-    # on lp_d6 dropout 0.2 and weight decay 1 helped most; the width hardly mattered
-    # kernel ridge + linear blend: alpha, width and the blend weight (blend 0 = linear ridge)
-    "krr": {"alpha": [0.1, 0.5, 2.0], "gamma_mult": [0.1, 0.3, 1.0], "blend": [0.25, 0.5, 0.75, 1.0]},
-    "mlp": {"weight_decay": [1e-2, 1e-1, 1.0], "dropout": [0.0, 0.2], "hidden": [[128, 128], [256, 256]]},
-}
+from facesynth.regressors._common import as_config, check_xy
+from facesynth.regressors.base import REGISTRY
+from facesynth.regressors.poly2 import design as poly2_design
 
 
 def config_class(name: str) -> type:
     """The config dataclass of regressor ``name``."""
     if name not in REGISTRY:
         raise FacesynthError(f"unknown regressor {name!r}; expected one of {sorted(REGISTRY)}")
-    if name == "linear":
-        from facesynth.sadm.regressors.linear import LinearConfig
-
-        return LinearConfig
     return REGISTRY[name].config_class
 
 
 def _ridge_unit(name: str, x: np.ndarray, cfg) -> float:
     """trace(Phi_c^T Phi_c) / N = sum of the feature variances."""
-    if name == "poly2":
-        from facesynth.sadm.regressors._common import standardiser
-        from facesynth.sadm.regressors.poly2 import poly2_features
-
-        if cfg.standardise:
-            mu, sd = standardiser(x)
-            x = (x - mu) / sd
-        phi = poly2_features(x, cfg.include_linear)
-    else:
-        phi = x
+    phi = poly2_design(x, cfg)[3] if name == "poly2" else x  # the features poly2.fit regresses on
     return float(phi.var(0).sum())
 
 
@@ -106,7 +79,7 @@ def search(
     seed: int = 0,
     weights: np.ndarray | None = None,
 ) -> tuple[Any, list[dict]]:
-    """Try every combination of ``grid`` (default ``DEFAULT_GRIDS[name]``); fit on
+    """Try every combination of ``grid`` (default the regressor's ``search_grid``); fit on
     (x_tr, y_tr), score on (x_val, y_val).
 
     Parameters
@@ -131,14 +104,14 @@ def search(
         raise FacesynthError(f"search {name}: validation columns {x_val.shape[1:]}/{y_val.shape[1:]} differ from training")
     if weights is not None and np.shape(weights) != (y_tr.shape[1],):
         raise FacesynthError(f"search {name}: weights must have shape ({y_tr.shape[1]},), got {np.shape(weights)}")
-    grid = DEFAULT_GRIDS[name] if grid is None else grid
+    grid = REGISTRY[name].search_grid if grid is None else grid
     if not grid or any(len(v) == 0 for v in grid.values()):
         raise FacesynthError(f"search {name}: grid must give at least one value per key, got {grid}")
     keys = list(grid)
     table: list[dict] = []
     best_cfg, best_score = None, np.inf
     for values in itertools.product(*(grid[k] for k in keys)):
-        params = dict(zip(keys, values))
+        params = dict(zip(keys, values, strict=True))
         cfg = resolve(name, params, x_tr, base)
         t0 = time.perf_counter()
         reg = REGISTRY[name].fit(x_tr, y_tr, cfg, seed=seed)

@@ -7,21 +7,26 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from facesynth.sadm.regressors._common import as_config
-from facesynth.sadm.regressors.base import Regressor, register
-
+from facesynth.regressors._common import LOG_RIDGE, as_config
+from facesynth.regressors.base import Regressor, register
 
 RCOND = 1e-10  # singular values of the Gram matrix below RCOND * largest are treated as 0
 
 
 @dataclass
 class LinearConfig:
-    ridge: float = 0.0  # lambda of ||A||^2 (the bias is not penalised)
+    """ridge: lambda of ||A||^2 (the bias is not penalised); 10 regularises the nearly
+    collinear aligned-landmark inputs (0 is the paper's plain least squares)."""
+
+    ridge: float = 10.0
 
 
 @register("linear")
 class LinearRegressor(Regressor):
     """y = x W^T + b. Forward: (B, D_in) -> (B, D_out)."""
+
+    config_class = LinearConfig
+    search_grid = {"ridge_rel": list(LOG_RIDGE)}
 
     def __init__(self, weight: torch.Tensor, bias: torch.Tensor, ridge: float = 0.0):
         super().__init__()

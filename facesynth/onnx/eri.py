@@ -13,7 +13,7 @@ steps 2-4 (``EriSynthesizer.textures`` + ``warp(positions)``; the parity tests h
   FAPs for a fixed neutral face (FAP displacements along the face axes, then a fixed
   thin-plate-spline interpolation), so landmarks = neutral + J f with the exact Jacobian
   J (136, 36) = :func:`facesynth.eri.faps.fap_displacements` of the identity, in float64;
-* the forehead points: they follow the head pose fitted on ``RIGID_POINTS``, which the
+* the forehead points: they follow the head pose fitted on ``RIGID_FAP``, which the
   FAPs never move (checked at export), so they are the neutral face's.
 
 The graph: SVR kernel expansion of the chosen variant (:class:`facesynth.eri.driving.SVRBank`
@@ -40,30 +40,22 @@ import torch
 from torch import nn
 
 from facesynth import __version__
-from facesynth.errors import FacesynthError
-from facesynth.eri.faps import FAP_NAMES, N_FAPS, RIGID_POINTS, fap_displacements, faps_to_landmarks
+from facesynth.contract import ERI_FORMAT, ERI_INPUT, ERI_METADATA_KEYS, ERI_OUTPUT_LAYOUT, LANDMARK_SCHEME, OPSET, OUTPUT_NAMES
+from facesynth.eri.faps import FAP_NAMES, N_FAPS, fap_displacements, faps_to_landmarks
 from facesynth.eri.geometry import to_canvas
+from facesynth.eri.model import EriModel
 from facesynth.eri.ratio import edge_confidence
 from facesynth.eri.synthesis import EriSynthesizer
-from facesynth.export_onnx import save_graph
+from facesynth.errors import FacesynthError
+from facesynth.landmarks import N_LANDMARKS, RIGID_FAP
 from facesynth.model.warp import ToTarget, candidate_spans
+from facesynth.onnx.common import SimilarityAlignment, check_parity, save_graph
 from facesynth.provenance import array_fingerprint
+from facesynth.runtime.eri import EriRenderer
 
 log = logging.getLogger(__name__)
 
-OPSET = 18
-FORMAT = "facesynth.eri.onnx/1"
-INPUT_NAME = "faps"
-OUTPUT_NAMES = ("crop", "mask", "placement")
-OUTPUT_LAYOUT = (
-    "crop: float32 (B, 3, H, W) in [0, 1], zeros outside the face; mask: float32 (B, 1, H, W) in {0, 1}; "
-    "placement: float32 (B, 2, 3) affine map from crop pixels (x, y) to the target's frame pixels"
-)
-METADATA_KEYS = (
-    "facesynth_version", "format", "kind", "driver", "raw_ratios", "n_faps", "fap_names", "landmark_scheme",
-    "reference_size", "canvas_size", "frame_size", "data_fingerprint", "target_fingerprint", "feather",
-    "output_layout", "opset",
-)
+METADATA_KEYS = ERI_METADATA_KEYS  # every file carries these (facesynth.contract)
 
 
 def export_spans(syn: EriSynthesizer, faps: np.ndarray | None = None, safety: float = 1.5) -> np.ndarray:
@@ -105,21 +97,15 @@ class EriGraph(nn.Module):
         # per frame) so the warp gets the float32 rounding of the exact canvas landmarks, as
         # the torch path does: float32 canvas coordinates of ~400 px carry 3e-5 px of
         # rounding that sharp texture edges turn into ~1e-4 colour differences
-        jac = fap_displacements(syn.neutral, np.eye(N_FAPS)).reshape(N_FAPS, 136)  # row i = d landmarks / d f_i
-        if np.abs(jac.reshape(N_FAPS, 68, 2)[:, list(RIGID_POINTS)]).max() > 0:
+        jac = fap_displacements(syn.neutral, np.eye(N_FAPS)).reshape(N_FAPS, 2 * N_LANDMARKS)  # row i = d landmarks / d f_i
+        if np.abs(jac.reshape(N_FAPS, N_LANDMARKS, 2)[:, list(RIGID_FAP)]).max() > 0:
             raise FacesynthError("FAPs move the rigid points; the forehead cannot be baked into the export")
         self.register_buffer("jacobian", torch.from_numpy(jac))
-        self.register_buffer("neutral", torch.from_numpy(syn.neutral.reshape(1, 136).astype(np.float64)))
-        forehead = syn.extend(syn.neutral[None])[0, 68:]  # (F, 2): the neutral's (head pose = identity)
+        self.register_buffer("neutral", torch.from_numpy(syn.neutral.reshape(1, 2 * N_LANDMARKS).astype(np.float64)))
+        forehead = syn.extend(syn.neutral[None])[0, N_LANDMARKS:]  # (F, 2): the neutral's (head pose = identity)
         self.register_buffer("forehead", torch.from_numpy(np.ascontiguousarray(forehead, np.float64)).unsqueeze(0))
-        # closed-form least-squares similarity onto the model geometry (as to_canvas)
-        ref = np.asarray(m.reference.points, np.float64)
-        mu = ref.mean(0)
-        dc = ref - mu
-        perp = np.stack([dc[:, 1], -dc[:, 0]], -1)
-        self.register_buffer("umeyama", torch.from_numpy(np.stack([dc.reshape(-1), perp.reshape(-1)], 1)))
-        self.register_buffer("to_m", torch.tensor([[1.0, 0.0, 0.0, 1.0], [0.0, 1.0, -1.0, 0.0]], dtype=torch.float64))
-        self.register_buffer("ref_mean", torch.from_numpy(mu + syn.pad).reshape(1, 1, 2))
+        # closed-form least-squares similarity onto the model geometry (as to_canvas), in float64
+        self.align = SimilarityAlignment([m.reference.points], [syn.pad], dtype=torch.float64)
         span = export_spans(syn) if span is None else np.asarray(span)
         self.warp = ToTarget(m.reference, span, syn.canvas)
 
@@ -127,7 +113,7 @@ class EriGraph(nn.Module):
         """The K machines of the bank share their support vectors (rows of the same training
         FAPs): evaluate the kernel once per *distinct* vector (U rows) and sum the dual
         weights of each machine per vector: (B, U) @ (U, K) instead of (B, sum_k n_k) @
-        (sum_k n_k, K) (on lp_d6, 300 frames, nu_rbf: U = 300 vs 19007 rows, 64x less)."""
+        (sum_k n_k, K): far fewer rows (figures in docs/eri.md)."""
         sv, inverse = np.unique(b.sv.numpy().astype(np.float64), axis=0, return_inverse=True)
         w = np.zeros((len(sv), b.weights.shape[1]))
         np.add.at(w, inverse.reshape(-1), b.weights.numpy().astype(np.float64))
@@ -168,19 +154,11 @@ class EriGraph(nn.Module):
 
     def forward(self, faps: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         tex = self.textures(faps)
-        lm = (torch.matmul(faps.double(), self.jacobian) + self.neutral).reshape(-1, 68, 2)  # float64
+        lm = (torch.matmul(faps.double(), self.jacobian) + self.neutral).reshape(-1, N_LANDMARKS, 2)  # float64
         pts = torch.cat([lm, self.forehead + lm[:, :1] * 0.0], 1)  # (B, P, 2)
-        mu = pts.mean(1, keepdim=True)
-        s = pts - mu
-        var = (s * s).flatten(1).sum(1, keepdim=True)
-        ab = torch.matmul(s.flatten(1), self.umeyama) / var  # (B, 2): a, b
-        rot = torch.matmul(ab, self.to_m).reshape(-1, 2, 2)  # row-major [[a, b], [-b, a]]: canvas = s @ rot
-        canvas = torch.matmul(s, rot) + self.ref_mean
-        crop, mask = self.warp(tex, canvas.float())
-        n2 = (ab * ab).sum(1, keepdim=True).unsqueeze(-1)  # (B, 1, 1)
-        inv = rot / n2  # R^-1 = R^T / |s|^2; rot holds R^T
-        t = mu.transpose(1, 2) - torch.matmul(inv, self.ref_mean.transpose(1, 2))
-        return crop, mask, torch.cat([inv, t], 2).float()
+        canvas, ab, mu = self.align(pts)
+        crop, mask = self.warp(tex, canvas[:, 0].float())
+        return crop, mask, self.align.placement(ab, mu, 0).float()
 
 
 def export_eri(
@@ -202,19 +180,19 @@ def export_eri(
     graph = EriGraph(syn, span).eval()
     m = syn.model
     meta = {
-        "facesynth_version": __version__, "format": FORMAT, "kind": "eri", "driver": syn.variant,
-        "raw_ratios": bool(syn.raw), "n_faps": N_FAPS, "fap_names": list(FAP_NAMES), "landmark_scheme": "ibug68",
+        "facesynth_version": __version__, "format": ERI_FORMAT, "kind": "eri", "driver": syn.variant,
+        "raw_ratios": bool(syn.raw), "n_faps": N_FAPS, "fap_names": list(FAP_NAMES), "landmark_scheme": LANDMARK_SCHEME,
         "reference_size": list(m.reference.size), "canvas_size": list(syn.canvas),
         "frame_size": list(syn.image.shape[:2]), "channels": 3, "data_fingerprint": m.fingerprint,
         "target_fingerprint": array_fingerprint(syn.image, syn.neutral), "feather": float(m.config.feather),
         "eigeneri_components": int(m.pca.n_components), "support_vectors": graph.n_support_vectors,
         "distinct_support_vectors": graph.n_distinct,
-        "output_layout": OUTPUT_LAYOUT, "opset": opset, "n_scanline_events": graph.warp.n_candidates,
+        "output_layout": ERI_OUTPUT_LAYOUT, "opset": opset, "n_scanline_events": graph.warp.n_candidates,
     }
     meta.update(metadata or {})
     example = torch.zeros(2, N_FAPS)
     example[1] = torch.linspace(-50, 50, N_FAPS)
-    save_graph(graph, example, path, INPUT_NAME, OUTPUT_NAMES, meta, opset,
+    save_graph(graph, example, path, ERI_INPUT, OUTPUT_NAMES, meta, opset,
                "facesynth ERI graph: MPEG-4 FAPs -> target face crop, mask, placement")
     log.info("exported %s (ERI, %s, %.1f MB)", path, syn.variant, path.stat().st_size / 1e6)
     return path
@@ -227,8 +205,6 @@ def export_eri_run(
     """``facesynth export RUN --target ...``: the run's ERI model for one target face
     (uint8 (H, W, 3) image and its (68, 2) landmarks). Returns the file, the synthesizer
     and the metadata written besides the standard keys."""
-    from facesynth.eri.model import EriModel
-
     d = Path(run_dir)
     if not d.is_dir():
         raise FacesynthError(f"{d}: training run directory not found")
@@ -254,16 +230,11 @@ def torch_reference(syn: EriSynthesizer, faps: np.ndarray) -> tuple[np.ndarray, 
 def check_eri_export(syn: EriSynthesizer, path: str | os.PathLike, faps: np.ndarray | None = None, tol: float = 1e-4) -> float:
     """Run ``path`` in ONNX Runtime and ``syn`` in torch on the same FAPs (default: the
     support vectors of the exported variant). Returns the largest absolute crop difference;
-    raises FacesynthError above ``tol`` or when masks differ in more than 0.1% of pixels."""
-    from facesynth.runtime.eri import EriRenderer
-
+    raises FacesynthError above ``tol``, on NaN, or when masks differ in more than 0.1% of
+    pixels (:func:`facesynth.onnx.common.check_parity`)."""
     if faps is None:
         b = syn.model.regressors[syn.variant]
         faps = (b.sv[:8] * b.x_std + b.x_mean).numpy()
     crop, mask, _ = EriRenderer(path).render(faps)
     t_crop, t_mask, _ = torch_reference(syn, faps)
-    diff = float(np.abs((crop - t_crop) * mask * t_mask).max())
-    flips = float((mask != t_mask).mean())
-    if diff > tol or flips > 1e-3:
-        raise FacesynthError(f"{path}: ONNX Runtime differs from torch (max |crop diff| {diff:.2e}, mask flips {flips:.2%})")
-    return diff
+    return check_parity(path, (crop, mask), (t_crop, t_mask), tol)

@@ -17,17 +17,20 @@ import numpy as np
 import scipy.linalg
 import torch
 
-from facesynth.sadm.regressors._common import as_config, check_xy, standardiser
-from facesynth.sadm.regressors.base import Regressor, register
+from facesynth.regressors._common import LOG_RIDGE, as_config, check_xy, standardiser
+from facesynth.regressors.base import Regressor, register
 
 
 @dataclass
 class Poly2Config:
-    ridge: float = 1.0  # lambda of ||W||^2 on the polynomial features (bias not penalised)
+    ridge: float = 100.0  # lambda of ||W||^2 on the polynomial features (bias not penalised)
     relative_ridge: bool = True  # lambda = ridge * trace(Phi_c^T Phi_c) / N (scale-free); else absolute
     include_linear: bool = True  # keep the D linear terms next to the D(D+1)/2 products
     standardise: bool = True  # z-score the inputs before forming products
-    input_components: Optional[int] = None  # project (standardised) inputs on their leading K whitened PCs first
+    # project (standardised) inputs on their leading K whitened PCs first (None: all inputs);
+    # quadratic terms of all 136 landmark coordinates extrapolate below the mean texture on
+    # clips whose test segment holds unseen expressions (docs/regressors.md)
+    input_components: Optional[int] = 16
 
 
 def triu_flat_index(d: int) -> np.ndarray:
@@ -73,6 +76,27 @@ def ridge_closed_form(phi: np.ndarray, y: np.ndarray, ridge: float) -> tuple[np.
     return w, my - w @ mphi
 
 
+def design(x: np.ndarray, cfg: Poly2Config) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The regression design of (N, D) inputs: standardiser mean and scale (D,), projection
+    (D, d) (identity, or the leading whitened principal components) and the (N, F)
+    polynomial features."""
+    if cfg.standardise:
+        mu, sd = standardiser(x)
+    else:
+        mu, sd = np.zeros(x.shape[1]), np.ones(x.shape[1])
+    z = (x - mu) / sd
+    proj = np.eye(x.shape[1])
+    if cfg.input_components:
+        # Quadratic features of many correlated inputs (e.g. 136 landmark coordinates)
+        # extrapolate wildly; a few whitened principal components keep them in check.
+        zc = z - z.mean(0)
+        _, sv, vt = np.linalg.svd(zc, full_matrices=False)
+        k = min(int(cfg.input_components), len(sv))
+        proj = vt[:k].T / np.maximum(sv[:k] / np.sqrt(max(len(z) - 1, 1)), 1e-12)
+        z = (x - mu) / sd @ proj
+    return mu, sd, proj, poly2_features(z, cfg.include_linear)
+
+
 @register("poly2")
 class Poly2Regressor(Regressor):
     """y = W [z, z_i z_j] + b with z = (x - mu) / sigma. Forward: (B, D_in) -> (B, D_out).
@@ -82,6 +106,7 @@ class Poly2Regressor(Regressor):
     """
 
     config_class = Poly2Config
+    search_grid = {"ridge_rel": list(LOG_RIDGE)}
 
     def __init__(self, x_mean, x_scale, weight, bias, config: Poly2Config, proj=None):
         super().__init__()
@@ -99,21 +124,7 @@ class Poly2Regressor(Regressor):
     def fit(cls, x, y, config=None, x_val=None, y_val=None, seed=0):
         cfg = as_config(Poly2Config, config, "regressor poly2")
         x, y = check_xy(x, y, "regressor poly2")
-        if cfg.standardise:
-            mu, sd = standardiser(x)
-        else:
-            mu, sd = np.zeros(x.shape[1]), np.ones(x.shape[1])
-        z = (x - mu) / sd
-        proj = np.eye(x.shape[1])
-        if cfg.input_components:
-            # Quadratic features of many correlated inputs (e.g. 136 landmark coordinates)
-            # extrapolate wildly; a few whitened principal components keep them in check.
-            zc = z - z.mean(0)
-            _, sv, vt = np.linalg.svd(zc, full_matrices=False)
-            k = min(int(cfg.input_components), len(sv))
-            proj = vt[:k].T / np.maximum(sv[:k] / np.sqrt(max(len(z) - 1, 1)), 1e-12)
-            z = (x - mu) / sd @ proj
-        phi = poly2_features(z, cfg.include_linear)
+        mu, sd, proj, phi = design(x, cfg)
         lam = float(cfg.ridge) * (float(phi.var(0).sum()) if cfg.relative_ridge else 1.0)
         w, b = ridge_closed_form(phi, y, lam)
         reg = cls(torch.from_numpy(mu), torch.from_numpy(sd), torch.from_numpy(w), torch.from_numpy(b), cfg,

@@ -2,7 +2,12 @@
 
 Groups: ``data`` (DataConf), ``model`` (ModelConf: the face model, and ``kind`` aam|eri),
 ``regressor`` (one schema per registered regressor, built from its config dataclass),
-``sadm`` (SADMConfig), ``eval`` (EvalConfig).
+``sadm`` (SADMConfig), ``eval`` (EvalConfig), ``eri`` (EriConfig).
+
+Every default lives in a dataclass (here or in the stage that uses it); the yaml files
+under ``conf/`` only select a group option or override a value. A regressor's SADM
+settings (e.g. krr's 1 px augmentation) come from its class (``sadm_defaults``) through
+the ``sadm_default`` resolver, so that the composed config shows them.
 """
 
 from __future__ import annotations
@@ -10,16 +15,22 @@ from __future__ import annotations
 import dataclasses
 import typing
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any, Optional
 
+from hydra import compose, initialize_config_dir
 from hydra.core.config_store import ConfigStore
-from omegaconf import MISSING
+from omegaconf import II, MISSING, OmegaConf
 
+from facesynth.data.splits import TRAIN_FRACTION
 from facesynth.eri.config import EriConfig
+from facesynth.errors import FacesynthError
 from facesynth.eval.sadm_eval import EvalConfig
 from facesynth.model.face_model import FaceModelConfig
-from facesynth.sadm.fit import SADMConfig, _make_config
-from facesynth.sadm.regressors import REGISTRY
+from facesynth.regressors import REGISTRY
+from facesynth.sadm.fit import SADMConfig, make_config, resolve_sadm_config
+
+CONF_DIR = Path(__file__).resolve().parents[2] / "conf"  # the repository's Hydra configs (source checkout)
 
 
 @dataclass
@@ -33,7 +44,7 @@ class DataConf:
     n_frames: int = 240
     size: int = 256
     max_frames: Optional[int] = None
-    train_fraction: float = 0.75
+    train_fraction: float = TRAIN_FRACTION
     gap: int = 0
 
 
@@ -45,12 +56,20 @@ class ModelConf(FaceModelConfig):
 
 
 @dataclass
+class SADMConf(SADMConfig):
+    """SADMConfig whose regressor-dependent fields default to the chosen regressor's
+    ``sadm_defaults`` (resolved when the config is read)."""
+
+    augment_sigma: Optional[float] = II("sadm_default:${regressor.name},augment_sigma")
+
+
+@dataclass
 class TrainConf:
     seed: int = 0
     data: DataConf = field(default_factory=DataConf)
     model: ModelConf = field(default_factory=ModelConf)
     regressor: Any = MISSING
-    sadm: SADMConfig = field(default_factory=SADMConfig)
+    sadm: SADMConf = field(default_factory=SADMConf)
     eval: EvalConfig = field(default_factory=EvalConfig)
     eri: EriConfig = field(default_factory=EriConfig)
 
@@ -66,7 +85,7 @@ def _omegaconf_type(tp):
 
 def regressor_schema(name: str) -> type:
     """A dataclass with ``name`` plus the fields of regressor ``name``'s config class."""
-    cfg = _make_config(name, {})
+    cfg = make_config(name, {})
     fields = [("name", str, field(default=name))]
     if dataclasses.is_dataclass(cfg):
         hints = typing.get_type_hints(type(cfg))
@@ -79,7 +98,14 @@ def regressor_schema(name: str) -> type:
     return dataclasses.make_dataclass(f"{name.capitalize()}RegressorConf", fields)
 
 
+def _sadm_default(regressor: str, key: str):
+    return REGISTRY[regressor].sadm_defaults.get(key) if regressor in REGISTRY else None
+
+
 def register_configs() -> None:
+    """Register the schemas with Hydra's ConfigStore and the ``sadm_default`` resolver."""
+    if not OmegaConf.has_resolver("sadm_default"):
+        OmegaConf.register_new_resolver("sadm_default", _sadm_default)
     cs = ConfigStore.instance()
     cs.store(name="train_schema", node=TrainConf)
     for name in REGISTRY:
@@ -88,8 +114,6 @@ def register_configs() -> None:
 
 def regressor_params(node) -> tuple[str, dict]:
     """(name, hyper-parameters) from a ``regressor`` config node."""
-    from omegaconf import OmegaConf
-
     d = OmegaConf.to_container(node, resolve=True) if not isinstance(node, dict) else dict(node)
     return d.pop("name"), d
 
@@ -99,19 +123,10 @@ def train_defaults(regressor: str) -> tuple[str, dict, SADMConfig]:
     hyper-parameters and the SADM settings (a regressor's config may set some, e.g. krr's
     augmentation), composed by Hydra from the repository's ``conf/`` (for benchmarks and
     scripts that call :func:`facesynth.sadm.fit.fit_sadm` directly)."""
-    from pathlib import Path
-
-    from hydra import compose, initialize_config_dir
-    from omegaconf import OmegaConf
-
-    from facesynth.errors import FacesynthError
-
-    conf_dir = Path(__file__).resolve().parents[1] / "conf"
-    if not (conf_dir / "config.yaml").is_file():
-        raise FacesynthError(f"{conf_dir}: Hydra configs not found (train_defaults needs a source checkout)")
+    if not (CONF_DIR / "config.yaml").is_file():
+        raise FacesynthError(f"{CONF_DIR}: Hydra configs not found (train_defaults needs a source checkout)")
     register_configs()
-    with initialize_config_dir(config_dir=str(conf_dir), version_base="1.3"):
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
         cfg = compose(config_name="config", overrides=[f"regressor={regressor}"])
     name, params = regressor_params(cfg.regressor)
-    return name, params, SADMConfig(**OmegaConf.to_container(cfg.sadm, resolve=True))
-
+    return name, params, resolve_sadm_config(name, SADMConfig(**OmegaConf.to_container(cfg.sadm, resolve=True)))

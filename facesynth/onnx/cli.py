@@ -1,10 +1,10 @@
 """``facesynth export RUN --out model.onnx``: one ONNX file from a training run.
 
-The export code is torch-side (:mod:`facesynth.export_onnx`, imported only when this
-subcommand runs); the written model is checked once with ONNX Runtime against torch.
+The export code is :mod:`facesynth.onnx.synthesis`; the written model is checked once
+with ONNX Runtime against torch.
 
 With ``--target IMAGE_OR_DIR`` the run's ERI model is exported instead, for that target
-face (:mod:`facesynth.eri.export`; the target is named as in ``transfer-expression``):
+face (:mod:`facesynth.onnx.eri`; the target is named as in ``transfer-expression``):
 MPEG-4 FAPs (B, 36) -> the target's rendered face.
 """
 
@@ -14,22 +14,25 @@ import argparse
 import json
 from pathlib import Path
 
+from facesynth.contract import OPSET
+from facesynth.eri.config import SVR_VARIANTS
 from facesynth.errors import FacesynthError
+from facesynth.onnx.config import BASIS_KINDS, DEFAULT_BASIS, DEFAULT_COMPONENTS
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("run", help="training run directory (face_model/ and sadm/regressor.*; or eri/ with --target)")
     p.add_argument("--out", required=True, help="output .onnx file (written atomically)")
-    p.add_argument("--opset", type=int, default=18, help="ONNX opset (default 18)")
+    p.add_argument("--opset", type=int, default=OPSET, help=f"ONNX opset (default {OPSET})")
     p.add_argument("--no-check", action="store_true", help="skip the ONNX Runtime vs torch check")
     p.add_argument("--components", type=int, default=None,
                    help="appearance components kept: those of largest predicted variance over the training "
-                        "landmarks, the rest folded into the mean (default 40; 0 = all, no compression)")
+                        f"landmarks, the rest folded into the mean (default {DEFAULT_COMPONENTS}; 0 = all, no compression)")
     p.add_argument("--predicted-variance", type=float, default=None,
                    help="instead of --components: keep the fewest components holding this fraction of the predicted variance")
-    p.add_argument("--basis", choices=["int8", "float32"], default="int8",
-                   help="appearance basis storage: int8 (default; 4x smaller, integer matmul, its PSNR against "
-                        "float32 is measured and recorded) or float32")
+    p.add_argument("--basis", choices=list(BASIS_KINDS), default=DEFAULT_BASIS,
+                   help=f"appearance basis storage (default {DEFAULT_BASIS}): int8 is 4x smaller, an integer matmul, "
+                        "its PSNR against float32 measured and recorded; or float32")
     p.add_argument("--landmarks", default=None,
                    help="training landmarks (.npy (N, 68, 2)) for the compression (default: reloaded from RUN/config.yaml)")
     eri = p.add_argument_group("ERI model (exported when --target is given)")
@@ -37,22 +40,18 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                      help="target neutral face: an image, or a folder in ingest layout (its neutral frame is used)")
     eri.add_argument("--target-landmarks", metavar="L", help="landmarks of the target image (.npy (68, 2)/(N, 68, 2) or .pts)")
     eri.add_argument("--target-frame", type=int, metavar="ROW", help="row of the target folder / landmarks used as neutral")
-    eri.add_argument("--variant", choices=["eps_linear", "eps_rbf", "nu_linear", "nu_rbf"], help="SVR variant (default: the model's)")
+    eri.add_argument("--variant", choices=list(SVR_VARIANTS), help="SVR variant (default: the model's)")
     eri.add_argument("--raw-ratios", action="store_true", help="no edge confidence / brightening cap (as transfer-expression)")
 
 
 def run(args: argparse.Namespace) -> int:
+    from facesynth.data import load_landmarks  # lazy, as below: keeps --help fast (no torch)
+
     if args.target:
         summary = export_eri_model(args.run, args.out, args.target, args.target_landmarks, args.target_frame,
                                    args.variant, args.raw_ratios, args.opset, not args.no_check)
     else:
-        from facesynth.export_onnx import DEFAULT_COMPONENTS
-
-        lm = None
-        if args.landmarks:
-            from facesynth.data import load_landmarks
-
-            lm = load_landmarks(args.landmarks)
+        lm = load_landmarks(args.landmarks) if args.landmarks else None
         comps = DEFAULT_COMPONENTS if args.components is None else args.components
         summary = export_model(args.run, args.out, args.opset, comps, args.predicted_variance, lm, not args.no_check,
                                args.basis)
@@ -60,15 +59,17 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def export_model(run_dir, out, opset: int, components: int | None, predicted_variance: float | None,
-                 landmarks=None, check: bool = True, basis: str = "int8") -> dict:
+def export_model(run_dir, out, opset: int = OPSET, components: int | None = DEFAULT_COMPONENTS,
+                 predicted_variance: float | None = None, landmarks=None, check: bool = True,
+                 basis: str = DEFAULT_BASIS) -> dict:
     """Export a run's landmark-driven synthesis model (``facesynth export`` and
     ``export/export.py``); returns the JSON summary (file, size, metadata, and the ONNX
     Runtime vs torch difference when ``check``)."""
-    from facesynth.export_onnx import check_export, export_run
+    from facesynth.onnx.synthesis import check_export, export_run  # lazy: keeps --help fast (torch)
+    from facesynth.runs.rundir import is_eri_run
 
     run_dir = Path(run_dir)
-    if not (run_dir / "sadm").is_dir() and ((run_dir / "eri_model.json").is_file() or (run_dir / "eri" / "eri_model.json").is_file()):
+    if is_eri_run(run_dir):
         raise FacesynthError(f"{run_dir}: holds an ERI model only; pass --target IMAGE_OR_DIR to export it for a target face")
     path, syn, meta = export_run(run_dir, out, opset, components, predicted_variance, landmarks, basis)
     summary = {"out": str(path), "bytes": path.stat().st_size, **meta, "opset": opset}
@@ -78,16 +79,13 @@ def export_model(run_dir, out, opset: int, components: int | None, predicted_var
 
 
 def export_eri_model(run_dir, out, target, target_landmarks=None, target_frame: int | None = None,
-                     variant: str | None = None, raw_ratios: bool = False, opset: int = 18, check: bool = True) -> dict:
+                     variant: str | None = None, raw_ratios: bool = False, opset: int = OPSET, check: bool = True) -> dict:
     """Export a run's ERI model for one target face (named as in ``transfer-expression``);
     returns the JSON summary, as :func:`export_model`."""
-    from types import SimpleNamespace
+    from facesynth.eri.cli import load_target  # lazy: keeps --help fast (torch)
+    from facesynth.onnx.eri import check_eri_export, export_eri_run
 
-    from facesynth.eri.cli import _target
-    from facesynth.eri.export import check_eri_export, export_eri_run
-
-    image, landmarks, desc = _target(SimpleNamespace(target=str(target), target_landmarks=target_landmarks,
-                                                     target_frame=target_frame))
+    image, landmarks, desc = load_target(target, target_landmarks, target_frame)
     path, syn, meta = export_eri_run(run_dir, out, image, landmarks, variant, raw_ratios, opset)
     summary = {"out": str(path), "bytes": path.stat().st_size, "target": desc, **meta, "opset": opset}
     if check:

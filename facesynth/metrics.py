@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from facesynth.errors import FacesynthError
+
 
 def psnr(a: np.ndarray, b: np.ndarray, mask: np.ndarray | None = None, peak: float = 255.0) -> float:
     """Peak signal-to-noise ratio in dB over a mask, pooled over all images.
@@ -26,7 +28,7 @@ def psnr(a: np.ndarray, b: np.ndarray, mask: np.ndarray | None = None, peak: flo
     a = np.asarray(a, dtype=np.float64)
     b = np.asarray(b, dtype=np.float64)
     if a.shape != b.shape:
-        raise ValueError(f"psnr: shapes differ {a.shape} vs {b.shape}")
+        raise FacesynthError(f"psnr: shapes differ {a.shape} vs {b.shape}")
     err = (a - b) ** 2
     if mask is not None:
         m = np.asarray(mask, dtype=bool)

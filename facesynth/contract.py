@@ -1,0 +1,46 @@
+"""The contract of facesynth's ONNX files, shared by the exporter (:mod:`facesynth.onnx`,
+torch) and the runtime (:mod:`facesynth.runtime`, torch-free): format strings, input and
+output names, output layouts and the metadata keys every file carries.
+
+A change here is a change of the file format: bump the ``/N`` of the format string.
+"""
+
+from __future__ import annotations
+
+from facesynth.landmarks import DEFAULT_SCHEME
+
+OPSET = 18
+
+SYNTHESIS_FORMAT = "facesynth.synthesis.onnx/1"
+ERI_FORMAT = "facesynth.eri.onnx/1"
+LANDMARK_SCHEME = DEFAULT_SCHEME.name
+N_LANDMARKS = DEFAULT_SCHEME.n_points
+
+SYNTHESIS_INPUT = "landmarks"
+ERI_INPUT = "faps"
+OUTPUT_NAMES = ("crop", "mask", "placement")
+
+SYNTHESIS_OUTPUT_LAYOUT = (
+    "crop: float32 (B, C, H, W) in [0, 1], zeros outside the face; mask: float32 (B, 1, H, W) in {0, 1}; "
+    "placement: float32 (B, 2, 3) affine map from crop pixels (x, y) to frame pixels"
+)
+ERI_OUTPUT_LAYOUT = (
+    "crop: float32 (B, 3, H, W) in [0, 1], zeros outside the face; mask: float32 (B, 1, H, W) in {0, 1}; "
+    "placement: float32 (B, 2, 3) affine map from crop pixels (x, y) to the target's frame pixels"
+)
+
+SYNTHESIS_METADATA_KEYS = (
+    "facesynth_version", "format", "regressor", "landmark_scheme", "n_landmarks", "reference_size",
+    "channels", "data_fingerprint", "output_layout", "opset",
+)
+ERI_METADATA_KEYS = (
+    "facesynth_version", "format", "kind", "driver", "raw_ratios", "n_faps", "fap_names", "landmark_scheme",
+    "reference_size", "canvas_size", "frame_size", "data_fingerprint", "target_fingerprint", "feather",
+    "output_layout", "opset",
+)
+
+# what a file of each format is, for error messages that point to the right class
+FORMAT_HINTS = {
+    ERI_FORMAT: "an ERI model: use facesynth.runtime.EriRenderer",
+    SYNTHESIS_FORMAT: "a landmark-driven model: use facesynth.runtime.Renderer",
+}
