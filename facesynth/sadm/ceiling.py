@@ -144,8 +144,8 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--clip", required=True, help="clip folder (video + landmarks)")
     ap.add_argument("--regressor", default="krr")
-    ap.add_argument("--augment-sigma", type=float, default=1.0,
-                    help="landmark-noise augmentation (px; 1 = conf/regressor/krr.yaml, the default run)")
+    ap.add_argument("--augment-sigma", type=float, default=None,
+                    help="landmark-noise augmentation in px (default: the regressor's own, krr 1 px, as train.py)")
     ap.add_argument("--json", default=None, help="also write the figures to this file")
     args = ap.parse_args(argv)
     res = study(args.clip, args.regressor, sadm_params={"augment_sigma": args.augment_sigma})
