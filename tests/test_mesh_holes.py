@@ -35,7 +35,7 @@ def test_ordered_loops_follow_the_half_edges():
     (loop,) = ordered_boundary_loops(F)
     assert len(loop) == 32
     he = {tuple(e) for e in np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]]).tolist()}
-    assert all((a, b) in he for a, b in zip(loop, np.roll(loop, -1)))
+    assert all((a, b) in he for a, b in zip(loop, np.roll(loop, -1), strict=True))
     # outer rim counter-clockwise seen from +z (the faces' normal side): positive signed area
     x, y = V[loop, 0], V[loop, 1]
     assert 0.5 * np.sum(x * np.roll(y, -1) - np.roll(x, -1) * y) > 0
