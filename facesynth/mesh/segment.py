@@ -163,7 +163,7 @@ def label_loops(V: np.ndarray, F: np.ndarray, landmarks: np.ndarray) -> tuple[di
 
 
 def segment_face(vertices: np.ndarray, faces: np.ndarray, landmarks, radius: float, metric: str = "geodesic",
-                 sources: str = "points", remove_features: bool = True, method: str = "heat",
+                 sources: str = "points", remove_features: bool | str = True, method: str = "heat",
                  colors: np.ndarray | None = None) -> FaceRegion:
     """Cut the face region out of a mesh (see the module docstring).
 
@@ -173,7 +173,10 @@ def segment_face(vertices: np.ndarray, faces: np.ndarray, landmarks, radius: flo
     landmarks : (68,) int, iBUG-68 landmark vertices (eyes and mouth required).
     radius : float, in mesh units (ICT: cm).
     metric, sources, method : see :func:`feature_distance`.
-    remove_features : cut out the eyes and mouth that are not holes already.
+    remove_features : cut out the eyes and mouth that are not holes already (True), or cut
+        every feature at its landmark contour, widening an existing opening to it ("always":
+        the openings then follow the landmarks, e.g. the inner-lip line instead of a mouth
+        bag behind the lips).
     colors : (V, C) or None, carried along.
     """
     V = np.asarray(vertices, np.float64)
@@ -195,10 +198,12 @@ def segment_face(vertices: np.ndarray, faces: np.ndarray, landmarks, radius: flo
     local = np.full(len(V), -1, np.int64)
     local[kept] = np.arange(len(kept))
     lmc = local[lm]
+    if remove_features not in (False, True, "always"):
+        raise FacesynthError(f"remove_features: expected False, True or 'always', got {remove_features!r}")
     if remove_features:
         loops, _ = label_loops(Vc, Fc, lmc)
         for name, ix in FEATURE_CONTOURS.items():
-            if name in loops:
+            if name in loops and remove_features != "always":
                 continue
             if (lmc[ix] < 0).any():
                 raise FacesynthError(f"{name}: its landmarks fall outside radius {radius}")
