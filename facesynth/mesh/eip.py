@@ -6,25 +6,29 @@ A segmented face with four boundaries (outer rim, two eyes, mouth; see
 for every expression:
 
 1. geodesic ``c`` joins the eye loops and ``d`` joins c's midpoint to the mouth loop (shortest
-   edge paths, so that the mesh can be cut along them);
+   edge paths, so that the mesh can be cut along them; through the midline landmarks when
+   they are given, see :func:`face_cuts`);
 2. a harmonic function ``f`` is 0 on the outer rim and 1 on the inner boundary (eyes, mouth,
    c and d); the same is solved on the domain, whose c' and d' are straight slits;
 3. the inner boundaries correspond by arc length, piece by piece (mouth, d, c, eye, c, eye,
-   c, d), which gives every inner point a feature-aligned parameter ``tau`` in [0, 8);
+   c, d), which gives every inner point a feature-aligned label ``tau`` in [0, 8);
 4. the integral curves of grad f run from the inner to the outer boundary; the curve through
    a point is labelled by the ``tau`` where it starts. The integral curves are the level
    lines of the stream function ``g`` (the harmonic conjugate, ``grad g = n x grad f``),
    found by sparse least squares on the mesh cut open along c, d and a seam, so the label of
    every vertex is a 1-D lookup ``tau(g)`` rather than a curve traced per vertex (the tests
-   trace curves and check that g is constant along them);
+   trace gradient curves in the domain and check that g stays constant along them);
 5. a mesh vertex with coordinates ``(tau, f)`` maps to the domain point with the same
    ``(tau, f)`` (point location in the domain's ``(tau, f)`` triangulation).
 
-Boundary vertices are placed exactly: inner ones on the hole outlines by ``tau``, outer ones
-on the rectangle's rim. ``f`` uses libigl's intrinsic Delaunay cotangent Laplacian (non-
-negative weights, hence a discrete maximum principle and no spurious critical points on
-obtuse scan triangles); libigl also cuts the mesh (``cut_mesh``) and gives the gradient
-operator. :func:`harmonic_disk` is the plain harmonic map to a disk (HM) for comparison.
+Boundary vertices are placed exactly: inner ones on the hole outlines and slits by ``tau``,
+outer ones on the rectangle's rim. Where the mesh's hole outline has a sharper corner than
+the domain's ellipse (the lip corners) a few triangles can fold; :func:`untangle` moves their
+free vertices into the kernels of their one-rings (reported as ``untangled``). ``f`` uses
+libigl's intrinsic Delaunay cotangent Laplacian (non-negative weights, hence a discrete
+maximum principle and no spurious critical points on obtuse scan triangles); libigl also cuts
+the mesh (``cut_mesh``) and gives the gradient operator. :func:`harmonic_disk` is the plain
+harmonic map to a disk (HM) for comparison.
 """
 
 from __future__ import annotations
@@ -36,7 +40,7 @@ import scipy.sparse as sp
 from scipy.sparse.linalg import spsolve
 
 from facesynth.errors import FacesynthError, MissingExtraError
-from facesynth.mesh.eip_domain import Domain, locate
+from facesynth.mesh.eip_domain import Domain, locate, signed_areas, untangle
 from facesynth.mesh.laplacian import cotangent_laplacian, face_normals, ordered_boundary_loops
 from facesynth.mesh.paths import edge_graph, shortest_path
 
@@ -150,7 +154,7 @@ def annulus_coordinates(V: np.ndarray, F: np.ndarray, loops: dict[str, np.ndarra
         raise FacesynthError("parameterisation: the inner boundary is not one run (does a cut touch the rim?)")
     inner = ring[:n_in]
     types = _edge_types(src[inner], loops, c, d)
-    tau_in, eye_order = _tau_along(Vc[inner], types)
+    tau_in, eye_order = _tau_along(Vc[inner], types, src[inner] == d[0])
     # outer run: the f = 0 vertices in boundary order
     rest = ring[n_in:]
     outer = rest[np.isin(src[rest], loops["outer"])]
@@ -184,8 +188,12 @@ def _edge_types(ids: np.ndarray, loops, c, d) -> list[str]:
     return out
 
 
-def _tau_along(P: np.ndarray, types: list[str]) -> tuple[np.ndarray, str]:
-    """Unwrapped tau along the inner run (which starts and ends inside the mouth loop)."""
+def _tau_along(P: np.ndarray, types: list[str], is_mid: np.ndarray) -> tuple[np.ndarray, str]:
+    """Unwrapped tau along the inner run (which starts and ends inside the mouth loop).
+
+    Each of the 8 pieces is parameterised by arc length; the far side of c, which passes
+    c's midpoint ``is_mid`` (where d starts), by arc length on each half, so that both sides
+    of c give every vertex of c the same point of the slit c'."""
     runs = [[types[0], 0, 1]]
     for k, t in enumerate(types[1:], 1):
         if t == runs[-1][0]:
@@ -207,7 +215,13 @@ def _tau_along(P: np.ndarray, types: list[str]) -> tuple[np.ndarray, str]:
     tau[a0:a1 + 1] = (tail + arc[a0:a1 + 1] - arc[a0]) / mouth_len
     for k in range(1, 8):
         s0, s1 = runs[k][1], runs[k][2]
-        tau[s0:s1 + 1] = k + (arc[s0:s1 + 1] - arc[s0]) / (arc[s1] - arc[s0])
+        mid = np.nonzero(is_mid[s0 + 1:s1])[0]
+        if names[k] == "c" and len(mid):
+            sm = s0 + 1 + int(mid[0])
+            tau[s0:sm + 1] = k + 0.5 * (arc[s0:sm + 1] - arc[s0]) / (arc[sm] - arc[s0])
+            tau[sm:s1 + 1] = k + 0.5 + 0.5 * (arc[sm:s1 + 1] - arc[sm]) / (arc[s1] - arc[sm])
+        else:
+            tau[s0:s1 + 1] = k + (arc[s0:s1 + 1] - arc[s0]) / (arc[s1] - arc[s0])
     tau[b0:b1 + 1] = 8.0 + (arc[b0:b1 + 1] - arc[b0]) / mouth_len
     return tau, names[3]
 
@@ -281,12 +295,6 @@ class EIPResult:
     untangled: int = 0
 
 
-def signed_areas(uv: np.ndarray, F: np.ndarray) -> np.ndarray:
-    """Signed area (F,) of each triangle in the plane (positive: counter-clockwise)."""
-    a, b, c = uv[F[:, 0]], uv[F[:, 1]], uv[F[:, 2]]
-    return 0.5 * ((b[:, 0] - a[:, 0]) * (c[:, 1] - a[:, 1]) - (c[:, 0] - a[:, 0]) * (b[:, 1] - a[:, 1]))
-
-
 def parameterise(V: np.ndarray, F: np.ndarray, loops: dict[str, np.ndarray], landmarks: np.ndarray | None = None,
                  domain: Domain | None = None) -> EIPResult:
     """EIP of a face with loops ``outer``, ``eye_r``, ``eye_l``, ``mouth`` (see the module
@@ -337,42 +345,6 @@ def parameterise(V: np.ndarray, F: np.ndarray, loops: dict[str, np.ndarray], lan
     f = np.zeros(len(V))
     f[mesh.src] = mesh.f
     return EIPResult(uv, f, tau, c, d, seam, int((signed_areas(uv, F) <= 0).sum()), moved)
-
-
-def untangle(uv: np.ndarray, F: np.ndarray, fixed: np.ndarray, rounds: int = 30) -> tuple[np.ndarray, int]:
-    """Local repair of folded triangles. Each free vertex of a flipped triangle moves into the
-    kernel of its one-ring: a 3-variable linear program (scipy HiGHS) maximises the smallest
-    signed area of its triangles (linear in its position), capped at the one-ring's mean
-    area; rounds repeat (Gauss-Seidel) until nothing is flipped. Needed where the mesh's hole
-    outline has a sharper corner than the domain's (the lip corners), where the integral
-    curves fan out across a few triangles. Returns the new uv (V, 2) and the number of
-    vertices moved."""
-    from scipy.optimize import linprog
-
-    uv = uv.copy()
-    vf = sp.csr_matrix((np.ones(F.size), (F.ravel(), np.repeat(np.arange(len(F)), 3))), shape=(len(uv), len(F)))
-    moved = set()
-    for _ in range(rounds):
-        bad = signed_areas(uv, F) <= 0
-        if not bad.any():
-            break
-        for v in np.unique(F[bad]):
-            if fixed[v]:
-                continue
-            tris = F[vf[v].indices]
-            k = np.argmax(tris == v, axis=1)  # rotate so that v comes first
-            b = uv[tris[np.arange(len(tris)), (k + 1) % 3]]
-            c = uv[tris[np.arange(len(tris)), (k + 2) % 3]]
-            # 2 area(x) = b x c + x_x (b_y - c_y) + x_y (c_x - b_x) >= t
-            A = np.stack([-(b[:, 1] - c[:, 1]), -(c[:, 0] - b[:, 0]), np.ones(len(b))], 1)
-            rhs = b[:, 0] * c[:, 1] - c[:, 0] * b[:, 1]
-            cap = float(np.abs(signed_areas(uv, tris)).mean()) * 2
-            res = linprog([0, 0, -1], A_ub=A, b_ub=rhs, bounds=[(None, None), (None, None), (None, cap)],
-                          method="highs")
-            if res.status == 0 and res.x[2] > 0:
-                uv[v] = res.x[:2]
-                moved.add(int(v))
-    return uv, len(moved)
 
 
 def harmonic_disk(V: np.ndarray, F: np.ndarray, outer: np.ndarray, start: int | None = None) -> np.ndarray:

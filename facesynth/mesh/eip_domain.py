@@ -12,6 +12,7 @@ from dataclasses import dataclass
 from functools import lru_cache
 
 import numpy as np
+import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
 from facesynth.errors import FacesynthError
@@ -55,7 +56,7 @@ class Domain:
         """Grid mesh of the domain (cells whose centre is in a hole removed, hole outline
         nodes moved radially onto the ellipse): ``V`` (n, 3) with z = 0, ``F``, ``loops``,
         ``c``, ``d``, ``seam``."""
-        from facesynth.mesh.laplacian import ordered_boundary_loops
+        from facesynth.mesh.laplacian import drop_ears, ordered_boundary_loops
 
         n = self.grid
         holes = self.holes()
@@ -67,7 +68,7 @@ class Domain:
         ii, jj = ii[~inside], jj[~inside]
         a, b = jj * (n + 1) + ii, jj * (n + 1) + ii + 1
         c, d = (jj + 1) * (n + 1) + ii + 1, (jj + 1) * (n + 1) + ii
-        F = np.concatenate([np.stack([a, b, c], 1), np.stack([a, c, d], 1)])
+        F = drop_ears(np.concatenate([np.stack([a, b, c], 1), np.stack([a, c, d], 1)]))
         used = np.unique(F)
         remap = np.full((n + 1) ** 2, -1, np.int64)
         remap[used] = np.arange(len(used))
@@ -86,6 +87,11 @@ class Domain:
                 q = np.sqrt((V[lp, 0] - cu) ** 2 / ru**2 + (V[lp, 1] - cv) ** 2 / rv**2)
                 V[lp, 0] = cu + (V[lp, 0] - cu) / q
                 V[lp, 1] = cv + (V[lp, 1] - cv) / q
+        # radial snapping can fold a thin triangle next to an outline: move the inner grid
+        # node beside it into its one-ring's kernel
+        fixed = np.zeros(len(V), bool)
+        fixed[np.concatenate(list(loops.values()))] = True
+        V[:, :2], _ = untangle(V[:, :2], F, fixed)
         er, el, mo = holes["eye_r"], holes["eye_l"], holes["mouth"]
         row = np.isclose(V[:, 1], er[1])
         c = np.nonzero(row & (V[:, 0] >= er[0] + er[2] - 1e-12) & (V[:, 0] <= el[0] - el[2] + 1e-12))[0]
@@ -159,3 +165,45 @@ def locate(ref, tau: np.ndarray, f: np.ndarray, k: int = 24) -> np.ndarray:
     w = np.clip(lam[rows, best], 0, None)
     w /= w.sum(1, keepdims=True)
     return np.einsum("nk,nkc->nc", w, X[T[cand[rows, best]]])
+
+
+def signed_areas(uv: np.ndarray, F: np.ndarray) -> np.ndarray:
+    """Signed area (F,) of each triangle in the plane (positive: counter-clockwise)."""
+    a, b, c = uv[F[:, 0]], uv[F[:, 1]], uv[F[:, 2]]
+    return 0.5 * ((b[:, 0] - a[:, 0]) * (c[:, 1] - a[:, 1]) - (c[:, 0] - a[:, 0]) * (b[:, 1] - a[:, 1]))
+
+
+def untangle(uv: np.ndarray, F: np.ndarray, fixed: np.ndarray, rounds: int = 30) -> tuple[np.ndarray, int]:
+    """Local repair of folded triangles. Each free vertex of a flipped triangle moves into the
+    kernel of its one-ring: a 3-variable linear program (scipy HiGHS) maximises the smallest
+    signed area of its triangles (linear in its position), capped at the one-ring's mean
+    area; rounds repeat (Gauss-Seidel) until nothing is flipped. Needed where the mesh's hole
+    outline has a sharper corner than the domain's (the lip corners), where the integral
+    curves fan out across a few triangles. Returns the new uv (V, 2) and the number of
+    vertices moved."""
+    from scipy.optimize import linprog
+
+    uv = uv.copy()
+    vf = sp.csr_matrix((np.ones(F.size), (F.ravel(), np.repeat(np.arange(len(F)), 3))), shape=(len(uv), len(F)))
+    moved = set()
+    for _ in range(rounds):
+        bad = signed_areas(uv, F) <= 0
+        if not bad.any():
+            break
+        for v in np.unique(F[bad]):
+            if fixed[v]:
+                continue
+            tris = F[vf[v].indices]
+            k = np.argmax(tris == v, axis=1)  # rotate so that v comes first
+            b = uv[tris[np.arange(len(tris)), (k + 1) % 3]]
+            c = uv[tris[np.arange(len(tris)), (k + 2) % 3]]
+            # 2 area(x) = b x c + x_x (b_y - c_y) + x_y (c_x - b_x) >= t
+            A = np.stack([-(b[:, 1] - c[:, 1]), -(c[:, 0] - b[:, 0]), np.ones(len(b))], 1)
+            rhs = b[:, 0] * c[:, 1] - c[:, 0] * b[:, 1]
+            cap = float(np.abs(signed_areas(uv, tris)).mean()) * 2
+            res = linprog([0, 0, -1], A_ub=A, b_ub=rhs, bounds=[(None, None), (None, None), (None, cap)],
+                          method="highs")
+            if res.status == 0 and res.x[2] > 0:
+                uv[v] = res.x[:2]
+                moved.add(int(v))
+    return uv, len(moved)

@@ -171,3 +171,16 @@ def ordered_boundary_loops(F: np.ndarray) -> list[np.ndarray]:
             v = nxt[v]
         loops.append(np.asarray(loop, np.int64))
     return sorted(loops, key=len, reverse=True)
+
+
+def drop_ears(F: np.ndarray) -> np.ndarray:
+    """Remove triangles with two or three boundary edges (the teeth of a cut along a distance
+    level or a staircase) until none is left."""
+    F = np.asarray(F, np.int64)
+    while True:
+        e = np.sort(np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]]), axis=1)
+        _, inv, cnt = np.unique(e, axis=0, return_inverse=True, return_counts=True)
+        nb = (cnt[inv.ravel()] == 1).reshape(3, -1).sum(0)
+        if not (nb >= 2).any():
+            return F
+        F = F[nb < 2]

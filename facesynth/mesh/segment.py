@@ -21,7 +21,7 @@ import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 
 from facesynth.errors import FacesynthError
-from facesynth.mesh.laplacian import edges, ordered_boundary_loops
+from facesynth.mesh.laplacian import drop_ears, edges, ordered_boundary_loops
 from facesynth.mesh.paths import closed_contour, edge_graph, geodesic_distance
 
 # 0-based iBUG-68 index ranges of the features (the subject's right eye is iBUG 37-42).
@@ -108,17 +108,6 @@ def _components(F: np.ndarray, cut: set[tuple[int, int]] | None = None) -> np.nd
     return connected_components(A, directed=False)[1]
 
 
-def _drop_ears(F: np.ndarray) -> np.ndarray:
-    """Remove triangles with two or three boundary edges (the teeth of a distance cut) until none is left."""
-    while True:
-        e = np.sort(np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]]), axis=1)
-        _, inv, cnt = np.unique(e, axis=0, return_inverse=True, return_counts=True)
-        nb = (cnt[inv.ravel()] == 1).reshape(3, -1).sum(0)
-        if not (nb >= 2).any():
-            return F
-        F = F[nb < 2]
-
-
 def _remove_inside(V: np.ndarray, F: np.ndarray, contour: np.ndarray, what: str) -> np.ndarray:
     """Faces kept after removing those enclosed by the closed vertex cycle ``contour``."""
     cut = {tuple(sorted((int(a), int(b)))) for a, b in zip(contour, np.roll(contour, -1), strict=True)}
@@ -193,7 +182,7 @@ def segment_face(vertices: np.ndarray, faces: np.ndarray, landmarks, radius: flo
     hit = lab[np.isin(Fk, feat).any(axis=1)]
     if len(hit) == 0:
         raise FacesynthError(f"radius {radius}: the features' triangles are not in the region")
-    Fk = _drop_ears(Fk[lab == np.bincount(hit).argmax()])
+    Fk = drop_ears(Fk[lab == np.bincount(hit).argmax()])
     Vc, Fc, kept, _ = _compact(V, Fk, np.arange(len(V)))
     local = np.full(len(V), -1, np.int64)
     local[kept] = np.arange(len(kept))
