@@ -108,13 +108,18 @@ def _components(F: np.ndarray, cut: set[tuple[int, int]] | None = None) -> np.nd
     return connected_components(A, directed=False)[1]
 
 
-def _remove_inside(V: np.ndarray, F: np.ndarray, contour: np.ndarray, what: str) -> np.ndarray:
-    """Faces kept after removing those enclosed by the closed vertex cycle ``contour``."""
+def _remove_inside(V: np.ndarray, F: np.ndarray, contour: np.ndarray, what: str,
+                   opening: np.ndarray | None = None) -> np.ndarray:
+    """Faces kept after removing those enclosed by the closed vertex cycle ``contour``: the
+    component (across edges not on the contour) touching the feature's existing ``opening``
+    loop if there is one, else the one nearest the contour's centroid."""
     cut = {tuple(sorted((int(a), int(b)))) for a, b in zip(contour, np.roll(contour, -1), strict=True)}
     lab = _components(F, cut)
-    centre = V[contour].mean(axis=0)
-    inner = lab[int(np.argmin(np.linalg.norm(V[F].mean(axis=1) - centre, axis=1)))]
-    inside = lab == inner
+    if opening is not None:
+        inside = np.isin(lab, np.unique(lab[np.isin(F, opening).any(axis=1)]))
+    else:
+        centre = V[contour].mean(axis=0)
+        inside = lab == lab[int(np.argmin(np.linalg.norm(V[F].mean(axis=1) - centre, axis=1)))]
     if inside.sum() * 2 > len(F) or not inside.any():
         raise FacesynthError(f"{what}: its landmark contour does not enclose a small patch of the mesh "
                              "(closed mouth or a contour running off the surface?)")
@@ -197,7 +202,11 @@ def segment_face(vertices: np.ndarray, faces: np.ndarray, landmarks, radius: flo
             if (lmc[ix] < 0).any():
                 raise FacesynthError(f"{name}: its landmarks fall outside radius {radius}")
             contour = closed_contour(edge_graph(Vc, Fc), lmc[ix])
-            Fc = _remove_inside(Vc, Fc, contour, name)
+            try:
+                Fc = _remove_inside(Vc, Fc, contour, name, loops.get(name))
+            except FacesynthError:
+                if name not in loops:
+                    raise  # else keep the existing opening (the contour crossed it or collapsed)
         Vc, Fc, kept2, used = _compact(Vc, Fc, kept)
         loc2 = np.full(len(kept), -1, np.int64)
         loc2[used] = np.arange(len(used))
