@@ -132,16 +132,25 @@ def test_harmonic_disk_baseline(face):
     assert (signed_areas(uv, region.faces) > 0).mean() > 0.99
 
 
-def test_sequence_maps_consistently_and_round_trips_through_the_codec(tmp_path):
+def test_sequence_maps_consistently_and_round_trips_through_the_codec(tmp_path, capsys):
     from facesynth.cli import main
     from facesynth.codec.geometry import Quantiser, build_layout, sample_vertices
+    from facesynth.mesh.holes import punch_hole
 
     s = synthetic_face_sequence(25, 3)
+    cheek = int(np.argmin(np.linalg.norm(s["frames"][0][:, :2] - [-3.0, -0.6], axis=1)))
+    _, faces, kept = punch_hole(s["frames"][0], s["faces"], cheek, 0.9)  # a scan with a hole
+    local = np.full(len(s["frames"][0]), -1)
+    local[kept] = np.arange(len(kept))
+    s = {"frames": s["frames"][:, kept], "faces": faces, "landmarks": local[s["landmarks"]]}
     np.savez(tmp_path / "seq.npz", vertices=s["frames"], faces=s["faces"])
     np.save(tmp_path / "lm.npy", s["landmarks"])
     out = tmp_path / "v.npy"
+    capsys.readouterr()
     assert main(["codec", "scan", str(tmp_path / "seq.npz"), str(out), "--landmarks", str(tmp_path / "lm.npy"),
                  "--size", "64", "--radius", "3.0"]) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert report["holes_filled"] == [1, 1, 1] and report["flipped"] == [0, 0, 0]
     assert main(["codec", "encode", str(out), str(tmp_path / "v.fsgv"), "--qp", "12", "--gop", "3"]) == 0
     assert main(["codec", "decode", str(tmp_path / "v.fsgv"), str(tmp_path / "d.npy")]) == 0
     side = np.load(out.with_suffix(".scan.npz"))
@@ -150,8 +159,9 @@ def test_sequence_maps_consistently_and_round_trips_through_the_codec(tmp_path):
     errs = []
     for t in range(3):
         uv, faces, src = side[f"uv_{t}"], side[f"faces_{t}"], side[f"source_{t}"]
-        truth = s["frames"][t][src]
-        rec = sample_vertices(build_layout(faces, uv, 64), dec[t])
+        assert (src < 0).sum() > 0  # the patch vertices are in the region
+        truth = s["frames"][t][src[src >= 0]]
+        rec = sample_vertices(build_layout(faces, uv, 64), dec[t])[src >= 0]
         errs.append(np.linalg.norm(rec - truth, axis=1) / q.diag)
     errs = np.concatenate(errs)
     assert np.median(errs) < 2e-3 and np.percentile(errs, 99) < 2e-2 and errs.max() < 3e-2  # 64x64 + QP 12
@@ -205,3 +215,12 @@ def test_ict_expressions_segment_alike_and_map_bijectively(shared_mesh):
         assert len(kept[0] ^ other) / len(kept[0]) <= 0.01
     drift = uv_drift(frames, 256, skip_rings=3)
     assert drift["mean_px"] < 5.0
+    # a scan with two holes (cheek, brow) is filled, then parameterised bijectively
+    from facesynth.mesh.holes import punch_hole
+
+    V1, F1, kept = punch_hole(m["vertices"], m["faces"], 1200, 1.0)
+    V2, F2, k2 = punch_hole(V1, F1, int(np.nonzero(kept == lm[19])[0][0]), 0.8)
+    local = np.full(len(m["vertices"]), -1)
+    local[kept[k2]] = np.arange(len(k2))
+    fr = process_scan(V2, F2, local[lm])
+    assert fr.filled == 2 and fr.flipped == 0 and (fr.source < 0).sum() > 20
