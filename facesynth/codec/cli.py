@@ -3,6 +3,7 @@
 Sub-subcommands::
 
     facesynth codec geometry OUT.npy [--frames 30 --size 256]   ICT mesh -> uint16 video (+ OUT.mask.npy)
+    facesynth codec scan IN.npz|IN_*.obj OUT.npy --landmarks MAP.json   scans without UVs -> video
     facesynth codec encode IN.npy OUT.fsgv --qp N --modes hip|hip+pdp [--gop N]
     facesynth codec decode IN.fsgv OUT.npy
     facesynth codec rd [--input IN.npy] --qps 18,30,42,54 --plot rd.png
@@ -26,6 +27,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--frames", type=int, default=30)
     g.add_argument("--size", type=int, default=256)
     g.add_argument("--seed", type=int, default=0)
+
+    from facesynth.codec import scan_cli
+
+    s = sub.add_parser("scan", help="face scans without UVs: fill holes, segment, parameterise (EIP) -> "
+                       "uint16 geometry video .npy (+ .mask.npy, .scan.npz)")
+    scan_cli.add_arguments(s)
 
     e = sub.add_parser("encode", help="encode a uint16 (T, H, W, 3) .npy geometry video")
     e.add_argument("input", type=Path)
@@ -122,6 +129,10 @@ def run(args: argparse.Namespace) -> int:
     from facesynth.io import atomic_path, write_bytes, write_json
     from facesynth.metrics import psnr
 
+    if args.action == "scan":
+        from facesynth.codec import scan_cli
+
+        return scan_cli.run(args)
     if args.action == "geometry":
         vid, mask, q = _ict_video(args.frames, args.size, args.seed)
         with atomic_path(args.output) as tmp:

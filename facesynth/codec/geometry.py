@@ -274,6 +274,27 @@ def geometry_video(layout: UVLayout, frames: np.ndarray, quantiser: Quantiser | 
     return out, q
 
 
+def geometry_video_layouts(layouts: list[UVLayout], frames: list[np.ndarray], quantiser: Quantiser | None = None
+                           ) -> tuple[np.ndarray, Quantiser, np.ndarray]:
+    """A geometry video whose frames each have their own layout (scans of one sequence,
+    each parameterised on its own): ``frames[t]`` (V_t, 3) over ``layouts[t]``.
+
+    Returns the uint16 video (T, H, W, 3), the shared quantiser and the mask of the pixels
+    covered in every frame (H, W)."""
+    if len(layouts) != len(frames) or not layouts:
+        raise FacesynthError(f"geometry_video_layouts: {len(layouts)} layouts for {len(frames)} frames")
+    shape = (layouts[0].height, layouts[0].width)
+    if any((lay.height, lay.width) != shape for lay in layouts):
+        raise FacesynthError("geometry_video_layouts: every layout must have the same size")
+    q = quantiser or Quantiser.from_points(np.concatenate([np.asarray(f, np.float64) for f in frames]))
+    out = np.empty((len(frames), *shape, 3), np.uint16)
+    mask = np.ones(shape, bool)
+    for t, (lay, v) in enumerate(zip(layouts, frames, strict=True)):
+        out[t] = q.quantise(fill_outside(rasterise(lay, v), lay.mask))
+        mask &= lay.mask
+    return out, q, mask
+
+
 def vertex_solver(layout: UVLayout, eps: float = 1e-4):
     """Least-squares inverse of :func:`rasterise`: a callable (..., H, W, 3) -> (..., V, 3).
 

@@ -135,3 +135,52 @@ def distortion(V0: np.ndarray, V1: np.ndarray, F: np.ndarray) -> dict[str, float
         "area_mean": float(da.mean()), "area_p95": float(np.percentile(da, 95)),
         "flipped_fraction": float((np.einsum("ij,ij->i", n0, n1) < 0).mean()),
     }
+
+
+def lumped_mass(V: np.ndarray, F: np.ndarray) -> np.ndarray:
+    """Barycentric lumped mass (V,): a third of the area of each triangle at each of its corners."""
+    a = 0.5 * np.linalg.norm(face_normals(V, F, unit=False), axis=1)
+    return np.bincount(np.asarray(F).ravel(), np.repeat(a, 3), minlength=len(V))
+
+
+def ordered_boundary_loops(F: np.ndarray) -> list[np.ndarray]:
+    """Boundary loops as ordered vertex cycles (int64 arrays), longest first.
+
+    Each loop follows the direction of its boundary half-edges in ``F`` (edge ``a -> b`` of
+    the one triangle using it), so with consistently oriented faces the surface lies on the
+    left of every loop: the outer rim runs counter-clockwise seen from the normals' side and
+    a hole clockwise. Raises ValueError on a boundary vertex with more than one outgoing
+    boundary edge (a pinched, non-manifold boundary).
+    """
+    F = np.asarray(F, np.int64)
+    he = np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]])
+    key = np.sort(he, axis=1)
+    _, inv, count = np.unique(key, axis=0, return_inverse=True, return_counts=True)
+    bnd = he[count[inv.ravel()] == 1]
+    if len(np.unique(bnd[:, 0])) != len(bnd):
+        raise ValueError("pinched boundary: a vertex starts two boundary edges")
+    nxt = dict(zip(bnd[:, 0].tolist(), bnd[:, 1].tolist(), strict=True))
+    loops, seen = [], set()
+    for start in bnd[:, 0].tolist():
+        if start in seen:
+            continue
+        loop, v = [], start
+        while v not in seen:
+            seen.add(v)
+            loop.append(v)
+            v = nxt[v]
+        loops.append(np.asarray(loop, np.int64))
+    return sorted(loops, key=len, reverse=True)
+
+
+def drop_ears(F: np.ndarray) -> np.ndarray:
+    """Remove triangles with two or three boundary edges (the teeth of a cut along a distance
+    level or a staircase) until none is left."""
+    F = np.asarray(F, np.int64)
+    while True:
+        e = np.sort(np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]]), axis=1)
+        _, inv, cnt = np.unique(e, axis=0, return_inverse=True, return_counts=True)
+        nb = (cnt[inv.ravel()] == 1).reshape(3, -1).sum(0)
+        if not (nb >= 2).any():
+            return F
+        F = F[nb < 2]
