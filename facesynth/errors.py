@@ -12,8 +12,8 @@ class FacesynthError(Exception):
 class MissingExtraError(FacesynthError):
     """An optional dependency group is not installed."""
 
-    def __init__(self, extra: str, module: str):
+    def __init__(self, extra: str, module: str, install: str | None = None):
         super().__init__(
             f"the '{extra}' extra is needed for this ({module} is not installed): "
-            f"pip install 'facesynth[{extra}]'"
+            + (install or f"pip install 'facesynth[{extra}]'")
         )

@@ -2,12 +2,20 @@
 and the rigid subsets the methods align on.
 
 A landmark array is float32 (N, P, 2) of (x, y) pixel coordinates, 0-based, with P the
-scheme's ``n_points``. Today's scheme is iBUG 300-W's 68-point markup (dlib's shape
-predictor, the ``.pts`` files of the 300-W data); every module that needs to know which
-point is an eye corner or a lip takes the indices from here::
+scheme's ``n_points``. Two schemes are registered in :data:`SCHEMES`:
+
+* ``ibug68``: iBUG 300-W's 68-point markup (dlib's shape predictor, the ``.pts`` files of
+  the 300-W data); the module-level constants (``JAW``, ``EYES``, ...) are its regions;
+* ``mediapipe478``: MediaPipe Face Mesh with refined irises, 468 mesh points + 2 x 5 iris
+  points (index tables in :mod:`facesynth.landmark_tables`), with the canonical mesh's
+  fixed triangulation and an approximate mapping to ``ibug68`` (docs/landmarks.md).
+
+Every module that needs to know which point is an eye corner or a lip takes the indices
+from here::
 
     from facesynth.landmarks import IBUG68, EYES, INNER_LIPS
     lm[:, IBUG68.region("mouth")]
+    get_scheme("mediapipe478").to_ibug68(lm478)   # (..., 478, 2) -> (..., 68, 2)
 
 The rigid subsets differ on purpose: each method aligns on the points that its own input
 never moves (see the docstring of each constant). A new scheme is one more
@@ -21,6 +29,7 @@ from types import MappingProxyType
 
 import numpy as np
 
+from facesynth import landmark_tables as mp
 from facesynth.errors import FacesynthError
 
 # ------------------------------------------------------------ iBUG 300-W, 68 points
@@ -71,12 +80,20 @@ class LandmarkScheme:
     n_points : int, P in (N, P, 2)
     regions : mapping name -> tuple of 0-based point indices
     description : str, one line for error messages and docs
+    triangles : tuple of (a, b, c) index triples, or None
+        A fixed triangulation of the face (counter-clockwise in image axes, x right and
+        y down, on the canonical frontal face); None when it depends on the data
+        (``ibug68``: the face model triangulates the mean shape with Delaunay).
+    ibug68 : tuple of 68 index tuples, or None
+        iBUG point i = mean of this scheme's points ``ibug68[i]``; None when no mapping is known.
     """
 
     name: str
     n_points: int
     regions: MappingProxyType = field(repr=False)
     description: str = ""
+    triangles: tuple | None = field(default=None, repr=False)
+    ibug68: tuple | None = field(default=None, repr=False)
 
     def region(self, name: str) -> np.ndarray:
         """int64 indices of region ``name``; FacesynthError naming the known regions."""
@@ -87,11 +104,49 @@ class LandmarkScheme:
                                  f"(it has {', '.join(sorted(self.regions))})") from None
 
     def check(self, landmarks: np.ndarray, where: str) -> None:
-        """Raise FacesynthError unless ``landmarks`` is (..., n_points, 2)."""
+        """Raise FacesynthError unless ``landmarks`` is (..., n_points, 2); the message names
+        the scheme the array seems to be in (by point count) and how to map it."""
         shape = np.shape(landmarks)
         if len(shape) < 2 or tuple(shape[-2:]) != (self.n_points, 2):
             raise FacesynthError(f"{where}: landmarks must have shape (..., {self.n_points}, 2) "
-                                 f"({self.description}), got {tuple(shape)}")
+                                 f"({self.description}), got {tuple(shape)}{self.mismatch_hint(shape)}")
+
+    def mismatch_hint(self, shape: tuple) -> str:
+        """'; these look like <scheme> landmarks: map them with ...' for an array of another
+        registered scheme's point count, else ''."""
+        other = scheme_for_points(shape[-2]) if len(shape) >= 2 and shape[-1] == 2 else None
+        if other is None or other is self:
+            return ""
+        if self is IBUG68 and other.ibug68 is not None:
+            return (f"; these look like {other.name} landmarks: map them with "
+                    f"get_scheme({other.name!r}).to_ibug68(...) or load_sequence(path, scheme='ibug68')")
+        return f"; these look like {other.name} landmarks, which cannot be mapped to {self.name}"
+
+    def triangulation(self) -> np.ndarray:
+        """int64 (T, 3) fixed triangles; FacesynthError when the scheme has none."""
+        if self.triangles is None:
+            raise FacesynthError(f"landmark scheme {self.name!r} has no fixed triangulation "
+                                 "(triangulate its mean shape instead)")
+        return np.asarray(self.triangles, np.int64).reshape(-1, 3)
+
+    def ibug68_matrix(self) -> np.ndarray:
+        """float64 (68, n_points) averaging matrix: ibug = M @ points (rows sum to 1)."""
+        if self.ibug68 is None:
+            raise FacesynthError(f"landmark scheme {self.name!r} has no mapping to ibug68")
+        m = np.zeros((IBUG68.n_points, self.n_points))
+        for i, idx in enumerate(self.ibug68):
+            m[i, list(idx)] = 1.0 / len(idx)
+        return m
+
+    def to_ibug68(self, landmarks: np.ndarray) -> np.ndarray:
+        """(..., n_points, 2) landmarks -> float32 (..., 68, 2) iBUG points (identity for ibug68).
+
+        The mapping is approximate for other markups (see docs/landmarks.md for its error)."""
+        self.check(landmarks, f"{self.name} landmarks")
+        lm = np.asarray(landmarks)
+        if self is IBUG68:
+            return lm.astype(np.float32, copy=False)
+        return np.einsum("ip,...pc->...ic", self.ibug68_matrix(), lm.astype(np.float64)).astype(np.float32)
 
 
 IBUG68 = LandmarkScheme(
@@ -106,9 +161,37 @@ IBUG68 = LandmarkScheme(
         "rigid_fap": RIGID_FAP, "fap_anchors": FAP_ANCHORS, "pose": POSE_POINTS,
     }),
     description="iBUG 300-W 68 points, 0-based (0-16 jaw, 17-26 brows, 27-35 nose, 36-47 eyes, 48-67 mouth)",
+    ibug68=tuple((i,) for i in range(68)),
 )
 
-SCHEMES: dict[str, LandmarkScheme] = {IBUG68.name: IBUG68}
+# ------------------------------------------------------------ MediaPipe Face Mesh, 478 points
+MP_RIGID_INNER = mp.MP_NOSE_BRIDGE + (4, 75, 2, 305) + mp.MP_EYE_CORNERS
+"""The points of :data:`RIGID_INNER` in MediaPipe's markup (nose bridge and tip, alae,
+subnasale, eye corners): frame-to-frame head alignment."""
+
+MP_RIGID_NOSE_EYES = mp.MP_NOSE_BRIDGE + mp.MP_NOSE_LOWER + mp.MP_EYE_CORNERS
+"""The whole nose and the eye corners (as :data:`RIGID_NOSE_EYES`)."""
+
+MEDIAPIPE478 = LandmarkScheme(
+    name="mediapipe478",
+    n_points=478,
+    regions=MappingProxyType({
+        "face_oval": mp.MP_FACE_OVAL, "jaw": mp.MP_JAW,
+        "right_brow": mp.MP_RIGHT_BROW, "left_brow": mp.MP_LEFT_BROW, "brows": mp.MP_RIGHT_BROW + mp.MP_LEFT_BROW,
+        "nose_bridge": mp.MP_NOSE_BRIDGE, "nose_lower": mp.MP_NOSE_LOWER, "nose": mp.MP_NOSE_BRIDGE + mp.MP_NOSE_LOWER,
+        "right_eye": mp.MP_RIGHT_EYE, "left_eye": mp.MP_LEFT_EYE, "eyes": mp.MP_RIGHT_EYE + mp.MP_LEFT_EYE,
+        "right_iris": mp.MP_RIGHT_IRIS, "left_iris": mp.MP_LEFT_IRIS, "irises": mp.MP_RIGHT_IRIS + mp.MP_LEFT_IRIS,
+        "iris_centres": (mp.MP_RIGHT_IRIS[0], mp.MP_LEFT_IRIS[0]),
+        "outer_lips": mp.MP_OUTER_LIPS, "inner_lips": mp.MP_INNER_LIPS, "mouth": mp.MP_OUTER_LIPS + mp.MP_INNER_LIPS,
+        "mesh": tuple(range(468)),
+        "eye_corners": mp.MP_EYE_CORNERS, "rigid_inner": MP_RIGID_INNER, "rigid_nose_eyes": MP_RIGID_NOSE_EYES,
+    }),
+    description="MediaPipe Face Mesh 478 points, 0-based (0-467 mesh, 468-472 right iris, 473-477 left iris)",
+    triangles=mp.MP_TRIANGLES,
+    ibug68=mp.IBUG68_FROM_MP478,
+)
+
+SCHEMES: dict[str, LandmarkScheme] = {s.name: s for s in (IBUG68, MEDIAPIPE478)}
 DEFAULT_SCHEME = IBUG68
 N_LANDMARKS = IBUG68.n_points
 
@@ -119,6 +202,24 @@ def get_scheme(name: str) -> LandmarkScheme:
         return SCHEMES[name]
     except KeyError:
         raise FacesynthError(f"unknown landmark scheme {name!r} (known: {', '.join(sorted(SCHEMES))})") from None
+
+
+def scheme_for_points(n_points: int) -> LandmarkScheme | None:
+    """The registered scheme with ``n_points`` points, or None (point counts are unique)."""
+    return next((s for s in SCHEMES.values() if s.n_points == n_points), None)
+
+
+def folded_triangles(landmarks: np.ndarray, triangles: np.ndarray, reference: np.ndarray | None = None) -> np.ndarray:
+    """bool (..., T): the fold check of a fixed triangulation. A triangle of ``landmarks``
+    (..., P, 2) is folded when its orientation differs from that in ``reference`` (P, 2),
+    or, without a reference, when its signed area (b - a) x (c - a) in image axes is not
+    positive (the orientation of :attr:`LandmarkScheme.triangles`); degenerate ones count."""
+    def signed_area(p):
+        a, b, c = (p[..., triangles[:, k], :] for k in range(3))
+        return (b[..., 0] - a[..., 0]) * (c[..., 1] - a[..., 1]) - (b[..., 1] - a[..., 1]) * (c[..., 0] - a[..., 0])
+
+    ref = 1.0 if reference is None else np.sign(signed_area(np.asarray(reference, np.float64)))
+    return signed_area(np.asarray(landmarks, np.float64)) * ref <= 0
 
 
 def inter_ocular(landmarks: np.ndarray) -> np.ndarray:

@@ -64,6 +64,7 @@ def test_cli_reproduces_shipped_landmarks(shared_clip_dir, tmp_path, capsys):
     assert meta["video"]["frames"] == shipped["video"]["frames"]
     assert meta["video"]["file"] == "video.mp4" and (out / "video.mp4").stat().st_size == (clip / "video.mp4").stat().st_size
     assert meta["landmarks"]["shape"] == [40, 68, 2] and meta["stats"]["detection_rate"] == 1.0
+    assert meta["landmarks"]["scheme"] == "ibug68" and summary["scheme"] == "ibug68"
     assert "dlib" in meta["detector_versions"]
     # .pts: one per frame, 1-based on disk, read back 0-based
     assert len(list((out / "pts").glob("*.pts"))) == 40
@@ -71,7 +72,7 @@ def test_cli_reproduces_shipped_landmarks(shared_clip_dir, tmp_path, capsys):
     assert (out / "pts" / "000007.pts").read_text().splitlines()[3] == f"{lm[7, 0, 0] + 1:.3f} {lm[7, 0, 1] + 1:.3f}"
     # readable by the data layer; frames decode from the copied video
     seq = load_sequence(out)
-    assert len(seq) == 40 and seq.meta["source_sha256"] == meta["video"]["sha256"]
+    assert len(seq) == 40 and seq.meta["source_sha256"] == meta["video"]["sha256"] and seq.scheme == "ibug68"
     cap = cv2.VideoCapture(str(clip / "video.mp4"))
     ok, bgr = cap.read()
     np.testing.assert_array_equal(seq.frame(0), cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB))

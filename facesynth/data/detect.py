@@ -97,6 +97,8 @@ class Detections:
         int (T,) number of faces the detector returned (0 for reused/missed boxes).
     timing_s : dict
         Total seconds spent in ``detect`` and ``landmarks``.
+    source_names : tuple of str
+        The sources this landmarker reports (``SOURCES`` for dlib).
     """
 
     landmarks: np.ndarray
@@ -104,9 +106,10 @@ class Detections:
     sources: list[str]
     n_faces: np.ndarray
     timing_s: dict = field(default_factory=dict)
+    source_names: tuple = SOURCES
 
     def counts(self) -> dict[str, int]:
-        return {s: int(sum(1 for x in self.sources if x == s)) for s in SOURCES}
+        return {s: int(sum(1 for x in self.sources if x == s)) for s in self.source_names}
 
     @property
     def n_processed(self) -> int:

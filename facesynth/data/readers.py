@@ -6,8 +6,14 @@ hidden (y, x) convention: everything here is (x, y), 0-based).
 * a folder in the ingest layout (``landmarks.npy`` + ``meta.json`` + a video), the
   layout written by ``facesynth ingest`` and used by ``shared/data/faces/<clip>``;
 * a folder of images each with a ``.pts`` file of the same stem;
-* a ``.npy`` array (T, 68, 2) of landmarks (landmark-only sequence);
-* a ``.npz`` archive with ``landmarks`` (T, 68, 2) and optionally ``frames`` (T, H, W, 3) uint8.
+* a ``.npy`` array (T, P, 2) of landmarks (landmark-only sequence);
+* a ``.npz`` archive with ``landmarks`` (T, P, 2) and optionally ``frames`` (T, H, W, 3) uint8.
+
+The landmark scheme is ``meta.json``'s ``landmarks.scheme`` in the ingest layout; without
+it (the shipped clips, bare arrays, .pts) it is the registered scheme with P points
+(68 -> ``ibug68``, 478 -> ``mediapipe478``). ``scheme=`` asks for a scheme: landmarks
+already in it load as they are, others are mapped when a mapping exists (478 -> 68,
+approximate: docs/landmarks.md) and are an error otherwise.
 """
 
 from __future__ import annotations
@@ -24,6 +30,7 @@ from facesynth.data.pts import read_pts, write_pts
 from facesynth.data.sequence import FaceSequence, validate_landmarks
 from facesynth.errors import FacesynthError
 from facesynth.io import atomic_path
+from facesynth.landmarks import SCHEMES, get_scheme, scheme_for_points
 
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
 
@@ -53,25 +60,64 @@ def register_writer(*extensions: str):
     return deco
 
 
-def load_sequence(path: str | os.PathLike) -> FaceSequence:
-    """Read a :class:`FaceSequence` from ``path``, choosing the reader by extension."""
+def load_sequence(path: str | os.PathLike, scheme: str | None = None) -> FaceSequence:
+    """Read a :class:`FaceSequence` from ``path``, choosing the reader by extension.
+
+    ``scheme``: None keeps the stored landmark scheme (``seq.scheme``); a name maps the
+    landmarks to it (:meth:`FaceSequence.to_scheme`), e.g. ``scheme="ibug68"`` gives every
+    68-point stage a 478-point folder."""
     path = Path(path)
+    if scheme is not None:
+        get_scheme(scheme)  # an unknown name fails before any reading
     if not path.exists():
         raise FacesynthError(f"{path}: no such file or folder")
     key = "/" if path.is_dir() else path.suffix.lower()
     if key not in READERS:
         raise FacesynthError(f"{path}: unknown format '{key}' (readable: {', '.join(sorted(READERS))})")
-    return READERS[key](path)
+    seq = READERS[key](path)
+    return seq if scheme is None else seq.to_scheme(scheme)
 
 
-def load_landmarks(path: str | os.PathLike) -> np.ndarray:
-    """Landmarks (T, 68, 2) float32 from any readable source (NaN rows kept)."""
+def load_landmarks(path: str | os.PathLike, scheme: str | None = None) -> np.ndarray:
+    """Landmarks (T, P, 2) float32 from any readable source (NaN rows kept), in their
+    stored scheme or mapped to ``scheme`` (see :func:`load_sequence`)."""
     path = Path(path)
+    meta_file = None
     if path.is_dir() and (path / "landmarks.npy").is_file():
-        path = path / "landmarks.npy"
-    if path.suffix.lower() == ".npy":
-        return validate_landmarks(_np_load(path), str(path), allow_nan_rows=True)
-    return load_sequence(path).landmarks
+        meta_file, path = path / "meta.json", path / "landmarks.npy"
+    if path.suffix.lower() != ".npy":
+        return load_sequence(path, scheme).landmarks
+    arr = _np_load(path)
+    stored = stored_scheme(_read_meta(meta_file) if meta_file is not None and meta_file.is_file() else {}, arr, str(path))
+    lm = validate_landmarks(arr, str(path), allow_nan_rows=True, scheme=stored)
+    if scheme is None or scheme == stored:
+        return lm
+    return FaceSequence(lm, np.arange(len(lm)), name=path.parent.name, scheme=stored).to_scheme(scheme).landmarks
+
+
+def stored_scheme(meta: dict, landmarks: np.ndarray, where: str) -> str:
+    """The scheme of stored landmarks: ``meta['landmarks']['scheme']`` when recorded (and
+    consistent with the array), else the registered scheme with that many points."""
+    rec = meta.get("landmarks", {}).get("scheme") if isinstance(meta.get("landmarks"), dict) else None
+    shape = np.shape(landmarks)
+    if rec is not None:
+        get_scheme(rec).check(landmarks, where)
+        return rec
+    found = scheme_for_points(shape[-2]) if len(shape) >= 2 and shape[-1] == 2 else None
+    if found is None:
+        known = " or ".join(f"(N, {s.n_points}, 2) ({s.name})" for s in SCHEMES.values())
+        raise FacesynthError(f"{where}: landmarks must have shape {known}, got {tuple(shape)}")
+    return found.name
+
+
+def _read_meta(path: Path) -> dict:
+    try:
+        meta = json.loads(path.read_text())
+    except json.JSONDecodeError as exc:
+        raise FacesynthError(f"{path}: invalid JSON ({exc})") from None
+    if not isinstance(meta, dict):
+        raise FacesynthError(f"{path}: expected a JSON object")
+    return meta
 
 
 def save_landmarks(path: str | os.PathLike, landmarks: np.ndarray) -> None:
@@ -80,7 +126,8 @@ def save_landmarks(path: str | os.PathLike, landmarks: np.ndarray) -> None:
     key = "/" if (path.is_dir() or not path.suffix) else path.suffix.lower()
     if key not in WRITERS:
         raise FacesynthError(f"{path}: no landmark writer for '{key}' (writable: {', '.join(sorted(WRITERS))})")
-    WRITERS[key](path, validate_landmarks(landmarks, str(path), allow_nan_rows=True))
+    lm = np.asarray(landmarks)
+    WRITERS[key](path, validate_landmarks(lm, str(path), allow_nan_rows=True, scheme=stored_scheme({}, lm, str(path))))
 
 
 def _np_load(path: Path):
@@ -92,7 +139,9 @@ def _np_load(path: Path):
 
 @register_reader(".npy")
 def _read_npy(path: Path) -> FaceSequence:
-    return FaceSequence.from_arrays(_np_load(path), where=str(path), name=path.stem, meta={"source": str(path)})
+    lm = _np_load(path)
+    return FaceSequence.from_arrays(lm, where=str(path), name=path.stem, meta={"source": str(path)},
+                                    scheme=stored_scheme({}, lm, str(path)))
 
 
 @register_reader(".npz")
@@ -102,7 +151,9 @@ def _read_npz(path: Path) -> FaceSequence:
         raise FacesynthError(f"{path}: .npz must hold an array named 'landmarks' (T, 68, 2); found {z.files}")
     frames = ArrayFrames(z["frames"]) if "frames" in z.files else None
     fps = float(z["fps"]) if "fps" in z.files else 30.0
-    return FaceSequence.from_arrays(z["landmarks"], frames, where=str(path), name=path.stem, fps=fps, meta={"source": str(path)})
+    lm = z["landmarks"]
+    return FaceSequence.from_arrays(lm, frames, where=str(path), name=path.stem, fps=fps, meta={"source": str(path)},
+                                    scheme=stored_scheme({}, lm, str(path)))
 
 
 @register_reader("/")
@@ -116,12 +167,7 @@ def _read_folder(path: Path) -> FaceSequence:
 
 
 def _read_ingest_folder(path: Path) -> FaceSequence:
-    meta: dict = {}
-    if (path / "meta.json").is_file():
-        try:
-            meta = json.loads((path / "meta.json").read_text())
-        except json.JSONDecodeError as exc:
-            raise FacesynthError(f"{path / 'meta.json'}: invalid JSON ({exc})") from None
+    meta = _read_meta(path / "meta.json") if (path / "meta.json").is_file() else {}
     video = meta.get("video", {}) if isinstance(meta.get("video"), dict) else {}
     candidates = [path / video["file"]] if video.get("file") else []
     if video.get("path"):
@@ -133,9 +179,8 @@ def _read_ingest_folder(path: Path) -> FaceSequence:
     meta = {**meta, "source": str(path)}
     if video.get("sha256"):
         meta["source_sha256"] = video["sha256"]
-    return FaceSequence.from_arrays(
-        _np_load(path / "landmarks.npy"), frames, where=str(path / "landmarks.npy"), name=path.name, fps=fps, meta=meta
-    )
+    lm, where = _np_load(path / "landmarks.npy"), str(path / "landmarks.npy")
+    return FaceSequence.from_arrays(lm, frames, where=where, name=path.name, fps=fps, meta=meta, scheme=stored_scheme(meta, lm, where))
 
 
 def _read_pts_folder(path: Path, pts: list[Path]) -> FaceSequence:
@@ -145,8 +190,10 @@ def _read_pts_folder(path: Path, pts: list[Path]) -> FaceSequence:
         if img is None:
             raise FacesynthError(f"{p}: no image with the same name ({'/'.join(IMAGE_EXTENSIONS)})")
         images.append(img)
-    lm = np.stack([read_pts(p) for p in pts])
-    return FaceSequence.from_arrays(lm, ImageFiles(images), where=str(path), name=path.name, meta={"source": str(path)})
+    first = read_pts(pts[0], n_points=None)
+    lm = np.stack([first] + [read_pts(p, n_points=len(first)) for p in pts[1:]])
+    return FaceSequence.from_arrays(lm, ImageFiles(images), where=str(path), name=path.name, meta={"source": str(path)},
+                                    scheme=stored_scheme({}, lm, str(path)))
 
 
 @register_writer(".npy")

@@ -1,4 +1,5 @@
-"""``FaceSequence``: the frames and 68-point landmarks of one subject."""
+"""``FaceSequence``: the frames and landmarks of one subject, in one landmark scheme
+(``ibug68`` by default, or ``mediapipe478``; see facesynth/landmarks.py)."""
 
 from __future__ import annotations
 
@@ -10,32 +11,35 @@ import numpy as np
 
 from facesynth.data.frames import FrameSource
 from facesynth.errors import FacesynthError
-from facesynth.landmarks import DEFAULT_SCHEME, N_LANDMARKS
+from facesynth.landmarks import DEFAULT_SCHEME, get_scheme
 from facesynth.provenance import array_fingerprint
 
 log = logging.getLogger(__name__)
 
 
 
-def validate_landmarks(landmarks: np.ndarray, where: str, allow_nan_rows: bool = False) -> np.ndarray:
-    """Check and convert landmarks to float32 (N, 68, 2).
+def validate_landmarks(landmarks: np.ndarray, where: str, allow_nan_rows: bool = False, scheme: str = DEFAULT_SCHEME.name) -> np.ndarray:
+    """Check and convert landmarks to float32 (N, P, 2), P the point count of ``scheme``.
 
     Parameters
     ----------
     landmarks : array-like
-        (N, 68, 2) or a single (68, 2) frame, (x, y) pixels.
+        (N, P, 2) or a single (P, 2) frame, (x, y) pixels.
     where : str
         File or field name used in error messages.
     allow_nan_rows : bool
         Whether whole-frame NaN rows (frames without a face) are allowed.
+    scheme : str
+        Landmark scheme name (``ibug68``: the 68-point stages' only input). Landmarks of
+        another scheme are an error that says how to map them.
     """
     lm = np.asarray(landmarks)
     if lm.ndim == 2:
         lm = lm[None]
-    if lm.ndim != 3 or lm.shape[1:] != (N_LANDMARKS, 2):
-        raise FacesynthError(
-            f"{where}: landmarks must have shape (N, {N_LANDMARKS}, 2) ({DEFAULT_SCHEME.description}), got {lm.shape}"
-        )
+    sch = get_scheme(scheme)
+    if lm.ndim != 3 or lm.shape[1:] != (sch.n_points, 2):
+        raise FacesynthError(f"{where}: landmarks must have shape (N, {sch.n_points}, 2) ({sch.description}), "
+                             f"got {lm.shape}{sch.mismatch_hint(lm.shape)}")
     if not np.issubdtype(lm.dtype, np.number):
         raise FacesynthError(f"{where}: landmarks must be numeric, got dtype {lm.dtype}")
     lm = lm.astype(np.float32, copy=False)
@@ -59,8 +63,9 @@ class FaceSequence:
     Attributes
     ----------
     landmarks : np.ndarray
-        float32 (N, 68, 2), (x, y) pixels, 0-based iBUG order; never NaN (frames without
-        a face are dropped on loading and counted in ``meta['dropped_frames']``).
+        float32 (N, P, 2), (x, y) pixels, 0-based, in the order of ``scheme`` (P = 68 for
+        ``ibug68``, 478 for ``mediapipe478``); never NaN (frames without a face are dropped
+        on loading and counted in ``meta['dropped_frames']``).
     frame_index : np.ndarray
         int64 (N,): each row's frame number in ``frames`` (the original video).
     frames : FrameSource or None
@@ -69,6 +74,8 @@ class FaceSequence:
     name : str
     meta : dict
         Free-form provenance (source file, detector, ...).
+    scheme : str
+        Landmark scheme name (facesynth/landmarks.py ``SCHEMES``).
     """
 
     landmarks: np.ndarray
@@ -77,6 +84,7 @@ class FaceSequence:
     fps: float = 30.0
     name: str = "sequence"
     meta: dict = field(default_factory=dict)
+    scheme: str = DEFAULT_SCHEME.name
 
     @classmethod
     def from_arrays(
@@ -87,8 +95,9 @@ class FaceSequence:
         where: str = "landmarks",
         **kwargs,
     ) -> "FaceSequence":
-        """Validate landmarks (T, 68, 2), drop NaN frames (logged), and build a sequence."""
-        lm = validate_landmarks(landmarks, where, allow_nan_rows=True)
+        """Validate landmarks (T, P, 2) of ``scheme`` (keyword, default ``ibug68``), drop NaN
+        frames (logged), and build a sequence."""
+        lm = validate_landmarks(landmarks, where, allow_nan_rows=True, scheme=kwargs.get("scheme", DEFAULT_SCHEME.name))
         if frames is not None and len(frames) and len(frames) < len(lm):
             raise FacesynthError(f"{where}: {len(lm)} landmark frames but only {len(frames)} image frames")
         keep = np.isfinite(lm).all(axis=(1, 2))
@@ -139,4 +148,28 @@ class FaceSequence:
     def subset(self, rows: Sequence[int]) -> "FaceSequence":
         """A sequence of the given rows (frames stay lazily referenced)."""
         rows = np.asarray(rows)
-        return FaceSequence(self.landmarks[rows], self.frame_index[rows], self.frames, self.fps, self.name, dict(self.meta))
+        return FaceSequence(self.landmarks[rows], self.frame_index[rows], self.frames, self.fps, self.name, dict(self.meta),
+                            self.scheme)
+
+    def require_scheme(self, scheme: str, stage: str) -> None:
+        """FacesynthError unless the landmarks are in ``scheme`` (for stages that take one scheme
+        only), naming the mapping when there is one."""
+        if self.scheme == scheme:
+            return
+        how = (f": map it with seq.to_scheme('{scheme}') or load_sequence(path, scheme='{scheme}')"
+               if scheme == "ibug68" and get_scheme(self.scheme).ibug68 is not None else "")
+        raise FacesynthError(f"{self.name}: {stage} takes {scheme} landmarks, this sequence has {self.scheme}{how}")
+
+    def to_scheme(self, scheme: str) -> "FaceSequence":
+        """This sequence with its landmarks in ``scheme``: itself when already there; mapped
+        when a mapping exists (today: any scheme -> ``ibug68``, approximate, see
+        docs/landmarks.md); FacesynthError otherwise."""
+        if scheme == self.scheme:
+            return self
+        target, source = get_scheme(scheme), get_scheme(self.scheme)
+        if target.name != "ibug68" or source.ibug68 is None:
+            raise FacesynthError(f"{self.name}: {self.scheme} landmarks cannot be mapped to {scheme} "
+                                 "(only mappings to ibug68 exist)")
+        log.info("%s: %s landmarks mapped to ibug68 (approximate, see docs/landmarks.md)", self.name, self.scheme)
+        meta = {**self.meta, "mapped_from_scheme": self.scheme}
+        return FaceSequence(source.to_ibug68(self.landmarks), self.frame_index, self.frames, self.fps, self.name, meta, scheme)

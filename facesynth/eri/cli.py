@@ -48,7 +48,7 @@ def load_target(target, target_landmarks=None, target_frame: int | None = None) 
 
     path = Path(target)
     if path.is_dir():
-        seq = load_sequence(path)
+        seq = load_sequence(path, scheme="ibug68")
         if not seq.has_frames:
             raise FacesynthError(f"{path}: target folder has landmarks but no video/images")
         row = target_frame if target_frame is not None else select_neutral(seq.landmarks)[0]
@@ -64,7 +64,7 @@ def load_target(target, target_landmarks=None, target_frame: int | None = None) 
         raise FacesynthError(f"{path}: unreadable image")
     img = cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
     if target_landmarks:
-        lm = load_landmarks(target_landmarks)
+        lm = load_landmarks(target_landmarks, scheme="ibug68")
         row = target_frame or 0
         if not 0 <= row < len(lm) or not np.isfinite(lm[row]).all():
             raise FacesynthError(f"{target_landmarks}: no valid landmarks at row {row}")
@@ -98,7 +98,7 @@ def run(args) -> int:
 
     model = EriModel.load(args.eri)
     image, landmarks, target_desc = load_target(args.target, args.target_landmarks, args.target_frame)
-    driver = load_sequence(args.driver)
+    driver = load_sequence(args.driver, scheme="ibug68")
     if args.driver_neutral is not None:
         if not 0 <= args.driver_neutral < len(driver):
             raise FacesynthError(f"--driver-neutral {args.driver_neutral} is outside {args.driver} (0..{len(driver) - 1})")

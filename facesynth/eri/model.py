@@ -80,6 +80,7 @@ class EriModel:
         the driver (``driver="auto"``) and the grid search; final regressors use all rows.
         """
         cfg = EriConfig.from_dict(config)
+        seq.require_scheme("ibug68", "ERI")
         rows = np.arange(len(seq)) if rows is None else np.asarray(rows)
         if len(rows) < 10:
             raise FacesynthError(f"{seq.name}: ERI training needs at least 10 frames, got {len(rows)}")

@@ -62,7 +62,7 @@ def _frames_and_fps(args) -> tuple:
         vf = VideoFrames(video)
         return vf, vf.fps or 30.0
     try:
-        seq = load_sequence(lp)
+        seq = load_sequence(lp, scheme="ibug68")
     except FacesynthError:
         return None, 30.0
     return seq.frames, float(seq.fps or 30.0)
@@ -104,7 +104,7 @@ def run(args: argparse.Namespace) -> int:
         raise FacesynthError("--stride must be >= 1")
     mesh = load_mesh(args.mesh)
     lmap = load_landmark_map(args.landmark_map, len(mesh.vertices))
-    lm = load_landmarks(args.landmarks)
+    lm = load_landmarks(args.landmarks, scheme="ibug68")
     rows = np.arange(0, len(lm), args.stride)
     if args.max_frames is not None:
         rows = rows[: args.max_frames]

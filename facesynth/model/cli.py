@@ -30,7 +30,7 @@ def run(args: argparse.Namespace) -> int:
 
         seq = make_synthetic_sequence(240, 256, seed=args.seed)
     else:
-        seq = load_sequence(args.data)
+        seq = load_sequence(args.data, scheme="ibug68")  # the face model takes 68 points: a 478-point folder is mapped
     tr, te = temporal_split(len(seq), args.train_fraction)
     cfg = FaceModelConfig(shape_variance=args.shape_variance, appearance_variance=args.appearance_variance,
                           reference_width=args.reference_width, grey=args.grey)

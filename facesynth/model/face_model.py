@@ -87,6 +87,7 @@ class FaceModel:
     ) -> tuple["FaceModel", np.ndarray]:
         """:meth:`fit`, also returning the training textures (len(rows), C * M) it sampled."""
         cfg = config or FaceModelConfig()
+        seq.require_scheme("ibug68", "the face model")
         rows = np.arange(len(seq)) if rows is None else np.asarray(rows)
         if len(rows) < 3:
             raise FacesynthError(f"{seq.name}: need at least 3 frames to fit a face model, got {len(rows)}")

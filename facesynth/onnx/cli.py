@@ -51,7 +51,7 @@ def run(args: argparse.Namespace) -> int:
         summary = export_eri_model(args.run, args.out, args.target, args.target_landmarks, args.target_frame,
                                    args.variant, args.raw_ratios, args.opset, not args.no_check)
     else:
-        lm = load_landmarks(args.landmarks) if args.landmarks else None
+        lm = load_landmarks(args.landmarks, scheme="ibug68") if args.landmarks else None
         comps = DEFAULT_COMPONENTS if args.components is None else args.components
         summary = export_model(args.run, args.out, args.opset, comps, args.predicted_variance, lm, not args.no_check,
                                args.basis)

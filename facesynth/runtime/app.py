@@ -183,7 +183,7 @@ def run(args: argparse.Namespace) -> int:
         from facesynth.data.readers import load_landmarks
 
         video_fps = None
-        landmarks = load_landmarks(args.landmarks)
+        landmarks = load_landmarks(args.landmarks, scheme="ibug68")
         if args.max_frames:
             landmarks = landmarks[: args.max_frames]
         if args.driver_video:
