@@ -12,6 +12,7 @@ hidden (y, x) convention: everything here is (x, y), 0-based).
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 from pathlib import Path
@@ -115,13 +116,33 @@ def _read_folder(path: Path) -> FaceSequence:
     raise FacesynthError(f"{path}: folder has neither landmarks.npy (ingest layout) nor .pts files")
 
 
+def array_sha256(a: np.ndarray) -> str:
+    """SHA-256 of an array's dtype, shape and bytes (``facesynth ingest`` records it in
+    meta.json; loading checks it, so landmarks and meta from different runs never pair)."""
+    a = np.ascontiguousarray(a)
+    return hashlib.sha256(f"{a.dtype.str}{a.shape}".encode() + a.tobytes()).hexdigest()
+
+
+def _check_ingest_pair(path: Path, lm: np.ndarray, meta: dict) -> None:
+    info = meta.get("landmarks") if isinstance(meta.get("landmarks"), dict) else {}
+    where = path / "landmarks.npy"
+    if "shape" in info and list(np.shape(lm)) != list(info["shape"]):
+        raise FacesynthError(f"{where}: shape {list(np.shape(lm))} differs from meta.json's {info['shape']} "
+                             "(the folder mixes files of two ingests)")
+    if info.get("sha256") and array_sha256(lm) != info["sha256"]:
+        raise FacesynthError(f"{where}: content differs from meta.json's landmarks SHA-256 "
+                             "(the folder mixes files of two ingests, or the landmarks were edited)")
+
+
 def _read_ingest_folder(path: Path) -> FaceSequence:
     meta: dict = {}
     if (path / "meta.json").is_file():
         try:
             meta = json.loads((path / "meta.json").read_text())
-        except json.JSONDecodeError as exc:
+        except (json.JSONDecodeError, UnicodeDecodeError) as exc:
             raise FacesynthError(f"{path / 'meta.json'}: invalid JSON ({exc})") from None
+        if not isinstance(meta, dict):
+            raise FacesynthError(f"{path / 'meta.json'}: expected a JSON object")
     video = meta.get("video", {}) if isinstance(meta.get("video"), dict) else {}
     candidates = [path / video["file"]] if video.get("file") else []
     if video.get("path"):
@@ -133,9 +154,9 @@ def _read_ingest_folder(path: Path) -> FaceSequence:
     meta = {**meta, "source": str(path)}
     if video.get("sha256"):
         meta["source_sha256"] = video["sha256"]
-    return FaceSequence.from_arrays(
-        _np_load(path / "landmarks.npy"), frames, where=str(path / "landmarks.npy"), name=path.name, fps=fps, meta=meta
-    )
+    lm = _np_load(path / "landmarks.npy")
+    _check_ingest_pair(path, lm, meta)
+    return FaceSequence.from_arrays(lm, frames, where=str(path / "landmarks.npy"), name=path.name, fps=fps, meta=meta)
 
 
 def _read_pts_folder(path: Path, pts: list[Path]) -> FaceSequence:

@@ -92,7 +92,8 @@ def regressor_schema(name: str) -> type:
         for f in dataclasses.fields(cfg):
             default = getattr(cfg, f.name)
             if isinstance(default, (list, tuple, dict)):
-                fields.append((f.name, _omegaconf_type(hints[f.name]), field(default_factory=lambda d=default: list(d) if isinstance(d, tuple) else d)))
+                factory = field(default_factory=lambda d=default: list(d) if isinstance(d, tuple) else d)
+                fields.append((f.name, _omegaconf_type(hints[f.name]), factory))
             else:
                 fields.append((f.name, hints[f.name], field(default=default)))
     return dataclasses.make_dataclass(f"{name.capitalize()}RegressorConf", fields)
@@ -109,7 +110,9 @@ def register_configs() -> None:
     cs = ConfigStore.instance()
     cs.store(name="train_schema", node=TrainConf)
     for name in REGISTRY:
-        cs.store(group="regressor", name=f"{name}_schema", node=regressor_schema(name))
+        # a group of their own: the ``regressor`` group lists only the yaml options (conf/regressor/NAME.yaml
+        # extends ``/regressor_schema/NAME``)
+        cs.store(group="regressor_schema", name=name, node=regressor_schema(name))
 
 
 def regressor_params(node) -> tuple[str, dict]:
