@@ -64,7 +64,7 @@ def run_training(cfg, out_dir: str | Path) -> dict:
     if cfg.model.kind != "aam":
         raise FacesynthError(f"model.kind must be 'aam' or 'eri', got {cfg.model.kind!r}")
     model, tex_tr = FaceModel.fit_with_textures(seq, _dataclass_from(cfg.model, FaceModelConfig), rows=tr)
-    if float(np.ptp(tex_tr)) == 0.0:
+    if float(np.ptp(tex_tr)) < 0.5 / 255:  # below half a grey level: float rounding of one colour
         raise FacesynthError(f"{seq.name}: the training frames have the same colour everywhere on the face "
                              "(a plain-colour video?): there is no appearance to learn")
     t1 = time.perf_counter()
@@ -84,7 +84,10 @@ def run_training(cfg, out_dir: str | Path) -> dict:
         "regressor_summary": sadm.regressor.summary(),
         **provenance,
     })
-    text = dumps_json(metrics)  # a figure that is not valid JSON fails here, before any artifact is written
+    try:  # a figure that is not valid JSON fails here, before any artifact is written
+        text = dumps_json(metrics)
+    except FacesynthError as exc:
+        raise FacesynthError(f"{out / METRICS}: {exc}") from None
     save_sadm(sadm, out, extra=provenance)  # face_model/ then sadm/ (its manifest, written last, pairs them)
     write_text(out / METRICS, text)
     plots = write_plots(metrics, extras, out / PLOTS)
