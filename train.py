@@ -15,6 +15,7 @@ from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
 from facesynth.errors import FacesynthError
+from facesynth.io import install_sigterm_handler
 from facesynth.runs.config import register_configs
 from facesynth.runs.rundir import summary_lines
 from facesynth.runs.training import run_training
@@ -28,6 +29,7 @@ _task_started = False  # set once Hydra has composed and validated the config
 def main(cfg: DictConfig) -> None:
     global _task_started
     _task_started = True
+    install_sigterm_handler()  # SIGTERM unwinds: temporary files are removed
     out_dir = HydraConfig.get().runtime.output_dir
     try:
         metrics = run_training(cfg, out_dir)

@@ -187,11 +187,11 @@ def read_header(data: bytes) -> tuple[StreamInfo, int]:
     _, ver, fl, c, depth, h, w, qp, gop, mvr, t, *bb = _HDR.unpack_from(data)
     if ver != VERSION or depth != 16 or c < 1 or h < 1 or w < 1 or gop < 1 or t < 1 or qp > QP_MAX:
         raise FacesynthError(f"bitstream: unsupported header (version {ver}, depth {depth}, {h}x{w}x{c})")
-    check_limits(t, h, w, c, "bitstream header")
     if fl & ~31 or mvr > 32:
         raise FacesynthError(f"bitstream: unsupported header (flags {fl}, motion range {mvr})")
     if (len(data) - _HDR.size - 4) < t * (_CHUNK.size + 3):
         raise FacesynthError(f"bitstream: truncated ({len(data)} bytes cannot hold {t} frames)")
+    check_limits(t, h, w, c, "bitstream header")
     if fl & 16 and not np.isfinite(bb).all():
         raise FacesynthError("bitstream: the header's bounding box is not finite")
     bbox = np.asarray(bb).reshape(2, 3) if fl & 16 else None

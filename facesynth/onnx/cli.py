@@ -69,7 +69,7 @@ def summary_json(summary: dict) -> str:
 def run(args: argparse.Namespace) -> int:
     from facesynth.data import load_landmarks  # lazy, as below: keeps --help fast (no torch)
 
-    check_args(args.out, args.opset)
+    check_args(args.out, args.opset)  # before reading --landmarks
 
     if args.target:
         summary = export_eri_model(args.run, args.out, args.target, args.target_landmarks, args.target_frame,
@@ -92,6 +92,7 @@ def export_model(run_dir, out, opset: int = OPSET, components: int | None = DEFA
     from facesynth.onnx.synthesis import check_export, export_run  # lazy: keeps --help fast (torch)
     from facesynth.runs.rundir import is_eri_run
 
+    check_args(out, opset)
     run_dir = Path(run_dir)
     if is_eri_run(run_dir):
         raise FacesynthError(f"{run_dir}: holds an ERI model only; pass --target IMAGE_OR_DIR to export it for a target face")
@@ -109,6 +110,7 @@ def export_eri_model(run_dir, out, target, target_landmarks=None, target_frame: 
     from facesynth.eri.cli import load_target  # lazy: keeps --help fast (torch)
     from facesynth.onnx.eri import check_eri_export, export_eri_run
 
+    check_args(out, opset)
     image, landmarks, desc = load_target(target, target_landmarks, target_frame)
     path, syn, meta = export_eri_run(run_dir, out, image, landmarks, variant, raw_ratios, opset)
     summary = {"out": str(path), "bytes": path.stat().st_size, "target": desc, **meta, "opset": opset}
