@@ -113,3 +113,42 @@ def test_row6_export_summary_is_strict_json():
     assert json.loads(summary_json({"a": 1.5})) == {"a": 1.5}
     with pytest.raises(FacesynthError, match="non-finite"):
         summary_json({"max_abs_diff_vs_torch": float("nan")})
+
+
+APP_UNDER_SIGTERM = """
+import sys
+import facesynth.runtime.app as app
+real = app.render_frames
+
+def slow(*a, **k):  # one real frame, then wait for the parent's signal (mid-write)
+    for frame in real(*a, **k):
+        yield frame
+        print("ready", flush=True)
+        sys.stdin.read()
+
+app.render_frames = slow
+from facesynth.cli import main
+sys.exit(main(sys.argv[1:]))
+"""
+
+
+def test_row11_sigterm_during_app_leaves_nothing(model_path, tmp_path):
+    import os
+    import signal
+    import subprocess
+    import sys
+
+    root = Path(__file__).resolve().parents[1]
+    np.save(tmp_path / "lm.npy", driving_landmarks(seed=4, n=3))
+    out = tmp_path / "out"
+    out.mkdir()
+    p = subprocess.Popen([sys.executable, "-c", APP_UNDER_SIGTERM, "app", "--model", str(model_path), "--landmarks",
+                          str(tmp_path / "lm.npy"), "--out", str(out / "v.mp4"), "--no-progress"],
+                         stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=root,
+                         env={**os.environ, "PYTHONPATH": str(root)})
+    assert p.stdout.readline().strip() == "ready"
+    assert len(_listing(out)) == 1 and _listing(out)[0].startswith(".v.mp4.facesynth-tmp-")  # mid-write
+    p.send_signal(signal.SIGTERM)
+    _, err = p.communicate(timeout=120)
+    assert p.returncode == 143 and "terminated" in err
+    assert _listing(out) == []
