@@ -145,9 +145,10 @@ def _check_parent(path: Path) -> None:
 
 
 def check_writable(path: str | os.PathLike, folder: bool = False) -> Path:
-    """Check, before any work, that ``path`` can be written (its parent exists or can be
-    created, is writable; the target is not a folder (``folder=False``) or not a file
-    (``folder=True``)). Creates the missing parents. Raises FacesynthError naming ``path``."""
+    """Check, before any work, that ``path`` can be written: the target is not a folder
+    (``folder=False``) or not a file (``folder=True``), and its nearest existing ancestor is
+    a writable folder (missing parents are created later, by the write itself, so a failed
+    run leaves no empty folders). Raises FacesynthError naming ``path``."""
     from facesynth.errors import FacesynthError
 
     path = Path(path)
@@ -155,7 +156,13 @@ def check_writable(path: str | os.PathLike, folder: bool = False) -> Path:
         raise FacesynthError(f"{path}: output exists and is not a folder")
     if not folder and path.is_dir():
         raise FacesynthError(f"{path}: output is an existing folder, expected a file name")
-    _check_parent(path)
+    parent = path.parent
+    while not parent.exists() and parent != parent.parent:
+        parent = parent.parent
+    if not parent.is_dir():
+        raise FacesynthError(f"{path}: cannot write here ({parent} is a file, not a folder)")
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise FacesynthError(f"{path}: cannot write here ({parent} is not writable)")
     return path
 
 

@@ -176,6 +176,7 @@ def run(args: argparse.Namespace) -> int:
     from facesynth.runtime.filters import smooth_landmarks
     from facesynth.runtime.renderer import Renderer
 
+    check_writable(args.out)  # before any decoding or rendering
     renderer = Renderer(args.model, threads=args.threads)
     driver_frames = None
     if args.video:
@@ -206,7 +207,6 @@ def run(args: argparse.Namespace) -> int:
         background = load_background(None, parse_size(args.size) if args.size else default_size(landmarks))
     h, w = background.shape[:2]
     check_in_frame(landmarks, (w, h), args.landmarks or "landmarks")  # before any rendering
-    check_writable(args.out)
     out_w = 2 * w if args.side_by_side else w
     n = len(landmarks)
     latencies: list = []
