@@ -4,7 +4,8 @@ Temporary files and folders are siblings of their target named
 ``.NAME.facesynth-tmp-PID-XXXXXXXX[.ext]``, so that they are recognisably ours. They are
 removed on any exception (the CLI turns SIGTERM into an exception, see
 :func:`install_sigterm_handler`); one left by a killed process (SIGKILL, power loss) is
-removed by the next write to the same target once its process is gone.
+removed by the next write into the same folder once its process is gone (each folder is
+scanned once per process).
 """
 
 from __future__ import annotations
@@ -35,25 +36,30 @@ def _pid_alive(pid: int) -> bool:
     return True
 
 
+_SCANNED: set[str] = set()  # folders already cleaned by this process (one scan each: writes of many files stay linear)
+
+
 def remove_stale_temps(path: str | os.PathLike) -> list[Path]:
-    """Remove temporary siblings of ``path`` left by dead facesynth processes; returns them."""
-    path = Path(path)
-    removed = []
-    if not path.parent.is_dir():
+    """Remove the temporary files and folders that dead facesynth processes left beside
+    ``path`` (in its folder); returns them. Each folder is scanned once per process."""
+    folder = Path(path).parent
+    key = os.path.abspath(folder)
+    removed: list[Path] = []
+    if key in _SCANNED or not folder.is_dir():
         return removed
-    prefix = _tmp_prefix(path)
-    for p in path.parent.glob(f"{glob_escape(prefix)}*"):
-        pid_text = p.name[len(prefix):].split("-", 1)[0]
+    _SCANNED.add(key)
+    for entry in os.scandir(folder):
+        name = entry.name
+        if not name.startswith(".") or TMP_TAG not in name:
+            continue
+        pid_text = name.split(TMP_TAG, 1)[1].split("-", 1)[0]
         if not pid_text.isdigit() or int(pid_text) == os.getpid() or _pid_alive(int(pid_text)):
             continue  # not ours, or a write in progress (this process's or a live one's)
+        p = Path(entry.path)
         with contextlib.suppress(OSError):
-            shutil.rmtree(p) if p.is_dir() and not p.is_symlink() else p.unlink()
+            shutil.rmtree(p) if entry.is_dir(follow_symlinks=False) else p.unlink()
             removed.append(p)
     return removed
-
-
-def glob_escape(text: str) -> str:
-    return "".join(f"[{c}]" if c in "*?[" else c for c in text)
 
 
 def _umask() -> int:

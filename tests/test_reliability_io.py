@@ -236,3 +236,15 @@ def test_row13_fewer_landmark_rows_than_frames_warns(fake_ingest, tmp_path, capl
     assert len(warnings) == 1 and "4 landmark rows for 6 video frames" in warnings[0]
     meta = json.loads((tmp_path / "a" / "meta.json").read_text())
     assert len(meta["landmarks"]["sha256"]) == 64
+
+
+def test_row8_read_only_folder_is_refused_before_any_work(fake_ingest, tmp_path, monkeypatch):
+    """As root (where permissions do not bite) the check is shown with os.access denied."""
+    import facesynth.io as fio
+    from facesynth.data.ingest import ingest_video
+
+    path, det, calls = fake_ingest
+    monkeypatch.setattr(fio.os, "access", lambda p, mode: Path(p) != tmp_path)
+    with pytest.raises(FacesynthError, match=f"{tmp_path} is not writable"):
+        ingest_video(path, tmp_path / "out", detector=det)
+    assert calls["n"] == 0 and _listing(tmp_path) == ["v.avi"]

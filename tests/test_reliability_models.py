@@ -165,3 +165,16 @@ def _umask() -> int:
     u = os.umask(0)
     os.umask(u)
     return u
+
+
+def test_row6_export_of_a_nan_model_fails_cleanly_and_writes_nothing(run_dir, tmp_path, capsys):
+    from facesynth.cli import main
+
+    d = _copy(run_dir, tmp_path / "run")
+    corrupt(d / "face_model" / "face_model.safetensors", "nan", np.random.default_rng(0))
+    out = tmp_path / "out"
+    out.mkdir()
+    assert main(["export", str(d), "--out", str(out / "m.onnx"), "--components", "0"]) == 2
+    err = capsys.readouterr().err
+    assert "NaN or infinite" in err and "face_model.safetensors" in err and err.count("\n") == 1
+    assert sorted(out.iterdir()) == []
