@@ -15,6 +15,7 @@ import json
 import os
 import time
 from pathlib import Path
+from typing import Callable, TypeVar
 
 import numpy as np
 from safetensors.numpy import load_file, save_file
@@ -23,6 +24,8 @@ from facesynth import __version__
 from facesynth.errors import FacesynthError
 from facesynth.io import atomic_path, write_json
 from facesynth.provenance import package_versions
+
+T = TypeVar("T")
 
 
 def _sha256(path: Path) -> str:
@@ -85,18 +88,38 @@ def read_manifest(directory: str | os.PathLike, manifest_file: str, fmt: str, ve
 
 
 def read_tensors(directory: str | os.PathLike, tensors_file: str, manifest: dict, what: str) -> dict[str, np.ndarray]:
-    """The arrays of ``directory/tensors_file``, checked against the manifest's SHA-256
-    (when it records one)."""
+    """The arrays of ``directory/tensors_file``, checked: the manifest records their SHA-256
+    (mandatory) and it matches; the file parses; every float tensor is finite."""
     path = Path(directory) / tensors_file
     if not path.is_file():
         raise FacesynthError(f"{path}: {what} tensors missing")
     want = manifest.get("tensors_sha256")
-    if want is not None and _sha256(path) != want:
+    if not isinstance(want, str) or len(want) != 64:
+        raise FacesynthError(f"{path}: the manifest records no valid 'tensors_sha256' for the {what} tensors "
+                             "(integrity cannot be checked; refit or re-save the model)")
+    if _sha256(path) != want:
         raise FacesynthError(f"{path}: {what} tensors altered or corrupt (SHA-256 differs from the manifest's)")
     try:
-        return load_file(str(path))
+        tensors = load_file(str(path))
     except Exception as exc:  # safetensors raises several types for corrupt files
         raise FacesynthError(f"{path}: unreadable {what} tensors ({exc})") from None
+    for name, arr in tensors.items():
+        if arr.dtype.kind in "fc" and not np.isfinite(arr).all():
+            raise FacesynthError(f"{path}: {what} tensor {name!r} holds NaN or infinite values")
+    return tensors
+
+
+def rebuild(path: str | os.PathLike, what: str, build: Callable[[], T]) -> T:
+    """``build()``, with the errors that tensors of the wrong shape, dtype or name raise
+    (KeyError, TypeError, ValueError, IndexError, RuntimeError) turned into one
+    FacesynthError naming ``path``."""
+    try:
+        return build()
+    except KeyError as exc:
+        raise FacesynthError(f"{path}: {what} tensor or field {exc} missing") from None
+    except (TypeError, ValueError, IndexError, RuntimeError) as exc:
+        first = str(exc).splitlines()[0][:200] if str(exc) else type(exc).__name__
+        raise FacesynthError(f"{path}: {what} tensors do not fit together ({first})") from None
 
 
 def manifest_field(manifest: dict, key: str, path: str | os.PathLike):

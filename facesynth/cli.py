@@ -13,6 +13,7 @@ import logging
 import sys
 
 from facesynth.errors import FacesynthError
+from facesynth.io import Terminated, install_sigterm_handler
 
 # name -> (module, one-line help). Keep in pipeline order.
 SUBCOMMANDS: dict[str, tuple[str, str]] = {
@@ -63,6 +64,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog=f"facesynth {name}", description=help_)
     module.add_arguments(parser)
     args = parser.parse_args(rest)
+    install_sigterm_handler()  # SIGTERM unwinds: temporary outputs are removed
     try:
         return int(module.run(args) or 0)
     except FacesynthError as exc:
@@ -71,3 +73,6 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130
+    except Terminated as exc:
+        print("terminated", file=sys.stderr)
+        return int(exc.code)

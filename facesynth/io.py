@@ -1,13 +1,71 @@
-"""Atomic file writing: outputs appear whole or not at all."""
+"""Atomic file writing: outputs appear whole or not at all.
+
+Temporary files and folders are siblings of their target named
+``.NAME.facesynth-tmp-PID-XXXXXXXX[.ext]``, so that they are recognisably ours. They are
+removed on any exception (the CLI turns SIGTERM into an exception, see
+:func:`install_sigterm_handler`); one left by a killed process (SIGKILL, power loss) is
+removed by the next write into the same folder once its process is gone (each folder is
+scanned once per process).
+"""
 
 from __future__ import annotations
 
 import contextlib
 import json
 import os
+import shutil
+import signal
 import tempfile
 from pathlib import Path
 from typing import Any, Iterator
+
+TMP_TAG = ".facesynth-tmp-"
+
+
+def _tmp_prefix(path: Path) -> str:
+    return f".{path.name}{TMP_TAG}"
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except (PermissionError, OSError):
+        return True
+    return True
+
+
+_SCANNED: set[str] = set()  # folders already cleaned by this process (one scan each: writes of many files stay linear)
+
+
+def remove_stale_temps(path: str | os.PathLike) -> list[Path]:
+    """Remove the temporary files and folders that dead facesynth processes left beside
+    ``path`` (in its folder); returns them. Each folder is scanned once per process."""
+    folder = Path(path).parent
+    key = os.path.abspath(folder)
+    removed: list[Path] = []
+    if key in _SCANNED or not folder.is_dir():
+        return removed
+    _SCANNED.add(key)
+    for entry in os.scandir(folder):
+        name = entry.name
+        if not name.startswith(".") or TMP_TAG not in name:
+            continue
+        pid_text = name.split(TMP_TAG, 1)[1].split("-", 1)[0]
+        if not pid_text.isdigit() or int(pid_text) == os.getpid() or _pid_alive(int(pid_text)):
+            continue  # not ours, or a write in progress (this process's or a live one's)
+        p = Path(entry.path)
+        with contextlib.suppress(OSError):
+            shutil.rmtree(p) if entry.is_dir(follow_symlinks=False) else p.unlink()
+            removed.append(p)
+    return removed
+
+
+def _umask() -> int:
+    umask = os.umask(0)
+    os.umask(umask)
+    return umask
 
 
 @contextlib.contextmanager
@@ -21,26 +79,105 @@ def atomic_path(path: str | os.PathLike, suffix: str | None = None) -> Iterator[
     suffix : str, optional
         Suffix of the temporary file (defaults to that of ``path``, so that writers
         which choose a format by extension, e.g. ``cv2.VideoWriter``, still work).
+        Writers that append their own suffix to a name (``np.save``) must write to an
+        open file object instead (see :func:`save_npy`).
 
-    On any exception the temporary file is removed and ``path`` is left untouched.
+    On any exception (SIGTERM included, once :func:`install_sigterm_handler` is active)
+    the temporary file is removed and ``path`` is left untouched. The written file gets
+    the usual permissions (0666 & ~umask) whatever the writer created it with.
     """
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(
-        prefix=f".{path.name}.", suffix=path.suffix if suffix is None else suffix, dir=path.parent
-    )
+    _check_parent(path)
+    remove_stale_temps(path)
+    fd, tmp = tempfile.mkstemp(prefix=f"{_tmp_prefix(path)}{os.getpid()}-",
+                               suffix=path.suffix if suffix is None else suffix, dir=path.parent)
     os.close(fd)
     tmp_path = Path(tmp)
-    umask = os.umask(0)
-    os.umask(umask)
-    os.chmod(tmp_path, 0o666 & ~umask)  # mkstemp creates 0600; outputs get the usual permissions
     try:
         yield tmp_path
+        # some writers (safetensors) replace the file: set the mode on what was written
+        os.chmod(tmp_path, 0o666 & ~_umask())
         os.replace(tmp_path, path)
     except BaseException:
         with contextlib.suppress(FileNotFoundError):
             tmp_path.unlink()
         raise
+
+
+@contextlib.contextmanager
+def atomic_dir(path: str | os.PathLike) -> Iterator[Path]:
+    """Yield a temporary sibling folder; on success it replaces ``path`` as a whole.
+
+    The folder appears complete or not at all: an existing ``path`` is first renamed
+    aside (a hidden ``.NAME.facesynth-tmp-PID-old-...`` sibling), the new folder is
+    renamed onto ``path``, then the old one is removed. On any exception the temporary
+    folder is removed and ``path`` is untouched.
+    """
+    path = Path(path)
+    _check_parent(path)
+    remove_stale_temps(path)
+    tmp = Path(tempfile.mkdtemp(prefix=f"{_tmp_prefix(path)}{os.getpid()}-", dir=path.parent))
+    os.chmod(tmp, 0o777 & ~_umask())
+    try:
+        yield tmp
+        if path.exists():
+            old = Path(tempfile.mkdtemp(prefix=f"{_tmp_prefix(path)}{os.getpid()}-old-", dir=path.parent))
+            os.replace(path, old)
+            try:
+                os.replace(tmp, path)
+            except BaseException:
+                os.replace(old, path)
+                raise
+            shutil.rmtree(old, ignore_errors=True)
+        else:
+            os.replace(tmp, path)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+
+
+def _check_parent(path: Path) -> None:
+    """Create ``path``'s parent; FacesynthError when it cannot be (a file on the way, no permission)."""
+    from facesynth.errors import FacesynthError
+
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+    except (FileExistsError, NotADirectoryError):
+        raise FacesynthError(f"{path}: cannot write here (a parent is a file, not a folder)") from None
+    except PermissionError:
+        raise FacesynthError(f"{path}: cannot write here (permission denied creating {path.parent})") from None
+    if not os.access(path.parent, os.W_OK | os.X_OK):
+        raise FacesynthError(f"{path}: cannot write here ({path.parent} is not writable)")
+
+
+def check_writable(path: str | os.PathLike, folder: bool = False) -> Path:
+    """Check, before any work, that ``path`` can be written: the target is not a folder
+    (``folder=False``) or not a file (``folder=True``), and its nearest existing ancestor is
+    a writable folder (missing parents are created later, by the write itself, so a failed
+    run leaves no empty folders). Raises FacesynthError naming ``path``."""
+    from facesynth.errors import FacesynthError
+
+    path = Path(path)
+    if folder and path.exists() and not path.is_dir():
+        raise FacesynthError(f"{path}: output exists and is not a folder")
+    if not folder and path.is_dir():
+        raise FacesynthError(f"{path}: output is an existing folder, expected a file name")
+    parent = path.parent
+    while not parent.exists() and parent != parent.parent:
+        parent = parent.parent
+    if not parent.is_dir():
+        raise FacesynthError(f"{path}: cannot write here ({parent} is a file, not a folder)")
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise FacesynthError(f"{path}: cannot write here ({parent} is not writable)")
+    return path
+
+
+def save_npy(path: str | os.PathLike, array) -> None:
+    """``np.save`` to exactly ``path`` (no ``.npy`` appended), atomically."""
+    import numpy as np
+
+    with atomic_path(path) as tmp, open(tmp, "wb") as f:
+        np.save(f, array, allow_pickle=False)
 
 
 def write_bytes(path: str | os.PathLike, data: bytes) -> None:
@@ -55,8 +192,41 @@ def write_text(path: str | os.PathLike, text: str) -> None:
 
 
 def write_json(path: str | os.PathLike, obj: Any) -> None:
-    """Write ``obj`` as indented JSON to ``path`` atomically (NaN is rejected)."""
-    write_text(path, json.dumps(obj, indent=1, allow_nan=False, default=_json_default) + "\n")
+    """Write ``obj`` as indented JSON to ``path`` atomically (NaN is rejected, before anything is written)."""
+    write_text(path, dumps_json(obj))
+
+
+def dumps_json(obj: Any) -> str:
+    """``obj`` as indented strict JSON (numpy scalars and arrays, paths converted);
+    FacesynthError naming the first non-finite value."""
+    from facesynth.errors import FacesynthError
+
+    try:
+        return json.dumps(obj, indent=1, allow_nan=False, default=_json_default) + "\n"
+    except ValueError:
+        raise FacesynthError(f"not valid JSON: a non-finite number at {_first_nonfinite(obj) or '?'}") from None
+
+
+def _first_nonfinite(obj: Any, where: str = "") -> str | None:
+    import math
+
+    import numpy as np
+
+    if isinstance(obj, (float, np.floating)) and not math.isfinite(float(obj)):
+        return where or "top level"
+    if isinstance(obj, np.ndarray) and obj.dtype.kind == "f" and not np.isfinite(obj).all():
+        return where or "top level"
+    if isinstance(obj, dict):
+        items = obj.items()
+    elif isinstance(obj, (list, tuple)):
+        items = enumerate(obj)
+    else:
+        return None
+    for k, v in items:
+        got = _first_nonfinite(v, f"{where}.{k}" if where else str(k))
+        if got:
+            return got
+    return None
 
 
 def _json_default(obj: Any) -> Any:
@@ -69,3 +239,17 @@ def _json_default(obj: Any) -> Any:
     if isinstance(obj, Path):
         return str(obj)
     raise TypeError(f"not JSON serialisable: {type(obj).__name__}")
+
+
+class Terminated(SystemExit):
+    """Raised in the main thread by SIGTERM once :func:`install_sigterm_handler` ran, so that
+    ``finally`` blocks and :func:`atomic_path` clean up; exit status 143 (128 + 15)."""
+
+
+def install_sigterm_handler() -> None:
+    """Turn SIGTERM into a :class:`Terminated` exception (the CLI's entry points call this)."""
+    def handler(signum, frame):
+        raise Terminated(128 + signal.SIGTERM)
+
+    with contextlib.suppress(ValueError):  # not the main thread: leave the default
+        signal.signal(signal.SIGTERM, handler)

@@ -9,6 +9,12 @@ Layout (little-endian)::
 
 Frames are padded to multiples of 16 by edge replication and cropped on decoding.
 Any truncation, corruption or trailing data raises :class:`FacesynthError`.
+
+Limits (checked on the header, before any frame is allocated; the encoder refuses videos
+beyond them): a padded frame holds at most :data:`MAX_FRAME_SAMPLES` samples (C x Hp x Wp,
+e.g. 1024 x 1024 x 4) and a stream at most :data:`MAX_STREAM_SAMPLES` (frames x C x H x W:
+512 MiB of uint16 output); each frame chunk takes at least 11 bytes of the stream, so the
+frame count is bounded by the stream's length too.
 """
 
 from __future__ import annotations
@@ -37,6 +43,19 @@ MAGIC = b"FSGV"
 VERSION = 2  # 2: neighbour contexts for `last`, coded by staggered anti-diagonals
 _HDR = struct.Struct("<4sBBBBHHBHBI6d")
 _CHUNK = struct.Struct("<II")
+MAX_FRAME_SAMPLES = 1 << 22  # per padded frame: C * ceil16(H) * ceil16(W)
+MAX_STREAM_SAMPLES = 1 << 28  # per stream: T * C * H * W (uint16 output of 512 MiB)
+
+
+def check_limits(t: int, h: int, w: int, c: int, where: str) -> None:
+    """FacesynthError when a (T, H, W, C) video exceeds the stated limits."""
+    per_frame = c * (h + -h % 16) * (w + -w % 16)
+    if per_frame > MAX_FRAME_SAMPLES:
+        raise FacesynthError(f"{where}: frame {h}x{w}x{c} exceeds the codec's limit of {MAX_FRAME_SAMPLES} samples "
+                             "per frame (padded to multiples of 16)")
+    if t * c * h * w > MAX_STREAM_SAMPLES:
+        raise FacesynthError(f"{where}: {t} frames of {h}x{w}x{c} exceed the codec's limit of {MAX_STREAM_SAMPLES} "
+                             "samples per stream")
 
 
 @dataclass
@@ -69,8 +88,9 @@ def encode_video(frames: np.ndarray, cfg: CodecConfig, mask: np.ndarray | None =
     if frames.ndim != 4 or frames.dtype != np.uint16:
         raise FacesynthError(f"frames: expected uint16 (T, H, W, C), got {frames.dtype} {frames.shape}")
     t, h, w, c = frames.shape
-    if t == 0 or h > 65535 or w > 65535 or c > 255:
-        raise FacesynthError(f"frames: unsupported shape {frames.shape}")
+    if t == 0 or h == 0 or w == 0 or c == 0 or h > 65535 or w > 65535 or c > 255:
+        raise FacesynthError(f"frames: unsupported shape {frames.shape} (T, H, W, C all >= 1)")
+    check_limits(t, h, w, c, "frames")
     if cfg.qp is not None and not 0 <= cfg.qp <= QP_MAX:
         raise FacesynthError(f"qp: expected 0..{QP_MAX}, got {cfg.qp}")
     if cfg.gop < 1 or not 0 <= cfg.mv_range <= 32 or not cfg.sizes() or any(n not in (4, 8, 16) for n in cfg.sizes()):
@@ -167,6 +187,13 @@ def read_header(data: bytes) -> tuple[StreamInfo, int]:
     _, ver, fl, c, depth, h, w, qp, gop, mvr, t, *bb = _HDR.unpack_from(data)
     if ver != VERSION or depth != 16 or c < 1 or h < 1 or w < 1 or gop < 1 or t < 1 or qp > QP_MAX:
         raise FacesynthError(f"bitstream: unsupported header (version {ver}, depth {depth}, {h}x{w}x{c})")
+    if fl & ~31 or mvr > 32:
+        raise FacesynthError(f"bitstream: unsupported header (flags {fl}, motion range {mvr})")
+    if (len(data) - _HDR.size - 4) < t * (_CHUNK.size + 3):
+        raise FacesynthError(f"bitstream: truncated ({len(data)} bytes cannot hold {t} frames)")
+    check_limits(t, h, w, c, "bitstream header")
+    if fl & 16 and not np.isfinite(bb).all():
+        raise FacesynthError("bitstream: the header's bounding box is not finite")
     bbox = np.asarray(bb).reshape(2, 3) if fl & 16 else None
     info = StreamInfo(h, w, c, None if fl & 1 else qp, gop, mvr, t, (bool(fl & 2), bool(fl & 4), bool(fl & 8)), bbox)
     return info, _HDR.size + 4
@@ -199,7 +226,8 @@ def decode_video(data: bytes) -> tuple[np.ndarray, StreamInfo, dict]:
             if code.p_frame != bool(i % info.gop) or mvr != info.mv_range:
                 raise ValueError("frame type or motion range disagrees with the header")
             rec = decode_frame(code, prev if code.p_frame else None, info.qp, info.flags, mvr, shape)
-        except (ValueError, IndexError, RuntimeError, OverflowError, AssertionError) as exc:  # constriction asserts
+        except (ValueError, IndexError, RuntimeError, OverflowError, AssertionError, TypeError, KeyError,
+                ZeroDivisionError) as exc:  # constriction asserts; any inconsistency of a CRC-valid frame
             raise FacesynthError(f"bitstream: frame {i} is malformed ({exc})") from None
         out.append(np.moveaxis(rec, 0, -1)[:info.height, :info.width].astype(np.uint16))
         prev = rec

@@ -102,7 +102,14 @@ def _load_mask(path: Path | None, video_path: Path, shape) -> np.ndarray | None:
         if not auto.is_file():
             return None
         path = auto
-    m = np.load(path)
+    if not path.is_file():
+        raise FacesynthError(f"--mask {path}: file not found")
+    try:
+        m = np.load(path, allow_pickle=False)
+    except Exception as exc:  # noqa: BLE001 - any unreadable file is a user error here
+        raise FacesynthError(f"--mask {path}: not a readable .npy file ({str(exc)[:120]})") from None
+    if m.dtype.kind not in "biuf":
+        raise FacesynthError(f"--mask {path}: expected a bool or numeric (H, W) array, got dtype {m.dtype}")
     if m.shape != tuple(shape):
         raise FacesynthError(f"{path}: mask shape {m.shape} does not match the video's {tuple(shape)}")
     return m.astype(bool)
@@ -126,19 +133,19 @@ def run(args: argparse.Namespace) -> int:
     from facesynth.codec.bitstream import decode_video, encode_video
     from facesynth.codec.frame import CodecConfig
     from facesynth.codec.rd import CONFIGS, bd_between, modes_config, plot_rd, rd_sweep
-    from facesynth.io import atomic_path, write_bytes, write_json
+    from facesynth.io import check_writable, save_npy, write_bytes, write_json
     from facesynth.metrics import psnr
 
     if args.action == "scan":
         from facesynth.codec import scan_cli
 
         return scan_cli.run(args)
+    if args.action in ("geometry", "encode", "decode"):
+        check_writable(args.output)  # before the work
     if args.action == "geometry":
         vid, mask, q = _ict_video(args.frames, args.size, args.seed)
-        with atomic_path(args.output) as tmp:
-            np.save(tmp, vid)
-        with atomic_path(args.output.with_suffix(".mask.npy")) as tmp:
-            np.save(tmp, mask)
+        save_npy(args.output, vid)
+        save_npy(args.output.with_suffix(".mask.npy"), mask)
         print(json.dumps({"output": str(args.output), "shape": list(vid.shape), "mask_share": float(mask.mean()),
                           "bbox_lo": q.lo.tolist(), "bbox_hi": q.hi.tolist(), "diag": q.diag}))
         return 0
@@ -161,8 +168,7 @@ def run(args: argparse.Namespace) -> int:
         if not args.input.is_file():
             raise FacesynthError(f"{args.input}: file not found")
         frames, info, st = decode_video(args.input.read_bytes())
-        with atomic_path(args.output) as tmp:
-            np.save(tmp, frames)
+        save_npy(args.output, frames)
         print(json.dumps({"output": str(args.output), "shape": list(frames.shape), "qp": info.qp,
                           "decode_fps": len(frames) / max(st["decode_s"], 1e-9)}))
         return 0

@@ -90,10 +90,11 @@ def scan_geometry_video(vertices: list[np.ndarray], faces: list[np.ndarray], lan
 
 
 def run(args: argparse.Namespace) -> int:
-    from facesynth.io import atomic_path
+    from facesynth.io import atomic_path, check_writable, save_npy
 
     if args.size < 16:
         raise FacesynthError(f"--size: expected >= 16, got {args.size}")
+    check_writable(args.output)  # before the work
     verts, faces = load_sequence(args.inputs)
     lm = load_landmarks(args.landmarks, len(verts), [len(v) for v in verts])
     video, mask, q, frames, _ = scan_geometry_video(verts, faces, lm, args.size, args.radius, args.method,
@@ -101,10 +102,8 @@ def run(args: argparse.Namespace) -> int:
     side = {"lo": q.lo, "hi": q.hi}
     for t, fr in enumerate(frames):
         side[f"uv_{t}"], side[f"faces_{t}"], side[f"source_{t}"] = fr.uv, fr.faces, fr.source
-    with atomic_path(args.output) as tmp:
-        np.save(tmp, video)
-    with atomic_path(args.output.with_suffix(".mask.npy")) as tmp:
-        np.save(tmp, mask)
+    save_npy(args.output, video)
+    save_npy(args.output.with_suffix(".mask.npy"), mask)
     with atomic_path(args.output.with_suffix(".scan.npz")) as tmp:
         with open(tmp, "wb") as fh:
             np.savez_compressed(fh, **side)

@@ -38,10 +38,10 @@ from facesynth import __version__
 from facesynth.data import detect_mediapipe
 from facesynth.data.detect import Detections, LandmarkDetector, check_extra, detect_landmarks, detector_versions
 from facesynth.data.pts import write_pts
-from facesynth.data.readers import load_sequence
+from facesynth.data.readers import array_sha256, load_sequence
 from facesynth.data.sequence import FaceSequence
 from facesynth.errors import FacesynthError
-from facesynth.io import atomic_path, write_json
+from facesynth.io import atomic_dir, check_writable, write_json
 from facesynth.landmarks import LandmarkScheme, get_scheme
 from facesynth.provenance import file_sha256, package_versions
 
@@ -96,6 +96,15 @@ class _Video:
                 i += 1
         finally:
             cap.release()
+
+
+def check_output_folder(out_dir: Path) -> None:
+    """An ingest output folder can be written: not a file, its parent writable, and, when it
+    exists and holds files, an earlier ingest folder (which is replaced as a whole)."""
+    check_writable(out_dir, folder=True)
+    if out_dir.is_dir() and any(out_dir.iterdir()) and not (out_dir / "meta.json").is_file():
+        raise FacesynthError(f"{out_dir}: output folder exists and is not an ingest folder (no meta.json); "
+                             "it would be replaced as a whole: choose a new or empty folder")
 
 
 def _progress(total: int | None, enabled: bool):
@@ -189,15 +198,11 @@ def ingest_video(
     if landmarker not in LANDMARKERS:
         raise FacesynthError(f"landmarker must be one of {', '.join(LANDMARKERS)}, got {landmarker!r}")
     scheme = get_scheme(LANDMARKERS[landmarker])
-    kind = LandmarkDetector if landmarker == "dlib" else detect_mediapipe.MediaPipeLandmarker
-    if detector is not None and not isinstance(detector, kind):
-        raise FacesynthError(f"detector: a {type(detector).__name__} was given for landmarker {landmarker!r}")
     if every < 1:
         raise FacesynthError(f"every must be >= 1, got {every}")
     if max_frames is not None and max_frames < 1:
         raise FacesynthError(f"max_frames must be >= 1, got {max_frames}")
-    if out_dir.exists() and not out_dir.is_dir():
-        raise FacesynthError(f"{out_dir}: output exists and is not a folder")
+    check_output_folder(out_dir)  # before any frame is decoded
     if detector is None:  # a missing extra is reported before anything else
         (check_extra if landmarker == "dlib" else detect_mediapipe.check_extra)()
     video = _Video(video_path)
@@ -264,22 +269,20 @@ def ingest_video(
         "created_by": "facesynth ingest",
     }
 
-    # All work is done: write the folder (each file atomically, meta.json last).
-    out_dir.mkdir(parents=True, exist_ok=True)
-    if copy:
-        dst = out_dir / vmeta["file"]
-        if not (dst.exists() and dst.resolve() == src_abs):
-            with atomic_path(dst) as tmp:
-                shutil.copyfile(video_path, tmp)
-    with atomic_path(out_dir / "landmarks.npy") as tmp:
-        with open(tmp, "wb") as f:
+    # All work is done: write the folder into a temporary sibling, which then replaces
+    # out_dir as a whole (io.atomic_dir): the folder is complete or absent, never a mix.
+    meta["landmarks"]["sha256"] = array_sha256(result.landmarks)
+    with atomic_dir(out_dir) as tmp_dir:
+        if copy:
+            shutil.copyfile(video_path, tmp_dir / vmeta["file"])
+        with open(tmp_dir / "landmarks.npy", "wb") as f:
             np.save(f, result.landmarks)
-    if export_pts:
-        width = max(6, len(str(len(result.landmarks))))
-        for i, frame in enumerate(result.landmarks):
-            if np.isfinite(frame).all():
-                write_pts(out_dir / "pts" / f"{i:0{width}d}.pts", frame)
-    write_json(out_dir / "meta.json", meta)
+        if export_pts:
+            width = max(6, len(str(len(result.landmarks))))
+            for i, frame in enumerate(result.landmarks):
+                if np.isfinite(frame).all():
+                    write_pts(tmp_dir / "pts" / f"{i:0{width}d}.pts", frame)
+        write_json(tmp_dir / "meta.json", meta)
     log.info(
         "%s: %d frames processed in %.1f s (%.1f frames/s), detection rate %.3f -> %s",
         video_path, result.n_processed, wall, stats["frames_per_s"] or 0.0, stats["detection_rate"], out_dir,

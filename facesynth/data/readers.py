@@ -18,6 +18,7 @@ approximate: docs/landmarks.md) and are an error otherwise.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 from pathlib import Path
@@ -113,7 +114,7 @@ def stored_scheme(meta: dict, landmarks: np.ndarray, where: str) -> str:
 def _read_meta(path: Path) -> dict:
     try:
         meta = json.loads(path.read_text())
-    except json.JSONDecodeError as exc:
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
         raise FacesynthError(f"{path}: invalid JSON ({exc})") from None
     if not isinstance(meta, dict):
         raise FacesynthError(f"{path}: expected a JSON object")
@@ -166,6 +167,24 @@ def _read_folder(path: Path) -> FaceSequence:
     raise FacesynthError(f"{path}: folder has neither landmarks.npy (ingest layout) nor .pts files")
 
 
+def array_sha256(a: np.ndarray) -> str:
+    """SHA-256 of an array's dtype, shape and bytes (``facesynth ingest`` records it in
+    meta.json; loading checks it, so landmarks and meta from different runs never pair)."""
+    a = np.ascontiguousarray(a)
+    return hashlib.sha256(f"{a.dtype.str}{a.shape}".encode() + a.tobytes()).hexdigest()
+
+
+def _check_ingest_pair(path: Path, lm: np.ndarray, meta: dict) -> None:
+    info = meta.get("landmarks") if isinstance(meta.get("landmarks"), dict) else {}
+    where = path / "landmarks.npy"
+    if "shape" in info and list(np.shape(lm)) != list(info["shape"]):
+        raise FacesynthError(f"{where}: shape {list(np.shape(lm))} differs from meta.json's {info['shape']} "
+                             "(the folder mixes files of two ingests)")
+    if info.get("sha256") and array_sha256(lm) != info["sha256"]:
+        raise FacesynthError(f"{where}: content differs from meta.json's landmarks SHA-256 "
+                             "(the folder mixes files of two ingests, or the landmarks were edited)")
+
+
 def _read_ingest_folder(path: Path) -> FaceSequence:
     meta = _read_meta(path / "meta.json") if (path / "meta.json").is_file() else {}
     video = meta.get("video", {}) if isinstance(meta.get("video"), dict) else {}
@@ -180,6 +199,7 @@ def _read_ingest_folder(path: Path) -> FaceSequence:
     if video.get("sha256"):
         meta["source_sha256"] = video["sha256"]
     lm, where = _np_load(path / "landmarks.npy"), str(path / "landmarks.npy")
+    _check_ingest_pair(path, lm, meta)
     return FaceSequence.from_arrays(lm, frames, where=where, name=path.name, fps=fps, meta=meta, scheme=stored_scheme(meta, lm, where))
 
 

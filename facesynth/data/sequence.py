@@ -56,6 +56,25 @@ def validate_landmarks(landmarks: np.ndarray, where: str, allow_nan_rows: bool =
     return lm
 
 
+FRAME_MARGIN = 0.25  # landmarks may stray this fraction of the frame size outside it (faces at the border)
+
+
+def check_landmarks_in_frame(landmarks: np.ndarray, size: tuple[int, int], where: str, margin: float = FRAME_MARGIN) -> None:
+    """FacesynthError naming the rows of (N, 68, 2) landmarks (NaN rows skipped) with a point
+    outside the (H, W) frame by more than ``margin`` of its size: wrong units, a scale or an
+    offset, or another video's landmarks, caught before any frame is decoded."""
+    h, w = size
+    lo = -margin * np.array([w, h], np.float32)
+    hi = (1 + margin) * np.array([w, h], np.float32)
+    with np.errstate(invalid="ignore"):
+        out = ((landmarks < lo) | (landmarks > hi)).any(axis=(1, 2))
+    if out.any():
+        rows = np.flatnonzero(out)
+        raise FacesynthError(
+            f"{where}: landmarks of {len(rows)} of {len(landmarks)} rows (first {rows[:10].tolist()}) lie outside the "
+            f"{w}x{h} frame by more than {margin:.0%} of its size (wrong units or offset, or another video's landmarks?)")
+
+
 @dataclass
 class FaceSequence:
     """One subject's frames and landmarks.
@@ -100,6 +119,11 @@ class FaceSequence:
         lm = validate_landmarks(landmarks, where, allow_nan_rows=True, scheme=kwargs.get("scheme", DEFAULT_SCHEME.name))
         if frames is not None and len(frames) and len(frames) < len(lm):
             raise FacesynthError(f"{where}: {len(lm)} landmark frames but only {len(frames)} image frames")
+        if frames is not None and len(frames) and len(lm) < len(frames):
+            log.warning("%s: %d landmark rows for %d video frames: row t is paired with frame t, the last %d frames "
+                        "are unused (landmarks of a shorter clip?)", where, len(lm), len(frames), len(frames) - len(lm))
+        if frames is not None and all(int(v) > 0 for v in frames.size):
+            check_landmarks_in_frame(lm, tuple(frames.size), where)
         keep = np.isfinite(lm).all(axis=(1, 2))
         meta = dict(kwargs.pop("meta", {}) or {})
         dropped = int((~keep).sum())

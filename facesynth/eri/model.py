@@ -20,7 +20,7 @@ import numpy as np
 import torch
 from tqdm.auto import tqdm
 
-from facesynth.artifact import manifest_field, read_manifest, read_tensors, save_artifact
+from facesynth.artifact import manifest_field, read_manifest, read_tensors, rebuild, save_artifact
 from facesynth.data.sequence import FaceSequence
 from facesynth.eri.config import SVR_VARIANTS, EriConfig
 from facesynth.eri.driving import SVRBank, fit_variant
@@ -28,6 +28,7 @@ from facesynth.eri.faps import FAP_NAMES, compute_faps, fapu
 from facesynth.eri.geometry import extend, forehead_points, open_mouth, select_neutral, to_canvas, upright
 from facesynth.eri.ratio import ratio_images, sample_textures
 from facesynth.errors import FacesynthError
+from facesynth.model.artifact import check_pca, check_reference, check_size
 from facesynth.model.pca import PCAModel
 from facesynth.model.reference import ReferenceFrame
 from facesynth.model.warp import ToReference, candidate_spans
@@ -225,15 +226,18 @@ class EriModel:
         if m.get("fap_names") != list(FAP_NAMES):
             raise FacesynthError(f"{where}: FAP table differs from this facesynth's; retrain")
         t = read_tensors(d, TENSORS, m, "ERI model")
-        try:
-            ref = ReferenceFrame(t["reference_points"], tuple(manifest_field(m, "reference_size", where)), t["triangles"])
-            pca = PCAModel(t["pca_mean"], t["pca_components"], t["pca_eigenvalues"], manifest_field(m, "pca_total_variance", where))
+
+        def build() -> "EriModel":
+            ref = ReferenceFrame(t["reference_points"], check_size(manifest_field(m, "reference_size", where)), t["triangles"])
+            check_reference(ref, len(ref.points) if np.ndim(ref.points) == 2 else -1)
+            pca = PCAModel(t["pca_mean"], t["pca_components"], t["pca_eigenvalues"], float(manifest_field(m, "pca_total_variance", where)))
+            check_pca(pca, "ERI PCA")
             regs = {}
-            for name, conf in manifest_field(m, "regressors", where).items():
+            for name, conf in dict(manifest_field(m, "regressors", where)).items():
                 pre = f"reg.{name}."
                 regs[name] = SVRBank.from_state(conf, {k[len(pre):]: torch.from_numpy(v) for k, v in t.items() if k.startswith(pre)})
             return cls(EriConfig.from_dict(manifest_field(m, "config", where)), int(manifest_field(m, "neutral_index", where)),
                        t["neutral_landmarks"], t["forehead"], ref, t["span"], t["neutral_texture"], pca, regs,
                        manifest_field(m, "driver", where), m.get("data_fingerprint", ""), m.get("meta", {}))
-        except KeyError as exc:
-            raise FacesynthError(f"{d / TENSORS}: tensor {exc} missing") from None
+
+        return rebuild(d / TENSORS, "ERI model", build)

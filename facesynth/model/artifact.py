@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from facesynth.artifact import manifest_field, read_tensors, save_artifact
+from facesynth.artifact import manifest_field, read_tensors, rebuild, save_artifact
 from facesynth.artifact import read_manifest as _read_manifest
 from facesynth.errors import FacesynthError
 from facesynth.landmarks import DEFAULT_SCHEME
@@ -60,25 +60,68 @@ def read_manifest(directory: str | os.PathLike) -> dict:
 
 
 def load_face_model(directory: str | os.PathLike) -> FaceModel:
-    """Load a model written by :func:`save_face_model`."""
+    """Load a model written by :func:`save_face_model`; FacesynthError for a missing,
+    altered, non-finite or inconsistent artifact."""
     d = Path(directory)
     manifest = read_manifest(d)
     t = read_tensors(d, TENSORS, manifest, WHAT)
     where = d / MANIFEST
     known = {f.name for f in fields(FaceModelConfig)}
-    cfg = FaceModelConfig(**{k: v for k, v in manifest_field(manifest, "config", where).items() if k in known})
-    try:
-        ref = ReferenceFrame(t["reference_points"], tuple(manifest_field(manifest, "reference_size", where)), t["triangles"])
-        return FaceModel(
+
+    def build() -> FaceModel:
+        cfg = FaceModelConfig(**{k: v for k, v in dict(manifest_field(manifest, "config", where)).items() if k in known})
+        ref = ReferenceFrame(t["reference_points"], check_size(manifest_field(manifest, "reference_size", where)), t["triangles"])
+        model = FaceModel(
             config=cfg,
             shape_pca=PCAModel(t["shape_mean"], t["shape_components"], t["shape_eigenvalues"],
-                               manifest_field(manifest, "shape_total_variance", where)),
+                               float(manifest_field(manifest, "shape_total_variance", where))),
             reference=ref,
             appearance_pca=PCAModel(t["appearance_mean"], t["appearance_components"], t["appearance_eigenvalues"],
-                                    manifest_field(manifest, "appearance_total_variance", where)),
+                                    float(manifest_field(manifest, "appearance_total_variance", where))),
             span=t["span"],
             fingerprint=manifest_field(manifest, "data_fingerprint", where),
             meta=manifest.get("meta", {}),
         )
-    except KeyError as exc:
-        raise FacesynthError(f"{d / TENSORS}: tensor {exc} missing") from None
+        check_face_model(model)
+        return model
+
+    return rebuild(d / TENSORS, WHAT, build)
+
+
+MAX_REFERENCE_SIDE = 4096  # pixels; a reference frame is ~100-300 px wide
+
+
+def check_size(size) -> tuple[int, int]:
+    """A reference (H, W): two integers in [1, MAX_REFERENCE_SIDE], else ValueError."""
+    size = tuple(size)
+    if len(size) != 2 or not all(isinstance(v, int) and 1 <= v <= MAX_REFERENCE_SIDE for v in size):
+        raise ValueError(f"reference_size must be two integers in [1, {MAX_REFERENCE_SIDE}], got {list(size)}")
+    return size
+
+
+def check_pca(pca: PCAModel, name: str, dim: int | None = None) -> None:
+    """mean (D,), components (K, D), eigenvalues (K,) non-negative; D == ``dim`` when given. ValueError otherwise."""
+    d = pca.mean.shape[0] if pca.mean.ndim == 1 else -1
+    if (d < 1 or pca.components.ndim != 2 or pca.components.shape[1] != d or pca.eigenvalues.shape != pca.components.shape[:1]
+            or (dim is not None and d != dim) or (pca.eigenvalues < 0).any()):
+        raise ValueError(f"{name}: mean {pca.mean.shape}, components {pca.components.shape}, eigenvalues "
+                         f"{pca.eigenvalues.shape} do not form a PCA model" + (f" of dimension {dim}" if dim else ""))
+
+
+def check_reference(ref: ReferenceFrame, n_points: int) -> None:
+    """points (P, 2), triangles (T, 3) integer indices into points. ValueError otherwise."""
+    tri = ref.triangles
+    if ref.points.shape != (n_points, 2):
+        raise ValueError(f"reference_points: expected ({n_points}, 2), got {ref.points.shape}")
+    if tri.ndim != 2 or tri.shape[1] != 3 or tri.dtype.kind not in "iu" or len(tri) < 1 or tri.min() < 0 or tri.max() >= n_points:
+        raise ValueError(f"triangles: expected (T, 3) indices in [0, {n_points}), got {tri.dtype} {tri.shape}")
+
+
+def check_face_model(model: FaceModel) -> None:
+    """The tensors of a rebuilt face model fit together; ValueError naming the first that does not."""
+    n_points = DEFAULT_SCHEME.n_points
+    check_pca(model.shape_pca, "shape PCA", 2 * n_points)
+    check_reference(model.reference, n_points)
+    if model.span.shape != (len(model.reference.triangles), 2):
+        raise ValueError(f"span: expected ({len(model.reference.triangles)}, 2), got {model.span.shape}")
+    check_pca(model.appearance_pca, "appearance PCA", model.n_channels * model.n_pixels)

@@ -44,8 +44,32 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     eri.add_argument("--raw-ratios", action="store_true", help="no edge confidence / brightening cap (as transfer-expression)")
 
 
+# opsets accepted by --opset: 18 is the tested default; torch's TorchScript exporter writes up
+# to 20; the warp's custom symbolics (facesynth.ops) need ops of opset 17 or later
+SUPPORTED_OPSETS = range(17, 21)
+
+
+def check_args(out, opset: int) -> None:
+    """Refuse, before any work, an unsupported ``--opset`` or an ``--out`` that cannot be written."""
+    from facesynth.io import check_writable
+
+    if opset not in SUPPORTED_OPSETS:
+        raise FacesynthError(f"--opset: {opset} is not supported (choose {SUPPORTED_OPSETS.start}..{SUPPORTED_OPSETS.stop - 1})")
+    check_writable(out)
+
+
+def summary_json(summary: dict) -> str:
+    """The summary as one line of strict JSON; FacesynthError if a figure is not finite."""
+    try:
+        return json.dumps(summary, allow_nan=False, default=str)
+    except ValueError:
+        raise FacesynthError(f"export summary holds a non-finite figure: {summary}") from None
+
+
 def run(args: argparse.Namespace) -> int:
     from facesynth.data import load_landmarks  # lazy, as below: keeps --help fast (no torch)
+
+    check_args(args.out, args.opset)  # before reading --landmarks
 
     if args.target:
         summary = export_eri_model(args.run, args.out, args.target, args.target_landmarks, args.target_frame,
@@ -55,7 +79,7 @@ def run(args: argparse.Namespace) -> int:
         comps = DEFAULT_COMPONENTS if args.components is None else args.components
         summary = export_model(args.run, args.out, args.opset, comps, args.predicted_variance, lm, not args.no_check,
                                args.basis)
-    print(json.dumps(summary))
+    print(summary_json(summary))
     return 0
 
 
@@ -68,13 +92,14 @@ def export_model(run_dir, out, opset: int = OPSET, components: int | None = DEFA
     from facesynth.onnx.synthesis import check_export, export_run  # lazy: keeps --help fast (torch)
     from facesynth.runs.rundir import is_eri_run
 
+    check_args(out, opset)
     run_dir = Path(run_dir)
     if is_eri_run(run_dir):
         raise FacesynthError(f"{run_dir}: holds an ERI model only; pass --target IMAGE_OR_DIR to export it for a target face")
     path, syn, meta = export_run(run_dir, out, opset, components, predicted_variance, landmarks, basis)
     summary = {"out": str(path), "bytes": path.stat().st_size, **meta, "opset": opset}
     if check:
-        summary["max_abs_diff_vs_torch"] = check_export(syn, path)
+        summary["max_abs_diff_vs_torch"] = _checked(path, check_export, syn)
     return summary
 
 
@@ -85,9 +110,19 @@ def export_eri_model(run_dir, out, target, target_landmarks=None, target_frame: 
     from facesynth.eri.cli import load_target  # lazy: keeps --help fast (torch)
     from facesynth.onnx.eri import check_eri_export, export_eri_run
 
+    check_args(out, opset)
     image, landmarks, desc = load_target(target, target_landmarks, target_frame)
     path, syn, meta = export_eri_run(run_dir, out, image, landmarks, variant, raw_ratios, opset)
     summary = {"out": str(path), "bytes": path.stat().st_size, "target": desc, **meta, "opset": opset}
     if check:
-        summary["max_abs_diff_vs_torch"] = check_eri_export(syn, path)
+        summary["max_abs_diff_vs_torch"] = _checked(path, check_eri_export, syn)
     return summary
+
+
+def _checked(path: Path, check, syn) -> float:
+    """``check(syn, path)``; a model that fails its parity check is removed, not left behind."""
+    try:
+        return check(syn, path)
+    except BaseException:
+        Path(path).unlink(missing_ok=True)
+        raise

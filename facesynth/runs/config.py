@@ -110,7 +110,9 @@ def register_configs() -> None:
     cs = ConfigStore.instance()
     cs.store(name="train_schema", node=TrainConf)
     for name in REGISTRY:
-        cs.store(group="regressor", name=f"{name}_schema", node=regressor_schema(name))
+        # a group of their own: the ``regressor`` group lists only the yaml options (conf/regressor/NAME.yaml
+        # extends ``/regressor_schema/NAME``)
+        cs.store(group="regressor_schema", name=name, node=regressor_schema(name))
 
 
 def regressor_params(node) -> tuple[str, dict]:

@@ -22,7 +22,7 @@ from facesynth.eri.train import train_eri
 from facesynth.errors import FacesynthError
 from facesynth.eval.report import write_plots, write_report
 from facesynth.eval.sadm_eval import EvalConfig, evaluate_sadm
-from facesynth.io import write_json, write_text
+from facesynth.io import dumps_json, write_text
 from facesynth.model.face_model import FaceModel, FaceModelConfig
 from facesynth.provenance import package_versions
 from facesynth.runs.config import regressor_params
@@ -30,6 +30,8 @@ from facesynth.runs.rundir import CONFIG, METRICS, PLOTS, load_data
 from facesynth.sadm.fit import SADMConfig, fit_sadm, save_sadm
 
 log = logging.getLogger(__name__)
+# below these, the evaluation's figures (PSNR over the test frames, NCC over time) say little
+MIN_TRAIN_FRAMES, MIN_TEST_FRAMES = 20, 10
 
 
 def seed_everything(seed: int) -> None:
@@ -52,6 +54,9 @@ def run_training(cfg, out_dir: str | Path) -> dict:
     t0 = time.perf_counter()
     seq = load_data(cfg.data, cfg.seed)
     tr, te = temporal_split(len(seq), cfg.data.train_fraction, cfg.data.gap)
+    if len(tr) < MIN_TRAIN_FRAMES or len(te) < MIN_TEST_FRAMES:
+        log.warning("%s: only %d training and %d test frames (fewer than %d / %d): the evaluation's figures will "
+                    "mean little", seq.name, len(tr), len(te), MIN_TRAIN_FRAMES, MIN_TEST_FRAMES)
     container = OmegaConf.to_container(cfg, resolve=True)
     write_text(out / CONFIG, OmegaConf.to_yaml(cfg, resolve=True))
     if cfg.model.kind == "eri":
@@ -59,6 +64,9 @@ def run_training(cfg, out_dir: str | Path) -> dict:
     if cfg.model.kind != "aam":
         raise FacesynthError(f"model.kind must be 'aam' or 'eri', got {cfg.model.kind!r}")
     model, tex_tr = FaceModel.fit_with_textures(seq, _dataclass_from(cfg.model, FaceModelConfig), rows=tr)
+    if float(np.ptp(tex_tr)) < 0.5 / 255:  # below half a grey level: float rounding of one colour
+        raise FacesynthError(f"{seq.name}: the training frames have the same colour everywhere on the face "
+                             "(a plain-colour video?): there is no appearance to learn")
     t1 = time.perf_counter()
     name, params = regressor_params(cfg.regressor)
     sadm = fit_sadm(model, seq, tr, tex_tr, name, params, _dataclass_from(cfg.sadm, SADMConfig), cfg.seed)
@@ -71,13 +79,17 @@ def run_training(cfg, out_dir: str | Path) -> dict:
         "packages": package_versions(),
         "config": container,
     }
-    save_sadm(sadm, out, extra=provenance)
     metrics.update({
         "timings_s": {"face_model": t1 - t0, "sadm_fit": t2 - t1, "evaluate": t3 - t2},
         "regressor_summary": sadm.regressor.summary(),
         **provenance,
     })
-    write_json(out / METRICS, metrics)
+    try:  # a figure that is not valid JSON fails here, before any artifact is written
+        text = dumps_json(metrics)
+    except FacesynthError as exc:
+        raise FacesynthError(f"{out / METRICS}: {exc}") from None
+    save_sadm(sadm, out, extra=provenance)  # face_model/ then sadm/ (its manifest, written last, pairs them)
+    write_text(out / METRICS, text)
     plots = write_plots(metrics, extras, out / PLOTS)
     write_report(metrics, out, plots, {"data": f"{seq.name} ({len(seq)} frames, fingerprint {seq.fingerprint})",
                                         "seed": cfg.seed, "features": sadm.config.features})

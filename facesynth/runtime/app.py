@@ -23,7 +23,8 @@ import numpy as np
 
 from facesynth.errors import FacesynthError, MissingExtraError
 from facesynth.imaging import composite
-from facesynth.io import atomic_path
+from facesynth.io import atomic_path, check_writable
+from facesynth.runtime.checks import check_coordinate_range, check_frame_size, check_in_frame
 
 log = logging.getLogger(__name__)
 GREY = 128
@@ -71,8 +72,9 @@ def default_size(landmarks: np.ndarray, margin: float = 0.25) -> tuple[int, int]
     hi = finite.reshape(-1, 2).max(0)
     lo = finite.reshape(-1, 2).min(0)
     pad = margin * float((hi - lo).max())
+    check_coordinate_range(finite)
     w, h = (int(np.ceil(v + pad)) for v in hi)
-    return max(w + w % 2, 64), max(h + h % 2, 64)
+    return check_frame_size((max(w + w % 2, 64), max(h + h % 2, 64)), "landmarks (the frame size they imply)")
 
 
 def load_background(path: str | None, size: tuple[int, int]) -> np.ndarray:
@@ -174,6 +176,7 @@ def run(args: argparse.Namespace) -> int:
     from facesynth.runtime.filters import smooth_landmarks
     from facesynth.runtime.renderer import Renderer
 
+    check_writable(args.out)  # before any decoding or rendering
     renderer = Renderer(args.model, threads=args.threads)
     driver_frames = None
     if args.video:
@@ -203,6 +206,7 @@ def run(args: argparse.Namespace) -> int:
     else:
         background = load_background(None, parse_size(args.size) if args.size else default_size(landmarks))
     h, w = background.shape[:2]
+    check_in_frame(landmarks, (w, h), args.landmarks or "landmarks")  # before any rendering
     out_w = 2 * w if args.side_by_side else w
     n = len(landmarks)
     latencies: list = []

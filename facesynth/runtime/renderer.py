@@ -19,6 +19,7 @@ from facesynth import __version__
 from facesynth.contract import FORMAT_HINTS, LANDMARK_SCHEME, N_LANDMARKS, OUTPUT_NAMES, SYNTHESIS_FORMAT, SYNTHESIS_INPUT
 from facesynth.errors import FacesynthError
 from facesynth.imaging import composite
+from facesynth.runtime.checks import as_array, check_coordinate_range, check_metadata_size, check_outputs
 
 
 def read_metadata(model_path: str | os.PathLike) -> dict:
@@ -57,7 +58,7 @@ def check_batch(values, field: str, item: tuple[int, ...], unit: str, layout: st
     """Validate a batch of model inputs: real dtype, shape (B, *item) (one (*item) is
     promoted to a batch of 1), all finite. Returns C-contiguous float32 (B, *item); raises
     FacesynthError naming ``field``, what was expected and the offending batch rows."""
-    x = np.asarray(values)
+    x = as_array(values, field)
     if x.dtype.kind not in "fiu":
         raise FacesynthError(f"{field}: expected a float array of {unit}, got dtype {x.dtype}")
     if x.ndim == len(item):
@@ -115,8 +116,12 @@ class Renderer:
         if inputs != [self.input_name] or tuple(outputs) != OUTPUT_NAMES:
             raise FacesynthError(f"{where}: inputs {inputs} / outputs {outputs}, expected [{self.input_name}] / {list(OUTPUT_NAMES)}")
         self.input_shape: tuple[int, ...] = (N_LANDMARKS, 2)
-        self.channels = int(self.metadata.get("channels", 3))
-        self.crop_size = tuple(int(s) for s in self.metadata.get("canvas_size", self.metadata.get("reference_size")))
+        channels = self.metadata.get("channels", 3)
+        if channels not in (1, 3):
+            raise FacesynthError(f"{where}: metadata 'channels' is {channels!r}, expected 1 or 3")
+        self.channels = int(channels)
+        key = "canvas_size" if "canvas_size" in self.metadata else "reference_size"
+        self.crop_size = check_metadata_size(self.metadata.get(key), where, key)
         self._bindings: dict[int, tuple] = {}
 
     def __repr__(self) -> str:
@@ -128,6 +133,7 @@ class Renderer:
         """Check (B, 68, 2) (or one (68, 2)) finite real landmarks -> C-contiguous float32 (B, 68, 2)."""
         x = check_batch(landmarks, "landmarks", (N_LANDMARKS, 2), "(x, y) pixels", f"{LANDMARK_SCHEME} points, x y",
                         " (drop frames without a face)")
+        check_coordinate_range(x)
         extent = (x.max(1) - x.min(1)).max(1)  # (B,) larger side of each face's bounding box
         if (extent < 1.0).any():
             bad = np.flatnonzero(extent < 1.0)
@@ -173,6 +179,7 @@ class Renderer:
         io, inp, bufs = self._binding(len(x))
         np.copyto(inp, x)
         self.session.run_with_iobinding(io)
+        check_outputs(str(self.path), crops=bufs[0], masks=bufs[1], placements=bufs[2])
         return tuple(b.copy() for b in bufs) if copy else bufs
 
     def render_frame(self, landmarks, background: np.ndarray, feather: float = 2.0) -> np.ndarray:

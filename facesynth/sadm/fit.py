@@ -22,10 +22,11 @@ from typing import Optional
 import numpy as np
 import torch
 
-from facesynth.artifact import manifest_field, read_manifest, read_tensors, save_artifact
+from facesynth.artifact import manifest_field, read_manifest, read_tensors, rebuild, save_artifact
 from facesynth.data.sequence import FaceSequence
 from facesynth.errors import FacesynthError
 from facesynth.model.artifact import load_face_model, save_face_model
+from facesynth.model.artifact import read_manifest as face_model_manifest
 from facesynth.model.face_model import FaceModel
 from facesynth.regressors import REGISTRY, Regressor, search
 from facesynth.sadm.compress import compress_synthesizer
@@ -180,27 +181,53 @@ def save_sadm(sadm: SADM, run_dir: str | os.PathLike, extra: dict | None = None)
         "sadm": asdict(sadm.config),
         "search_table": sadm.search_table,
         "data_fingerprint": sadm.model.fingerprint,
+        "face_model_sha256": face_model_manifest(d / "face_model")["tensors_sha256"],
         **(extra or {}),
     }, SADM_FORMAT, SADM_FORMAT_VERSION)
     return d
 
 
 def load_sadm(run_dir: str | os.PathLike) -> SADM:
-    """Load a run written by :func:`save_sadm` (or by ``train.py``)."""
+    """Load a run written by :func:`save_sadm` (or by ``train.py``).
+
+    Every failure (missing, truncated, altered or non-finite files, invalid JSON, missing
+    fields, tensors that do not fit the regressor or the face model) is a FacesynthError
+    naming the file. The SADM manifest is written last and records the face model's
+    tensors' SHA-256, so a face model from another save is refused.
+    """
     d = Path(run_dir)
     if not (d / "sadm" / SADM_MANIFEST).is_file():
         raise FacesynthError(f"{d}: not a training run (sadm/{SADM_MANIFEST} missing)")
     meta = read_manifest(d / "sadm", SADM_MANIFEST, SADM_FORMAT, SADM_FORMAT_VERSION, "SADM")
     where = d / "sadm" / SADM_MANIFEST
     name = manifest_field(meta, "regressor", where)
-    if name not in REGISTRY:
-        raise FacesynthError(f"{where}: regressor '{name}' is not available in this build")
+    if not isinstance(name, str) or name not in REGISTRY:
+        raise FacesynthError(f"{where}: regressor {name!r} is not available in this build")
     model = load_face_model(d / "face_model")
+    paired = meta.get("face_model_sha256")
+    if paired is not None and paired != face_model_manifest(d / "face_model").get("tensors_sha256"):
+        raise FacesynthError(f"{d / 'face_model'}: not the face model this SADM was saved with "
+                             f"(its SHA-256 differs from {where}'s 'face_model_sha256')")
     tensors = read_tensors(d / "sadm", SADM_TENSORS, meta, "SADM regressor")
     conf = manifest_field(meta, "regressor_config", where)
-    try:
+    sadm_conf = manifest_field(meta, "sadm", where)
+
+    def build() -> SADM:
         reg = REGISTRY[name].from_state(conf, {k: torch.from_numpy(v) for k, v in tensors.items()})
-    except (KeyError, TypeError, ValueError, RuntimeError) as exc:
-        raise FacesynthError(f"{d / 'sadm' / SADM_TENSORS}: does not fit regressor {name!r} ({exc})") from None
-    cfg = SADMConfig(**{k: v for k, v in manifest_field(meta, "sadm", where).items() if k in SADMConfig.__dataclass_fields__})
-    return SADM(model, reg.eval(), name, cfg, conf, meta.get("search_table", []))
+        cfg = SADMConfig(**{k: v for k, v in dict(sadm_conf).items() if k in SADMConfig.__dataclass_fields__})
+        sadm = SADM(model, reg.eval(), name, cfg, conf, meta.get("search_table", []))
+        _smoke_test(sadm)
+        return sadm
+
+    return rebuild(d / "sadm" / SADM_TENSORS, f"SADM regressor {name!r}", build)
+
+
+def _smoke_test(sadm: SADM) -> None:
+    """One forward pass on the reference shape: tensors that do not fit the face model
+    raise here (RuntimeError), not at first use; non-finite outputs raise ValueError."""
+    lm = torch.from_numpy(np.ascontiguousarray(sadm.model.reference.points, np.float32)[None])
+    with torch.no_grad():
+        outs = sadm.synthesizer()(lm)
+    for out in outs if isinstance(outs, (tuple, list)) else (outs,):
+        if not torch.isfinite(out).all():
+            raise ValueError("the synthesizer's output on the reference shape is not finite")
