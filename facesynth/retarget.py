@@ -155,8 +155,11 @@ class ShapeSpace:
         ca, sa = (xc.reshape(-1) @ self._w) / var  # shape -> mean: [[ca, -sa], [sa, ca]] (x - mo) + mu
         lin = np.array([[ca, -sa], [sa, ca]])
         aligned = xc @ lin.T + self._mu
-        b = np.clip(aligned.reshape(-1) @ self._ct - self._off, -self.limit, self.limit)
-        rec = (self.mean + b @ self.components).reshape(N_LANDMARKS, 2)
+        b = aligned.reshape(-1) @ self._ct - self._off
+        # move the shape back inside the box along the model's components only: what the
+        # components do not span (e.g. eye motion in a model of a head-turning clip) is kept
+        excess = b - np.clip(b, -self.limit, self.limit)
+        rec = aligned - (excess @ self.components).reshape(N_LANDMARKS, 2)
         n = ca * ca + sa * sa
         inv = np.array([[ca, sa], [-sa, ca]]) / n
         return (rec - self._mu) @ inv.T + mo

@@ -42,8 +42,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--driver-video", help="with --landmarks: the video they came from, shown left in --side-by-side")
     p.add_argument("--out", required=True, help="output video (.mp4, mp4v codec)")
     p.add_argument("--background", help="background image (default: the avatar's own frame from the model, else grey)")
-    p.add_argument("--motion", choices=("relative", "absolute"), default="relative",
-                   help="relative (default): the driver's motion on the avatar's own face; absolute: the driver's landmarks as they are")
+    p.add_argument("--motion", choices=("relative", "absolute"),
+                   help="relative (default for models exported with their avatar metadata): the driver's motion on the avatar's own "
+                        "face, in the avatar's frame; absolute (default otherwise): the driver's landmarks as they are, on grey")
     p.add_argument("--driver-neutral", type=int, help="driver row used as its neutral face (default: chosen automatically)")
     p.add_argument("--save-landmarks", help="write the float32 (T, 68, 2) avatar landmarks rendered, one row per driver frame (.npy)")
     p.add_argument("--size", help="output frame size WxH when no background is given (default: the landmarks' extent)")
@@ -210,6 +211,10 @@ def run(args: argparse.Namespace) -> int:
 
     renderer = Renderer(args.model, threads=args.threads)
     avatar = Avatar(renderer.metadata, args.model)
+    if args.motion is None:
+        args.motion = "relative" if avatar.neutral is not None else "absolute"
+        if avatar.neutral is None:
+            log.warning("%s has no avatar metadata (an older export): --motion absolute", args.model)
     if args.motion == "relative":
         avatar.require_neutral()
     driver_frames = None
@@ -239,7 +244,7 @@ def run(args: argparse.Namespace) -> int:
     reenactor = Reenactor(renderer, neutral, args.motion, feather=args.feather, match_colour=not args.no_colour_match)
     if args.background:
         background = load_background(args.background, (0, 0))
-    elif avatar.background is not None:
+    elif avatar.background is not None and args.motion == "relative":
         background = avatar.background
     elif driver_frames is not None and not args.size:
         h, w = driver_frames[0].shape[:2]
@@ -262,7 +267,12 @@ def run(args: argparse.Namespace) -> int:
         try:
             bar = tqdm(total=n, unit="frame", desc="app", disable=args.no_progress)
             reenactor.background = background
-            for i, frame in enumerate(reenact_frames(reenactor, landmarks, rendered, latencies)):
+            if args.motion == "relative":
+                frames = reenact_frames(reenactor, landmarks, rendered, latencies)
+            else:  # the driver's landmarks as they are, composited as before retargeting existed
+                rendered[:] = landmarks
+                frames = render_frames(renderer, landmarks, background, 2.0 if args.feather is None else args.feather, latencies)
+            for i, frame in enumerate(frames):
                 if driver_frames is not None:
                     left = fit_into(driver_frames[i], (h, w))
                 else:
