@@ -174,14 +174,18 @@ class Retargeter:
     driver_neutral : (68, 2) the driver's neutral face, the driver's frame pixels
     shape_space : ShapeSpace, optional; projection and clamping (step 5), skipped if None
     motion : "relative" (default) or "absolute" (the driver's landmarks, unchanged)
+    head_motion : with "relative": apply the driver's head motion (step 4); False keeps the
+        avatar's neutral placement (ERI's expression transfer renders in the target's pose)
 
     ``__call__``: (N, 68, 2) or (68, 2) driver frame landmarks -> float32 (N, 68, 2).
     """
 
-    def __init__(self, avatar_neutral, driver_neutral, shape_space: ShapeSpace | None = None, motion: str = "relative"):
+    def __init__(self, avatar_neutral, driver_neutral, shape_space: ShapeSpace | None = None, motion: str = "relative",
+                 head_motion: bool = True):
         if motion not in MOTIONS:
             raise FacesynthError(f"motion must be one of {MOTIONS}, got {motion!r}")
         self.motion = motion
+        self.head_motion = bool(head_motion)
         self.avatar_neutral = _one_face(avatar_neutral, "avatar neutral")
         self.driver_neutral = _one_face(driver_neutral, "driver neutral")
         self.shape_space = shape_space
@@ -217,6 +221,8 @@ class Retargeter:
         inv_t = lin / (lin[0, 0] ** 2 + lin[1, 0] ** 2)  # transpose of the similarity's inverse
         disp = (frame - t) @ inv_t - self.driver_neutral  # expression in the driver's neutral frame
         expr = self.avatar_neutral + disp[:, 0:1] * self._e0 + disp[:, 1:2] * self._e1
+        if not self.head_motion:
+            return expr if self.shape_space is None else self.shape_space.project(expr)
         # head motion C P C^-1 around the avatar's neutral placement
         m_lin = self._c_lin @ lin @ self._c_inv_lin
         m_t = self._c_lin @ (t - lin @ (self._c_inv_lin @ self._c_t)) + self._c_t

@@ -47,12 +47,14 @@ def test_head_motion_is_the_conjugated_similarity():
     np.testing.assert_allclose(out, expected, atol=1e-3)
 
 
-def test_expression_carries_the_drivers_faps():
-    """ERI's FAPs (each in its own face's FAP units) of the retargeted avatar equal the driver's."""
+@pytest.mark.parametrize("head_motion", [True, False])
+def test_expression_carries_the_drivers_faps(head_motion):
+    """ERI's FAPs (each in its own face's FAP units) of the retargeted avatar equal the
+    driver's (with the head motion, as the app, and without, as ERI's transfer)."""
     lm = _faces()
     avatar = lm[2].copy()
     avatar[:, 0] = avatar[:, 0] * 1.2  # a wider face: other FAP units
-    r = Retargeter(avatar, lm[0])
+    r = Retargeter(avatar, lm[0], head_motion=head_motion)
     f_driver = compute_faps(lm[1:], lm[0])
     f_avatar = compute_faps(r(lm[1:]), avatar)
     scale = np.abs(f_driver).max()
