@@ -151,3 +151,28 @@ def test_app_writes_the_rendered_landmarks(avatar, shared_clip_dir, tmp_path):
     assert summary["motion"] == "relative" and out.is_file()
     bad = subprocess.run(cmd[:-3] + ["--driver-neutral", "99999", "--no-progress"], capture_output=True, text=True, cwd=ROOT)
     assert bad.returncode == 2 and "--driver-neutral" in bad.stderr
+
+
+def test_shape_space_clamps_along_the_components_only():
+    from facesynth.retarget import ShapeSpace
+
+    rng = np.random.default_rng(0)
+    mean = _faces()[0] - _faces()[0].mean(0)
+    mean = (mean / np.linalg.norm(mean)).reshape(-1)
+    comps = np.linalg.qr(rng.normal(size=(136, 3)))[0].T  # orthonormal rows
+    comps -= np.outer(comps @ mean, mean)  # orthogonal to the mean (no scale change)
+    comps = np.linalg.qr(comps.T)[0].T
+    space = ShapeSpace(mean, comps, np.array([0.02, 0.01, 0.01]))
+    frame = np.array([[2.0, -0.5, 100.0], [0.5, 2.0, 50.0]])  # model frame -> image frame
+    inside = (mean + 0.5 * space.limit @ comps).reshape(68, 2)
+    shape = apply_affine(inside, frame)
+    np.testing.assert_allclose(space.project(shape), shape, atol=1e-9)  # inside the box: unchanged
+    far = (mean + 10 * space.limit[0] * comps[0] + 0.001 * rng.normal(size=136)).reshape(68, 2)
+    out = space.project(apply_affine(far, frame))
+    m = mean.reshape(68, 2)
+    back = apply_affine(out, similarity_fit(out[None], m[None])[0]).reshape(-1)  # the model frame, as the projection aligns
+    b = (back - mean) @ comps.T
+    before = (apply_affine(far, similarity_fit(far[None], m[None])[0]).reshape(-1) - mean) @ comps.T
+    assert abs(before[0]) > 5 * space.limit[0]
+    # one projection step: the similarity re-fit of the moved shape leaves it near the limit
+    assert abs(b[0]) <= 1.5 * space.limit[0]
