@@ -174,8 +174,6 @@ def fit_into(image: np.ndarray, size: tuple[int, int]) -> np.ndarray:
 def save_landmarks(path: str, landmarks: np.ndarray) -> None:
     """Write float32 (T, 68, 2) landmarks to ``path`` (.npy) atomically."""
     out = Path(path)
-    if out.suffix != ".npy":
-        raise FacesynthError(f"--save-landmarks: expected a .npy path, got {path}")
     with atomic_path(out) as tmp:
         with open(tmp, "wb") as fh:
             np.save(fh, np.asarray(landmarks, np.float32))
@@ -209,6 +207,8 @@ def run(args: argparse.Namespace) -> int:
     from facesynth.runtime.reenact import Avatar, Reenactor, clip_video, driver_neutral_of, reenact_frames
     from facesynth.runtime.renderer import Renderer
 
+    if args.save_landmarks and Path(args.save_landmarks).suffix != ".npy":
+        raise FacesynthError(f"--save-landmarks: expected a .npy path, got {args.save_landmarks}")
     renderer = Renderer(args.model, threads=args.threads)
     avatar = Avatar(renderer.metadata, args.model)
     if args.motion is None:
