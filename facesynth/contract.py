@@ -39,6 +39,13 @@ ERI_METADATA_KEYS = (
     "output_layout", "opset",
 )
 
+# optional keys of a synthesis file that can be driven by another face (issue 13; written by
+# facesynth.onnx.avatar, read by facesynth.runtime.reenact): the avatar's neutral landmarks
+# (68, 2) frame px, their clip row, the shape PCA {mean, components, limit}, the avatar's
+# own frame (base64 JPEG) and its size [W, H]
+AVATAR_METADATA_KEYS = ("avatar_neutral", "avatar_neutral_row", "avatar_neutral_rule", "shape_pca", "background_jpeg",
+                        "frame_size")
+
 # what a file of each format is, for error messages that point to the right class
 FORMAT_HINTS = {
     ERI_FORMAT: "an ERI model: use facesynth.runtime.EriRenderer",

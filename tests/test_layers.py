@@ -18,7 +18,7 @@ import pytest
 PACKAGE = Path(__file__).resolve().parents[1] / "facesynth"
 
 GROUND = {"facesynth", "errors", "io", "metrics", "landmarks", "landmark_tables", "geometry", "imaging", "provenance",
-          "contract", "artifact", "ops"}
+          "contract", "artifact", "ops", "faps", "retarget"}
 TOP = {"eval", "runs", "onnx", "cli", "__main__"}
 # what each part may import besides itself and the ground
 ALLOWED = {

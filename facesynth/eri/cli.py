@@ -95,6 +95,7 @@ def run(args) -> int:
     from facesynth.eri.model import EriModel
     from facesynth.eri.render import contact_sheet, pick_sheet_rows, write_video
     from facesynth.eri.synthesis import EriSynthesizer
+    from facesynth.retarget import Retargeter
 
     model = EriModel.load(args.eri)
     image, landmarks, target_desc = load_target(args.target, args.target_landmarks, args.target_frame)
@@ -111,8 +112,11 @@ def run(args) -> int:
     n = len(driver) if args.max_frames <= 0 else min(args.max_frames, len(driver))
     faps = compute_faps(driver.landmarks[:n], d_neutral)
     syn = EriSynthesizer(model, image, landmarks, args.variant, raw=args.raw_ratios)
+    # B's landmarks: the driver's expression retargeted onto B's face (FAP units extended to
+    # every point, B's own proportions; the app's retargeting), in B's head pose
+    positions = Retargeter(syn.neutral, d_neutral, head_motion=False)(driver.landmarks[:n])
     t0 = time.perf_counter()
-    frames = write_video(args.out, syn.iter_render(faps, "eri"), args.fps or driver.fps)
+    frames = write_video(args.out, syn.iter_render(faps, "eri", positions=positions), args.fps or driver.fps)
     per_frame = (time.perf_counter() - t0) / frames
     summary = {"out": str(args.out), "frames": frames, "seconds_per_frame": per_frame, "target": target_desc,
                "driver": str(args.driver), "driver_neutral": how, "variant": syn.variant}
@@ -120,10 +124,10 @@ def run(args) -> int:
         if not driver.has_frames:
             raise FacesynthError(f"{args.driver}: the contact sheet needs the driver's frames (video)")
         rows = pick_sheet_rows(faps, args.sheet_rows)
-        geo, _ = syn.render(faps[rows], "geometry")
-        eri, _ = syn.render(faps[rows], "eri")
+        geo, _ = syn.render(faps[rows], "geometry", positions=positions[rows])
+        eri, _ = syn.render(faps[rows], "eri", positions=positions[rows])
         contact_sheet(args.sheet, list(driver.iter_frames(rows)), driver.landmarks[rows], list(geo), list(eri),
-                      syn.positions(faps[rows]))
+                      positions[rows])
         summary.update(sheet=str(args.sheet), sheet_rows=rows.tolist())
     print(json.dumps(summary))
     return 0

@@ -108,16 +108,19 @@ class EriSynthesizer:
 
     def render(
         self, faps: np.ndarray, mode: str = "eri", backgrounds: np.ndarray | None = None, poses: np.ndarray | None = None,
-        coefficients: np.ndarray | None = None, feather: float | None = None,
+        coefficients: np.ndarray | None = None, feather: float | None = None, positions: np.ndarray | None = None,
     ) -> tuple[np.ndarray, np.ndarray]:
         """Steps 2-5 for a batch: (N, 36) FAPs -> frames uint8 (N, H, W, 3) and face masks
         bool (N, H, W) (pixels fully inside the rendered face).
 
-        ``backgrounds`` (N, H, W, 3) default to B's image; ``poses`` as in :meth:`positions`.
+        ``backgrounds`` (N, H, W, 3) default to B's image; ``poses`` as in :meth:`positions`;
+        ``positions`` (N, 68, 2): B's landmarks given directly (e.g. the driver's landmarks
+        retargeted onto B, :class:`facesynth.retarget.Retargeter`) instead of from the FAPs.
         """
         faps = np.asarray(faps, np.float32)
         tex = self.textures(faps, mode, coefficients)
-        crop, mask, place = self.warp(tex, self.positions(faps, poses))
+        pos = self.positions(faps, poses) if positions is None else np.asarray(positions, np.float32)
+        crop, mask, place = self.warp(tex, pos)
         feather = self.model.config.feather if feather is None else feather
         frames, masks = [], []
         for i in range(len(faps)):
@@ -127,8 +130,11 @@ class EriSynthesizer:
             masks.append(cv2.warpAffine(mask[i], place[i], (w, h), flags=cv2.INTER_LINEAR) > 0.999)
         return np.stack(frames), np.stack(masks)
 
-    def iter_render(self, faps: np.ndarray, mode: str = "eri", batch_size: int | None = None) -> Iterator[np.ndarray]:
-        """Yield uint8 (H, W, 3) frames of B driven by (N, 36) FAPs, in batches."""
+    def iter_render(self, faps: np.ndarray, mode: str = "eri", batch_size: int | None = None,
+                    positions: np.ndarray | None = None) -> Iterator[np.ndarray]:
+        """Yield uint8 (H, W, 3) frames of B driven by (N, 36) FAPs, in batches
+        (``positions``: as in :meth:`render`)."""
         bs = batch_size or self.model.config.batch_size
         for s in range(0, len(faps), bs):
-            yield from self.render(faps[s : s + bs], mode)[0]
+            pos = None if positions is None else positions[s : s + bs]
+            yield from self.render(faps[s : s + bs], mode, positions=pos)[0]

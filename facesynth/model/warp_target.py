@@ -24,8 +24,16 @@ class ToTarget(nn.Module):
     it starts (the triangle below it) and ``-code`` for the one it ends, and a cumulative
     sum down each column leaves, at every pixel, the sum of the codes of the triangles
     that cover it. ``code = C + t + 1`` with ``C`` a power of two above the triangle
-    count, so one sum gives both the coverage count and the triangle index; pixels
-    covered exactly once are inside (degenerate or flipped triangles are skipped). Both
+    count, so one sum gives both the coverage count and the triangle index. A flipped
+    triangle (orientation opposite to the reference: a fold) takes its codes with the
+    opposite sign, so it too adds ``+code`` inside itself: the sum counts *unsigned*
+    coverage and no fold leaves a hole. Every covered pixel is inside the face (the mask
+    is the union of the target triangles, which contains the face outline whatever the
+    folds); a pixel covered exactly once reads its triangle's affine map, and a pixel
+    covered by two or more (where a fold overlaps the mesh) reads the reference texture at
+    its own canvas position (the target is similarity-aligned to the reference frame, so
+    this is the mean-shape texture there). Only degenerate (zero-area) triangles are
+    skipped. Both
     triangles of a shared edge take their events from one evaluation of that edge, so
     neighbours partition each column exactly (a pixel centre on an edge belongs to the
     triangle below it; columns are half-open on the right).
@@ -145,6 +153,9 @@ class ToTarget(nn.Module):
         self.register_buffer("ref_d1", torch.from_numpy((rp[:, 1] - rp[:, 0]).astype(np.float32)[:, :, None]))  # (T, 2, 1)
         self.register_buffer("ref_d2", torch.from_numpy((rp[:, 2] - rp[:, 0]).astype(np.float32)[:, :, None]))
         self.register_buffer("ref_0", torch.from_numpy(rp[:, 0].astype(np.float32)[:, :, None]))  # (T, 2, 1)
+        # overlap pixels (covered twice or more, by a fold) read the raster at their own canvas
+        # position: u = x - c0, v = y - r0 (table row T + 1, origin (0, 0))
+        self.register_buffer("overlap_map", torch.tensor([[[1.0, 0.0, -float(c0), 0.0, 1.0, -float(r0)]]]))
         # per-pixel constants: column x, row y, table offset x - C W (tables are (T + 2, W))
         ys, xs = np.mgrid[0:h, 0:w].astype(np.float32)
         self.register_buffer("col_x", torch.arange(w, dtype=torch.float32))
@@ -203,7 +214,10 @@ class ToTarget(nn.Module):
         x_lo, y_lo, x_hi = lo[0], lo[1], hi[0]
         wb, hb = x_hi - x_lo, hi[1] - y_lo
         xa, ya, xb, yb = ed[:, 0:1], ed[:, 1:2], ed[:, 2:3], ed[:, 3:4]  # (B, 1, E)
-        valid = (det.transpose(1, 2) > 1e-6).to(ed.dtype)  # (B, 1, T)
+        # +1 for reference-oriented triangles, -1 for flipped ones (their edge events are
+        # reversed, so the product adds +code inside either); degenerate ones are skipped
+        det_t = det.transpose(1, 2)
+        valid = (det_t > 1e-6).to(ed.dtype) - (det_t < -1e-6).to(ed.dtype)  # (B, 1, T)
         codes = torch.matmul(valid, self.edge_codes)  # (B, 1, E): signed codes, lo -> hi direction
         dx = xb - xa
         delta = torch.where(dx > 0, codes, -codes)
@@ -250,11 +264,12 @@ class ToTarget(nn.Module):
         rows (Hb,): its canvas coordinates. Tables (B, (T + 2) Wb) indexed by
         ``(s' - C) Wb + (x - x_lo)`` with s' = clamp(s, C, C + T + 1) hold
         u_c = u_0 + u_x (x - x_0), u_y and y_0 (likewise v); u = u_c + u_y (y - y_0). Row 0
-        (no triangle) and row T + 1 (two or more triangles) map to (0, 0). Every product is
+        (no triangle) maps to (0, 0) and row T + 1 (two or more triangles: a fold's
+        overlap) to the pixel's own canvas position in the raster. Every product is
         of a small offset (a pixel's distance to its triangle's vertex), so float32 rounding
         stays at the level of the raster coordinates (<= 1e-5 px on a 400 px canvas).
         """
-        tab = F.pad(maps, (0, 0, 1, 1))  # (B, T + 2, 6), row t + 1 = triangle t, rows 0 and T + 1 map to (0, 0)
+        tab = torch.cat([F.pad(maps, (0, 0, 1, 0)), self.overlap_map + maps[:, :1] * 0.0], 1)  # (B, T + 2, 6), row t + 1 = triangle t
         org = F.pad(origin, (0, 0, 1, 1))  # (B, T + 2, 2)
         zero = cols * 0.0
         dx = cols - org[..., 0:1]  # (B, T + 2, Wb)
@@ -301,7 +316,7 @@ class ToTarget(nn.Module):
         cols, rows = torch.arange(lo[0], hi[0]), torch.arange(lo[1], hi[1] + 1.0)  # box pixels, one row more
         s = self.locate(ed, det, lo, hi, cols, rows).unsqueeze(1)  # (B, 1, Hb, Wb)
         cb = self.code_base
-        inside = ((s > cb + 0.5) & (s < cb + self.n_tri + 0.5)).to(textures.dtype)
+        inside = (s > cb * 0.5).to(textures.dtype)  # covered at least once (codes are >= C + 1)
         u, v = self.source(maps, vert[..., :2], s, lo, hi, cols, rows[:-1])
         img = self.bilinear(textures, u, v, inside)
         # ONNX Pad order: begins of (B, C, H, W), then ends

@@ -38,6 +38,7 @@ from facesynth.contract import (
     SYNTHESIS_OUTPUT_LAYOUT,
 )
 from facesynth.errors import FacesynthError
+from facesynth.onnx.avatar import run_avatar_metadata
 from facesynth.onnx.common import SimilarityAlignment, check_parity, save_graph
 from facesynth.onnx.config import BASIS_KINDS, DEFAULT_BASIS, DEFAULT_COMPONENTS
 from facesynth.runs.rundir import load_synthesizer, training_landmarks
@@ -210,6 +211,7 @@ def export_run(
     meta.update(info)
     syn, info = quantize_for_export(syn, lm, basis)
     meta.update(info)
+    meta.update(run_avatar_metadata(run_dir, syn))
     return export_synthesizer(syn, out, meta, opset), syn, meta
 
 

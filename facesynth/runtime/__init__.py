@@ -7,6 +7,9 @@ Imports only numpy, onnxruntime and OpenCV (a test checks that torch stays unimp
     crops, masks, placements = r.render(landmarks)      # (B, 68, 2) frame pixels
     frame = r.render_frame(landmarks[0], background)     # uint8 (H, W, 3)
 
+    re = Reenactor("avatar.onnx")                        # another face drives the avatar (issue 13)
+    frame, avatar_lm = re.step(driver_lm)                # (68, 2) -> uint8 frame in the avatar's own frame
+
     e = EriRenderer("eri.onnx")                          # an ERI model (one target face)
     frames = e.render_frames(faps, target_image)         # (B, 36) MPEG-4 FAPs -> uint8 (B, H, W, 3)
 """
@@ -14,6 +17,7 @@ Imports only numpy, onnxruntime and OpenCV (a test checks that torch stays unimp
 from facesynth.imaging import composite
 from facesynth.runtime.eri import EriRenderer
 from facesynth.runtime.filters import OneEuroFilter, smooth_landmarks
+from facesynth.runtime.reenact import Reenactor
 from facesynth.runtime.renderer import Renderer, read_metadata
 
-__all__ = ["EriRenderer", "OneEuroFilter", "Renderer", "composite", "read_metadata", "smooth_landmarks"]
+__all__ = ["EriRenderer", "OneEuroFilter", "Reenactor", "Renderer", "composite", "read_metadata", "smooth_landmarks"]

@@ -1,10 +1,14 @@
 """``facesynth app``: render a talking-head video from landmarks with an exported model.
 
     facesynth app --model model.onnx (--landmarks L.npy | --video DRIVER.mp4) --out out.mp4
+                  [--motion relative|absolute] [--driver-neutral N] [--save-landmarks L.npy]
                   [--background IMG] [--side-by-side] [--smooth] [--size WxH]
 
-Each frame's landmarks drive the model (batch 1, as a live app would), the face is
-composited into the background (:func:`facesynth.imaging.composite`), and the video is
+Each frame's landmarks are retargeted onto the avatar (``--motion relative``, the default:
+the driver's expression and head motion relative to its neutral, on the avatar's own face;
+:class:`facesynth.runtime.reenact.Reenactor`) and drive the model (batch 1, as a live app
+would); the face is composited into the avatar's own frame (the model's metadata) with a
+feathered, colour-matched seam (:func:`facesynth.runtime.blend.blend_face`), and the video is
 written atomically (mp4v). A progress bar shows frames/s; the summary gives latency
 percentiles of the model call and of the whole frame. Torch is never imported.
 """
@@ -38,7 +42,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     src.add_argument("--video", help="driving video; landmarks are detected with the 'ingest' extra (dlib)")
     p.add_argument("--driver-video", help="with --landmarks: the video they came from, shown left in --side-by-side")
     p.add_argument("--out", required=True, help="output video (.mp4, mp4v codec)")
-    p.add_argument("--background", help="background image (default: a neutral grey frame)")
+    p.add_argument("--background", help="background image (default: the avatar's own frame from the model, else grey)")
+    p.add_argument("--motion", choices=("relative", "absolute"),
+                   help="relative (default for models exported with their avatar metadata): the driver's motion on the avatar's own "
+                        "face, in the avatar's frame; absolute (default otherwise): the driver's landmarks as they are, on grey")
+    p.add_argument("--driver-neutral", type=int, help="driver row used as its neutral face (default: chosen automatically)")
+    p.add_argument("--save-landmarks", help="write the float32 (T, 68, 2) avatar landmarks rendered, one row per driver frame (.npy)")
     p.add_argument("--size", help="output frame size WxH when no background is given (default: the landmarks' extent)")
     p.add_argument("--side-by-side", action="store_true", help="driver (video frame or drawn landmarks) left, rendering right")
     p.add_argument("--smooth", action="store_true", help="One Euro filter on the landmarks (Casiez et al. 2012)")
@@ -46,7 +55,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--beta", type=float, default=0.05, help="One Euro speed coefficient (default 0.05)")
     p.add_argument("--fps", type=float, help="output frame rate (default: the driver video's, else 30)")
     p.add_argument("--threads", type=int, default=1, help="ONNX Runtime intra-op threads (default 1)")
-    p.add_argument("--feather", type=float, default=2.0, help="soft edge of the pasted face, pixels (default 2)")
+    p.add_argument("--feather", type=float, help="soft edge of the pasted face, pixels (default: 4%% of the face)")
+    p.add_argument("--no-colour-match", action="store_true", help="do not match the face's colour to the frame at the seam")
     p.add_argument("--max-frames", type=int, help="render only the first N frames")
     p.add_argument("--contact-sheet", help=f"also write a PNG contact sheet (driver above rendering), e.g. {SHEET_DIR}/sheet.png")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -149,6 +159,28 @@ def render_frames(renderer, landmarks: np.ndarray, background: np.ndarray, feath
         yield frame
 
 
+def fit_into(image: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """``image`` scaled to fit (H, W) with its aspect kept, centred on black."""
+    h, w = size
+    ih, iw = image.shape[:2]
+    if (ih, iw) == (h, w):
+        return image
+    s = min(h / ih, w / iw)
+    nh, nw = max(1, int(round(ih * s))), max(1, int(round(iw * s)))
+    out = np.zeros((h, w, 3), np.uint8)
+    y, x = (h - nh) // 2, (w - nw) // 2
+    out[y:y + nh, x:x + nw] = cv2.resize(image, (nw, nh), interpolation=cv2.INTER_AREA)
+    return out
+
+
+def save_landmarks(path: str, landmarks: np.ndarray) -> None:
+    """Write float32 (T, 68, 2) landmarks to ``path`` (.npy) atomically."""
+    out = Path(path)
+    with atomic_path(out) as tmp:
+        with open(tmp, "wb") as fh:
+            np.save(fh, np.asarray(landmarks, np.float32))
+
+
 def latency_summary(latencies: list) -> dict:
     """p50/p90/p99 (ms) of the model call and of the whole frame."""
     if not latencies:
@@ -174,10 +206,20 @@ def run(args: argparse.Namespace) -> int:
     from tqdm.auto import tqdm
 
     from facesynth.runtime.filters import smooth_landmarks
+    from facesynth.runtime.reenact import Avatar, Reenactor, clip_video, driver_neutral_of, reenact_frames
     from facesynth.runtime.renderer import Renderer
 
+    if args.save_landmarks and Path(args.save_landmarks).suffix != ".npy":
+        raise FacesynthError(f"--save-landmarks: expected a .npy path, got {args.save_landmarks}")
     check_writable(args.out)  # before any decoding or rendering
     renderer = Renderer(args.model, threads=args.threads)
+    avatar = Avatar(renderer.metadata, args.model)
+    if args.motion is None:
+        args.motion = "relative" if avatar.neutral is not None else "absolute"
+        if avatar.neutral is None:
+            log.warning("%s has no avatar metadata (an older export): --motion absolute", args.model)
+    if args.motion == "relative":
+        avatar.require_neutral()
     driver_frames = None
     if args.video:
         driver_frames, video_fps = read_video(args.video, args.max_frames)
@@ -189,17 +231,24 @@ def run(args: argparse.Namespace) -> int:
         landmarks = load_landmarks(args.landmarks, scheme="ibug68")
         if args.max_frames:
             landmarks = landmarks[: args.max_frames]
-        if args.driver_video:
-            driver_frames, video_fps = read_video(args.driver_video, len(landmarks))
+        driver_video = args.driver_video or (clip_video(args.landmarks) if args.side_by_side else None)
+        if driver_video:
+            driver_frames, video_fps = read_video(driver_video, len(landmarks))
             if len(driver_frames) < len(landmarks):
-                raise FacesynthError(f"{args.driver_video}: {len(driver_frames)} frames for {len(landmarks)} landmark rows")
+                raise FacesynthError(f"{driver_video}: {len(driver_frames)} frames for {len(landmarks)} landmark rows")
     fps = float(args.fps or video_fps or 30.0)
     if not fps > 0:
         raise FacesynthError(f"--fps must be > 0, got {fps}")
     if args.smooth:
         landmarks = smooth_landmarks(landmarks, fps, args.min_cutoff, args.beta)
+    neutral = None
+    if args.motion == "relative" or args.driver_neutral is not None:
+        neutral, neutral_row = driver_neutral_of(landmarks, args.driver_neutral)
+    reenactor = Reenactor(renderer, neutral, args.motion, feather=args.feather, match_colour=not args.no_colour_match)
     if args.background:
         background = load_background(args.background, (0, 0))
+    elif avatar.background is not None and args.motion == "relative":
+        background = avatar.background
     elif driver_frames is not None and not args.size:
         h, w = driver_frames[0].shape[:2]
         background = load_background(None, (w, h))
@@ -210,6 +259,7 @@ def run(args: argparse.Namespace) -> int:
     out_w = 2 * w if args.side_by_side else w
     n = len(landmarks)
     latencies: list = []
+    rendered = np.full((n, 68, 2), np.nan, np.float32)  # the avatar landmarks of each frame (--save-landmarks)
     sheet_idx = set(np.linspace(0, n - 1, min(6, n)).round().astype(int).tolist())
     sheet_top, sheet_bottom = [], []
     out = Path(args.out)
@@ -220,9 +270,15 @@ def run(args: argparse.Namespace) -> int:
             raise FacesynthError(f"{out}: OpenCV cannot write an mp4v video here")
         try:
             bar = tqdm(total=n, unit="frame", desc="app", disable=args.no_progress)
-            for i, frame in enumerate(render_frames(renderer, landmarks, background, args.feather, latencies)):
+            reenactor.background = background
+            if args.motion == "relative":
+                frames = reenact_frames(reenactor, landmarks, rendered, latencies)
+            else:  # the driver's landmarks as they are, composited as before retargeting existed
+                rendered[:] = landmarks
+                frames = render_frames(renderer, landmarks, background, 2.0 if args.feather is None else args.feather, latencies)
+            for i, frame in enumerate(frames):
                 if driver_frames is not None:
-                    left = cv2.resize(driver_frames[i], (w, h)) if driver_frames[i].shape[:2] != (h, w) else driver_frames[i]
+                    left = fit_into(driver_frames[i], (h, w))
                 else:
                     left = draw_landmarks(background, landmarks[i])
                 shown = np.concatenate([left, frame], 1) if args.side_by_side else frame
@@ -235,11 +291,17 @@ def run(args: argparse.Namespace) -> int:
         finally:
             writer.release()
     wall = time.perf_counter() - t_start
+    if args.save_landmarks:
+        save_landmarks(args.save_landmarks, rendered)
     summary = latency_summary(latencies)
     summary.update({"out": str(out), "size": [out_w, h], "fps": fps, "wall_s": round(wall, 3),
                     "frames_per_s": round(n / wall, 1) if wall > 0 else None,
                     "skipped_no_face": int(n - summary["frames"]), "smooth": bool(args.smooth),
-                    "regressor": renderer.metadata.get("regressor"), "threads": args.threads})
+                    "regressor": renderer.metadata.get("regressor"), "threads": args.threads, "motion": args.motion})
+    if neutral is not None:
+        summary["driver_neutral_row"] = neutral_row
+    if args.save_landmarks:
+        summary["landmarks_out"] = str(args.save_landmarks)
     if args.contact_sheet:
         sheet = contact_sheet(sheet_top, sheet_bottom)
         sheet_path = Path(args.contact_sheet)

@@ -1,0 +1,70 @@
+"""What a landmark-driven model needs to be driven by *another* face (issue 13), written
+into its ONNX metadata at export time (torch-side; the runtime reads it with
+:func:`facesynth.runtime.reenact.avatar_from_metadata`):
+
+* ``avatar_neutral``: the avatar's neutral landmarks (68, 2) in its frame pixels, chosen
+  among the training frames by ERI's rule (:func:`facesynth.retarget.select_neutral`),
+  and ``avatar_neutral_row`` (the frame's index in the clip);
+* ``shape_pca``: the model's shape PCA (mean, orthonormal components, clamp limits
+  k sqrt(lambda)) for :class:`facesynth.retarget.ShapeSpace`;
+* ``background_jpeg``: that neutral frame, JPEG (quality 90) in base64, the avatar's own
+  frame the app composites into, and ``frame_size`` [W, H].
+"""
+
+from __future__ import annotations
+
+import base64
+import logging
+
+import cv2
+import numpy as np
+
+from facesynth.errors import FacesynthError
+from facesynth.retarget import ShapeSpace, select_neutral
+
+log = logging.getLogger(__name__)
+JPEG_QUALITY = 90
+
+
+def encode_jpeg(image: np.ndarray) -> str:
+    """uint8 RGB (H, W, 3) -> base64 JPEG text."""
+    ok, buf = cv2.imencode(".jpg", cv2.cvtColor(image, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])
+    if not ok:
+        raise FacesynthError("could not JPEG-encode the avatar's background frame")
+    return base64.b64encode(buf.tobytes()).decode("ascii")
+
+
+def shape_space(syn) -> ShapeSpace:
+    """The synthesizer's shape PCA (its :class:`ShapeEncoder` buffers) as a ShapeSpace."""
+    enc = syn.encoder
+    return ShapeSpace(enc.mean.double().numpy(), enc.components.double().numpy(), enc.limit.double().numpy())
+
+
+def avatar_metadata(syn, landmarks: np.ndarray, rows: np.ndarray | None = None, sequence=None) -> dict:
+    """Metadata entries for reenactment: the neutral among ``landmarks`` (N, 68, 2) (the
+    training frames; ``rows`` their indices in ``sequence``), the shape PCA and, when
+    ``sequence`` has frames, the neutral frame as background."""
+    lm = np.asarray(landmarks, np.float32)
+    idx, info = select_neutral(lm)
+    row = int(rows[idx]) if rows is not None else idx
+    meta = {"avatar_neutral": np.round(lm[idx].astype(np.float64), 3).tolist(), "avatar_neutral_row": row,
+            "avatar_neutral_rule": info["rule"], "shape_pca": shape_space(syn).to_dict()}
+    if sequence is not None and sequence.has_frames:
+        frame = np.asarray(sequence.frame(row))
+        meta["background_jpeg"] = encode_jpeg(frame)
+        meta["frame_size"] = [int(frame.shape[1]), int(frame.shape[0])]
+    return meta
+
+
+def run_avatar_metadata(run_dir, syn) -> dict:
+    """:func:`avatar_metadata` of a ``train.py`` run (its data and training rows); {} with a
+    log line when the run's data cannot be reloaded (the model then needs --driver-neutral
+    style inputs: the runtime says so)."""
+    from facesynth.runs.rundir import read_config, run_data
+
+    try:
+        seq, rows, _ = run_data(read_config(run_dir))
+    except FacesynthError as exc:
+        log.warning("no reenactment metadata (avatar neutral, background): %s", exc)
+        return {}
+    return avatar_metadata(syn, seq.landmarks[rows], rows, seq)

@@ -1,0 +1,252 @@
+"""Landmark retargeting: carry a driver's *motion* (expression and head movement relative
+to the driver's own neutral face) onto an avatar's neutral face, so that the avatar keeps
+its own face shape and place in its own frame (numpy only: used by the torch-free runtime,
+:class:`facesynth.runtime.Reenactor`, and by ERI's expression transfer).
+
+Per driver frame ``D`` with the driver's neutral ``D_n`` and the avatar's neutral ``A_n``
+(both (68, 2) frame pixels):
+
+1. head pose ``P``: the similarity mapping ``D_n`` onto ``D``, fitted on the rigid points
+   no expression moves (:data:`facesynth.faps.RIGID_POINTS`: nose bridge and tip, eye
+   corners), as ERI's FAPs do;
+2. expression: ``D`` aligned back onto ``D_n`` (``P^-1``) minus ``D_n``: a displacement per
+   point, split into the driver's face axes (``x`` from pupil to pupil, ``down``);
+3. scaling: the MPEG-4 FAP idea extended to every point. Each point and axis has a FAP
+   unit (:data:`POINT_UNITS`: mouth and jaw by mouth width / mouth-nose separation, eyes
+   by eye separation / eyelid opening, brows and nose by eye separation / eye-nose
+   separation), and its displacement is multiplied by avatar unit / driver unit
+   (:func:`facesynth.faps.fapu` of both neutrals), then put on the avatar's face axes and
+   added to ``A_n``; on the FAP feature points this is exactly ``faps_to_landmarks(A_n,
+   compute_faps(D, D_n))`` along the FAP axes;
+4. head motion (``motion="relative"``): ``C P C^-1`` applied to the result, with ``C`` the
+   similarity from ``D_n`` to ``A_n`` (rigid points): the driver's rotation, scale change
+   and translation (in avatar pixels) around the avatar's own neutral placement;
+5. the shape is projected onto the avatar's shape PCA (similarity-aligned to its mean) and
+   its parameters clamped to +-k sqrt(lambda) (:class:`ShapeSpace`), so that it stays a face
+   the model was trained on.
+
+``motion="absolute"`` returns the driver's landmarks unchanged (the behaviour before
+retargeting; for self-driving and tests).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from facesynth.errors import FacesynthError
+from facesynth.faps import FAPU_NAMES, RIGID_POINTS, face_axes, fapu
+from facesynth.geometry import generalised_procrustes, similarity_fit
+from facesynth.landmarks import BROWS, EYES, JAW, MOUTH, N_LANDMARKS, NOSE, inter_ocular
+
+MOTIONS = ("relative", "absolute")
+INNER_UPPER = (61, 62, 63)  # inner-lip points facing INNER_LOWER across the mouth opening
+INNER_LOWER = (67, 66, 65)
+
+
+def _point_units() -> np.ndarray:
+    """int (68, 2): the FAPU (index into FAPU_NAMES) scaling each point's (x, down) motion."""
+    u = {n: i for i, n in enumerate(FAPU_NAMES)}
+    out = np.zeros((N_LANDMARKS, 2), np.int64)
+    for pts, ux, uy in ((JAW, "MW", "MNS"), (MOUTH, "MW", "MNS"), (EYES, "ES", "IRISD"), (BROWS, "ES", "ENS"),
+                        (NOSE, "ES", "ENS")):
+        out[list(pts)] = (u[ux], u[uy])
+    return out
+
+
+POINT_UNITS = _point_units()
+
+
+def mouth_open(landmarks: np.ndarray) -> np.ndarray:
+    """Mean inner-lip gap (61-67, 62-66, 63-65) / inter-ocular distance: (N, 68, 2) -> (N,)."""
+    lm = np.asarray(landmarks, np.float64)
+    gap = np.linalg.norm(lm[..., list(INNER_UPPER), :] - lm[..., list(INNER_LOWER), :], axis=-1).mean(-1)
+    return gap / inter_ocular(lm)
+
+
+def eye_open(landmarks: np.ndarray) -> np.ndarray:
+    """Mean eyelid gap (37-41, 38-40, 43-47, 44-46) / inter-ocular distance: (N, 68, 2) -> (N,)."""
+    lm = np.asarray(landmarks, np.float64)
+    gap = np.linalg.norm(lm[..., [37, 38, 43, 44], :] - lm[..., [41, 40, 47, 46], :], axis=-1).mean(-1)
+    return gap / inter_ocular(lm)
+
+
+def select_neutral(landmarks: np.ndarray, mouth_closed_max: float = 0.03) -> tuple[int, dict]:
+    """Automatic neutral frame: closest (Procrustes distance) to the mean shape among frames
+    whose mouth is closed (``mouth_open <= mouth_closed_max``; if none is, the 10% of
+    frames with the smallest gap). ERI's rule (:mod:`facesynth.eri.geometry` re-exports it).
+
+    Parameters
+    ----------
+    landmarks : (N, 68, 2) candidate frames (e.g. the training rows).
+
+    Returns
+    -------
+    index : int, row into ``landmarks``
+    info : dict with the distance, the mouth gap and the number of candidates (for the artifact).
+    """
+    lm = np.asarray(landmarks, np.float64)
+    if lm.ndim != 3 or len(lm) < 1 or lm.shape[1:] != (N_LANDMARKS, 2):
+        raise FacesynthError(f"neutral selection needs (N, {N_LANDMARKS}, 2) landmarks, got {lm.shape}")
+    finite = np.isfinite(lm).all(axis=(1, 2))
+    if not finite.any():
+        raise FacesynthError("neutral selection: no frame has a face (all rows NaN)")
+    rows = np.flatnonzero(finite)
+    lm = lm[rows]
+    gap = mouth_open(lm)
+    cand = np.flatnonzero(gap <= mouth_closed_max)
+    rule = f"mouth_open <= {mouth_closed_max}"
+    if len(cand) == 0:
+        cand = np.argsort(gap)[: max(1, len(lm) // 10)]
+        rule = "10% smallest mouth gap (no frame under the threshold)"
+    aligned, mean = generalised_procrustes(lm) if len(lm) > 1 else (lm, lm[0])
+    dist = np.linalg.norm((aligned - mean).reshape(len(lm), -1), axis=1)
+    best = int(cand[np.argmin(dist[cand])])
+    return int(rows[best]), {"rule": rule, "candidates": int(len(cand)), "procrustes_distance": float(dist[best]),
+                             "mouth_open": float(gap[best])}
+
+
+@dataclass
+class ShapeSpace:
+    """An avatar's shape PCA (the face model's, in its normalised frame): project shapes onto
+    it and clamp their parameters to +-``limit``.
+
+    mean : (136,) float64, components : (K, 136) orthonormal rows, limit : (K,) (k sqrt(lambda)).
+    """
+
+    mean: np.ndarray
+    components: np.ndarray
+    limit: np.ndarray
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "ShapeSpace":
+        """From the exported model's ``shape_pca`` metadata: {mean, components, limit}."""
+        try:
+            out = cls(*(np.asarray(d[k], np.float64) for k in ("mean", "components", "limit")))
+        except (KeyError, TypeError, ValueError) as exc:
+            raise FacesynthError(f"shape_pca metadata: expected mean, components and limit ({exc})") from None
+        k = len(out.limit)
+        if out.mean.shape != (2 * N_LANDMARKS,) or out.components.shape != (k, 2 * N_LANDMARKS):
+            raise FacesynthError(f"shape_pca metadata: mean {out.mean.shape}, components {out.components.shape}, limit ({k},)")
+        return out
+
+    def to_dict(self) -> dict:
+        return {k: np.round(getattr(self, k), 7).tolist() for k in ("mean", "components", "limit")}
+
+    def __post_init__(self):
+        mean = self.mean.reshape(N_LANDMARKS, 2)
+        self._mu = mean.mean(0)
+        mc = mean - self._mu
+        # similarity fit of a shape onto the mean: [a, b] = shape.ravel() @ w / var(shape)
+        self._w = np.stack([mc.reshape(-1), np.stack([mc[:, 1], -mc[:, 0]], 1).reshape(-1)], 1)  # (136, 2)
+        self._ct = np.ascontiguousarray(self.components.T)
+        self._off = self.mean @ self._ct
+        self._avg = np.full(N_LANDMARKS, 1.0 / N_LANDMARKS)  # mean as a matmul (faster than .mean at this size)
+
+    def project(self, shapes: np.ndarray) -> np.ndarray:
+        """(N, 68, 2) or (68, 2) frame-pixel shapes -> the nearest model shapes with clamped
+        parameters, in the same frame (float64, same shape)."""
+        x = np.asarray(shapes, np.float64)
+        if x.ndim == 3:
+            return np.stack([self.project(f) for f in x])
+        mo = self._avg @ x
+        xc = x - mo
+        var = float(np.vdot(xc, xc)) or 1.0
+        ca, sa = (xc.reshape(-1) @ self._w) / var  # shape -> mean: [[ca, -sa], [sa, ca]] (x - mo) + mu
+        lin = np.array([[ca, -sa], [sa, ca]])
+        aligned = xc @ lin.T + self._mu
+        b = aligned.reshape(-1) @ self._ct - self._off
+        # move the shape back inside the box along the model's components only: what the
+        # components do not span (e.g. eye motion in a model of a head-turning clip) is kept
+        excess = np.maximum(b - self.limit, 0.0) + np.minimum(b + self.limit, 0.0)
+        rec = aligned - (excess @ self.components).reshape(N_LANDMARKS, 2)
+        n = ca * ca + sa * sa
+        inv = np.array([[ca, sa], [-sa, ca]]) / n
+        return (rec - self._mu) @ inv.T + mo
+
+
+class Retargeter:
+    """Driver landmarks -> avatar landmarks (module docstring: steps 1-5).
+
+    Parameters
+    ----------
+    avatar_neutral : (68, 2) the avatar's neutral face, its frame pixels
+    driver_neutral : (68, 2) the driver's neutral face, the driver's frame pixels
+    shape_space : ShapeSpace, optional; projection and clamping (step 5), skipped if None
+    motion : "relative" (default) or "absolute" (the driver's landmarks, unchanged)
+    head_motion : with "relative": apply the driver's head motion (step 4); False keeps the
+        avatar's neutral placement (ERI's expression transfer renders in the target's pose)
+
+    ``__call__``: (N, 68, 2) or (68, 2) driver frame landmarks -> float32 (N, 68, 2).
+    """
+
+    def __init__(self, avatar_neutral, driver_neutral, shape_space: ShapeSpace | None = None, motion: str = "relative",
+                 head_motion: bool = True):
+        if motion not in MOTIONS:
+            raise FacesynthError(f"motion must be one of {MOTIONS}, got {motion!r}")
+        self.motion = motion
+        self.head_motion = bool(head_motion)
+        self.avatar_neutral = _one_face(avatar_neutral, "avatar neutral")
+        self.driver_neutral = _one_face(driver_neutral, "driver neutral")
+        self.shape_space = shape_space
+        rigid = list(RIGID_POINTS)
+        self._rigid = rigid
+        dn = self.driver_neutral[rigid]
+        self._dn_mu = dn.mean(0)
+        self._rigid_avg = np.full(len(rigid), 1.0 / len(rigid))
+        dc = dn - self._dn_mu
+        # pose fit (driver neutral -> frame, rigid points): [a, b] = frame_rigid.ravel() @ w
+        self._pose_w = np.stack([dc.reshape(-1), np.stack([-dc[:, 1], dc[:, 0]], 1).reshape(-1)], 1) / float(np.vdot(dc, dc))
+        ratio = fapu(self.avatar_neutral) / fapu(self.driver_neutral)  # (5,)
+        axes_d, axes_a = face_axes(self.driver_neutral), face_axes(self.avatar_neutral)
+        # expression: disp_a = ((disp_d @ axes_d.T) * ratio_p) @ axes_a, one (2, 2) map per point
+        scale = ratio[POINT_UNITS]  # (68, 2)
+        e = np.einsum("ij,pj,jk->pik", axes_d.T, scale, axes_a)  # (68, 2, 2)
+        self._e0, self._e1 = np.ascontiguousarray(e[:, 0]), np.ascontiguousarray(e[:, 1])
+        self.unit_ratio = dict(zip(FAPU_NAMES, ratio.round(4).tolist(), strict=True))
+        c = similarity_fit(self.driver_neutral[rigid], self.avatar_neutral[rigid])  # driver -> avatar
+        self._c_lin, self._c_t = c[:, :2], c[:, 2]
+        self._c_inv_lin = np.linalg.inv(self._c_lin)
+
+    def pose(self, frame: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The driver's head pose of one (68, 2) frame: the similarity (2x2, 2) mapping the
+        driver's neutral onto it, fitted on the rigid points."""
+        r = frame[self._rigid]
+        ca, sa = r.reshape(-1) @ self._pose_w
+        lin = np.array([[ca, -sa], [sa, ca]])
+        return lin, self._rigid_avg @ r - lin @ self._dn_mu
+
+    def one(self, frame: np.ndarray) -> np.ndarray:
+        """One (68, 2) driver frame -> float64 (68, 2) avatar landmarks (relative motion)."""
+        lin, t = self.pose(frame)
+        inv_t = lin / (lin[0, 0] ** 2 + lin[1, 0] ** 2)  # transpose of the similarity's inverse
+        disp = (frame - t) @ inv_t - self.driver_neutral  # expression in the driver's neutral frame
+        expr = self.avatar_neutral + disp[:, 0:1] * self._e0 + disp[:, 1:2] * self._e1
+        if not self.head_motion:
+            return expr if self.shape_space is None else self.shape_space.project(expr)
+        # head motion C P C^-1 around the avatar's neutral placement
+        m_lin = self._c_lin @ lin @ self._c_inv_lin
+        m_t = self._c_lin @ (t - lin @ (self._c_inv_lin @ self._c_t)) + self._c_t
+        out = expr @ m_lin.T + m_t
+        return out if self.shape_space is None else self.shape_space.project(out)
+
+    def __call__(self, driver) -> np.ndarray:
+        d = np.asarray(driver, np.float64)
+        if d.ndim == 2:
+            d = d[None]
+        if d.ndim != 3 or d.shape[1:] != (N_LANDMARKS, 2):
+            raise FacesynthError(f"driver landmarks: expected (N, {N_LANDMARKS}, 2), got {np.shape(driver)}")
+        if self.motion == "absolute":
+            return d.astype(np.float32)
+        return np.stack([self.one(f) for f in d]).astype(np.float32)
+
+
+def _one_face(x, where: str) -> np.ndarray:
+    a = np.asarray(x, np.float64)
+    if a.shape != (N_LANDMARKS, 2) or not np.isfinite(a).all():
+        raise FacesynthError(f"{where}: expected finite ({N_LANDMARKS}, 2) landmarks, got shape {a.shape}")
+    return a
+
+
+__all__ = ["MOTIONS", "POINT_UNITS", "Retargeter", "ShapeSpace", "eye_open", "mouth_open", "select_neutral"]

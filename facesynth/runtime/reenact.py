@@ -1,0 +1,178 @@
+"""Reenactment in the torch-free runtime: drive an avatar model with another face's
+landmarks, frame by frame (no look-ahead), into the avatar's own frame.
+
+    from facesynth.runtime import Reenactor
+    r = Reenactor("avatar.onnx")                      # avatar neutral, shape PCA, frame: from the metadata
+    for lm in driver_landmarks:                       # (68, 2) frame pixels, one at a time
+        frame, avatar_lm = r.step(lm)                 # uint8 (H, W, 3), float32 (68, 2)
+
+The driver's neutral is given (``driver_neutral``), or taken from the first
+``neutral_frames`` frames (ERI's rule, :func:`facesynth.retarget.select_neutral`; before
+that many frames have arrived, from the frames seen so far). Retargeting is
+:class:`facesynth.retarget.Retargeter`; compositing :func:`facesynth.runtime.blend.blend_face`.
+"""
+
+from __future__ import annotations
+
+import base64
+import os
+import time
+
+import cv2
+import numpy as np
+
+from facesynth.contract import N_LANDMARKS
+from facesynth.errors import FacesynthError
+from facesynth.retarget import MOTIONS, Retargeter, ShapeSpace, select_neutral
+from facesynth.runtime.blend import blend_face
+from facesynth.runtime.renderer import Renderer
+
+GREY = 128
+NEUTRAL_FRAMES = 30  # one second of a 30 fps driver: long enough to meet a closed-mouth frame
+
+
+class Avatar:
+    """What the model's metadata says about its own face (:mod:`facesynth.onnx.avatar`).
+
+    neutral : float64 (68, 2) or None; shape_space : ShapeSpace or None;
+    background : uint8 (H, W, 3) RGB or None (its neutral frame).
+    """
+
+    def __init__(self, metadata: dict, where: str = "model"):
+        self.where = where
+        n = metadata.get("avatar_neutral")
+        self.neutral = None if n is None else np.asarray(n, np.float64)
+        if self.neutral is not None and self.neutral.shape != (N_LANDMARKS, 2):
+            raise FacesynthError(f"{where}: avatar_neutral metadata has shape {self.neutral.shape}, expected ({N_LANDMARKS}, 2)")
+        pca = metadata.get("shape_pca")
+        self.shape_space = None if pca is None else ShapeSpace.from_dict(pca)
+        self._jpeg = metadata.get("background_jpeg")
+        self._background = None
+
+    @property
+    def background(self) -> np.ndarray | None:
+        if self._background is None and self._jpeg:
+            buf = np.frombuffer(base64.b64decode(self._jpeg), np.uint8)
+            img = cv2.imdecode(buf, cv2.IMREAD_COLOR)
+            if img is None:
+                raise FacesynthError(f"{self.where}: background_jpeg metadata is not a readable JPEG")
+            self._background = cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+        return self._background
+
+    def require_neutral(self) -> np.ndarray:
+        if self.neutral is None:
+            raise FacesynthError(f"{self.where}: no avatar_neutral in the metadata (exported before reenactment "
+                                 "support, or without the run's data): re-export it, or use --motion absolute")
+        return self.neutral
+
+
+class Reenactor:
+    """Driver landmarks -> avatar frames, one at a time.
+
+    Parameters
+    ----------
+    model : path or Renderer
+    driver_neutral : (68, 2) the driver's neutral face, optional (see the module docstring)
+    motion : "relative" (default: the driver's motion on the avatar's own face) or "absolute"
+        (the driver's landmarks as they are, the behaviour without retargeting)
+    neutral_frames : frames collected to choose the driver's neutral when none is given
+    background : uint8 (H, W, 3), optional; default the avatar's own frame from the
+        metadata, else grey of the driver's landmark extent
+    feather : soft edge in pixels (default: 4% of the face), match_colour : seam colour matching
+    """
+
+    def __init__(self, model, driver_neutral=None, motion: str = "relative", neutral_frames: int = NEUTRAL_FRAMES,
+                 background: np.ndarray | None = None, feather: float | None = None, match_colour: bool = True,
+                 threads: int = 1):
+        if motion not in MOTIONS:
+            raise FacesynthError(f"motion must be one of {MOTIONS}, got {motion!r}")
+        if int(neutral_frames) < 1:
+            raise FacesynthError(f"neutral_frames must be >= 1, got {neutral_frames}")
+        self.renderer = model if isinstance(model, Renderer) else Renderer(model, threads=threads)
+        self.avatar = Avatar(self.renderer.metadata, str(self.renderer.path))
+        self.motion = motion
+        self.neutral_frames = int(neutral_frames)
+        self.feather, self.match_colour = feather, match_colour
+        self._seen: list[np.ndarray] = []  # driver frames collected while choosing its neutral
+        self._collecting = driver_neutral is None
+        self._retarget: Retargeter | None = None
+        self.last_model_s = 0.0  # seconds of the last model call
+        if motion == "relative":
+            self.avatar.require_neutral()
+        if driver_neutral is not None:
+            self._set_neutral(self.renderer.validate(driver_neutral)[0])
+        self.background = background if background is not None else self.avatar.background
+
+    def _set_neutral(self, neutral: np.ndarray) -> None:
+        self.driver_neutral = np.asarray(neutral, np.float64)
+        if self.motion == "relative":
+            self._retarget = Retargeter(self.avatar.neutral, self.driver_neutral, self.avatar.shape_space, "relative")
+
+    def retarget(self, landmarks) -> np.ndarray:
+        """One driver frame (68, 2) -> float32 (68, 2) avatar landmarks in the avatar's frame."""
+        lm = self.renderer.validate(landmarks)
+        if len(lm) != 1:
+            raise FacesynthError(f"Reenactor: one face at a time, got a batch of {len(lm)}")
+        lm = lm[0]
+        if self.motion == "absolute":
+            return lm
+        if self._collecting:  # no neutral given: choose among the frames seen so far
+            self._seen.append(lm)
+            self._set_neutral(self._seen[select_neutral(np.stack(self._seen))[0]])
+            if len(self._seen) >= self.neutral_frames:
+                self._collecting, self._seen = False, []
+        return self._retarget.one(lm.astype(np.float64)).astype(np.float32)
+
+    def step(self, landmarks) -> tuple[np.ndarray, np.ndarray]:
+        """One driver frame -> (uint8 (H, W, 3) frame, float32 (68, 2) avatar landmarks)."""
+        avatar_lm = self.retarget(landmarks)
+        t0 = time.perf_counter()
+        crops, masks, placements = self.renderer.render(avatar_lm[None])
+        self.last_model_s = time.perf_counter() - t0
+        bg = self.background
+        if bg is None:
+            w, h = (int(np.ceil(v)) + 32 for v in avatar_lm.max(0))
+            bg = self.background = np.full((h, w, 3), GREY, np.uint8)
+        crop = np.ascontiguousarray(crops[0].transpose(1, 2, 0))
+        if crop.shape[2] == 1:
+            crop = np.repeat(crop, 3, axis=2)
+        frame = blend_face(crop, masks[0, 0], placements[0], bg, self.feather, self.match_colour)
+        return frame, avatar_lm
+
+
+def driver_neutral_of(landmarks: np.ndarray, index: int | None = None) -> tuple[np.ndarray, int]:
+    """The driver's neutral (68, 2) and its row: row ``index`` (``--driver-neutral N``) or
+    :func:`facesynth.retarget.select_neutral` over the whole clip (a file driver)."""
+    lm = np.asarray(landmarks, np.float64)
+    if index is None:
+        index = select_neutral(lm)[0]
+    if not -len(lm) <= int(index) < len(lm):
+        raise FacesynthError(f"--driver-neutral: row {index} out of range for {len(lm)} driver frames")
+    row = lm[int(index)]
+    if not np.isfinite(row).all():
+        raise FacesynthError(f"--driver-neutral: driver row {index} has no face (NaN)")
+    return row, int(index) % len(lm)
+
+
+def clip_video(path: str | os.PathLike) -> str | None:
+    """A clip folder's ``video.mp4`` (the driver video of ``--landmarks FOLDER``), if present."""
+    p = os.path.join(str(path), "video.mp4")
+    return p if os.path.isdir(str(path)) and os.path.isfile(p) else None
+
+
+def reenact_frames(reenactor: Reenactor, landmarks: np.ndarray, rendered: np.ndarray | None = None,
+                   latencies: list | None = None):
+    """uint8 (H, W, 3) frames of ``reenactor`` for (T, 68, 2) driver landmarks, one per row
+    (the background where a row is NaN). ``rendered`` (T, 68, 2), if given, receives the
+    avatar landmarks of each frame; ``latencies`` collects (model s, frame s) per frame."""
+    for i, lm in enumerate(landmarks):
+        t0 = time.perf_counter()
+        if not np.isfinite(lm).all():
+            yield reenactor.background.copy()
+            continue
+        frame, avatar_lm = reenactor.step(lm)
+        if rendered is not None:
+            rendered[i] = avatar_lm
+        if latencies is not None:
+            latencies.append((reenactor.last_model_s, time.perf_counter() - t0))
+        yield frame

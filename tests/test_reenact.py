@@ -1,0 +1,178 @@
+"""Reenactment (issue 13): retargeting against ERI's FAPs and closed forms, and one real
+pair (lp_d10 driven by lp_d13) against the acceptance figures, through ONNX Runtime."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from facesynth.errors import FacesynthError
+from facesynth.faps import compute_faps
+from facesynth.geometry import apply_affine, similarity_fit
+from facesynth.retarget import Retargeter, select_neutral
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _faces():
+    from _faces import face_sequence_arrays
+
+    _, lm = face_sequence_arrays(n=12, seed=4)
+    return lm.astype(np.float64)
+
+
+def test_same_face_is_identity():
+    lm = _faces()
+    r = Retargeter(lm[0], lm[0])
+    np.testing.assert_allclose(r(lm), lm.astype(np.float32), atol=1e-3)
+    np.testing.assert_array_equal(Retargeter(lm[0], lm[1], motion="absolute")(lm), lm.astype(np.float32))
+
+
+def test_head_motion_is_the_conjugated_similarity():
+    lm = _faces()
+    driver_n = lm[1]
+    avatar = apply_affine(driver_n, np.array([[1.3, -0.3, 30.0], [0.3, 1.3, -10.0]]))  # the same face, elsewhere
+    s = similarity_fit(driver_n[None], (driver_n * 0.9 + [5.0, 3.0])[None])[0]
+    rot = np.array([[np.cos(0.2), -np.sin(0.2)], [np.sin(0.2), np.cos(0.2)]])
+    s[:, :2] = rot @ s[:, :2]
+    frame = apply_affine(driver_n, s)  # the neutral face, only moved
+    out = Retargeter(avatar, driver_n)(frame)[0]
+    c = similarity_fit(driver_n[None], avatar[None])[0]  # driver -> avatar
+    expected = apply_affine(apply_affine(apply_affine(avatar, np.linalg.inv(np.vstack([c, [0, 0, 1]]))[:2]), s), c)
+    np.testing.assert_allclose(out, expected, atol=1e-3)
+
+
+@pytest.mark.parametrize("head_motion", [True, False])
+def test_expression_carries_the_drivers_faps(head_motion):
+    """ERI's FAPs (each in its own face's FAP units) of the retargeted avatar equal the
+    driver's (with the head motion, as the app, and without, as ERI's transfer)."""
+    lm = _faces()
+    avatar = lm[2].copy()
+    avatar[:, 0] = avatar[:, 0] * 1.2  # a wider face: other FAP units
+    r = Retargeter(avatar, lm[0], head_motion=head_motion)
+    f_driver = compute_faps(lm[1:], lm[0])
+    f_avatar = compute_faps(r(lm[1:]), avatar)
+    scale = np.abs(f_driver).max()
+    assert scale > 50
+    assert np.abs(f_avatar - f_driver).max() < 0.05 * scale
+
+
+def test_bad_inputs():
+    lm = _faces()
+    with pytest.raises(FacesynthError, match="motion"):
+        Retargeter(lm[0], lm[1], motion="sideways")
+    with pytest.raises(FacesynthError, match="driver neutral"):
+        Retargeter(lm[0], lm[1][:10])
+    with pytest.raises(FacesynthError, match="driver landmarks"):
+        Retargeter(lm[0], lm[1])(np.zeros((3, 10, 2)))
+
+
+# ------------------------------------------------------------------ a real pair
+@pytest.fixture(scope="module")
+def avatar(shared_clip_dir, tmp_path_factory):
+    """A small linear model of lp_d10 (every 3rd training frame) exported with its avatar metadata."""
+    from facesynth.data import load_sequence, temporal_split
+    from facesynth.model import FaceModel
+    from facesynth.onnx.avatar import avatar_metadata
+    from facesynth.onnx.synthesis import export_synthesizer
+    from facesynth.regressors import REGISTRY
+    from facesynth.sadm.synthesis import GlobalAppearance, Synthesizer
+
+    seq = load_sequence(shared_clip_dir("lp_d10"))
+    train, test = temporal_split(len(seq))
+    rows = train[::3]
+    model = FaceModel.fit(seq, rows=rows, progress=False)
+    x = model.shape_params(seq.landmarks[rows], clamp=True)
+    y = model.appearance_params(model.sample_textures(seq, rows), clamp=True)
+    syn = Synthesizer(model, GlobalAppearance(model, REGISTRY["linear"].fit(x, y, seed=0))).eval()
+    path = tmp_path_factory.mktemp("reenact") / "lp_d10.onnx"
+    export_synthesizer(syn, path, avatar_metadata(syn, seq.landmarks[train], train, seq))
+    return path, seq, train, test
+
+
+def test_pair_meets_the_acceptance_figures(avatar, shared_clip_dir):
+    from facesynth.data import load_sequence
+    from facesynth.eval.reenact import pair_figures
+
+    path, seq, train, _ = avatar
+    driver = np.asarray(load_sequence(shared_clip_dir("lp_d13")).landmarks[::3], np.float32)
+    f = pair_figures(path, driver, seq.landmarks[train])["figures"]
+    assert f["coverage_min"] >= 0.99, f
+    assert f["mouth_open_r"] >= 0.9, f
+    assert f["eye_open_r"] >= 0.7, f
+    assert f["shape_ratio_rel_diff"] <= 0.05, f
+    assert f["shape_ratio_rel_diff"] < f["shape_ratio_rel_diff_absolute_motion"], f  # the driver's face is not copied
+
+
+def test_self_driving_relative_matches_absolute(avatar):
+    from facesynth.eval.reenact import self_driving_psnr
+    from facesynth.runtime.renderer import read_metadata
+
+    path, seq, _, test = avatar
+    rows = test[::6]
+    neutral = np.asarray(read_metadata(path)["avatar_neutral"], np.float32)
+    res = self_driving_psnr(path, seq.landmarks[rows], seq.iter_frames(rows), neutral)
+    assert res["psnr_absolute_db"] > 20, res
+    assert abs(res["difference_db"]) <= 0.3, res
+
+
+def test_reenactor_needs_no_look_ahead(avatar, shared_clip_dir):
+    from facesynth.runtime import Reenactor
+
+    path, *_ = avatar
+    drv = np.load(shared_clip_dir("lp_d13") / "landmarks.npy")[:12]
+    live = Reenactor(path, neutral_frames=5)
+    outs = [live.step(lm)[1] for lm in drv]
+    # after 5 frames the neutral is fixed: the same as giving it up front
+    n5 = drv[:5][select_neutral(drv[:5])[0]]
+    given = Reenactor(path, n5)
+    for lm, out in zip(drv[5:], outs[5:], strict=True):
+        np.testing.assert_allclose(given.retarget(lm), out, atol=1e-4)
+    frame, _ = live.step(drv[0])
+    assert frame.shape == live.background.shape and frame.dtype == np.uint8
+
+
+def test_app_writes_the_rendered_landmarks(avatar, shared_clip_dir, tmp_path):
+    path, *_ = avatar
+    clip = shared_clip_dir("lp_d13")
+    out, lm_out = tmp_path / "out.mp4", tmp_path / "avatar.npy"
+    cmd = [sys.executable, "-m", "facesynth", "app", "--model", str(path), "--landmarks", str(clip), "--out", str(out),
+           "--max-frames", "8", "--side-by-side", "--save-landmarks", str(lm_out), "--no-progress"]
+    res = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT)
+    assert res.returncode == 0, res.stderr
+    summary = json.loads(res.stdout.strip().splitlines()[-1])
+    saved = np.load(lm_out)
+    assert saved.dtype == np.float32 and saved.shape == (8, 68, 2)
+    assert summary["motion"] == "relative" and out.is_file()
+    bad = subprocess.run(cmd[:-3] + ["--driver-neutral", "99999", "--no-progress"], capture_output=True, text=True, cwd=ROOT)
+    assert bad.returncode == 2 and "--driver-neutral" in bad.stderr
+
+
+def test_shape_space_clamps_along_the_components_only():
+    from facesynth.retarget import ShapeSpace
+
+    rng = np.random.default_rng(0)
+    mean = _faces()[0] - _faces()[0].mean(0)
+    mean = (mean / np.linalg.norm(mean)).reshape(-1)
+    comps = np.linalg.qr(rng.normal(size=(136, 3)))[0].T  # orthonormal rows
+    comps -= np.outer(comps @ mean, mean)  # orthogonal to the mean (no scale change)
+    comps = np.linalg.qr(comps.T)[0].T
+    space = ShapeSpace(mean, comps, np.array([0.02, 0.01, 0.01]))
+    frame = np.array([[2.0, -0.5, 100.0], [0.5, 2.0, 50.0]])  # model frame -> image frame
+    inside = (mean + 0.5 * space.limit @ comps).reshape(68, 2)
+    shape = apply_affine(inside, frame)
+    np.testing.assert_allclose(space.project(shape), shape, atol=1e-9)  # inside the box: unchanged
+    far = (mean + 10 * space.limit[0] * comps[0] + 0.001 * rng.normal(size=136)).reshape(68, 2)
+    out = space.project(apply_affine(far, frame))
+    m = mean.reshape(68, 2)
+    back = apply_affine(out, similarity_fit(out[None], m[None])[0]).reshape(-1)  # the model frame, as the projection aligns
+    b = (back - mean) @ comps.T
+    before = (apply_affine(far, similarity_fit(far[None], m[None])[0]).reshape(-1) - mean) @ comps.T
+    assert abs(before[0]) > 5 * space.limit[0]
+    # one projection step: the similarity re-fit of the moved shape leaves it near the limit
+    assert abs(b[0]) <= 1.5 * space.limit[0]
