@@ -1,0 +1,108 @@
+"""The run directory that ``train.py`` writes and evaluation and export read::
+
+    RUN/config.yaml         the composed Hydra config (data, split, seed, model, regressor)
+    RUN/face_model/         the face model artifact (facesynth.model.artifact)
+    RUN/sadm/               the SADM artifact: sadm.json + regressor.safetensors (facesynth.sadm.fit)
+    RUN/eri/                an ERI run's model instead (facesynth.eri.model), with eri_metrics.json
+    RUN/metrics.json        figures (facesynth.eval.sadm_eval), with config, versions, fingerprint
+    RUN/report.md, RUN/plots/
+
+This module is the one place that knows the layout as a whole: it reloads a run's data and
+split from ``config.yaml``, rebuilds its synthesizer, and prints its summary.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+from omegaconf import OmegaConf
+
+from facesynth.data import FaceSequence, load_sequence, temporal_split
+from facesynth.data.synthetic import make_synthetic_sequence
+from facesynth.errors import FacesynthError
+from facesynth.sadm.fit import SADM, SADMConfig, load_sadm, save_sadm
+from facesynth.sadm.synthesis import Synthesizer
+
+CONFIG = "config.yaml"
+METRICS = "metrics.json"
+REPORT = "report.md"
+PLOTS = "plots"
+ERI_DIR = "eri"
+
+
+def load_data(data_cfg, seed: int) -> FaceSequence:
+    """The sequence a ``data`` config names (synthetic subject or a real folder/file)."""
+    if data_cfg.kind == "synthetic":
+        seq = make_synthetic_sequence(n_frames=data_cfg.n_frames, size=data_cfg.size, seed=seed)
+    elif data_cfg.kind == "video":
+        if not data_cfg.path:
+            raise FacesynthError("data.path is required with data=video (a folder in the ingest layout)")
+        seq = load_sequence(data_cfg.path)
+    else:
+        raise FacesynthError(f"data.kind must be 'synthetic' or 'video', got {data_cfg.kind!r}")
+    if data_cfg.max_frames:
+        seq = seq.subset(np.arange(min(len(seq), data_cfg.max_frames)))
+    return seq
+
+
+def read_config(run_dir: str | os.PathLike, hint: str = "not a train.py run directory"):
+    """The run's ``config.yaml`` (an OmegaConf node); FacesynthError with ``hint`` when absent."""
+    path = Path(run_dir) / CONFIG
+    if not path.is_file():
+        raise FacesynthError(f"{path}: not found ({hint})")
+    return OmegaConf.load(path)
+
+
+def run_data(cfg) -> tuple[FaceSequence, np.ndarray, np.ndarray]:
+    """The sequence and temporal split (train rows, test rows) of a run's config."""
+    seq = load_data(cfg.data, int(cfg.seed))
+    tr, te = temporal_split(len(seq), float(cfg.data.train_fraction), int(cfg.data.gap))
+    return seq, tr, te
+
+
+def training_landmarks(run_dir: str | os.PathLike) -> np.ndarray:
+    """(N, 68, 2) training landmarks of a ``train.py`` run: its ``config.yaml`` names the data
+    and the temporal split, which are reloaded (no frames are decoded)."""
+    cfg = read_config(run_dir, "so the run's training landmarks are unknown; pass --landmarks L.npy "
+                               "(the training landmarks) or --components 0 (no appearance compression)")
+    seq, rows, _ = run_data(cfg)
+    return np.asarray(seq.landmarks[rows], np.float32)
+
+
+def is_eri_run(run_dir: str | os.PathLike) -> bool:
+    """True when ``run_dir`` holds an ERI model and no SADM."""
+    d = Path(run_dir)
+    return not (d / "sadm").is_dir() and ((d / "eri_model.json").is_file() or (d / ERI_DIR / "eri_model.json").is_file())
+
+
+def load_synthesizer(run_dir: str | os.PathLike) -> tuple[Synthesizer, dict]:
+    """Rebuild the :class:`Synthesizer` of a training run directory.
+
+    Returns the synthesizer and metadata for the ONNX file (regressor, data fingerprint, run).
+    """
+    d = Path(run_dir)
+    if not d.is_dir():
+        raise FacesynthError(f"{d}: training run directory not found")
+    sadm = load_sadm(d)
+    return sadm.synthesizer(), {"regressor": sadm.name, "data_fingerprint": sadm.model.fingerprint, "run": d.name}
+
+
+def save_run_synthesizer(run_dir: str | os.PathLike, model, regressor, features: str = "bs", clamp: bool = True) -> Path:
+    """Write a face model and SADM regressor as a run directory (for tests and scripts
+    that fit outside ``train.py``)."""
+    sadm = SADM(model, regressor, regressor.name, SADMConfig(features=features, clamp_shape=clamp), regressor.config_dict())
+    return save_sadm(sadm, run_dir)
+
+
+def summary_lines(metrics: dict) -> list[str]:
+    """Short printable summary of a metrics dict."""
+    lines = [f"regressor={metrics['regressor']} shape={metrics['n_shape']} appearance={metrics['n_appearance']} "
+             f"train={metrics['train_frames']} test={metrics['test_frames']}"]
+    for key in ("psnr_ref", "psnr_frame", "psnr_train_ref"):
+        if key in metrics:
+            for row, vals in metrics[key].items():
+                lines.append(f"{key:15s} {row:13s} " + "  ".join(f"s{k}={v:6.2f}" for k, v in vals.items()))
+    lines.append(f"ncc mean={np.mean(metrics['ncc']):.3f} (first 5: {', '.join(f'{v:.2f}' for v in metrics['ncc'][:5])})")
+    return lines
