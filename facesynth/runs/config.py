@@ -65,7 +65,10 @@ class SADMConf(SADMConfig):
 
 @dataclass
 class TrainConf:
+    """seed: every random choice of the run; quiet: no progress bars or stage lines."""
+
     seed: int = 0
+    quiet: bool = False
     data: DataConf = field(default_factory=DataConf)
     model: ModelConf = field(default_factory=ModelConf)
     regressor: Any = MISSING

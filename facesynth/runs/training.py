@@ -16,7 +16,7 @@ import numpy as np
 import torch
 from omegaconf import OmegaConf
 
-from facesynth import __version__
+from facesynth import __version__, progress
 from facesynth.data import temporal_split
 from facesynth.eri.train import train_eri
 from facesynth.errors import FacesynthError
@@ -49,6 +49,7 @@ def run_training(cfg, out_dir: str | Path) -> dict:
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     seed_everything(cfg.seed)
+    progress.set_quiet(bool(cfg.get("quiet", False)))
     t0 = time.perf_counter()
     seq = load_data(cfg.data, cfg.seed)
     tr, te = temporal_split(len(seq), cfg.data.train_fraction, cfg.data.gap)
@@ -58,12 +59,18 @@ def run_training(cfg, out_dir: str | Path) -> dict:
         return train_eri(cfg.eri, seq, out, cfg.seed, (tr, te))  # the whole run config is in config.yaml
     if cfg.model.kind != "aam":
         raise FacesynthError(f"model.kind must be 'aam' or 'eri', got {cfg.model.kind!r}")
-    model, tex_tr = FaceModel.fit_with_textures(seq, _dataclass_from(cfg.model, FaceModelConfig), rows=tr)
+    with progress.stage("face model") as st:
+        model, tex_tr = FaceModel.fit_with_textures(seq, _dataclass_from(cfg.model, FaceModelConfig), rows=tr)
+        st.set(f"{len(tr)} training frames, {model.shape_pca.n_components} shape / "
+               f"{model.appearance_pca.n_components} appearance components")
     t1 = time.perf_counter()
     name, params = regressor_params(cfg.regressor)
-    sadm = fit_sadm(model, seq, tr, tex_tr, name, params, _dataclass_from(cfg.sadm, SADMConfig), cfg.seed)
+    with progress.stage(f"SADM fit ({name})"):
+        sadm = fit_sadm(model, seq, tr, tex_tr, name, params, _dataclass_from(cfg.sadm, SADMConfig), cfg.seed)
     t2 = time.perf_counter()
-    metrics, extras = evaluate_sadm(sadm, seq, tr, te, _dataclass_from(cfg.eval, EvalConfig), cfg.seed, train_textures=tex_tr)
+    with progress.stage("evaluation"):
+        metrics, extras = evaluate_sadm(sadm, seq, tr, te, _dataclass_from(cfg.eval, EvalConfig), cfg.seed,
+                                        train_textures=tex_tr)
     t3 = time.perf_counter()
     provenance = {
         "facesynth_version": __version__,
@@ -78,7 +85,9 @@ def run_training(cfg, out_dir: str | Path) -> dict:
         **provenance,
     })
     write_json(out / METRICS, metrics)
-    plots = write_plots(metrics, extras, out / PLOTS)
-    write_report(metrics, out, plots, {"data": f"{seq.name} ({len(seq)} frames, fingerprint {seq.fingerprint})",
-                                        "seed": cfg.seed, "features": sadm.config.features})
+    with progress.stage("report"):
+        plots = write_plots(metrics, extras, out / PLOTS)
+        write_report(metrics, out, plots, {"data": f"{seq.name} ({len(seq)} frames, fingerprint {seq.fingerprint})",
+                                            "seed": cfg.seed, "features": sadm.config.features},
+                     worst_frames=extras.get("worst_frames"))
     return metrics
