@@ -13,6 +13,7 @@ import logging
 import sys
 
 from facesynth.errors import FacesynthError
+from facesynth.progress import set_quiet
 
 # name -> (module, one-line help). Keep in pipeline order.
 SUBCOMMANDS: dict[str, tuple[str, str]] = {
@@ -62,7 +63,13 @@ def main(argv: list[str] | None = None) -> int:
         raise
     parser = argparse.ArgumentParser(prog=f"facesynth {name}", description=help_)
     module.add_arguments(parser)
+    if "--quiet" not in parser._option_string_actions:
+        parser.add_argument("--quiet", action="store_true",
+                            help="no progress bars, stage timings or info logs (results and errors are still printed)")
     args = parser.parse_args(rest)
+    if args.quiet:
+        set_quiet(True)
+        logging.getLogger().setLevel(logging.WARNING)
     try:
         return int(module.run(args) or 0)
     except FacesynthError as exc:

@@ -36,6 +36,7 @@ from facesynth.data.readers import load_sequence
 from facesynth.data.sequence import FaceSequence
 from facesynth.errors import FacesynthError
 from facesynth.io import atomic_path, write_json
+from facesynth.progress import bar as progress_bar
 from facesynth.provenance import file_sha256, package_versions
 
 log = logging.getLogger(__name__)
@@ -87,9 +88,7 @@ class _Video:
 
 
 def _progress(total: int | None, enabled: bool):
-    from tqdm.auto import tqdm
-
-    return tqdm(total=total, unit="frame", desc="ingest", disable=not enabled, dynamic_ncols=True, leave=True)
+    return progress_bar(total=total, unit="frame", desc="ingest", enabled=enabled)
 
 
 def _stats(det: Detections, video: _Video, wall_s: float) -> dict:
@@ -247,7 +246,7 @@ def ingest_video(
             if np.isfinite(frame).all():
                 write_pts(out_dir / "pts" / f"{i:0{width}d}.pts", frame)
     write_json(out_dir / "meta.json", meta)
-    log.info(
+    log.debug(  # debug: the command prints the summary itself (once)
         "%s: %d frames processed in %.1f s (%.1f frames/s), detection rate %.3f -> %s",
         video_path, result.n_processed, wall, stats["frames_per_s"] or 0.0, stats["detection_rate"], out_dir,
     )

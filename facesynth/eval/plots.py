@@ -76,8 +76,8 @@ def psnr_over_time(per_frame: dict, path) -> list[int]:
     worst = np.argsort(ref)[:N_WORST]
     ax.scatter(frames[worst], ref[worst], s=70, facecolors="none", edgecolors="red", lw=1.5, zorder=5,
                label=f"{N_WORST} worst frames")
-    for w in worst:
-        ax.annotate(f"{frames[w]}: {ref[w]:.1f} dB", (frames[w], ref[w]), textcoords="offset points", xytext=(4, -12),
+    for rank, w in enumerate(worst):
+        ax.annotate(f"{frames[w]}: {ref[w]:.1f} dB", (frames[w], ref[w]), textcoords="offset points", xytext=(6, -12 - 11 * rank),
                     fontsize=8, color="red")
     ax.set(xlabel="frame number", ylabel="PSNR (dB), sigma 0", title="test PSNR over time across the test segment")
     ax.grid(alpha=0.3)

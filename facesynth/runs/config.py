@@ -95,7 +95,8 @@ def regressor_schema(name: str) -> type:
         for f in dataclasses.fields(cfg):
             default = getattr(cfg, f.name)
             if isinstance(default, (list, tuple, dict)):
-                fields.append((f.name, _omegaconf_type(hints[f.name]), field(default_factory=lambda d=default: list(d) if isinstance(d, tuple) else d)))
+                factory = field(default_factory=lambda d=default: list(d) if isinstance(d, tuple) else d)
+                fields.append((f.name, _omegaconf_type(hints[f.name]), factory))
             else:
                 fields.append((f.name, hints[f.name], field(default=default)))
     return dataclasses.make_dataclass(f"{name.capitalize()}RegressorConf", fields)

@@ -215,7 +215,7 @@ def run(args: argparse.Namespace) -> int:
         if not writer.isOpened():
             raise FacesynthError(f"{out}: OpenCV cannot write an mp4v video here")
         try:
-            bar = tqdm(total=n, unit="frame", desc="app", disable=args.no_progress)
+            bar = tqdm(total=n, unit="frame", desc="app", disable=args.no_progress or getattr(args, "quiet", False))
             for i, frame in enumerate(render_frames(renderer, landmarks, background, args.feather, latencies)):
                 if driver_frames is not None:
                     left = cv2.resize(driver_frames[i], (w, h)) if driver_frames[i].shape[:2] != (h, w) else driver_frames[i]
