@@ -9,54 +9,16 @@ from __future__ import annotations
 
 import numpy as np
 
+from facesynth.data.neutral import INNER_LOWER, INNER_UPPER, mouth_open, select_neutral
 from facesynth.eri.faps import face_axes, head_pose
-from facesynth.errors import FacesynthError
 from facesynth.geometry import apply_affine, similarity_fit
 from facesynth.landmarks import BROWS, EYES, N_LANDMARKS, inter_ocular
-from facesynth.model.procrustes import generalised_procrustes
+
+# the neutral-frame choice is shared with the 3D transfer, so it lives in the data layer
+__all__ = ["INNER_LOWER", "INNER_UPPER", "mouth_open", "select_neutral", "N_FOREHEAD", "forehead_points", "extend",
+           "open_mouth", "upright", "to_canvas"]
 
 N_FOREHEAD = 10
-INNER_UPPER = (61, 62, 63)  # inner-lip points facing INNER_LOWER across the mouth opening
-INNER_LOWER = (67, 66, 65)
-
-
-def mouth_open(landmarks: np.ndarray) -> np.ndarray:
-    """Mean inner-lip gap (61-67, 62-66, 63-65) / inter-ocular distance: (N, 68, 2) -> (N,)."""
-    lm = np.asarray(landmarks, np.float64)
-    gap = np.linalg.norm(lm[..., list(INNER_UPPER), :] - lm[..., list(INNER_LOWER), :], axis=-1).mean(-1)
-    return gap / inter_ocular(lm)
-
-
-def select_neutral(landmarks: np.ndarray, mouth_closed_max: float = 0.03) -> tuple[int, dict]:
-    """Automatic neutral frame: closest (Procrustes distance) to the mean shape among frames
-    whose mouth is closed (``mouth_open <= mouth_closed_max``; if none is, the 10% of
-    frames with the smallest gap).
-
-    Parameters
-    ----------
-    landmarks : (N, 68, 2) candidate frames (e.g. the training rows).
-
-    Returns
-    -------
-    index : int, row into ``landmarks``
-    info : dict with the distance, the mouth gap and the number of candidates (for the artifact).
-    """
-    lm = np.asarray(landmarks, np.float64)
-    if lm.ndim != 3 or len(lm) < 1:
-        raise FacesynthError(f"neutral selection needs (N, 68, 2) landmarks, got {lm.shape}")
-    gap = mouth_open(lm)
-    cand = np.flatnonzero(gap <= mouth_closed_max)
-    rule = f"mouth_open <= {mouth_closed_max}"
-    if len(cand) == 0:
-        cand = np.argsort(gap)[: max(1, len(lm) // 10)]
-        rule = "10% smallest mouth gap (no frame under the threshold)"
-    aligned, mean = generalised_procrustes(lm) if len(lm) > 1 else (lm, lm[0])
-    dist = np.linalg.norm((aligned - mean).reshape(len(lm), -1), axis=1)
-    best = int(cand[np.argmin(dist[cand])])
-    return best, {"rule": rule, "candidates": int(len(cand)), "procrustes_distance": float(dist[best]),
-                  "mouth_open": float(gap[best])}
-
-
 def forehead_points(neutral: np.ndarray, fraction: float) -> np.ndarray:
     """(N_FOREHEAD, 2) points above the brows of a (68, 2) neutral face, ``fraction`` of the
     pupil-line-to-chin distance up the face's vertical axis."""

@@ -88,15 +88,23 @@ def frame_level(model, predict, seq, rows, tex_te, oracle, cfg, seed, keys, nois
             frame = next(frames)
             places = np.concatenate([cplace[b : b + 1]] + [crops[k][2][b :: len(idx)] for k in keys])
             y0, y1, x0, x1 = _roi(places, cmask.shape[1:3], frame.shape[:2])
-            sub = frame[y0:y1, x0:x1]
             region = cv2.warpAffine(cmask[b], _shift(cplace[b], y0, x0), (x1 - x0, y1 - y0)) > 0.999
             region = cv2.erode(region.astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
+            # only the region's pixels are compared: paste into its bounding box plus a margin
+            # (alpha at a pixel depends on the mask within erosion + blur reach < MARGIN)
+            ys, xs = np.nonzero(region)
+            ry0, ry1 = max(ys.min() - MARGIN, 0), min(ys.max() + 1 + MARGIN, y1 - y0)
+            rx0, rx1 = max(xs.min() - MARGIN, 0), min(xs.max() + 1 + MARGIN, x1 - x0)
+            region = region[ry0:ry1, rx0:rx1]
+            y0, y1, x0, x1 = y0 + ry0, y0 + ry1, x0 + rx0, x0 + rx1
+            sub = frame[y0:y1, x0:x1]
+            sub_r = sub[region].astype(np.float64)
             for k in keys:
                 img, msk, plc = crops[k]
                 for i, name in enumerate(sources):
                     r = i * len(idx) + b
                     out = composite(img[r], msk[r], _shift(plc[r], y0, x0), sub, cfg.feather)
-                    d = (out.astype(np.float64) - sub)[region]
+                    d = out[region] - sub_r
                     sq[name][k][j] = (float((d**2).sum()), d.size)
                     if name == "sadm" and k == k0 and j in show:
                         ys, xs = np.nonzero(region)
