@@ -18,12 +18,11 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from tqdm.auto import tqdm
 
 from facesynth.artifact import manifest_field, read_manifest, read_tensors, save_artifact
 from facesynth.data.sequence import FaceSequence
 from facesynth.eri.config import SVR_VARIANTS, EriConfig
-from facesynth.eri.driving import SVRBank, fit_variant
+from facesynth.eri.driving import SVRBank, choose_driver, fit_variant
 from facesynth.eri.faps import FAP_NAMES, compute_faps, fapu
 from facesynth.eri.geometry import extend, forehead_points, open_mouth, select_neutral, to_canvas, upright
 from facesynth.eri.ratio import ratio_images, sample_textures
@@ -31,6 +30,8 @@ from facesynth.errors import FacesynthError
 from facesynth.model.pca import PCAModel
 from facesynth.model.reference import ReferenceFrame
 from facesynth.model.warp import ToReference, candidate_spans
+from facesynth.progress import bar as progress_bar
+from facesynth.progress import stage
 
 log = logging.getLogger(__name__)
 
@@ -137,14 +138,20 @@ class EriModel:
         scale = coeffs.std(0) + 1e-12
         report = {}
         for v in SVR_VARIANTS:
-            bank, rep = fit_variant(v, xt, yt, cfg, xv, yv)
-            if rep["val_mse"] is None:
-                rep["val_mse"] = float((((bank.predict(xv) - yv) / scale) ** 2).mean())
-                bank = SVRBank.fit(faps, coeffs, rep["params"])
+            with stage(f"ERI driving model {v}") as st:
+                bank, rep = fit_variant(v, xt, yt, cfg, xv, yv)
+                if rep["val_mse"] is None:
+                    rep["val_mse"] = float((((bank.predict(xv) - yv) / scale) ** 2).mean())
+                    bank = SVRBank.fit(faps, coeffs, rep["params"])
+                st.set(f"validation MSE {rep['val_mse']:.3f}")
             self.regressors[v] = bank
             report[v] = {**rep, "support_vectors": int(len(bank.sv))}
-        self.driver = cfg.driver if cfg.driver != "auto" else min(report, key=lambda v: report[v]["val_mse"])
+        if cfg.driver != "auto":
+            self.driver, rule = cfg.driver, "config"
+        else:
+            self.driver, rule = choose_driver(report)
         self.meta["regressors"] = report
+        self.meta["driver_choice"] = {"driver": self.driver, "rule": rule}
         return report
 
     # ------------------------------------------------------------- utilities
@@ -171,7 +178,7 @@ class EriModel:
         out = np.empty((len(rows), 3, self.n_pixels), np.float32)
         neutral = torch.from_numpy(self.neutral_texture)
         frames = seq.iter_frames(rows)
-        for s in tqdm(range(0, len(rows), cfg.batch_size), desc="ratio images", disable=not progress, leave=False):
+        for s in progress_bar(range(0, len(rows), cfg.batch_size), desc="ratio images", unit="batch", enabled=progress):
             chunk = rows[s : s + cfg.batch_size]
             tex = self.textures(np.stack([next(frames) for _ in chunk]), seq.landmarks[chunk])
             out[s : s + len(chunk)] = ratio_images(tex, neutral, self.sampler(), cfg.eps, cfg.clip, cfg.sigma, cfg.log).numpy()

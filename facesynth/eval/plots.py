@@ -74,11 +74,11 @@ def psnr_over_time(per_frame: dict, path) -> list[int]:
                 ax.plot(frames[idx], per_frame["psnr_frame"][name], "o-", ms=3, lw=0.8, color=color,
                         label=f"{name}, original frame ({len(idx)} frames evaluated)")
     worst = np.argsort(ref)[:N_WORST]
-    ax.scatter(frames[worst], ref[worst], s=70, facecolors="none", edgecolors="red", lw=1.5, zorder=5,
-               label=f"{N_WORST} worst frames")
+    listed = ", ".join(f"{frames[w]} ({ref[w]:.1f} dB)" for w in worst)
+    ax.scatter(frames[worst], ref[worst], s=80, facecolors="none", edgecolors="red", lw=1.5, zorder=5,
+               label=f"worst: {listed}")
     for rank, w in enumerate(worst):
-        ax.annotate(f"{frames[w]}: {ref[w]:.1f} dB", (frames[w], ref[w]), textcoords="offset points", xytext=(6, -12 - 11 * rank),
-                    fontsize=8, color="red")
+        ax.annotate(str(rank + 1), (frames[w], ref[w]), textcoords="offset points", xytext=(6, 2), fontsize=8, color="red")
     ax.set(xlabel="frame number", ylabel="PSNR (dB), sigma 0", title="test PSNR over time across the test segment")
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8, loc="best")

@@ -62,7 +62,7 @@ def comparison_plot(rows: list[dict], path: str | Path) -> None:
     ax.set_xticks(x, labels, fontsize=8)
     ax.set(ylabel="test PSNR at sigma 0 (dB)", title="sweep: test PSNR per job")
     ax.grid(axis="y", alpha=0.3)
-    ax.legend(fontsize=7, loc="lower right")
+    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1))
     save(fig, path)
 
 
