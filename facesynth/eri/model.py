@@ -199,7 +199,8 @@ class EriModel:
     def describe(self) -> dict:
         return {"neutral_index": self.neutral_index, "n_components": self.pca.n_components,
                 "variance_kept": self.pca.explained_variance_ratio, "n_pixels": self.n_pixels,
-                "reference_size": list(self.reference.size), "driver": self.driver, "n_faps": len(FAP_NAMES)}
+                "reference_size": list(self.reference.size), "driver": self.driver, "n_faps": len(FAP_NAMES),
+                "driver_choice": self.meta.get("driver_choice", {})}
 
     # ------------------------------------------------------------ save / load
     def save(self, directory: str | os.PathLike, extra: dict | None = None) -> Path:

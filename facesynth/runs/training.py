@@ -20,6 +20,7 @@ from facesynth import __version__, progress
 from facesynth.data import temporal_split
 from facesynth.eri.train import train_eri
 from facesynth.errors import FacesynthError
+from facesynth.eval.eri_report import write_eri_report
 from facesynth.eval.report import write_plots, write_report
 from facesynth.eval.sadm_eval import EvalConfig, evaluate_sadm
 from facesynth.io import write_json, write_text
@@ -56,7 +57,10 @@ def run_training(cfg, out_dir: str | Path) -> dict:
     container = OmegaConf.to_container(cfg, resolve=True)
     write_text(out / CONFIG, OmegaConf.to_yaml(cfg, resolve=True))
     if cfg.model.kind == "eri":
-        return train_eri(cfg.eri, seq, out, cfg.seed, (tr, te))  # the whole run config is in config.yaml
+        metrics = train_eri(cfg.eri, seq, out, cfg.seed, (tr, te))  # the whole run config is in config.yaml
+        with progress.stage("report"):
+            write_eri_report(metrics, out)
+        return metrics
     if cfg.model.kind != "aam":
         raise FacesynthError(f"model.kind must be 'aam' or 'eri', got {cfg.model.kind!r}")
     with progress.stage("face model") as st:
