@@ -41,6 +41,19 @@ def _top_parser() -> argparse.ArgumentParser:
     return p
 
 
+QUIET_HELP = "no progress bars, stage timings or info logs (results and errors are still printed)"
+
+
+def _add_quiet(parser: argparse.ArgumentParser, default=False) -> None:
+    """``--quiet`` on a command and on each of its sub-actions (accepted before or after them)."""
+    if "--quiet" not in parser._option_string_actions:
+        parser.add_argument("--quiet", action="store_true", default=default, help=QUIET_HELP)
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for sub in action.choices.values():
+                _add_quiet(sub, argparse.SUPPRESS)  # SUPPRESS: do not reset a --quiet given before the action
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     top = _top_parser()
@@ -63,11 +76,9 @@ def main(argv: list[str] | None = None) -> int:
         raise
     parser = argparse.ArgumentParser(prog=f"facesynth {name}", description=help_)
     module.add_arguments(parser)
-    if "--quiet" not in parser._option_string_actions:
-        parser.add_argument("--quiet", action="store_true",
-                            help="no progress bars, stage timings or info logs (results and errors are still printed)")
+    _add_quiet(parser)
     args = parser.parse_args(rest)
-    if args.quiet:
+    if getattr(args, "quiet", False):
         set_quiet(True)
         logging.getLogger().setLevel(logging.WARNING)
     try:

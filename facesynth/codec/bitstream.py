@@ -32,6 +32,7 @@ from facesynth.codec.frame import (
 )
 from facesynth.codec.transform import QP_MAX
 from facesynth.errors import FacesynthError
+from facesynth.progress import bar as progress_bar
 
 MAGIC = b"FSGV"
 VERSION = 2  # 2: neighbour contexts for `last`, coded by staggered anti-diagonals
@@ -90,6 +91,7 @@ def encode_video(frames: np.ndarray, cfg: CodecConfig, mask: np.ndarray | None =
     t0 = time.perf_counter()
     last_size: dict[bool, int] = {}
     i = 0
+    bar = progress_bar(total=t, desc="encode", unit="frame")
     while i < t:
         if cfg.gop == 1:  # independent frames: a batch shares the wavefront loop
             batch = _intra_batch(x[i:i + max(1, cfg.batch_frames)], i, cfg, wmask, last_size)
@@ -109,6 +111,8 @@ def encode_video(frames: np.ndarray, cfg: CodecConfig, mask: np.ndarray | None =
             recs.append(rec)
             prev = rec
             i += 1
+            bar.update(1)
+    bar.close()
     enc_s = time.perf_counter() - t0
     rec = np.moveaxis(np.stack(recs), 1, -1)[:, :h, :w].astype(np.uint16)
     data = b"".join(out)
