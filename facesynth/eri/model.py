@@ -213,7 +213,7 @@ class EriModel:
         regs = {}
         for name, reg in self.regressors.items():
             regs[name] = reg.config_dict()
-            t.update({f"reg.{name}.{k}": v.numpy() for k, v in reg.state_dict().items()})
+            t.update({f"reg.{name}.{k}": v for k, v in _compact_bank_state(reg).items()})
         return save_artifact(directory, TENSORS, MANIFEST, t, {
             "config": self.config.to_dict(), "neutral_index": self.neutral_index,
             "reference_size": list(self.reference.size), "pca_total_variance": self.pca.total_variance,
@@ -238,9 +238,29 @@ class EriModel:
             regs = {}
             for name, conf in manifest_field(m, "regressors", where).items():
                 pre = f"reg.{name}."
-                regs[name] = SVRBank.from_state(conf, {k[len(pre):]: torch.from_numpy(v) for k, v in t.items() if k.startswith(pre)})
+                regs[name] = SVRBank.from_state(conf, _expand_bank_state({k[len(pre):]: v for k, v in t.items() if k.startswith(pre)}))
             return cls(EriConfig.from_dict(manifest_field(m, "config", where)), int(manifest_field(m, "neutral_index", where)),
                        t["neutral_landmarks"], t["forehead"], ref, t["span"], t["neutral_texture"], pca, regs,
                        manifest_field(m, "driver", where), m.get("data_fingerprint", ""), m.get("meta", {}))
         except KeyError as exc:
             raise FacesynthError(f"{d / TENSORS}: tensor {exc} missing") from None
+
+
+def _compact_bank_state(bank: SVRBank) -> dict[str, np.ndarray]:
+    """What reloading an SVR bank needs, without repeats: the K machines' support vectors are
+    rows of the same training FAPs, so the distinct rows are stored once (``sv_unique``) with
+    an index per support vector; the dense (n_sv, K) ``weights`` are rebuilt from ``dual`` and
+    ``owner`` on load. (Storing every buffer took ~45 MB per variant on lp_d6.)"""
+    state = {k: v.numpy() for k, v in bank.state_dict().items() if k not in ("weights", "sv")}
+    uniq, index = np.unique(bank.sv.numpy(), axis=0, return_inverse=True)
+    state.update(sv_unique=uniq, sv_index=index.reshape(-1).astype(np.int32), owner=state["owner"].astype(np.int32))
+    return state
+
+
+def _expand_bank_state(state: dict[str, np.ndarray]) -> dict[str, torch.Tensor]:
+    """Inverse of :func:`_compact_bank_state` (files with a plain ``sv`` load unchanged)."""
+    state = dict(state)
+    if "sv_unique" in state:
+        state["sv"] = state.pop("sv_unique")[state.pop("sv_index")]
+    state["owner"] = state["owner"].astype(np.int64)
+    return {k: torch.from_numpy(np.ascontiguousarray(v)) for k, v in state.items()}
