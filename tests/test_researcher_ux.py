@@ -92,7 +92,7 @@ def test_frame_level_equals_pasting_into_the_whole_frame(run):
     import cv2
 
     for s, k in zip(cfg.noise, keys, strict=True):
-        lmn = noisy_landmarks(lm, s, 17)
+        lmn = np.concatenate([noisy_landmarks(lm[j : j + 1], s, 17 * int(r)) for j, r in enumerate(te[pick])])
         sources = {"sadm": _predict(syn, lmn, 8), "mean_texture": mean, "oracle": oracle[pick], "rewarp": tex_te[pick]}
         _, cmask, cplace = model.render(mean, lm)
         for name, tex in sources.items():

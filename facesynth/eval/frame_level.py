@@ -67,7 +67,9 @@ def frame_level(model, predict, seq, rows, tex_te, oracle, cfg, seed, keys, nois
     n = len(pick)
     lm = seq.landmarks[rows[pick]]
     mean = np.broadcast_to(np.clip(model.appearance_pca.mean, 0, 1), (n, tex_te.shape[1]))
-    lm_noisy = {k: noisy(lm, s, seed + 17) for s, k in zip(cfg.noise, keys, strict=True)}
+    # each frame's noise is seeded by its row, so a frame gets the same noise in any subset
+    lm_noisy = {k: np.concatenate([noisy(lm[j : j + 1], s, seed + 17 * int(r)) for j, r in enumerate(rows[pick])])
+                for s, k in zip(cfg.noise, keys, strict=True)}
     sources = {"sadm": {k: predict(v) for k, v in lm_noisy.items()}, "mean_texture": mean, "oracle": oracle[pick],
                "rewarp": tex_te[pick]}
     sq = {name: {k: np.zeros((n, 2)) for k in keys} for name in sources}
