@@ -98,7 +98,11 @@ class EriModel:
         model.neutral_index, model.fingerprint = neutral_index, seq.fingerprint
         values = model.ratios_of(seq, rows, progress)
         t1 = time.perf_counter()
-        model.pca = PCAModel.fit(values.reshape(len(rows), -1), cfg.n_components, cfg.variance)
+        pca = PCAModel.fit(values.reshape(len(rows), -1), cfg.n_components, cfg.variance)
+        # the eigenERI basis is stored in half precision (86676 x 122 values on lp_d6: 42 MB in
+        # float32); rounding it here keeps the fitted and the reloaded model identical
+        model.pca = PCAModel(pca.mean, pca.components.astype(np.float16).astype(np.float32), pca.eigenvalues,
+                             pca.total_variance)
         coeffs = model.pca.project(values.reshape(len(rows), -1))
         del values
         faps = compute_faps(seq.landmarks[rows], model.neutral_landmarks)
@@ -208,7 +212,7 @@ class EriModel:
         t = {"neutral_landmarks": self.neutral_landmarks, "forehead": np.asarray(self.forehead, np.float32),
              "reference_points": self.reference.points, "triangles": self.reference.triangles.astype(np.int64),
              "span": self.span.astype(np.int64), "neutral_texture": self.neutral_texture,
-             "pca_mean": self.pca.mean, "pca_components": self.pca.components,
+             "pca_mean": self.pca.mean, "pca_components": self.pca.components.astype(np.float16),
              "pca_eigenvalues": self.pca.eigenvalues.astype(np.float64)}
         regs = {}
         for name, reg in self.regressors.items():
@@ -234,7 +238,8 @@ class EriModel:
         t = read_tensors(d, TENSORS, m, "ERI model")
         try:
             ref = ReferenceFrame(t["reference_points"], tuple(manifest_field(m, "reference_size", where)), t["triangles"])
-            pca = PCAModel(t["pca_mean"], t["pca_components"], t["pca_eigenvalues"], manifest_field(m, "pca_total_variance", where))
+            pca = PCAModel(t["pca_mean"], t["pca_components"].astype(np.float32), t["pca_eigenvalues"],
+                           manifest_field(m, "pca_total_variance", where))
             regs = {}
             for name, conf in manifest_field(m, "regressors", where).items():
                 pre = f"reg.{name}."
