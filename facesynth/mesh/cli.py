@@ -147,7 +147,7 @@ def run(args: argparse.Namespace) -> int:
     verts = np.empty((T, n, 3), np.float32)
     Rs, ts, Ks = np.empty((T, 3, 3)), np.empty((T, 3)), np.empty((T, 3, 3))
     iters, conv, reproj = np.empty(T, np.int32), np.empty(T, bool), np.empty(T)
-    sheet = dict(pick_sheet_frames(lm[rows], int(np.searchsorted(rows, neutral)) if neutral in rows else 0))
+    sheet = dict(pick_sheet_frames(lm[rows], int(np.argmin(np.abs(rows - neutral)))))  # the processed row nearest the neutral
     sheet_rows, sheet_labels = {}, {}
     writer = PreviewWriter(args.render, fps / args.stride) if args.render else None
     frame_iter = frames.read(rows) if frames is not None else None
