@@ -15,7 +15,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--noise", default="0,1,2,3", help="landmark noise sigmas in frame pixels, comma-separated")
     p.add_argument("--no-frame", action="store_true", help="skip the (slower) whole-frame PSNR")
     p.add_argument("--max-test-frames", type=int, metavar="N",
-                   help="whole-frame PSNR on N evenly spaced test frames (default: EvalConfig.max_test_frames, 60; "
+                   help="whole-frame PSNR on N evenly spaced test frames (default: EvalConfig.max_test_frames, 100; "
                         "0: every test frame)")
     p.add_argument("--json", type=Path, help="write the metrics here (JSON)")
 
