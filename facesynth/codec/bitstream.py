@@ -186,7 +186,7 @@ def decode_video(data: bytes) -> tuple[np.ndarray, StreamInfo, dict]:
     out = []  # frames are allocated as they decode, so a forged header cannot force a huge allocation
     prev = None
     t0 = time.perf_counter()
-    for i in range(info.n_frames):
+    for i in progress_bar(range(info.n_frames), desc="decode", unit="frame"):
         if len(data) < off + _CHUNK.size:
             raise FacesynthError(f"bitstream: truncated at frame {i} of {info.n_frames} (chunk header)")
         ln, crc = _CHUNK.unpack_from(data, off)

@@ -112,7 +112,12 @@ def run(args) -> int:
     faps = compute_faps(driver.landmarks[:n], d_neutral)
     syn = EriSynthesizer(model, image, landmarks, args.variant, raw=args.raw_ratios)
     t0 = time.perf_counter()
-    frames = write_video(args.out, syn.iter_render(faps, "eri"), args.fps or driver.fps)
+    from facesynth import progress
+
+    rendered = progress.bar(syn.iter_render(faps, "eri"), total=n, desc="render", unit="frame")
+    with progress.stage("transfer-expression render") as st:
+        frames = write_video(args.out, rendered, args.fps or driver.fps)
+        st.set(f"{frames} frames")
     per_frame = (time.perf_counter() - t0) / frames
     summary = {"out": str(args.out), "frames": frames, "seconds_per_frame": per_frame, "target": target_desc,
                "driver": str(args.driver), "driver_neutral": how, "variant": syn.variant}
