@@ -14,6 +14,7 @@ import sys
 
 from facesynth.errors import FacesynthError
 from facesynth.io import Terminated, install_sigterm_handler
+from facesynth.progress import set_quiet
 
 # name -> (module, one-line help). Keep in pipeline order.
 SUBCOMMANDS: dict[str, tuple[str, str]] = {
@@ -41,6 +42,19 @@ def _top_parser() -> argparse.ArgumentParser:
     return p
 
 
+QUIET_HELP = "no progress bars, stage timings or info logs (results and errors are still printed)"
+
+
+def _add_quiet(parser: argparse.ArgumentParser, default=False) -> None:
+    """``--quiet`` on a command and on each of its sub-actions (accepted before or after them)."""
+    if "--quiet" not in parser._option_string_actions:
+        parser.add_argument("--quiet", action="store_true", default=default, help=QUIET_HELP)
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for sub in action.choices.values():
+                _add_quiet(sub, argparse.SUPPRESS)  # SUPPRESS: do not reset a --quiet given before the action
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     top = _top_parser()
@@ -63,8 +77,12 @@ def main(argv: list[str] | None = None) -> int:
         raise
     parser = argparse.ArgumentParser(prog=f"facesynth {name}", description=help_)
     module.add_arguments(parser)
+    _add_quiet(parser)
     args = parser.parse_args(rest)
     install_sigterm_handler()  # SIGTERM unwinds: temporary outputs are removed
+    if getattr(args, "quiet", False):
+        set_quiet(True)
+        logging.getLogger().setLevel(logging.WARNING)
     try:
         return int(module.run(args) or 0)
     except FacesynthError as exc:

@@ -70,7 +70,7 @@ def normalise_shape(shape: np.ndarray) -> np.ndarray:
 def generalised_procrustes(
     shapes: np.ndarray, max_iter: int = 100, tol: float = 1e-10
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Generalised Procrustes alignment under similarity transforms.
+    """Generalised Procrustes alignment under similarity transforms (Cootes et al., CVIU 1995).
 
     Parameters
     ----------

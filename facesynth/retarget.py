@@ -37,14 +37,10 @@ import numpy as np
 
 from facesynth.errors import FacesynthError
 from facesynth.faps import FAPU_NAMES, RIGID_POINTS, face_axes, fapu
-from facesynth.geometry import generalised_procrustes, similarity_fit
+from facesynth.geometry import similarity_fit
 from facesynth.landmarks import BROWS, EYES, JAW, MOUTH, N_LANDMARKS, NOSE, inter_ocular
 
 MOTIONS = ("relative", "absolute")
-INNER_UPPER = (61, 62, 63)  # inner-lip points facing INNER_LOWER across the mouth opening
-INNER_LOWER = (67, 66, 65)
-
-
 def _point_units() -> np.ndarray:
     """int (68, 2): the FAPU (index into FAPU_NAMES) scaling each point's (x, down) motion."""
     u = {n: i for i, n in enumerate(FAPU_NAMES)}
@@ -58,53 +54,11 @@ def _point_units() -> np.ndarray:
 POINT_UNITS = _point_units()
 
 
-def mouth_open(landmarks: np.ndarray) -> np.ndarray:
-    """Mean inner-lip gap (61-67, 62-66, 63-65) / inter-ocular distance: (N, 68, 2) -> (N,)."""
-    lm = np.asarray(landmarks, np.float64)
-    gap = np.linalg.norm(lm[..., list(INNER_UPPER), :] - lm[..., list(INNER_LOWER), :], axis=-1).mean(-1)
-    return gap / inter_ocular(lm)
-
-
 def eye_open(landmarks: np.ndarray) -> np.ndarray:
     """Mean eyelid gap (37-41, 38-40, 43-47, 44-46) / inter-ocular distance: (N, 68, 2) -> (N,)."""
     lm = np.asarray(landmarks, np.float64)
     gap = np.linalg.norm(lm[..., [37, 38, 43, 44], :] - lm[..., [41, 40, 47, 46], :], axis=-1).mean(-1)
     return gap / inter_ocular(lm)
-
-
-def select_neutral(landmarks: np.ndarray, mouth_closed_max: float = 0.03) -> tuple[int, dict]:
-    """Automatic neutral frame: closest (Procrustes distance) to the mean shape among frames
-    whose mouth is closed (``mouth_open <= mouth_closed_max``; if none is, the 10% of
-    frames with the smallest gap). ERI's rule (:mod:`facesynth.eri.geometry` re-exports it).
-
-    Parameters
-    ----------
-    landmarks : (N, 68, 2) candidate frames (e.g. the training rows).
-
-    Returns
-    -------
-    index : int, row into ``landmarks``
-    info : dict with the distance, the mouth gap and the number of candidates (for the artifact).
-    """
-    lm = np.asarray(landmarks, np.float64)
-    if lm.ndim != 3 or len(lm) < 1 or lm.shape[1:] != (N_LANDMARKS, 2):
-        raise FacesynthError(f"neutral selection needs (N, {N_LANDMARKS}, 2) landmarks, got {lm.shape}")
-    finite = np.isfinite(lm).all(axis=(1, 2))
-    if not finite.any():
-        raise FacesynthError("neutral selection: no frame has a face (all rows NaN)")
-    rows = np.flatnonzero(finite)
-    lm = lm[rows]
-    gap = mouth_open(lm)
-    cand = np.flatnonzero(gap <= mouth_closed_max)
-    rule = f"mouth_open <= {mouth_closed_max}"
-    if len(cand) == 0:
-        cand = np.argsort(gap)[: max(1, len(lm) // 10)]
-        rule = "10% smallest mouth gap (no frame under the threshold)"
-    aligned, mean = generalised_procrustes(lm) if len(lm) > 1 else (lm, lm[0])
-    dist = np.linalg.norm((aligned - mean).reshape(len(lm), -1), axis=1)
-    best = int(cand[np.argmin(dist[cand])])
-    return int(rows[best]), {"rule": rule, "candidates": int(len(cand)), "procrustes_distance": float(dist[best]),
-                             "mouth_open": float(gap[best])}
 
 
 @dataclass
@@ -249,4 +203,4 @@ def _one_face(x, where: str) -> np.ndarray:
     return a
 
 
-__all__ = ["MOTIONS", "POINT_UNITS", "Retargeter", "ShapeSpace", "eye_open", "mouth_open", "select_neutral"]
+__all__ = ["MOTIONS", "POINT_UNITS", "Retargeter", "ShapeSpace", "eye_open"]

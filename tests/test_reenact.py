@@ -14,7 +14,8 @@ import pytest
 from facesynth.errors import FacesynthError
 from facesynth.faps import compute_faps
 from facesynth.geometry import apply_affine, similarity_fit
-from facesynth.retarget import Retargeter, select_neutral
+from facesynth.neutral import select_neutral
+from facesynth.retarget import Retargeter
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -38,6 +38,7 @@ from facesynth.codec.frame import (
 )
 from facesynth.codec.transform import QP_MAX
 from facesynth.errors import FacesynthError
+from facesynth.progress import bar as progress_bar
 
 MAGIC = b"FSGV"
 VERSION = 2  # 2: neighbour contexts for `last`, coded by staggered anti-diagonals
@@ -110,6 +111,7 @@ def encode_video(frames: np.ndarray, cfg: CodecConfig, mask: np.ndarray | None =
     t0 = time.perf_counter()
     last_size: dict[bool, int] = {}
     i = 0
+    bar = progress_bar(total=t, desc="encode", unit="frame")
     while i < t:
         if cfg.gop == 1:  # independent frames: a batch shares the wavefront loop
             batch = _intra_batch(x[i:i + max(1, cfg.batch_frames)], i, cfg, wmask, last_size)
@@ -129,6 +131,8 @@ def encode_video(frames: np.ndarray, cfg: CodecConfig, mask: np.ndarray | None =
             recs.append(rec)
             prev = rec
             i += 1
+            bar.update(1)
+    bar.close()
     enc_s = time.perf_counter() - t0
     rec = np.moveaxis(np.stack(recs), 1, -1)[:, :h, :w].astype(np.uint16)
     data = b"".join(out)
@@ -209,7 +213,7 @@ def decode_video(data: bytes) -> tuple[np.ndarray, StreamInfo, dict]:
     out = []  # frames are allocated as they decode, so a forged header cannot force a huge allocation
     prev = None
     t0 = time.perf_counter()
-    for i in range(info.n_frames):
+    for i in progress_bar(range(info.n_frames), desc="decode", unit="frame"):
         if len(data) < off + _CHUNK.size:
             raise FacesynthError(f"bitstream: truncated at frame {i} of {info.n_frames} (chunk header)")
         ln, crc = _CHUNK.unpack_from(data, off)

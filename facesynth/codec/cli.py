@@ -4,8 +4,8 @@ Sub-subcommands::
 
     facesynth codec geometry OUT.npy [--frames 30 --size 256]   ICT mesh -> uint16 video (+ OUT.mask.npy)
     facesynth codec scan IN.npz|IN_*.obj OUT.npy --landmarks MAP.json   scans without UVs -> video
-    facesynth codec encode IN.npy OUT.fsgv --qp N --modes hip|hip+pdp [--gop N]
-    facesynth codec decode IN.fsgv OUT.npy
+    facesynth codec encode IN.npy|SEQ.npz OUT.fsgv --qp N --modes hip|hip+pdp [--gop N] [--preview P.png]
+    facesynth codec decode IN.fsgv OUT.npy | --mesh OUT.npz [--preview P.png --reference IN]
     facesynth codec rd [--input IN.npy] --qps 18,30,42,54 --plot rd.png
 """
 
@@ -23,10 +23,10 @@ from facesynth.errors import FacesynthError
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     sub = parser.add_subparsers(dest="action", required=True)
     g = sub.add_parser("geometry", help="ICT face animated by blendshapes -> uint16 geometry video .npy")
-    g.add_argument("output", type=Path)
-    g.add_argument("--frames", type=int, default=30)
-    g.add_argument("--size", type=int, default=256)
-    g.add_argument("--seed", type=int, default=0)
+    g.add_argument("output", type=Path, help="output .npy: uint16 (T, H, W, 3) geometry video (+ OUTPUT.mask.npy)")
+    g.add_argument("--frames", type=int, default=30, help="number of frames (default 30)")
+    g.add_argument("--size", type=int, default=256, help="geometry image side in pixels (default 256)")
+    g.add_argument("--seed", type=int, default=0, help="seed of the blendshape weight curves (default 0)")
 
     from facesynth.codec import scan_cli
 
@@ -34,36 +34,47 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                        "uint16 geometry video .npy (+ .mask.npy, .scan.npz)")
     scan_cli.add_arguments(s)
 
-    e = sub.add_parser("encode", help="encode a uint16 (T, H, W, 3) .npy geometry video")
-    e.add_argument("input", type=Path)
-    e.add_argument("output", type=Path)
+    e = sub.add_parser("encode", help="encode a uint16 (T, H, W, 3) .npy geometry video or a transfer3d .npz mesh sequence")
+    e.add_argument("input", type=Path, help="uint16 (T, H, W, 3) .npy geometry video, or a transfer3d output .npz "
+                   "(vertices, faces, uvs): rasterised to a geometry video over its UV layout first")
+    e.add_argument("output", type=Path, help="output .fsgv stream (from a mesh sequence also OUTPUT.layout.npz)")
     q = e.add_mutually_exclusive_group(required=True)
     q.add_argument("--qp", type=int, help="quantiser 0..87 (step x2 every 6)")
     q.add_argument("--lossless", action="store_true", help="transform bypass: exact reconstruction")
     _codec_options(e)
     e.add_argument("--mask", type=Path, help="(H, W) bool .npy: distortion counts only there "
-                   "(default: IN.mask.npy when present)")
+                   "(default: IN.mask.npy when present; a mesh sequence's own UV mask)")
+    e.add_argument("--size", type=int, default=256, help="geometry image side for a mesh sequence input (default 256)")
+    e.add_argument("--preview", type=Path, metavar="PNG",
+                   help="write the first frame's decoded geometry image beside the original and their error")
 
-    d = sub.add_parser("decode", help="decode an .fsgv stream to a uint16 .npy")
-    d.add_argument("input", type=Path)
-    d.add_argument("output", type=Path)
+    d = sub.add_parser("decode", help="decode an .fsgv stream to a uint16 .npy (or a mesh sequence with --mesh)")
+    d.add_argument("input", type=Path, help=".fsgv stream")
+    d.add_argument("output", type=Path, help="output .npy geometry video, or .npz mesh sequence with --mesh")
+    d.add_argument("--mesh", action="store_true", help="give the mesh sequence back (vertices, faces, uvs .npz; needs "
+                   "the layout sidecar written by encode)")
+    d.add_argument("--layout", type=Path, help="layout sidecar (default: INPUT.layout.npz)")
+    d.add_argument("--preview", type=Path, metavar="PNG", help="write the first decoded frame beside --reference and "
+                   "their error")
+    d.add_argument("--reference", type=Path, help="the original .npy video or .npz mesh sequence, for --preview")
 
     r = sub.add_parser("rd", help="sweep QPs over mode sets, print JSON, write an RD plot")
     r.add_argument("--input", type=Path, help="uint16 (T, H, W, 3) .npy (default: ICT blendshape video)")
-    r.add_argument("--frames", type=int, default=8)
-    r.add_argument("--size", type=int, default=256)
-    r.add_argument("--qps", default="18,30,42,54")
+    r.add_argument("--frames", type=int, default=8, help="frames of the default ICT video (default 8)")
+    r.add_argument("--size", type=int, default=256, help="image side of the default ICT video (default 256)")
+    r.add_argument("--qps", default="18,30,42,54", help="comma list of quantisers (default 18,30,42,54)")
     r.add_argument("--configs", default="hip-intra,hip+pdp-intra,hip+pdp+pvm",
                    help="comma list from facesynth.codec.rd.CONFIGS")
     r.add_argument("--block-sizes", default=None, help="comma list from 4, 8, 16 (default: 8,16 with "
                    "the 8x8 transform, else 4,8,16)")
     r.add_argument("--no-transform8", action="store_true", help="4x4 transform for every block size")
-    r.add_argument("--plot", type=Path, default=Path("codec_rd.png"))
+    r.add_argument("--plot", type=Path, default=Path("codec_rd.png"), help="RD plot PNG (default codec_rd.png)")
     r.add_argument("--json", type=Path, help="also write the figures here")
 
 
 def _codec_options(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--modes", choices=["hip", "hip+pdp", "hip+pdp-spatial"], default="hip+pdp")
+    p.add_argument("--modes", choices=["hip", "hip+pdp", "hip+pdp-spatial"], default="hip+pdp",
+                   help="intra prediction: HIP only, HIP + PDP (default) or HIP + spatial-only PDP")
     p.add_argument("--gop", type=int, default=1, help="1 = all intra; N = I then N-1 P-frames")
     p.add_argument("--no-inter", action="store_true", help="P-frames without motion compensation")
     p.add_argument("--block-sizes", default=None, help="comma list from 4, 8, 16 (default: 8,16 with "
@@ -130,10 +141,12 @@ def _ict_video(frames: int, size: int, seed: int):
 
 
 def run(args: argparse.Namespace) -> int:
+    from facesynth import progress
     from facesynth.codec.bitstream import decode_video, encode_video
     from facesynth.codec.frame import CodecConfig
+    from facesynth.codec.geometry import Quantiser, build_layout, geometry_video
     from facesynth.codec.rd import CONFIGS, bd_between, modes_config, plot_rd, rd_sweep
-    from facesynth.io import check_writable, save_npy, write_bytes, write_json
+    from facesynth.io import atomic_path, check_writable, save_npy, write_bytes, write_json
     from facesynth.metrics import psnr
 
     if args.action == "scan":
@@ -150,27 +163,79 @@ def run(args: argparse.Namespace) -> int:
                           "bbox_lo": q.lo.tolist(), "bbox_hi": q.hi.tolist(), "diag": q.diag}))
         return 0
     if args.action == "encode":
-        video = _load_video(args.input)
-        mask = _load_mask(args.mask, args.input, video.shape[1:3])
+        from facesynth.codec import meshvideo
+
+        bbox, seq = None, None
+        if meshvideo.is_mesh_sequence(args.input):
+            seq = meshvideo.load_mesh_sequence(args.input)
+            with progress.stage("geometry video") as st:
+                video, mask, qz = meshvideo.mesh_to_video(seq, args.size)
+                st.set(f"{len(video)} meshes -> {args.size}x{args.size} images")
+            bbox = np.stack([qz.lo, qz.hi])
+            mask = _load_mask(args.mask, args.input, video.shape[1:3]) if args.mask else mask
+        else:
+            video = _load_video(args.input)
+            mask = _load_mask(args.mask, args.input, video.shape[1:3])
         if args.gop < 1:
             raise FacesynthError(f"--gop: expected >= 1, got {args.gop}")
         cfg = CodecConfig(qp=None if args.lossless else args.qp, block_sizes=_sizes(args.block_sizes),
                           mv_range=args.mv_range, transform8=not args.no_transform8,
                           **modes_config(args.modes, args.gop, not args.no_inter))
-        data, rec, st = encode_video(video, cfg, mask)
+        with progress.stage("encode") as st:
+            data, rec, st_ = encode_video(video, cfg, mask, bbox)
+            st.set(f"{len(video)} frames, {len(data)} bytes")
         write_bytes(args.output, data)
-        st["psnr_db"] = psnr(video, rec, mask, peak=65535)
-        st["psnr_db"] = None if not np.isfinite(st["psnr_db"]) else st["psnr_db"]
-        st["encode_fps"] = len(video) / st.pop("encode_s")
-        print(json.dumps({"output": str(args.output), **st}))
+        out = {"output": str(args.output)}
+        if seq is not None:
+            out["layout"] = str(meshvideo.write_layout(args.output, seq, args.size))
+        st_["psnr_db"] = psnr(video, rec, mask, peak=65535)
+        st_["psnr_db"] = None if not np.isfinite(st_["psnr_db"]) else st_["psnr_db"]
+        st_["encode_fps"] = len(video) / st_.pop("encode_s")
+        if args.preview:
+            from facesynth.codec.preview import write_preview
+
+            out["preview"] = {"path": str(args.preview), **write_preview(video, rec, mask, args.preview,
+                                                                           title=f"{args.input.name}, {args.modes}")}
+        print(json.dumps({**out, **st_}))
         return 0
     if args.action == "decode":
         if not args.input.is_file():
             raise FacesynthError(f"{args.input}: file not found")
-        frames, info, st = decode_video(args.input.read_bytes())
-        save_npy(args.output, frames)
-        print(json.dumps({"output": str(args.output), "shape": list(frames.shape), "qp": info.qp,
-                          "decode_fps": len(frames) / max(st["decode_s"], 1e-9)}))
+        if args.preview and args.reference is None:
+            raise FacesynthError("--preview needs --reference (the original .npy video or .npz mesh sequence)")
+        with progress.stage("decode"):
+            frames, info, st = decode_video(args.input.read_bytes())
+        out = {"output": str(args.output), "shape": list(frames.shape), "qp": info.qp,
+               "decode_fps": len(frames) / max(st["decode_s"], 1e-9)}
+        if args.mesh:
+            from facesynth.codec import meshvideo
+
+            lay = meshvideo.read_layout(args.layout or Path(str(args.input) + meshvideo.LAYOUT_SUFFIX))
+            with progress.stage("mesh from geometry video"):
+                verts = meshvideo.video_to_mesh(frames, lay, info.bbox)
+            with atomic_path(args.output) as tmp, open(tmp, "wb") as fh:
+                np.savez(fh, vertices=verts.astype(np.float32), faces=lay["faces"].astype(np.int32),
+                         uvs=lay["uvs"].astype(np.float32))
+            out["vertices_shape"] = list(verts.shape)
+        else:
+            save_npy(args.output, frames)
+        if args.preview:
+            from facesynth.codec import meshvideo
+            from facesynth.codec.preview import write_preview
+
+            if meshvideo.is_mesh_sequence(args.reference):
+                ref_seq = meshvideo.load_mesh_sequence(args.reference)
+                if info.bbox is None or not np.isfinite(info.bbox).all():
+                    raise FacesynthError(f"{args.input}: the stream has no quantiser box to rasterise --reference with")
+                lay = build_layout(ref_seq["faces"], ref_seq["uvs"], (info.height, info.width))
+                ref, _ = geometry_video(lay, ref_seq["vertices"], Quantiser(info.bbox[0], info.bbox[1]))
+                mask = lay.mask
+            else:
+                ref, mask = _load_video(args.reference), None
+            if ref.shape != frames.shape:
+                raise FacesynthError(f"--reference {args.reference}: shape {ref.shape} differs from the decoded {frames.shape}")
+            out["preview"] = {"path": str(args.preview), **write_preview(ref, frames, mask, args.preview)}
+        print(json.dumps(out))
         return 0
     # rd
     if args.input is not None:

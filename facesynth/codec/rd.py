@@ -104,13 +104,18 @@ def plot_rd(points: dict[str, list[dict]], path: str | Path, title: str = "") ->
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-
+    from matplotlib.ticker import FormatStrFormatter, LogLocator, NullFormatter
 
     fig, ax = plt.subplots(figsize=(6, 4.2))
     for name, pts in points.items():
         pts = [p for p in pts if np.isfinite(p["psnr_db"])]
         ax.plot([p["bpp"] for p in pts], [p["psnr_db"] for p in pts], "o-", label=name, ms=3)
     ax.set_xscale("log")
+    # labels at 1, 2, 5 x 10^k only, plain numbers: matplotlib's default labels every minor
+    # tick of a log axis spanning less than a decade, and those labels overlap
+    ax.xaxis.set_major_locator(LogLocator(base=10, subs=(1.0, 2.0, 5.0)))
+    ax.xaxis.set_major_formatter(FormatStrFormatter("%g"))
+    ax.xaxis.set_minor_formatter(NullFormatter())
     ax.set_xlabel("bits per pixel (3 channels, 16 bit)")
     ax.set_ylabel("PSNR over mask, peak 65535 [dB]")
     ax.grid(True, which="both", alpha=0.3)

@@ -28,7 +28,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("inputs", type=Path, nargs="+", help="one .npz (vertices, faces) or one OBJ/PLY per frame")
     p.add_argument("output", type=Path, help="uint16 (T, H, W, 3) .npy")
     p.add_argument("--landmarks", type=Path, required=True, help="iBUG-68 vertex map .json, or .npy (68,) / (T, 68)")
-    p.add_argument("--size", type=int, default=256)
+    p.add_argument("--size", type=int, default=256, help="geometry image side in pixels (default 256)")
     p.add_argument("--radius", type=float, default=DEFAULT_RADIUS,
                    help="geodesic segmentation radius in mesh units (paper: 60-65 mm male, 45-50 mm female)")
     p.add_argument("--method", choices=METHODS, default="eip", help="eip (expression-invariant) or hm (disk)")

@@ -43,6 +43,7 @@ from facesynth.data.sequence import FaceSequence
 from facesynth.errors import FacesynthError
 from facesynth.io import atomic_dir, check_writable, write_json
 from facesynth.landmarks import LandmarkScheme, get_scheme
+from facesynth.progress import bar as progress_bar
 from facesynth.provenance import file_sha256, package_versions
 
 log = logging.getLogger(__name__)
@@ -108,9 +109,7 @@ def check_output_folder(out_dir: Path) -> None:
 
 
 def _progress(total: int | None, enabled: bool):
-    from tqdm.auto import tqdm
-
-    return tqdm(total=total, unit="frame", desc="ingest", disable=not enabled, dynamic_ncols=True, leave=True)
+    return progress_bar(total=total, unit="frame", desc="ingest", enabled=enabled)
 
 
 def _stats(det: Detections, video: _Video, wall_s: float, scheme: LandmarkScheme) -> dict:
@@ -283,7 +282,7 @@ def ingest_video(
                 if np.isfinite(frame).all():
                     write_pts(tmp_dir / "pts" / f"{i:0{width}d}.pts", frame)
         write_json(tmp_dir / "meta.json", meta)
-    log.info(
+    log.debug(  # debug: the command prints the summary itself (once)
         "%s: %d frames processed in %.1f s (%.1f frames/s), detection rate %.3f -> %s",
         video_path, result.n_processed, wall, stats["frames_per_s"] or 0.0, stats["detection_rate"], out_dir,
     )

@@ -46,7 +46,7 @@ def run(args: argparse.Namespace) -> int:
         raise FacesynthError(f"--max-side must be >= 32, got {args.max_side}")
     seq = ingest_video(
         args.video, args.out, every=args.every, max_frames=args.max_frames, copy=args.copy,
-        export_pts=args.export_pts, progress=not args.no_progress, max_side=args.max_side,
+        export_pts=args.export_pts, progress=not (args.no_progress or args.quiet), max_side=args.max_side,
         reuse_limit=args.reuse_limit, landmarker=args.landmarker,
     )
     st = seq.meta["stats"]

@@ -116,7 +116,12 @@ def run(args) -> int:
     # every point, B's own proportions; the app's retargeting), in B's head pose
     positions = Retargeter(syn.neutral, d_neutral, head_motion=False)(driver.landmarks[:n])
     t0 = time.perf_counter()
-    frames = write_video(args.out, syn.iter_render(faps, "eri", positions=positions), args.fps or driver.fps)
+    from facesynth import progress
+
+    rendered = progress.bar(syn.iter_render(faps, "eri", positions=positions), total=n, desc="render", unit="frame")
+    with progress.stage("transfer-expression render") as st:
+        frames = write_video(args.out, rendered, args.fps or driver.fps)
+        st.set(f"{frames} frames")
     per_frame = (time.perf_counter() - t0) / frames
     summary = {"out": str(args.out), "frames": frames, "seconds_per_frame": per_frame, "target": target_desc,
                "driver": str(args.driver), "driver_neutral": how, "variant": syn.variant}

@@ -22,6 +22,7 @@ import torch
 
 from facesynth.errors import FacesynthError
 from facesynth.metrics import ncc
+from facesynth.progress import bar as progress_bar
 from facesynth.regressors.base import Regressor
 
 VARIANTS = {"eps_linear": ("eps", "linear"), "eps_rbf": ("eps", "rbf"), "nu_linear": ("nu", "linear"), "nu_rbf": ("nu", "rbf")}
@@ -68,7 +69,7 @@ class SVRBank(Regressor):
         gamma = (1.0 if g == "scale" else float(g)) / x.shape[1]
         common = dict(kernel=kernel, C=float(cfg.get("C", 1.0)), gamma=gamma, cache_size=200)
         svs, duals, owners, b = [], [], [], []
-        for k in range(y.shape[1]):
+        for k in progress_bar(range(y.shape[1]), desc=f"SVR {cfg['variant']}", unit="fit"):
             if kind == "eps":
                 m = SVR(epsilon=float(cfg.get("epsilon", 0.1)), **common)
             else:
@@ -123,6 +124,20 @@ def fit_variant(variant: str, x, y, cfg, x_val=None, y_val=None) -> tuple[SVRBan
     xa, ya = np.concatenate([x, x_val]), np.concatenate([y, y_val])
     return SVRBank.fit(xa, ya, best), {"params": best, "val_mse": best_mse,
                                        "grid": [{"C": p["C"], "gamma": p["gamma"], "val_mse": m} for m, p in results]}
+
+
+def choose_driver(report: dict) -> tuple[str, str]:
+    """The synthesis driver from the variants' validation MSE (``report[v]["val_mse"]``,
+    standardised coefficients): the best linear variant, replaced by an RBF variant only
+    when that one is strictly better on validation. Returns (variant, rule)."""
+    linear = [v for v in report if VARIANTS[v][1] == "linear"]
+    best = min(report, key=lambda v: report[v]["val_mse"])
+    if not linear:
+        return best, "lowest validation MSE"
+    base = min(linear, key=lambda v: report[v]["val_mse"])
+    if best != base and report[best]["val_mse"] < report[base]["val_mse"]:
+        return best, f"lowest validation MSE ({report[best]['val_mse']:.3f} < best linear {base} {report[base]['val_mse']:.3f})"
+    return base, f"best linear variant on validation (MSE {report[base]['val_mse']:.3f})"
 
 
 def coefficient_scores(pred: np.ndarray, true: np.ndarray) -> dict:

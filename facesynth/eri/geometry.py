@@ -12,7 +12,11 @@ import numpy as np
 from facesynth.eri.faps import face_axes, head_pose
 from facesynth.geometry import apply_affine, similarity_fit
 from facesynth.landmarks import BROWS, EYES, N_LANDMARKS, inter_ocular
-from facesynth.retarget import INNER_LOWER, INNER_UPPER, mouth_open, select_neutral  # noqa: F401 (ERI's public names)
+from facesynth.neutral import INNER_LOWER, INNER_UPPER, mouth_open, select_neutral
+
+# the neutral-frame choice is shared with the 3D transfer and the reenactment (facesynth.neutral)
+__all__ = ["INNER_LOWER", "INNER_UPPER", "mouth_open", "select_neutral", "N_FOREHEAD", "forehead_points", "extend",
+           "open_mouth", "upright", "to_canvas"]
 
 N_FOREHEAD = 10
 def forehead_points(neutral: np.ndarray, fraction: float) -> np.ndarray:

@@ -18,12 +18,11 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from tqdm.auto import tqdm
 
 from facesynth.artifact import manifest_field, read_manifest, read_tensors, rebuild, save_artifact
 from facesynth.data.sequence import FaceSequence
 from facesynth.eri.config import SVR_VARIANTS, EriConfig
-from facesynth.eri.driving import SVRBank, fit_variant
+from facesynth.eri.driving import SVRBank, choose_driver, fit_variant
 from facesynth.eri.faps import FAP_NAMES, compute_faps, fapu
 from facesynth.eri.geometry import extend, forehead_points, open_mouth, select_neutral, to_canvas, upright
 from facesynth.eri.ratio import ratio_images, sample_textures
@@ -32,6 +31,8 @@ from facesynth.model.artifact import check_pca, check_reference, check_size
 from facesynth.model.pca import PCAModel
 from facesynth.model.reference import ReferenceFrame
 from facesynth.model.warp import ToReference, candidate_spans
+from facesynth.progress import bar as progress_bar
+from facesynth.progress import stage
 
 log = logging.getLogger(__name__)
 
@@ -99,7 +100,11 @@ class EriModel:
         model.neutral_index, model.fingerprint = neutral_index, seq.fingerprint
         values = model.ratios_of(seq, rows, progress)
         t1 = time.perf_counter()
-        model.pca = PCAModel.fit(values.reshape(len(rows), -1), cfg.n_components, cfg.variance)
+        pca = PCAModel.fit(values.reshape(len(rows), -1), cfg.n_components, cfg.variance)
+        # the eigenERI basis is stored in half precision (86676 x 122 values on lp_d6: 42 MB in
+        # float32); rounding it here keeps the fitted and the reloaded model identical
+        model.pca = PCAModel(pca.mean, pca.components.astype(np.float16).astype(np.float32), pca.eigenvalues,
+                             pca.total_variance)
         coeffs = model.pca.project(values.reshape(len(rows), -1))
         del values
         faps = compute_faps(seq.landmarks[rows], model.neutral_landmarks)
@@ -139,14 +144,20 @@ class EriModel:
         scale = coeffs.std(0) + 1e-12
         report = {}
         for v in SVR_VARIANTS:
-            bank, rep = fit_variant(v, xt, yt, cfg, xv, yv)
-            if rep["val_mse"] is None:
-                rep["val_mse"] = float((((bank.predict(xv) - yv) / scale) ** 2).mean())
-                bank = SVRBank.fit(faps, coeffs, rep["params"])
+            with stage(f"ERI driving model {v}") as st:
+                bank, rep = fit_variant(v, xt, yt, cfg, xv, yv)
+                if rep["val_mse"] is None:
+                    rep["val_mse"] = float((((bank.predict(xv) - yv) / scale) ** 2).mean())
+                    bank = SVRBank.fit(faps, coeffs, rep["params"])
+                st.set(f"validation MSE {rep['val_mse']:.3f}")
             self.regressors[v] = bank
             report[v] = {**rep, "support_vectors": int(len(bank.sv))}
-        self.driver = cfg.driver if cfg.driver != "auto" else min(report, key=lambda v: report[v]["val_mse"])
+        if cfg.driver != "auto":
+            self.driver, rule = cfg.driver, "config"
+        else:
+            self.driver, rule = choose_driver(report)
         self.meta["regressors"] = report
+        self.meta["driver_choice"] = {"driver": self.driver, "rule": rule}
         return report
 
     # ------------------------------------------------------------- utilities
@@ -173,7 +184,7 @@ class EriModel:
         out = np.empty((len(rows), 3, self.n_pixels), np.float32)
         neutral = torch.from_numpy(self.neutral_texture)
         frames = seq.iter_frames(rows)
-        for s in tqdm(range(0, len(rows), cfg.batch_size), desc="ratio images", disable=not progress, leave=False):
+        for s in progress_bar(range(0, len(rows), cfg.batch_size), desc="ratio images", unit="batch", enabled=progress):
             chunk = rows[s : s + cfg.batch_size]
             tex = self.textures(np.stack([next(frames) for _ in chunk]), seq.landmarks[chunk])
             out[s : s + len(chunk)] = ratio_images(tex, neutral, self.sampler(), cfg.eps, cfg.clip, cfg.sigma, cfg.log).numpy()
@@ -194,7 +205,8 @@ class EriModel:
     def describe(self) -> dict:
         return {"neutral_index": self.neutral_index, "n_components": self.pca.n_components,
                 "variance_kept": self.pca.explained_variance_ratio, "n_pixels": self.n_pixels,
-                "reference_size": list(self.reference.size), "driver": self.driver, "n_faps": len(FAP_NAMES)}
+                "reference_size": list(self.reference.size), "driver": self.driver, "n_faps": len(FAP_NAMES),
+                "driver_choice": self.meta.get("driver_choice", {})}
 
     # ------------------------------------------------------------ save / load
     def save(self, directory: str | os.PathLike, extra: dict | None = None) -> Path:
@@ -202,12 +214,12 @@ class EriModel:
         t = {"neutral_landmarks": self.neutral_landmarks, "forehead": np.asarray(self.forehead, np.float32),
              "reference_points": self.reference.points, "triangles": self.reference.triangles.astype(np.int64),
              "span": self.span.astype(np.int64), "neutral_texture": self.neutral_texture,
-             "pca_mean": self.pca.mean, "pca_components": self.pca.components,
+             "pca_mean": self.pca.mean, "pca_components": self.pca.components.astype(np.float16),
              "pca_eigenvalues": self.pca.eigenvalues.astype(np.float64)}
         regs = {}
         for name, reg in self.regressors.items():
             regs[name] = reg.config_dict()
-            t.update({f"reg.{name}.{k}": v.numpy() for k, v in reg.state_dict().items()})
+            t.update({f"reg.{name}.{k}": v for k, v in _compact_bank_state(reg).items()})
         return save_artifact(directory, TENSORS, MANIFEST, t, {
             "config": self.config.to_dict(), "neutral_index": self.neutral_index,
             "reference_size": list(self.reference.size), "pca_total_variance": self.pca.total_variance,
@@ -230,14 +242,35 @@ class EriModel:
         def build() -> "EriModel":
             ref = ReferenceFrame(t["reference_points"], check_size(manifest_field(m, "reference_size", where)), t["triangles"])
             check_reference(ref, len(ref.points) if np.ndim(ref.points) == 2 else -1)
-            pca = PCAModel(t["pca_mean"], t["pca_components"], t["pca_eigenvalues"], float(manifest_field(m, "pca_total_variance", where)))
+            pca = PCAModel(t["pca_mean"], t["pca_components"].astype(np.float32), t["pca_eigenvalues"],
+                           float(manifest_field(m, "pca_total_variance", where)))
             check_pca(pca, "ERI PCA")
             regs = {}
             for name, conf in dict(manifest_field(m, "regressors", where)).items():
                 pre = f"reg.{name}."
-                regs[name] = SVRBank.from_state(conf, {k[len(pre):]: torch.from_numpy(v) for k, v in t.items() if k.startswith(pre)})
+                regs[name] = SVRBank.from_state(conf, _expand_bank_state({k[len(pre):]: v for k, v in t.items() if k.startswith(pre)}))
             return cls(EriConfig.from_dict(manifest_field(m, "config", where)), int(manifest_field(m, "neutral_index", where)),
                        t["neutral_landmarks"], t["forehead"], ref, t["span"], t["neutral_texture"], pca, regs,
                        manifest_field(m, "driver", where), m.get("data_fingerprint", ""), m.get("meta", {}))
 
         return rebuild(d / TENSORS, "ERI model", build)
+
+
+def _compact_bank_state(bank: SVRBank) -> dict[str, np.ndarray]:
+    """What reloading an SVR bank needs, without repeats: the K machines' support vectors are
+    rows of the same training FAPs, so the distinct rows are stored once (``sv_unique``) with
+    an index per support vector; the dense (n_sv, K) ``weights`` are rebuilt from ``dual`` and
+    ``owner`` on load. (Storing every buffer took ~45 MB per variant on lp_d6.)"""
+    state = {k: v.numpy() for k, v in bank.state_dict().items() if k not in ("weights", "sv")}
+    uniq, index = np.unique(bank.sv.numpy(), axis=0, return_inverse=True)
+    state.update(sv_unique=uniq, sv_index=index.reshape(-1).astype(np.int32), owner=state["owner"].astype(np.int32))
+    return state
+
+
+def _expand_bank_state(state: dict[str, np.ndarray]) -> dict[str, torch.Tensor]:
+    """Inverse of :func:`_compact_bank_state` (files with a plain ``sv`` load unchanged)."""
+    state = dict(state)
+    if "sv_unique" in state:
+        state["sv"] = state.pop("sv_unique")[state.pop("sv_index")]
+    state["owner"] = state["owner"].astype(np.int64)
+    return {k: torch.from_numpy(np.ascontiguousarray(v)) for k, v in state.items()}

@@ -29,6 +29,8 @@ from facesynth.eri.faps import head_pose
 from facesynth.eri.model import EriModel
 from facesynth.eri.synthesis import EriSynthesizer
 from facesynth.io import write_json, write_text
+from facesynth.progress import bar as progress_bar
+from facesynth.progress import stage
 from facesynth.provenance import package_versions
 from facesynth.regressors import REGISTRY
 
@@ -59,7 +61,9 @@ def train_eri(cfg, seq: FaceSequence, out_dir, seed: int = 0,
     torch.manual_seed(seed)
     train, test = temporal_split(len(seq)) if split is None else (np.asarray(split[0]), np.asarray(split[1]))
     t0 = time.perf_counter()
-    model = EriModel.fit(seq, train, cfg, progress=True)
+    with stage("ERI model fit") as st:
+        model = EriModel.fit(seq, train, cfg, progress=True)
+        st.set(f"{len(train)} training frames, {model.pca.n_components} eigenERIs, driver {model.driver}")
     train_s = time.perf_counter() - t0
 
     true = model.pca.project(model.ratios_of(seq, test).reshape(len(test), -1))
@@ -69,8 +73,10 @@ def train_eri(cfg, seq: FaceSequence, out_dir, seed: int = 0,
         table[v] = {**coefficient_scores(model.regressors[v].predict(faps), true),
                     "support_vectors": int(len(model.regressors[v].sv)),
                     "val_mse": model.meta["regressors"][v]["val_mse"], "params": model.meta["regressors"][v]["params"]}
-    table.update(_compare(cfg, model, faps, true, seed))
-    synthesis = evaluate_synthesis(model, seq, test, true, cfg.eval_frames)
+    with stage("ERI comparison regressors"):
+        table.update(_compare(cfg, model, faps, true, seed))
+    with stage("ERI synthesis evaluation"):
+        synthesis = evaluate_synthesis(model, seq, test, true, cfg.eval_frames)
     metrics = {
         "sequence": seq.name, "frames": len(seq), "train_frames": int(len(train)), "test_frames": int(len(test)),
         "seed": seed, "model": model.describe(), "neutral": model.meta["neutral"], "train_seconds": train_s,
@@ -115,7 +121,7 @@ def evaluate_synthesis(model: EriModel, seq: FaceSequence, rows, true_coeffs: np
     per_frame = {k: [] for k in sse}
     count = 0
     t_render = 0.0
-    for s in range(0, len(pick), model.config.batch_size):
+    for s in progress_bar(range(0, len(pick), model.config.batch_size), desc="ERI synthesis", unit="batch"):
         p = pick[s : s + model.config.batch_size]
         r = rows[p]
         bg = seq.load_frames(r)

@@ -14,11 +14,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--data", type=Path, help="data to evaluate on (default: the run's own data config)")
     p.add_argument("--noise", default="0,1,2,3", help="landmark noise sigmas in frame pixels, comma-separated")
     p.add_argument("--no-frame", action="store_true", help="skip the (slower) whole-frame PSNR")
-    p.add_argument("--max-test-frames", type=int, help="cap frame-level evaluation to N evenly spaced test frames")
+    p.add_argument("--max-test-frames", type=int, metavar="N",
+                   help="whole-frame PSNR on N evenly spaced test frames (default: EvalConfig.max_test_frames, 100; "
+                        "0: every test frame)")
     p.add_argument("--json", type=Path, help="write the metrics here (JSON)")
 
 
 def run(args: argparse.Namespace) -> int:
+    from facesynth import progress
     from facesynth.eval.sadm_eval import EvalConfig, evaluate_sadm
     from facesynth.io import write_json
     from facesynth.runs.rundir import read_config, run_data, summary_lines
@@ -33,8 +36,11 @@ def run(args: argparse.Namespace) -> int:
     except ValueError:
         raise FacesynthError(f"--noise: expected comma-separated numbers, got {args.noise!r}") from None
     seq, tr, te = run_data(cfg)
-    ecfg = EvalConfig(noise=noise, frame_level=not args.no_frame, max_test_frames=args.max_test_frames)
-    metrics, _ = evaluate_sadm(sadm, seq, tr, te, ecfg, int(cfg.seed))
+    ecfg = EvalConfig(noise=noise, frame_level=not args.no_frame)
+    if args.max_test_frames is not None:
+        ecfg.max_test_frames = args.max_test_frames
+    with progress.stage("evaluation"):
+        metrics, _ = evaluate_sadm(sadm, seq, tr, te, ecfg, int(cfg.seed))
     metrics["evaluated_data"] = {"name": seq.name, "fingerprint": seq.fingerprint}
     print("\n".join(summary_lines(metrics)))
     if args.json:

@@ -21,7 +21,8 @@ import cv2
 import numpy as np
 
 from facesynth.metrics import psnr
-from facesynth.retarget import Retargeter, eye_open, mouth_open, select_neutral
+from facesynth.neutral import mouth_open, select_neutral
+from facesynth.retarget import Retargeter, eye_open
 from facesynth.runtime.blend import blend_face
 from facesynth.runtime.reenact import Reenactor
 

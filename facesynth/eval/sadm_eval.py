@@ -17,25 +17,27 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-import cv2
 import numpy as np
 import torch
 
+from facesynth import progress
 from facesynth.data.sequence import FaceSequence
-from facesynth.imaging import composite
+from facesynth.eval.frame_level import frame_level
 from facesynth.metrics import ncc, psnr
 from facesynth.sadm.fit import SADM
 
 
 @dataclass
 class EvalConfig:
-    """noise: landmark noise levels (frame px); max_test_frames caps the frame-level
-    evaluation (evenly spaced) to bound its time; feather: paste edge width."""
+    """noise: landmark noise levels (frame px). max_test_frames: the frame-level PSNR is
+    measured on this many evenly spaced test frames (None or 0: every test frame); 100 keeps
+    every row within 0.1 dB of the all-frames figures on lp_d6 (60 did not: docs/eval.md).
+    feather: paste edge width; batch_size: frames per batched prediction/render."""
 
     noise: list = field(default_factory=lambda: [0.0, 1.0, 2.0, 3.0])
     frame_level: bool = True
     train_level: bool = True
-    max_test_frames: int | None = None
+    max_test_frames: int | None = 100
     feather: float = 2.0
     batch_size: int = 32
 
@@ -53,6 +55,7 @@ def noisy_landmarks(lm: np.ndarray, sigma: float, seed: int) -> np.ndarray:
 
 
 def _predict(syn, lm: np.ndarray, bs: int) -> np.ndarray:
+    """(N, 68, 2) landmarks -> (N, C * M) predicted textures, in batches of ``bs``."""
     out = []
     with torch.no_grad():
         for s in range(0, len(lm), bs):
@@ -83,26 +86,30 @@ def evaluate_sadm(
         The ``metrics.json`` content (keys as documented in the module docstring).
     extras : dict
         Arrays for plots: ``err_map`` (H, W) mean squared error per reference pixel at
-        sigma 0, ``grid`` list of (real, synthesized) uint8 frame crops.
+        sigma 0; ``per_frame``: ``frame`` (N_test,) frame rows, ``psnr_ref`` (N_test,) dB
+        at sigma 0, and for the frame level ``frame_index`` (n,) positions evaluated and
+        ``psnr_frame`` {row: (n,) dB}; ``grid`` list of dicts (``real``, ``synth`` uint8
+        crops, ``frame`` row, ``psnr`` dB) for evenly spaced frame-level test frames.
     """
     cfg = config or EvalConfig()
     model = sadm.model
     syn = sadm.synthesizer()
     test_rows = np.asarray(test_rows)
     lm_te = seq.landmarks[test_rows]
-    tex_te = model.sample_textures(seq, test_rows) if test_textures is None else test_textures
+    tex_te = model.sample_textures(seq, test_rows, progress=True) if test_textures is None else test_textures
     b_true = model.appearance_params(tex_te)
     oracle = np.clip(model.texture_from_params(b_true), 0, 1)
     mean_tex = np.broadcast_to(np.clip(model.appearance_pca.mean, 0, 1), tex_te.shape)
     keys = [_key(s) for s in cfg.noise]
     psnr_ref = {"sadm": {}, "mean_texture": {}, "oracle": {}}
     pred0 = None
+    mean_db, oracle_db = _psnr01(mean_tex, tex_te), _psnr01(oracle, tex_te)  # landmark noise does not change them
     for s, k in zip(cfg.noise, keys, strict=True):
         pred = _predict(syn, noisy_landmarks(lm_te, s, seed), cfg.batch_size)
         pred0 = pred if s == 0 else pred0
         psnr_ref["sadm"][k] = _psnr01(pred, tex_te)
-        psnr_ref["mean_texture"][k] = _psnr01(mean_tex, tex_te)
-        psnr_ref["oracle"][k] = _psnr01(oracle, tex_te)
+        psnr_ref["mean_texture"][k] = mean_db
+        psnr_ref["oracle"][k] = oracle_db
     if pred0 is None:
         pred0 = _predict(syn, lm_te, cfg.batch_size)
     metrics = {
@@ -117,6 +124,9 @@ def evaluate_sadm(
     }
     err = ((np.clip(pred0, 0, 1) - tex_te) ** 2).reshape(len(tex_te), model.n_channels, -1).mean((0, 1))
     extras = {"err_map": model.sampler().to_image(torch.from_numpy(err)[None, None].float())[0, 0].numpy() * 255**2}
+    sq0 = ((np.clip(pred0, 0, 1) - np.clip(tex_te, 0, 1)) * 255.0) ** 2
+    extras["per_frame"] = {"frame": seq.frame_index[test_rows],
+                           "psnr_ref": 10 * np.log10(255.0**2 / np.maximum(sq0.mean(1), 1e-12))}
     if cfg.train_level:
         train_rows = np.asarray(train_rows)
         tex_tr = model.sample_textures(seq, train_rows) if train_textures is None else train_textures
@@ -125,44 +135,19 @@ def evaluate_sadm(
         metrics["psnr_train_ref"] = {
             "sadm": {k: _psnr01(_predict(syn, noisy_landmarks(seq.landmarks[train_rows], s, seed + 1), cfg.batch_size), tex_tr)
                      for s, k in zip(cfg.noise, keys, strict=True)},
-            "mean_texture": {k: _psnr01(mean_tr, tex_tr) for k in keys},
-            "oracle": {k: _psnr01(oracle_tr, tex_tr) for k in keys},
+            "mean_texture": dict.fromkeys(keys, _psnr01(mean_tr, tex_tr)),
+            "oracle": dict.fromkeys(keys, _psnr01(oracle_tr, tex_tr)),
         }
     if cfg.frame_level and seq.has_frames:
-        metrics["psnr_frame"], extras["grid"] = _frame_level(sadm, syn, seq, test_rows, tex_te, oracle, cfg, seed, keys)
+        with progress.stage("frame-level PSNR") as st:
+            pooled, per_frame, extras["grid"] = frame_level(
+                model, lambda lm: _predict(syn, lm, cfg.batch_size), seq, test_rows, tex_te, oracle, cfg, seed, keys,
+                noisy_landmarks)
+            n = len(per_frame["index"])
+            st.set(f"{n} of {len(test_rows)} test frames x {len(keys)} noise levels")
+        metrics["psnr_frame"] = pooled
+        metrics["frame_level_frames"] = {"evaluated": n, "test_frames": int(len(test_rows)),
+                                         "max_test_frames": cfg.max_test_frames, "spacing": "evenly spaced"}
+        extras["per_frame"].update(frame_index=per_frame["index"], psnr_frame=per_frame["psnr"])
     return metrics, extras
 
-
-def _frame_level(sadm, syn, seq, rows, tex_te, oracle, cfg, seed, keys):
-    """Whole-pipeline PSNR in the original frames (pooled over frames)."""
-    model = sadm.model
-    pick = np.arange(len(rows))
-    if cfg.max_test_frames and len(rows) > cfg.max_test_frames:
-        pick = np.unique(np.linspace(0, len(rows) - 1, cfg.max_test_frames).round().astype(int))
-    lm = seq.landmarks[rows[pick]]
-    mean = np.broadcast_to(np.clip(model.appearance_pca.mean, 0, 1), (len(pick), tex_te.shape[1]))
-    sources = {"sadm": None, "mean_texture": mean, "oracle": oracle[pick], "rewarp": tex_te[pick]}
-    sq = {name: {k: [0.0, 0] for k in keys} for name in sources}
-    grid = []
-    show = set(np.linspace(0, len(pick) - 1, min(6, len(pick))).round().astype(int).tolist())
-    clean_crop, clean_mask, clean_place = model.render(mean[:1].repeat(len(pick), 0), lm)
-    for j, frame in enumerate(seq.iter_frames(rows[pick])):
-        h, w = frame.shape[:2]
-        region = cv2.warpAffine(clean_mask[j], clean_place[j], (w, h)) > 0.999
-        region = cv2.erode(region.astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
-        for s, k in zip(cfg.noise, keys, strict=True):
-            lmn = noisy_landmarks(lm[j : j + 1], s, seed + 17 * j)
-            texs = np.concatenate([_predict(syn, lmn, 1) if t is None else t[j : j + 1] for t in sources.values()])
-            crops, masks, places = model.render(texs, np.repeat(lmn, len(texs), 0))
-            for i, name in enumerate(sources):
-                out = composite(crops[i], masks[i], places[i], frame, cfg.feather)
-                d = (out.astype(np.float64) - frame)[region]
-                sq[name][k][0] += float((d**2).sum())
-                sq[name][k][1] += d.size
-                if name == "sadm" and s == 0 and j in show:
-                    ys, xs = np.nonzero(region)
-                    y0, y1, x0, x1 = ys.min(), ys.max() + 1, xs.min(), xs.max() + 1
-                    grid.append((frame[y0:y1, x0:x1], out[y0:y1, x0:x1]))
-    res = {name: {k: (10 * np.log10(255.0**2 / (v[0] / max(v[1], 1))) if v[0] > 0 else float("inf"))
-                  for k, v in d_.items()} for name, d_ in sq.items()}
-    return res, grid

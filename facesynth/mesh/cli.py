@@ -27,13 +27,16 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--weight", type=float, default=1.0, help="soft-constraint weight")
     p.add_argument("--anchors", choices=("rim", "none"), default="rim",
                    help="also fix the mesh's outer boundary loop (back of head, neck) at rest (default), or landmarks only")
-    p.add_argument("--pose-method", default="epnp", choices=("dlt", "ndlt", "epnp", "cv-epnp", "cv-sqpnp", "cv-iterative"))
+    p.add_argument("--pose-method", default="epnp", choices=("dlt", "ndlt", "epnp", "cv-epnp", "cv-sqpnp", "cv-iterative"),
+                   help="head-pose solver: direct linear transform (dlt), normalised DLT (ndlt), our EPnP (default), "
+                        "or OpenCV's EPnP / SQPnP / iterative solvePnP")
     p.add_argument("--movement", choices=("transformation", "projection"), default="transformation",
                    help="movement vectors: similarity-aligned neutral frame (default) or residual to the projected model")
     p.add_argument("--image-size", default=None, metavar="WxH",
                    help="frame size of the landmarks' video (default: from the frames or meta.json)")
     p.add_argument("--fov", type=float, default=40.0, help="assumed horizontal field of view of the video camera, degrees")
-    p.add_argument("--neutral-frame", type=int, default=None, help="row of the neutral reference frame (default: first finite)")
+    p.add_argument("--neutral-frame", type=int, default=None, help="row of the neutral reference frame (default: automatic as for ERI: the "
+                        "closed-mouth frame closest to the mean shape, facesynth.neutral.select_neutral)")
     p.add_argument("--smooth", action="store_true", help="One Euro smoothing of the pose over time (off by default)")
     p.add_argument("--smooth-min-cutoff", type=float, default=1.0, help="One Euro min cutoff, Hz")
     p.add_argument("--smooth-beta", type=float, default=0.5, help="One Euro speed coefficient (rotation, per rad/s)")
@@ -90,12 +93,14 @@ def _image_size(args, frames, lm) -> tuple[int, int]:
 
 
 def run(args: argparse.Namespace) -> int:
+    from facesynth import progress
     from facesynth.data import load_landmarks
     from facesynth.io import atomic_path
     from facesynth.mesh.io import load_landmark_map, load_mesh
     from facesynth.mesh.preview import PreviewWriter, contact_sheet, panel, pick_sheet_frames
     from facesynth.mesh.smoothing import PoseFilter
     from facesynth.mesh.transfer import Transfer, TransferConfig
+    from facesynth.neutral import select_neutral
     from facesynth.provenance import array_fingerprint, file_sha256, package_versions
 
     if not str(args.out).endswith(".npz"):
@@ -115,9 +120,15 @@ def run(args: argparse.Namespace) -> int:
         log.warning("%d frames with NaN landmarks skipped (first: %d)", len(skipped), skipped[0])
     if len(rows) == 0:
         raise FacesynthError(f"{args.landmarks}: no frame with finite landmarks to transfer")
-    neutral = int(np.flatnonzero(finite)[0]) if args.neutral_frame is None else args.neutral_frame
+    if args.neutral_frame is None:
+        cand = np.flatnonzero(finite)
+        pick, info = select_neutral(lm[cand])
+        neutral, neutral_rule = int(cand[pick]), f"automatic ({info['rule']}, closest to the mean shape)"
+    else:
+        neutral, neutral_rule = args.neutral_frame, "--neutral-frame"
     if not 0 <= neutral < len(lm) or not finite[neutral]:
         raise FacesynthError(f"--neutral-frame {neutral}: not a frame with finite landmarks (0..{len(lm) - 1})")
+    progress.note(f"neutral frame: {neutral} ({neutral_rule})")
 
     frames, fps = _frames_and_fps(args)
     size = _image_size(args, frames, lm)
@@ -136,12 +147,15 @@ def run(args: argparse.Namespace) -> int:
     verts = np.empty((T, n, 3), np.float32)
     Rs, ts, Ks = np.empty((T, 3, 3)), np.empty((T, 3)), np.empty((T, 3, 3))
     iters, conv, reproj = np.empty(T, np.int32), np.empty(T, bool), np.empty(T)
-    sheet = dict(pick_sheet_frames(lm[rows], int(np.searchsorted(rows, neutral)) if neutral in rows else 0))
+    sheet = dict(pick_sheet_frames(lm[rows], int(np.argmin(np.abs(rows - neutral)))))  # the processed row nearest the neutral
     sheet_rows, sheet_labels = {}, {}
     writer = PreviewWriter(args.render, fps / args.stride) if args.render else None
     frame_iter = frames.read(rows) if frames is not None else None
     t_solve = 0.0
     ok = False
+    what = "transfer + render" if writer is not None else "transfer"
+    bar = progress.bar(total=T, desc=what, unit="frame")
+    t_loop = time.perf_counter()
     try:
         for k, r in enumerate(rows):
             t1 = time.perf_counter()
@@ -157,18 +171,19 @@ def run(args: argparse.Namespace) -> int:
                     writer.write(row)
                 if k in sheet:
                     sheet_rows[k], sheet_labels[k] = row, f"#{int(r)} {sheet[k]}"
-            if (k + 1) % 100 == 0:
-                log.info("%d/%d frames", k + 1, T)
+            bar.update(1)
         ok = True
     finally:
+        bar.close()
         if writer is not None:
             writer.close(ok)
+    progress.note(f"{what}: {T} frames in {time.perf_counter() - t_loop:.1f} s")
     if args.contact_sheet:
         keys = [k for k in sheet if k in sheet_rows]
         contact_sheet([sheet_rows[k] for k in keys], [sheet_labels[k] for k in keys], args.contact_sheet)
 
     summary = {
-        "frames": T, "skipped_nan_frames": len(skipped), "neutral_frame": neutral, "method": args.method,
+        "frames": T, "skipped_nan_frames": len(skipped), "neutral_frame": neutral, "neutral_rule": neutral_rule, "method": args.method,
         "factorisation_s": round(t_factor, 4), "ms_per_frame_transfer": round(1e3 * t_solve / T, 3),
         "iterations_mean": float(iters.mean()), "converged_fraction": float(conv.mean()),
         "pose_reprojection_px_mean": float(reproj.mean()),

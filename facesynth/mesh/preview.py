@@ -51,11 +51,16 @@ def pick_sheet_frames(lm: np.ndarray, neutral: int) -> list[tuple[int, str]]:
     return out
 
 
-def _label(img: np.ndarray, text: str) -> np.ndarray:
+def _label(img: np.ndarray, text: str, y: int = 0) -> np.ndarray:
+    """White text on a dark box at the top-left (readable on bright frames too)."""
     img = img.copy()
-    cv2.putText(img, text, (8, 26), cv2.FONT_HERSHEY_SIMPLEX, 0.75, (0, 0, 0), 4, cv2.LINE_AA)
-    cv2.putText(img, text, (8, 26), cv2.FONT_HERSHEY_SIMPLEX, 0.75, (255, 255, 255), 2, cv2.LINE_AA)
+    (tw, th), base = cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, 0.6, 1)
+    cv2.rectangle(img, (0, y), (tw + 12, y + th + base + 10), (0, 0, 0), -1)
+    cv2.putText(img, text, (6, y + th + 5), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (255, 255, 255), 1, cv2.LINE_AA)
     return img
+
+
+ROW_NAMES = ("video + landmarks", "posed mesh over video", "frontal mesh", "frontal: brows and eyes")
 
 
 def panel(frame: np.ndarray | None, V: np.ndarray, F: np.ndarray, R, t, K, size: tuple[int, int], ref: np.ndarray,
@@ -115,6 +120,9 @@ def contact_sheet(rows: list[np.ndarray], labels: list[str], path: str | os.Path
         zoom = front[int(0.2 * h):int(0.5 * h), int(0.28 * w):int(0.72 * w)]
         parts.append(cv2.resize(zoom, (tile, tile * zoom.shape[0] // zoom.shape[1]), interpolation=cv2.INTER_CUBIC))
         parts[0] = _label(parts[0], text)
+        if not cols:  # name the rows once, in the first column
+            parts = [parts[0]] + [_label(p, name) for p, name in zip(parts[1:], ROW_NAMES[1:], strict=True)]
+            parts[0] = _label(parts[0], ROW_NAMES[0], y=parts[0].shape[0] - 30)
         cols.append(np.vstack(parts))
     sheet = np.hstack(cols)
     with atomic_path(path) as tmp:

@@ -10,12 +10,15 @@ from pathlib import Path
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("data", help="a sequence (ingest folder, .pts folder, .npz) or 'synthetic'")
     p.add_argument("--out", type=Path, help="write the model artifact here")
-    p.add_argument("--reference-width", type=int, default=128)
-    p.add_argument("--shape-variance", type=float, default=0.98)
-    p.add_argument("--appearance-variance", type=float, default=0.98)
+    p.add_argument("--reference-width", type=int, default=128,
+                   help="width in pixels of the reference (shape-free) frame the textures are sampled in (default 128)")
+    p.add_argument("--shape-variance", type=float, default=0.98,
+                   help="fraction of the landmark shape variance the shape PCA keeps (default 0.98)")
+    p.add_argument("--appearance-variance", type=float, default=0.98,
+                   help="fraction of the texture variance the appearance PCA keeps (default 0.98)")
     p.add_argument("--grey", action="store_true", help="grey-level appearance (as in the paper)")
     p.add_argument("--train-fraction", type=float, default=0.75, help="fit on this leading fraction; report test figures on the rest")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=int, default=0, help="seed of the synthetic subject (data 'synthetic'; default 0)")
 
 
 def run(args: argparse.Namespace) -> int:

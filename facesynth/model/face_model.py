@@ -15,7 +15,6 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 import torch
-from tqdm.auto import tqdm
 
 from facesynth.data.sequence import FaceSequence, validate_landmarks
 from facesynth.errors import FacesynthError
@@ -24,6 +23,7 @@ from facesynth.model.pca import PCAModel
 from facesynth.model.procrustes import generalised_procrustes
 from facesynth.model.reference import ReferenceFrame
 from facesynth.model.warp import ToReference, ToTarget, apply_affine_t, candidate_spans, invert_affine_t, similarity_to
+from facesynth.progress import bar as progress_bar
 
 log = logging.getLogger(__name__)
 
@@ -188,7 +188,7 @@ class FaceModel:
         bs = self.config.batch_size
         out = np.empty((len(rows), self.n_channels * sampler.n_pixels), np.float32)
         frames = seq.iter_frames(rows)
-        bar = tqdm(total=len(rows), desc="textures", unit="frame", disable=not progress, leave=False)
+        bar = progress_bar(total=len(rows), desc="textures", unit="frame", enabled=progress)
         for start in range(0, len(rows), bs):
             chunk = rows[start : start + bs]
             imgs = np.stack([next(frames) for _ in chunk])

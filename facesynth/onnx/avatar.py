@@ -3,7 +3,7 @@ into its ONNX metadata at export time (torch-side; the runtime reads it with
 :func:`facesynth.runtime.reenact.avatar_from_metadata`):
 
 * ``avatar_neutral``: the avatar's neutral landmarks (68, 2) in its frame pixels, chosen
-  among the training frames by ERI's rule (:func:`facesynth.retarget.select_neutral`),
+  among the training frames by ERI's rule (:func:`facesynth.neutral.select_neutral`),
   and ``avatar_neutral_row`` (the frame's index in the clip);
 * ``shape_pca``: the model's shape PCA (mean, orthonormal components, clamp limits
   k sqrt(lambda)) for :class:`facesynth.retarget.ShapeSpace`;
@@ -20,7 +20,8 @@ import cv2
 import numpy as np
 
 from facesynth.errors import FacesynthError
-from facesynth.retarget import ShapeSpace, select_neutral
+from facesynth.neutral import select_neutral
+from facesynth.retarget import ShapeSpace
 
 log = logging.getLogger(__name__)
 JPEG_QUALITY = 90

@@ -18,6 +18,7 @@ from facesynth.contract import OPSET
 from facesynth.eri.config import SVR_VARIANTS
 from facesynth.errors import FacesynthError
 from facesynth.onnx.config import BASIS_KINDS, DEFAULT_BASIS, DEFAULT_COMPONENTS
+from facesynth.progress import stage
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -96,10 +97,12 @@ def export_model(run_dir, out, opset: int = OPSET, components: int | None = DEFA
     run_dir = Path(run_dir)
     if is_eri_run(run_dir):
         raise FacesynthError(f"{run_dir}: holds an ERI model only; pass --target IMAGE_OR_DIR to export it for a target face")
-    path, syn, meta = export_run(run_dir, out, opset, components, predicted_variance, landmarks, basis)
+    with stage("ONNX export"):
+        path, syn, meta = export_run(run_dir, out, opset, components, predicted_variance, landmarks, basis)
     summary = {"out": str(path), "bytes": path.stat().st_size, **meta, "opset": opset}
     if check:
-        summary["max_abs_diff_vs_torch"] = _checked(path, check_export, syn)
+        with stage("ONNX Runtime vs torch check"):
+            summary["max_abs_diff_vs_torch"] = _checked(path, check_export, syn)
     return summary
 
 
@@ -112,10 +115,12 @@ def export_eri_model(run_dir, out, target, target_landmarks=None, target_frame: 
 
     check_args(out, opset)
     image, landmarks, desc = load_target(target, target_landmarks, target_frame)
-    path, syn, meta = export_eri_run(run_dir, out, image, landmarks, variant, raw_ratios, opset)
+    with stage("ONNX export (ERI)"):
+        path, syn, meta = export_eri_run(run_dir, out, image, landmarks, variant, raw_ratios, opset)
     summary = {"out": str(path), "bytes": path.stat().st_size, "target": desc, **meta, "opset": opset}
     if check:
-        summary["max_abs_diff_vs_torch"] = _checked(path, check_eri_export, syn)
+        with stage("ONNX Runtime vs torch check"):
+            summary["max_abs_diff_vs_torch"] = _checked(path, check_eri_export, syn)
     return summary
 
 

@@ -21,6 +21,7 @@ import torch
 from torch import nn
 
 from facesynth.errors import FacesynthError
+from facesynth.progress import bar as progress_bar
 from facesynth.regressors._common import as_config, check_xy, standardiser, tail_holdout
 from facesynth.regressors.base import Regressor, register
 
@@ -111,7 +112,9 @@ class MLPRegressor(Regressor):
             opt = torch.optim.AdamW(model.net.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
             best, best_state, best_epoch, epoch = np.inf, None, -1, -1
             bs = max(1, int(cfg.batch_size))
+            bar = progress_bar(total=int(cfg.max_epochs), desc="MLP epochs", unit="epoch")
             for epoch in range(int(cfg.max_epochs)):
+                bar.update(1)
                 model.net.train()
                 perm = torch.randperm(len(xt), generator=gen)
                 for start in range(0, len(xt), bs):
@@ -128,6 +131,8 @@ class MLPRegressor(Regressor):
                     best_state = copy.deepcopy(model.net.state_dict())
                 elif epoch - best_epoch >= cfg.patience:
                     break
+                bar.set_postfix(val=f"{val:.4f}", best_epoch=best_epoch + 1, refresh=False)
+            bar.close()
         model.net.load_state_dict(best_state)
         _fold(model.net, mx, sx, my, sy)
         model.info = {"best_epoch": best_epoch + 1, "epochs_run": epoch + 1,

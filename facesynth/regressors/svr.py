@@ -26,6 +26,7 @@ import torch
 from joblib import Parallel, delayed
 
 from facesynth.errors import FacesynthError
+from facesynth.progress import bar as progress_bar
 from facesynth.regressors._common import as_config, check_xy, standardiser
 from facesynth.regressors.base import Regressor, register
 
@@ -118,7 +119,8 @@ class SVRRegressor(Regressor):
             params["epsilon"] = float(cfg.epsilon)
         else:
             params["nu"] = float(cfg.nu)
-        fits = Parallel(n_jobs=int(cfg.n_jobs))(delayed(_fit_one)(cfg.kind, params, z, t[:, j]) for j in range(y.shape[1]))
+        outputs = progress_bar(range(y.shape[1]), desc=f"SVR {cfg.kind}", unit="fit")
+        fits = Parallel(n_jobs=int(cfg.n_jobs))(delayed(_fit_one)(cfg.kind, params, z, t[:, j]) for j in outputs)
 
         union = np.unique(np.concatenate([s for s, *_ in fits])) if fits else np.zeros(0, np.int64)
         pos = np.searchsorted(union, np.arange(len(x)))  # row -> column in the union (valid where member)

@@ -65,7 +65,10 @@ class SADMConf(SADMConfig):
 
 @dataclass
 class TrainConf:
+    """seed: every random choice of the run; quiet: no progress bars or stage lines."""
+
     seed: int = 0
+    quiet: bool = False
     data: DataConf = field(default_factory=DataConf)
     model: ModelConf = field(default_factory=ModelConf)
     regressor: Any = MISSING
@@ -103,10 +106,17 @@ def _sadm_default(regressor: str, key: str):
     return REGISTRY[regressor].sadm_defaults.get(key) if regressor in REGISTRY else None
 
 
+def run_tag(model: str, regressor: str) -> str:
+    """What a run trained, for its folder name: ``eri`` for ERI runs, else the regressor."""
+    return "eri" if model == "eri" else regressor
+
+
 def register_configs() -> None:
-    """Register the schemas with Hydra's ConfigStore and the ``sadm_default`` resolver."""
+    """Register the schemas with Hydra's ConfigStore and the ``sadm_default`` / ``run_tag`` resolvers."""
     if not OmegaConf.has_resolver("sadm_default"):
         OmegaConf.register_new_resolver("sadm_default", _sadm_default)
+    if not OmegaConf.has_resolver("run_tag"):
+        OmegaConf.register_new_resolver("run_tag", run_tag)
     cs = ConfigStore.instance()
     cs.store(name="train_schema", node=TrainConf)
     for name in REGISTRY:

@@ -22,6 +22,7 @@ from omegaconf import OmegaConf
 from facesynth.data import FaceSequence, load_sequence, temporal_split
 from facesynth.data.synthetic import make_synthetic_sequence
 from facesynth.errors import FacesynthError
+from facesynth.eval.report import legend_lines
 from facesynth.sadm.fit import SADM, SADMConfig, load_sadm, save_sadm
 from facesynth.sadm.synthesis import Synthesizer
 
@@ -105,4 +106,7 @@ def summary_lines(metrics: dict) -> list[str]:
             for row, vals in metrics[key].items():
                 lines.append(f"{key:15s} {row:13s} " + "  ".join(f"s{k}={v:6.2f}" for k, v in vals.items()))
     lines.append(f"ncc mean={np.mean(metrics['ncc']):.3f} (first 5: {', '.join(f'{v:.2f}' for v in metrics['ncc'][:5])})")
-    return lines
+    fl = metrics.get("frame_level_frames")
+    if fl:
+        lines.append(f"psnr_frame on {fl['evaluated']} of {fl['test_frames']} test frames (evenly spaced; eval.max_test_frames)")
+    return lines + ["legend:"] + [f"  {line}" for line in legend_lines()]

@@ -16,10 +16,11 @@ import numpy as np
 import torch
 from omegaconf import OmegaConf
 
-from facesynth import __version__
+from facesynth import __version__, progress
 from facesynth.data import temporal_split
 from facesynth.eri.train import train_eri
 from facesynth.errors import FacesynthError
+from facesynth.eval.eri_report import write_eri_report
 from facesynth.eval.report import write_plots, write_report
 from facesynth.eval.sadm_eval import EvalConfig, evaluate_sadm
 from facesynth.io import dumps_json, write_text
@@ -51,6 +52,7 @@ def run_training(cfg, out_dir: str | Path) -> dict:
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     seed_everything(cfg.seed)
+    progress.set_quiet(bool(cfg.get("quiet", False)))
     t0 = time.perf_counter()
     seq = load_data(cfg.data, cfg.seed)
     tr, te = temporal_split(len(seq), cfg.data.train_fraction, cfg.data.gap)
@@ -60,18 +62,27 @@ def run_training(cfg, out_dir: str | Path) -> dict:
     container = OmegaConf.to_container(cfg, resolve=True)
     write_text(out / CONFIG, OmegaConf.to_yaml(cfg, resolve=True))
     if cfg.model.kind == "eri":
-        return train_eri(cfg.eri, seq, out, cfg.seed, (tr, te))  # the whole run config is in config.yaml
+        metrics = train_eri(cfg.eri, seq, out, cfg.seed, (tr, te))  # the whole run config is in config.yaml
+        with progress.stage("report"):
+            write_eri_report(metrics, out)
+        return metrics
     if cfg.model.kind != "aam":
         raise FacesynthError(f"model.kind must be 'aam' or 'eri', got {cfg.model.kind!r}")
-    model, tex_tr = FaceModel.fit_with_textures(seq, _dataclass_from(cfg.model, FaceModelConfig), rows=tr)
+    with progress.stage("face model") as st:
+        model, tex_tr = FaceModel.fit_with_textures(seq, _dataclass_from(cfg.model, FaceModelConfig), rows=tr)
+        st.set(f"{len(tr)} training frames, {model.shape_pca.n_components} shape / "
+               f"{model.appearance_pca.n_components} appearance components")
     if float(np.ptp(tex_tr)) < 0.5 / 255:  # below half a grey level: float rounding of one colour
         raise FacesynthError(f"{seq.name}: the training frames have the same colour everywhere on the face "
                              "(a plain-colour video?): there is no appearance to learn")
     t1 = time.perf_counter()
     name, params = regressor_params(cfg.regressor)
-    sadm = fit_sadm(model, seq, tr, tex_tr, name, params, _dataclass_from(cfg.sadm, SADMConfig), cfg.seed)
+    with progress.stage(f"SADM fit ({name})"):
+        sadm = fit_sadm(model, seq, tr, tex_tr, name, params, _dataclass_from(cfg.sadm, SADMConfig), cfg.seed)
     t2 = time.perf_counter()
-    metrics, extras = evaluate_sadm(sadm, seq, tr, te, _dataclass_from(cfg.eval, EvalConfig), cfg.seed, train_textures=tex_tr)
+    with progress.stage("evaluation"):
+        metrics, extras = evaluate_sadm(sadm, seq, tr, te, _dataclass_from(cfg.eval, EvalConfig), cfg.seed,
+                                        train_textures=tex_tr)
     t3 = time.perf_counter()
     provenance = {
         "facesynth_version": __version__,
@@ -90,7 +101,9 @@ def run_training(cfg, out_dir: str | Path) -> dict:
         raise FacesynthError(f"{out / METRICS}: {exc}") from None
     save_sadm(sadm, out, extra=provenance)  # face_model/ then sadm/ (its manifest, written last, pairs them)
     write_text(out / METRICS, text)
-    plots = write_plots(metrics, extras, out / PLOTS)
-    write_report(metrics, out, plots, {"data": f"{seq.name} ({len(seq)} frames, fingerprint {seq.fingerprint})",
-                                        "seed": cfg.seed, "features": sadm.config.features})
+    with progress.stage("report"):
+        plots = write_plots(metrics, extras, out / PLOTS)
+        write_report(metrics, out, plots, {"data": f"{seq.name} ({len(seq)} frames, fingerprint {seq.fingerprint})",
+                                            "seed": cfg.seed, "features": sadm.config.features},
+                     worst_frames=extras.get("worst_frames"))
     return metrics

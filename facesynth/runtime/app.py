@@ -269,7 +269,7 @@ def run(args: argparse.Namespace) -> int:
         if not writer.isOpened():
             raise FacesynthError(f"{out}: OpenCV cannot write an mp4v video here")
         try:
-            bar = tqdm(total=n, unit="frame", desc="app", disable=args.no_progress)
+            bar = tqdm(total=n, unit="frame", desc="app", disable=args.no_progress or getattr(args, "quiet", False))
             reenactor.background = background
             if args.motion == "relative":
                 frames = reenact_frames(reenactor, landmarks, rendered, latencies)

@@ -7,7 +7,7 @@ landmarks, frame by frame (no look-ahead), into the avatar's own frame.
         frame, avatar_lm = r.step(lm)                 # uint8 (H, W, 3), float32 (68, 2)
 
 The driver's neutral is given (``driver_neutral``), or taken from the first
-``neutral_frames`` frames (ERI's rule, :func:`facesynth.retarget.select_neutral`; before
+``neutral_frames`` frames (ERI's rule, :func:`facesynth.neutral.select_neutral`; before
 that many frames have arrived, from the frames seen so far). Retargeting is
 :class:`facesynth.retarget.Retargeter`; compositing :func:`facesynth.runtime.blend.blend_face`.
 """
@@ -23,7 +23,8 @@ import numpy as np
 
 from facesynth.contract import N_LANDMARKS
 from facesynth.errors import FacesynthError
-from facesynth.retarget import MOTIONS, Retargeter, ShapeSpace, select_neutral
+from facesynth.neutral import select_neutral
+from facesynth.retarget import MOTIONS, Retargeter, ShapeSpace
 from facesynth.runtime.blend import blend_face
 from facesynth.runtime.renderer import Renderer
 
@@ -142,7 +143,7 @@ class Reenactor:
 
 def driver_neutral_of(landmarks: np.ndarray, index: int | None = None) -> tuple[np.ndarray, int]:
     """The driver's neutral (68, 2) and its row: row ``index`` (``--driver-neutral N``) or
-    :func:`facesynth.retarget.select_neutral` over the whole clip (a file driver)."""
+    :func:`facesynth.neutral.select_neutral` over the whole clip (a file driver)."""
     lm = np.asarray(landmarks, np.float64)
     if index is None:
         index = select_neutral(lm)[0]

@@ -1,0 +1,54 @@
+"""The neutral frame of a sequence: one rule for every part that needs one (the ERI model,
+the 3D transfer, the reenactment's driver and the exported avatar): among frames with a
+closed mouth, the one closest to the mean shape. Numpy only (the torch-free runtime uses it).
+
+Points are (x, y) pixels, iBUG-68 landmarks (N, 68, 2).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from facesynth.errors import FacesynthError
+from facesynth.geometry import generalised_procrustes
+from facesynth.landmarks import inter_ocular
+
+INNER_UPPER = (61, 62, 63)  # inner-lip points facing INNER_LOWER across the mouth opening
+INNER_LOWER = (67, 66, 65)
+
+
+def mouth_open(landmarks: np.ndarray) -> np.ndarray:
+    """Mean inner-lip gap (61-67, 62-66, 63-65) / inter-ocular distance: (N, 68, 2) -> (N,)."""
+    lm = np.asarray(landmarks, np.float64)
+    gap = np.linalg.norm(lm[..., list(INNER_UPPER), :] - lm[..., list(INNER_LOWER), :], axis=-1).mean(-1)
+    return gap / inter_ocular(lm)
+
+
+def select_neutral(landmarks: np.ndarray, mouth_closed_max: float = 0.03) -> tuple[int, dict]:
+    """Automatic neutral frame: closest (Procrustes distance) to the mean shape among frames
+    whose mouth is closed (``mouth_open <= mouth_closed_max``; if none is, the 10% of
+    frames with the smallest gap).
+
+    Parameters
+    ----------
+    landmarks : (N, 68, 2) candidate frames (e.g. the training rows).
+
+    Returns
+    -------
+    index : int, row into ``landmarks``
+    info : dict with the distance, the mouth gap and the number of candidates (for the artifact).
+    """
+    lm = np.asarray(landmarks, np.float64)
+    if lm.ndim != 3 or len(lm) < 1:
+        raise FacesynthError(f"neutral selection needs (N, 68, 2) landmarks, got {lm.shape}")
+    gap = mouth_open(lm)
+    cand = np.flatnonzero(gap <= mouth_closed_max)
+    rule = f"mouth_open <= {mouth_closed_max}"
+    if len(cand) == 0:
+        cand = np.argsort(gap)[: max(1, len(lm) // 10)]
+        rule = "10% smallest mouth gap (no frame under the threshold)"
+    aligned, mean = generalised_procrustes(lm) if len(lm) > 1 else (lm, lm[0])
+    dist = np.linalg.norm((aligned - mean).reshape(len(lm), -1), axis=1)
+    best = int(cand[np.argmin(dist[cand])])
+    return best, {"rule": rule, "candidates": int(len(cand)), "procrustes_distance": float(dist[best]),
+                  "mouth_open": float(gap[best])}

@@ -1,0 +1,158 @@
+"""Issue 16: help on every option, --quiet, the report (every plot written, report.html
+self-contained), frame-level evaluation equal to pasting into whole frames, the shared
+neutral-frame rule, the ERI driver rule and the compact ERI artifact."""
+
+import argparse
+import base64
+import importlib
+import re
+
+import numpy as np
+import pytest
+
+from facesynth.cli import SUBCOMMANDS, _add_quiet, main
+from facesynth.data import temporal_split
+from facesynth.data.synthetic import make_synthetic_sequence
+from facesynth.eval.frame_level import frame_level, subset
+from facesynth.eval.report import write_plots, write_report
+from facesynth.eval.sadm_eval import EvalConfig, _key, _predict, evaluate_sadm, noisy_landmarks
+from facesynth.imaging import composite
+from facesynth.model import FaceModel, FaceModelConfig
+from facesynth.sadm.fit import SADMConfig, fit_sadm
+
+
+def _options_without_help(parser, name, out):
+    for a in parser._actions:
+        if isinstance(a, argparse._SubParsersAction):
+            for sub_name, sub in a.choices.items():
+                _options_without_help(sub, f"{name} {sub_name}", out)
+        elif not isinstance(a, argparse._HelpAction) and not a.help:
+            out.append(f"{name} {a.option_strings or a.dest}")
+
+
+def test_every_option_of_every_subcommand_has_help_and_quiet():
+    missing = []
+    for name, (module, _) in SUBCOMMANDS.items():
+        try:
+            mod = importlib.import_module(module)
+        except ModuleNotFoundError:
+            continue
+        p = argparse.ArgumentParser()
+        mod.add_arguments(p)
+        _add_quiet(p)
+        _options_without_help(p, name, missing)
+        assert "--quiet" in p._option_string_actions
+    assert missing == []
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory):
+    seq = make_synthetic_sequence(48, 192, seed=1)
+    tr, te = temporal_split(len(seq), 0.75)
+    model, tex = FaceModel.fit_with_textures(seq, FaceModelConfig(), rows=tr, progress=False)
+    sadm = fit_sadm(model, seq, tr, tex, "linear", {"ridge": 1.0}, SADMConfig())
+    return seq, tr, te, sadm
+
+
+def test_report_writes_every_plot_and_a_self_contained_html(run, tmp_path):
+    seq, tr, te, sadm = run
+    metrics, extras = evaluate_sadm(sadm, seq, tr, te, EvalConfig(noise=[0, 2], max_test_frames=5))
+    assert metrics["frame_level_frames"] == {"evaluated": 5, "test_frames": len(te), "max_test_frames": 5,
+                                             "spacing": "evenly spaced"}
+    plots = write_plots(metrics, extras, tmp_path / "plots")
+    assert set(plots) == {"psnr_vs_noise.png", "psnr_over_time.png", "test_grid.png", "error_map.png", "ncc.png"}
+    doc = write_report(metrics, tmp_path, plots, worst_frames=extras["worst_frames"])
+    html = (tmp_path / "report.html").read_text()
+    md = (tmp_path / "report.md").read_text()
+    for p in plots:
+        data = (tmp_path / "plots" / p).read_bytes()
+        assert data[:8] == b"\x89PNG\r\n\x1a\n"
+        assert base64.b64encode(data).decode() in html  # inlined, no link to the file
+        assert f"(plots/{p})" in md
+    assert len(re.findall(r"<img ", html)) == len(plots) == len(doc.images)
+    for row in ("sadm", "mean_texture", "oracle", "rewarp", "s0..s3", "ncc"):
+        assert row in html and row in md  # the legend
+    assert "src='plots/" not in html
+
+
+def test_frame_level_equals_pasting_into_the_whole_frame(run):
+    """The region-of-interest paste gives the same squared errors as compositing each
+    rendering into the whole frame (the reference computation)."""
+    seq, tr, te, sadm = run
+    model, syn = sadm.model, sadm.synthesizer()
+    cfg = EvalConfig(noise=[0, 1.5], max_test_frames=4, batch_size=3)
+    keys = [_key(s) for s in cfg.noise]
+    tex_te = model.sample_textures(seq, te)
+    oracle = np.clip(model.texture_from_params(model.appearance_params(tex_te)), 0, 1)
+    pooled, per_frame, _ = frame_level(model, lambda lm: _predict(syn, lm, 8), seq, te, tex_te, oracle, cfg, 0, keys,
+                                       noisy_landmarks)
+    pick = subset(len(te), cfg.max_test_frames)
+    lm = seq.landmarks[te[pick]]
+    mean = np.ascontiguousarray(np.broadcast_to(np.clip(model.appearance_pca.mean, 0, 1), (len(pick), tex_te.shape[1])))
+    import cv2
+
+    for s, k in zip(cfg.noise, keys, strict=True):
+        lmn = np.concatenate([noisy_landmarks(lm[j : j + 1], s, 17 * int(r)) for j, r in enumerate(te[pick])])
+        sources = {"sadm": _predict(syn, lmn, 8), "mean_texture": mean, "oracle": oracle[pick], "rewarp": tex_te[pick]}
+        _, cmask, cplace = model.render(mean, lm)
+        for name, tex in sources.items():
+            crops, masks, places = model.render(np.asarray(tex), lmn)
+            sse, n = 0.0, 0
+            for j, frame in enumerate(seq.iter_frames(te[pick])):
+                h, w = frame.shape[:2]
+                region = cv2.warpAffine(cmask[j], cplace[j], (w, h)) > 0.999
+                region = cv2.erode(region.astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
+                out = composite(crops[j], masks[j], places[j], frame, cfg.feather)
+                d = (out.astype(np.float64) - frame)[region]
+                sse, n = sse + float((d**2).sum()), n + d.size
+            # 1e-4 dB: cv2.warpAffine rounds map coordinates to 1/32 px, and a shifted map rounds a
+            # few of them the other way (measured differences ~5e-6 dB)
+            assert pooled[name][k] == pytest.approx(10 * np.log10(255.0**2 / (sse / n)), abs=1e-4)
+    assert per_frame["psnr"]["sadm"].shape == (len(pick),)
+
+
+def test_transfer3d_and_eri_share_the_neutral_rule():
+    from facesynth.eri import geometry
+    from facesynth.neutral import select_neutral
+
+    assert geometry.select_neutral is select_neutral
+    lm = make_synthetic_sequence(40, 192, seed=2).landmarks
+    i, info = select_neutral(lm)
+    assert 0 <= i < len(lm) and info["mouth_open"] <= 0.03
+
+
+def test_driver_rule_prefers_linear_unless_rbf_is_better_on_validation():
+    from facesynth.eri.driving import choose_driver
+
+    rep = {"eps_linear": {"val_mse": 0.5}, "eps_rbf": {"val_mse": 0.6}, "nu_linear": {"val_mse": 0.4},
+           "nu_rbf": {"val_mse": 0.45}}
+    assert choose_driver(rep)[0] == "nu_linear"
+    rep["eps_rbf"]["val_mse"] = 0.3
+    assert choose_driver(rep)[0] == "eps_rbf"
+    rep["eps_rbf"]["val_mse"] = 0.4  # a tie is not better: linear stays
+    assert choose_driver(rep)[0] == "nu_linear"
+
+
+def test_eri_artifact_round_trip_with_compact_svr_banks(tmp_path):
+    import torch
+
+    from facesynth.eri.model import EriModel
+
+    seq = make_synthetic_sequence(40, 192, seed=0)
+    model = EriModel.fit(seq, np.arange(32), {"compare": []})
+    model.save(tmp_path / "eri")
+    back = EriModel.load(tmp_path / "eri")
+    faps = model.faps(seq.landmarks[32:])
+    for v, bank in model.regressors.items():
+        np.testing.assert_array_equal(back.regressors[v].sv.numpy(), bank.sv.numpy())
+        torch.testing.assert_close(back.regressors[v].weights, bank.weights)
+        np.testing.assert_allclose(back.predict_coefficients(faps, v), model.predict_coefficients(faps, v), atol=1e-5)
+    from safetensors.numpy import load_file
+
+    names = load_file(tmp_path / "eri" / "eri_model.safetensors")
+    assert not any(k.endswith(".weights") for k in names)
+
+
+def test_quiet_silences_progress(tmp_path, capsys):
+    assert main(["codec", "geometry", str(tmp_path / "x.npy"), "--frames", "1", "--size", "16", "--quiet"]) in (0, 2)
+    assert "[facesynth]" not in capsys.readouterr().err
