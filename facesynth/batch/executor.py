@@ -1,0 +1,161 @@
+"""Running subject jobs: Ray tasks (a local runtime or a cluster), or a plain loop.
+
+Ray does all the scheduling: each subject is one task that requests ``cpus`` CPUs and an
+estimate of the memory it needs, so Ray never runs more subjects at once than the
+machine (or cluster) holds. The job pins torch and OpenCV to its CPU share. Progress
+events travel from the workers to the driver through a ``ray.util.queue.Queue``.
+Without Ray (or with ``sequential=True``) the jobs run one after another in this process.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+from collections.abc import Callable, Sequence
+
+from facesynth.batch.job import SubjectJob, run_subject
+
+log = logging.getLogger(__name__)
+
+# Peak resident memory of one subject job (ingest -> train -> export, default krr config,
+# frame-level evaluation), measured by ``python bench/bench_batch.py --memory`` on 480x480
+# lp_d6 (60 / 300 / 1008 frames): a line through the measured peaks, rounded up. A task
+# asks Ray for this much, so a node runs at most (its memory / request) subjects at once.
+MEMORY_BASE_MB = 700
+MEMORY_PER_FRAME_MB = 2.0
+
+FINAL_STATES = ("ok", "skipped", "failed")
+
+
+def ray_available() -> bool:
+    try:
+        import ray  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+def video_frames(path: str, every: int, max_frames: int | None) -> int:
+    """Frames a job will ingest (from the video header; 0 when the header has no count)."""
+    import cv2
+
+    cap = cv2.VideoCapture(str(path))
+    n = int(cap.get(cv2.CAP_PROP_FRAME_COUNT) or 0) if cap.isOpened() else 0
+    cap.release()
+    if max_frames:
+        n = min(n, max_frames) if n else max_frames
+    return math.ceil(n / every)
+
+
+def memory_request(frames: int) -> int:
+    """Bytes of memory a subject job with ``frames`` frames asks for (see MEMORY_* above)."""
+    return int((MEMORY_BASE_MB + MEMORY_PER_FRAME_MB * frames) * 2**20)
+
+
+class Progress:
+    """One bar over subjects; its postfix shows the stage of each running subject."""
+
+    def __init__(self, total: int, enabled: bool = True):
+        from tqdm.auto import tqdm
+
+        self.bar = tqdm(total=total, unit="subject", desc="batch", disable=not enabled, dynamic_ncols=True, leave=True)
+        self.running: dict[str, str] = {}
+
+    def __call__(self, name: str, stage: str) -> None:
+        if stage in FINAL_STATES:
+            self.running.pop(name, None)
+            self.bar.update(1)
+        else:
+            self.running[name] = stage
+        self.bar.set_postfix_str(" ".join(f"{n}:{s}" for n, s in self.running.items()) or "-", refresh=True)
+
+    def close(self) -> None:
+        self.bar.close()
+
+
+def run_sequential(jobs: Sequence[SubjectJob], on_event: Callable[[str, str], None]) -> list[dict]:
+    """The fallback without Ray: one subject after another, in this process."""
+    return [run_subject(job, on_event) for job in jobs]
+
+
+def _ray_task(job: SubjectJob, queue) -> dict:
+    return run_subject(job, lambda name, stage: queue.put_nowait((name, stage)))
+
+
+def _failed_row(job: SubjectJob, reason: str) -> dict:
+    return {"subject": job.name, "status": "failed", "ran": "", "reason": reason, "video": job.video, "times": {}}
+
+
+def start_ray(address: str | None, num_cpus: int | None) -> tuple[bool, str]:
+    """Connect to ``address`` (or ``$RAY_ADDRESS``), else start a local runtime with
+    ``num_cpus``; returns (started here, description). An already initialised Ray is used as is."""
+    import ray
+
+    if ray.is_initialized():
+        return False, f"Ray already running in this process ({ray.cluster_resources().get('CPU', 0):g} CPUs)"
+    opts = {"include_dashboard": False, "logging_level": logging.WARNING, "log_to_driver": False}
+    address = address or os.environ.get("RAY_ADDRESS") or None
+    if address:
+        ray.init(address=address, **opts)
+        where = f"Ray cluster at {address}"
+    else:
+        ray.init(num_cpus=num_cpus, **opts)
+        where = "local Ray runtime"
+    return True, f"{where} ({ray.cluster_resources().get('CPU', 0):g} CPUs)"
+
+
+def _node_memory_cap() -> int | None:
+    """The largest node's memory resource (a request above it would never be scheduled)."""
+    import ray
+
+    mem = [n.get("Resources", {}).get("memory", 0) for n in ray.nodes() if n.get("Alive")]
+    return int(max(mem)) if mem and max(mem) > 0 else None
+
+
+def run_ray(jobs: Sequence[SubjectJob], on_event: Callable[[str, str], None], *, cpus: float,
+            memory: Sequence[int], retries: int) -> list[dict]:
+    """Run the jobs as Ray tasks (Ray must be initialised, see :func:`start_ray`).
+
+    ``memory[i]``: bytes requested for ``jobs[i]``, capped at the largest node's memory.
+    A worker that dies (out of memory, node lost) is retried ``retries`` times by Ray; after
+    that its subject fails with Ray's reason. Returns rows in the order of ``jobs``.
+    """
+    import ray
+    from ray.util.queue import Empty, Queue
+
+    queue = Queue(actor_options={"num_cpus": 0})
+    task = ray.remote(_ray_task)
+    cap = _node_memory_cap()
+    refs = {}
+    for job, mem in zip(jobs, memory, strict=True):
+        mem = min(mem, cap) if cap else mem
+        refs[task.options(num_cpus=cpus, memory=mem, max_retries=retries).remote(job, queue)] = job
+
+    def drain() -> None:
+        while True:
+            try:
+                on_event(*queue.get_nowait())
+            except Empty:
+                return
+
+    rows: dict[str, dict] = {}
+    pending = list(refs)
+    try:
+        while pending:
+            done, pending = ray.wait(pending, num_returns=1, timeout=0.5)
+            drain()
+            for ref in done:
+                job = refs[ref]
+                try:
+                    rows[job.name] = ray.get(ref)
+                except ray.exceptions.RayError as exc:
+                    first = str(exc).strip().splitlines()[0] if str(exc).strip() else ""
+                    rows[job.name] = _failed_row(job, f"ray: {type(exc).__name__}: {first[:300]}")
+                    on_event(job.name, "failed")
+        drain()
+    finally:
+        for ref in pending:  # interrupted: do not leave tasks running
+            ray.cancel(ref, force=True)
+        queue.shutdown(force=True)
+    return [rows[j.name] for j in jobs]
