@@ -110,6 +110,9 @@ def test_batch_on_ray_reports_failures_and_resumes(shared_clip_dir, ray_local, t
         _check_subject(out / name, rows[name], np.load(clip / "landmarks.npy"))
     assert "| lp_d6 | ok |" in (out / "summary.md").read_text()
     assert cv2.imread(str(out / "summary.png")) is not None
+    # Ray never ran more subjects at once than the 2 CPUs hold (1 CPU each)
+    spans = [json.loads((out / n / "result.json").read_text()) for n in rows]
+    assert max(sum(s["started"] <= t["started"] < s["finished"] for s in spans) for t in spans) <= 2
     first = {name: _mtimes(out / name) for name in clips}
 
     # Second run: the complete subjects are skipped (nothing rewritten), the failed one retried.
@@ -180,3 +183,30 @@ def test_bad_input_is_one_line_before_any_work(tmp_path, capsys):
     err = capsys.readouterr().err
     assert err.startswith("error: training config overrides") and "regresor" in err and len(err.splitlines()) == 1
     assert not out.exists()
+
+
+@pytest.mark.slow
+def test_hydra_sweep_runs_jobs_in_parallel_with_the_joblib_launcher(tmp_path):
+    # `train.py -m hydra/launcher=joblib`: the two jobs run in two worker processes at the same
+    # time, and the sweep table is written as with the default launcher.
+    import subprocess
+    import sys
+
+    pytest.importorskip("hydra_plugins.hydra_joblib_launcher")
+    root = Path(__file__).resolve().parents[1]
+    sweep = tmp_path / "sweep"
+    cmd = [sys.executable, "train.py", "-m", "hydra/launcher=joblib", "hydra.launcher.n_jobs=2",
+           "hydra.job_logging.formatters.simple.format='pid=%(process)d %(message)s'", f"hydra.sweep.dir={sweep}",
+           "data.n_frames=40", "eval.frame_level=false", "regressor=linear,poly2"]
+    proc = subprocess.Popen(cmd, cwd=root, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    _, err = proc.communicate(timeout=300)
+    assert proc.returncode == 0, err[-2000:]
+    jobs = [sweep / "0_linear", sweep / "1_poly2"]
+    pids = [{line.split()[0] for line in (j / "train.log").read_text().splitlines() if line.startswith("pid=")} for j in jobs]
+    assert all(len(p) == 1 for p in pids) and pids[0] != pids[1]
+    assert f"pid={proc.pid}" not in pids[0] | pids[1]
+    # each job's span, from its first file (.hydra/config.yaml) to its last (metrics.json): they overlap
+    spans = [((j / ".hydra" / "config.yaml").stat().st_mtime_ns, (j / "metrics.json").stat().st_mtime_ns) for j in jobs]
+    assert spans[0][0] < spans[1][1] and spans[1][0] < spans[0][1]
+    rows = json.loads((sweep / "comparison.json").read_text())
+    assert [r["regressor"] for r in rows] == ["linear", "poly2"]

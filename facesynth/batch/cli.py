@@ -14,6 +14,7 @@ import dataclasses
 import json
 import logging
 import os
+import signal
 import sys
 from pathlib import Path
 
@@ -155,9 +156,12 @@ def run(args: argparse.Namespace) -> int:
     args.out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     progress = Progress(len(jobs), enabled=not args.no_progress)
+    # SIGTERM (a scheduler cancelling the driver) unwinds like Ctrl-C: Ray tasks cancelled, Ray shut down.
+    previous = signal.signal(signal.SIGTERM, lambda signum, frame: sys.exit(128 + signum))
     try:
         rows, where = _execute(args, jobs, progress)
     finally:
+        signal.signal(signal.SIGTERM, previous)
         progress.close()
     wall = time.perf_counter() - t0
     paths = write_summary(rows, args.out)

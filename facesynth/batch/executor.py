@@ -3,7 +3,7 @@
 Ray does all the scheduling: each subject is one task that requests ``cpus`` CPUs and an
 estimate of the memory it needs, so Ray never runs more subjects at once than the
 machine (or cluster) holds. The job pins torch and OpenCV to its CPU share. Progress
-events travel from the workers to the driver through a ``ray.util.queue.Queue``.
+events travel from the workers to the driver through a small actor.
 Without Ray (or with ``sequential=True``) the jobs run one after another in this process.
 """
 
@@ -18,11 +18,12 @@ from facesynth.batch.job import SubjectJob, run_subject
 
 log = logging.getLogger(__name__)
 
-# Peak resident memory of one subject job (ingest -> train -> export, default krr config,
-# frame-level evaluation), measured by ``python bench/bench_batch.py --memory`` on 480x480
-# lp_d6 (60 / 300 / 1008 frames): a line through the measured peaks, rounded up. A task
-# asks Ray for this much, so a node runs at most (its memory / request) subjects at once.
-MEMORY_BASE_MB = 700
+# Memory a subject job asks Ray for: the least-squares line through the peak resident memory
+# of one subject job at 60 / 300 / 1008 frames (default config with frame-level evaluation,
+# 480x480 video; ``bench/bench_batch.py --memory``, figures in docs/scale.md) plus a Ray
+# worker's own overhead, rounded up by about 20 %. Ray then runs at most (node memory /
+# request) subjects at once on a node.
+MEMORY_BASE_MB = 600
 MEMORY_PER_FRAME_MB = 2.0
 
 FINAL_STATES = ("ok", "skipped", "failed")
@@ -79,8 +80,25 @@ def run_sequential(jobs: Sequence[SubjectJob], on_event: Callable[[str, str], No
     return [run_subject(job, on_event) for job in jobs]
 
 
-def _ray_task(job: SubjectJob, queue) -> dict:
-    return run_subject(job, lambda name, stage: queue.put_nowait((name, stage)))
+class _Events:
+    """Progress events from the tasks, held for the driver (a Ray actor).
+
+    Tasks push without waiting for the reply: a task blocked in ``ray.get`` lends its CPU
+    back to Ray, which would then start another subject on it (oversubscription)."""
+
+    def __init__(self) -> None:
+        self.items: list[tuple[str, str]] = []
+
+    def push(self, name: str, stage: str) -> None:
+        self.items.append((name, stage))
+
+    def drain(self) -> list[tuple[str, str]]:
+        items, self.items = self.items, []
+        return items
+
+
+def _ray_task(job: SubjectJob, events) -> dict:
+    return run_subject(job, lambda name, stage: events.push.remote(name, stage))
 
 
 def _failed_row(job: SubjectJob, reason: str) -> dict:
@@ -122,22 +140,18 @@ def run_ray(jobs: Sequence[SubjectJob], on_event: Callable[[str, str], None], *,
     that its subject fails with Ray's reason. Returns rows in the order of ``jobs``.
     """
     import ray
-    from ray.util.queue import Empty, Queue
 
-    queue = Queue(actor_options={"num_cpus": 0})
+    events = ray.remote(num_cpus=0)(_Events).remote()
     task = ray.remote(_ray_task)
     cap = _node_memory_cap()
     refs = {}
     for job, mem in zip(jobs, memory, strict=True):
         mem = min(mem, cap) if cap else mem
-        refs[task.options(num_cpus=cpus, memory=mem, max_retries=retries).remote(job, queue)] = job
+        refs[task.options(num_cpus=cpus, memory=mem, max_retries=retries).remote(job, events)] = job
 
     def drain() -> None:
-        while True:
-            try:
-                on_event(*queue.get_nowait())
-            except Empty:
-                return
+        for name, stage in ray.get(events.drain.remote()):
+            on_event(name, stage)
 
     rows: dict[str, dict] = {}
     pending = list(refs)
@@ -157,5 +171,5 @@ def run_ray(jobs: Sequence[SubjectJob], on_event: Callable[[str, str], None], *,
     finally:
         for ref in pending:  # interrupted: do not leave tasks running
             ray.cancel(ref, force=True)
-        queue.shutdown(force=True)
+        ray.kill(events)
     return [rows[j.name] for j in jobs]

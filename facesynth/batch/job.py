@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import resource
 import shutil
 import time
 import traceback
@@ -189,8 +190,9 @@ def run_subject(job: SubjectJob, report: Report | None = None) -> dict:
     out = Path(job.out)
     out.mkdir(parents=True, exist_ok=True)
     t_start = time.perf_counter()
-    row: dict = {"subject": job.name, "status": "failed", "ran": "", "reason": "", "video": job.video}
-    times = {k: v for k, v in _previous_times(out).items() if k in TIME_KEYS}
+    row: dict = {"subject": job.name, "status": "failed", "ran": "", "reason": "", "video": job.video,
+                 "started": time.time()}
+    times: dict = {}  # of the stages run now; a complete subject keeps those of earlier runs
     report(job.name, "check")
     with subject_log(out / state.LOG_FILE) as log:
         log.info("subject %s: video %s", job.name, job.video)
@@ -216,8 +218,12 @@ def run_subject(job: SubjectJob, report: Report | None = None) -> dict:
         if row["status"] == "failed":  # older outputs of a failed subject are not its figures
             figures = {k: v for k, v in figures.items() if k in ("frames", "face_frames")}
         row.update(figures)
-        row["times"] = times
+        previous = {k: v for k, v in _previous_times(out).items() if k in TIME_KEYS}
+        row["times"] = times if row["status"] == "failed" else {**previous, **times}
         row["wall_s"] = time.perf_counter() - t_start
+        row["finished"] = time.time()
+        # the process's peak so far: this subject's peak when the process ran only it (a fresh worker)
+        row["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
         write_json(out / state.RESULT_FILE, row)
     report(job.name, row["status"])
     return row

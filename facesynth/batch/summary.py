@@ -13,7 +13,7 @@ from facesynth.io import atomic_path, write_json, write_text
 COLUMNS = (
     "subject", "status", "ran", "reason", "frames", "face_frames", "train_frames", "test_frames", "regressor",
     "psnr_sadm", "psnr_mean_texture", "psnr_oracle", "export_bytes",
-    "ingest_s", "train_s", "evaluate_s", "export_s", "wall_s", "video",
+    "ingest_s", "train_s", "evaluate_s", "export_s", "wall_s", "peak_rss_mb", "video",
 )
 
 
@@ -28,7 +28,7 @@ def _fmt(col: str, v) -> str:
     if v is None:
         return ""
     if isinstance(v, float):
-        return f"{v:.1f}" if col.endswith("_s") else f"{v:.2f}"
+        return f"{v:.1f}" if col.endswith(("_s", "_mb")) else f"{v:.2f}"
     return str(v).replace("\n", " ")
 
 
@@ -43,9 +43,10 @@ def markdown(rows: list[dict]) -> str:
     lines = [
         f"# Batch summary: {len(rows)} subjects",
         "",
-        f"{c['ok']} trained now, {c['skipped']} already complete (skipped), {c['failed']} failed. "
+        (f"{c['ok']} trained now, {c['skipped']} already complete (skipped), {c['failed']} failed. "
         "PSNR: held-out reference-frame PSNR in dB (landmark noise 0) of the SADM, the mean-texture "
-        "baseline and the PCA oracle; times in seconds (of the run that did each stage).",
+        "baseline and the PCA oracle; times in seconds (of the run that did each stage); "
+        "peak_rss_mb: peak memory of the process that ran the subject."),
         "",
         "| " + " | ".join(cols) + " |",
         "|" + "---|" * len(cols),
@@ -55,8 +56,13 @@ def markdown(rows: list[dict]) -> str:
     return "\n".join(lines) + "\n"
 
 
+#: Above this many subjects the plot sorts them by SADM PSNR and drops their names.
+PLOT_NAMED_MAX = 40
+
+
 def plot(rows: list[dict], path: Path) -> Path:
-    """Held-out PSNR per subject: SADM against the mean texture and the oracle."""
+    """Held-out PSNR per subject: SADM against the mean texture and the oracle (the grey bar
+    spans baseline -> oracle). Many subjects: sorted by SADM PSNR, drawn as lines."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -64,24 +70,37 @@ def plot(rows: list[dict], path: Path) -> Path:
 
     done = [r for r in rows if r.get("psnr_sadm") is not None and r["status"] != "failed"]
     failed = [r["subject"] for r in rows if r["status"] == "failed"]
-    fig, ax = plt.subplots(figsize=(max(5.0, 0.7 * len(done) + 2.5), 4.2))
-    x = range(len(done))
-    for i, r in enumerate(done):
-        ax.plot([i, i], [r["psnr_mean_texture"], r["psnr_oracle"]], color="0.8", lw=6, solid_capstyle="round", zorder=1)
-    ax.scatter(x, [r["psnr_mean_texture"] for r in done], marker="_", s=300, color="tab:gray", label="mean texture", zorder=2)
-    ax.scatter(x, [r["psnr_oracle"] for r in done], marker="^", s=50, color="tab:green", label="PCA oracle", zorder=2)
-    ax.scatter(x, [r["psnr_sadm"] for r in done], marker="o", s=50, color="tab:blue",
-               label=f"SADM ({done[0]['regressor']})" if done else "SADM", zorder=3)
-    ax.set_xlim(-0.7, max(len(done), 1) - 0.3)
-    ax.set_xticks(list(x))
-    ax.set_xticklabels([r["subject"] for r in done], rotation=45 if len(done) > 6 else 0, ha="right" if len(done) > 6 else "center")
+    many = len(done) > PLOT_NAMED_MAX
+    if many:
+        done = sorted(done, key=lambda r: r["psnr_sadm"])
+    fig, ax = plt.subplots(figsize=(10.0 if many else max(5.0, 0.7 * len(done) + 2.5), 4.2))
+    x = list(range(len(done)))
+    series = {k: [r[k] for r in done] for k in ("psnr_sadm", "psnr_mean_texture", "psnr_oracle")}
+    label = f"SADM ({done[0]['regressor']})" if done else "SADM"
+    if many:
+        ax.fill_between(x, series["psnr_mean_texture"], series["psnr_oracle"], color="0.85", step="mid", lw=0)
+        ax.plot(x, series["psnr_mean_texture"], ".", ms=3, color="tab:gray", label="mean texture")
+        ax.plot(x, series["psnr_oracle"], ".", ms=3, color="tab:green", label="PCA oracle")
+        ax.plot(x, series["psnr_sadm"], "-", color="tab:blue", label=label)
+        ax.set_xlabel("subjects, sorted by SADM PSNR")
+    else:
+        for i, r in enumerate(done):
+            ax.plot([i, i], [r["psnr_mean_texture"], r["psnr_oracle"]], color="0.8", lw=6, solid_capstyle="round", zorder=1)
+        ax.scatter(x, series["psnr_mean_texture"], marker="_", s=300, color="tab:gray", label="mean texture", zorder=2)
+        ax.scatter(x, series["psnr_oracle"], marker="^", s=50, color="tab:green", label="PCA oracle", zorder=2)
+        ax.scatter(x, series["psnr_sadm"], marker="o", s=50, color="tab:blue", label=label, zorder=3)
+        ax.set_xlim(-0.7, max(len(done), 1) - 0.3)
+        ax.set_xticks(x)
+        tilt = len(done) > 6
+        ax.set_xticklabels([r["subject"] for r in done], rotation=45 if tilt else 0, ha="right" if tilt else "center")
     ax.set_ylabel("held-out PSNR (dB), landmark noise 0")
     title = f"{len(done)} subjects"
     if failed:
-        title += f"; failed: {', '.join(failed[:6])}{' ...' if len(failed) > 6 else ''}"
+        title += f"; {len(failed)} failed: {', '.join(failed[:6])}{' ...' if len(failed) > 6 else ''}"
     ax.set_title(title, fontsize=10)
     ax.grid(axis="y", alpha=0.3)
-    ax.legend(fontsize=8, loc="best")
+    if done:
+        ax.legend(fontsize=8, loc="best")
     fig.tight_layout()
     with atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=110)
