@@ -75,13 +75,16 @@ def timing(args: argparse.Namespace) -> dict:
             out = tmp / f"out{workers}"
             cmd = [sys.executable, "-m", "facesynth", "batch", str(videos), "--out", str(out), "--workers", str(workers),
                    "--max-frames", str(args.max_frames), "--no-progress", *args.overrides]
+            load_before = os.getloadavg()[0]
             wall, _, _ = _run(cmd)
             rows = json.loads((out / "summary.json").read_text())
             failed = [r["subject"] for r in rows if r["status"] != "ok"]
             if failed:
                 sys.exit(f"bench_batch: subjects did not complete with --workers {workers}: {failed}")
             stages = {k: round(sum(r[k] for r in rows), 2) for k in ("ingest_s", "train_s", "evaluate_s", "export_s")}
+            # the 1-minute load average before and after: other processes on the machine count too
             result[f"workers_{workers}"] = {"wall_s": round(wall, 2), "stage_sums_s": stages,
+                                            "loadavg_1m": [round(load_before, 2), round(os.getloadavg()[0], 2)],
                                             "subject_wall_sum_s": round(sum(r["wall_s"] for r in rows), 2),
                                             "psnr_sadm": {r["subject"]: round(r["psnr_sadm"], 3) for r in rows}}
         result["ratio_1_over_2"] = round(result["workers_1"]["wall_s"] / result["workers_2"]["wall_s"], 3)

@@ -210,3 +210,18 @@ def test_hydra_sweep_runs_jobs_in_parallel_with_the_joblib_launcher(tmp_path):
     assert spans[0][0] < spans[1][1] and spans[1][0] < spans[0][1]
     rows = json.loads((sweep / "comparison.json").read_text())
     assert [r["regressor"] for r in rows] == ["linear", "poly2"]
+
+
+def test_unreachable_cluster_fails_fast_with_one_line(tmp_path, capsys):
+    pytest.importorskip("ray")
+    import socket
+
+    with socket.socket() as s:  # a port nothing listens on
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    _no_face_video(tmp_path / "blank.avi")
+    out = tmp_path / "out"
+    assert main(["batch", str(tmp_path / "blank.avi"), "--out", str(out), "--address", f"127.0.0.1:{port}"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1] == f"error: Ray cluster at 127.0.0.1:{port}: nothing answers there (Connection refused)"
+    assert not out.exists()

@@ -153,7 +153,6 @@ def run(args: argparse.Namespace) -> int:
     _check(args)
     config = training_config(args.overrides, args.regressor)
     jobs = make_jobs(args, config)
-    args.out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     progress = Progress(len(jobs), enabled=not args.no_progress)
     # SIGTERM (a scheduler cancelling the driver) unwinds like Ctrl-C: Ray tasks cancelled, Ray shut down.

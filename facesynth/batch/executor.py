@@ -15,6 +15,7 @@ import os
 from collections.abc import Callable, Sequence
 
 from facesynth.batch.job import SubjectJob, run_subject
+from facesynth.errors import FacesynthError
 
 log = logging.getLogger(__name__)
 
@@ -105,6 +106,20 @@ def _failed_row(job: SubjectJob, reason: str) -> dict:
     return {"subject": job.name, "status": "failed", "ran": "", "reason": reason, "video": job.video, "times": {}}
 
 
+def _check_reachable(address: str, timeout: float = 5.0) -> None:
+    """Fail fast when nothing listens at a HOST:PORT or ray://HOST:PORT address (ray.init
+    would otherwise retry for minutes). 'auto' and other forms are left to Ray."""
+    import socket
+
+    host, sep, port = address.removeprefix("ray://").rpartition(":")
+    if not sep or not port.isdigit():
+        return
+    try:
+        socket.create_connection((host, int(port)), timeout=timeout).close()
+    except OSError as exc:
+        raise FacesynthError(f"Ray cluster at {address}: nothing answers there ({exc.strerror or exc})") from None
+
+
 def start_ray(address: str | None, num_cpus: int | None) -> tuple[bool, str]:
     """Connect to ``address`` (or ``$RAY_ADDRESS``), else start a local runtime with
     ``num_cpus``; returns (started here, description). An already initialised Ray is used as is."""
@@ -115,7 +130,15 @@ def start_ray(address: str | None, num_cpus: int | None) -> tuple[bool, str]:
     opts = {"include_dashboard": False, "logging_level": logging.WARNING, "log_to_driver": False}
     address = address or os.environ.get("RAY_ADDRESS") or None
     if address:
-        ray.init(address=address, **opts)
+        _check_reachable(address)
+        try:
+            ray.init(address=address, **opts)
+        except (ConnectionError, RuntimeError, ray.exceptions.RayError) as exc:
+            lines = [ln for ln in str(exc).splitlines() if ln.strip()]
+            raise FacesynthError(
+                f"Ray cluster at {address}: could not connect ({(lines[-1] if lines else type(exc).__name__)[:200]}); "
+                "a cluster with token authentication needs RAY_AUTH_MODE=token and its token "
+                "(~/.ray/auth_token or RAY_AUTH_TOKEN), see docs/scale.md") from None
         where = f"Ray cluster at {address}"
     else:
         ray.init(num_cpus=num_cpus, **opts)
