@@ -125,12 +125,13 @@ def start_ray(address: str | None, num_cpus: int | None) -> tuple[bool, str]:
     ``num_cpus``; returns (started here, description). An already initialised Ray is used as is."""
     import ray
 
-    if ray.is_initialized():
-        return False, f"Ray already running in this process ({ray.cluster_resources().get('CPU', 0):g} CPUs)"
-    opts = {"include_dashboard": False, "logging_level": logging.WARNING, "log_to_driver": False}
     address = address or os.environ.get("RAY_ADDRESS") or None
     if address:
         _check_reachable(address)
+    if ray.is_initialized():
+        return False, f"Ray already running in this process ({ray.cluster_resources().get('CPU', 0):g} CPUs)"
+    opts = {"include_dashboard": False, "logging_level": logging.WARNING, "log_to_driver": False}
+    if address:
         try:
             ray.init(address=address, **opts)
         except (ConnectionError, RuntimeError, ray.exceptions.RayError) as exc:
