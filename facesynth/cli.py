@@ -26,6 +26,7 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "codec": ("facesynth.codec.cli", "encode/decode geometry videos with the PDP codec; RD sweeps"),
     "export": ("facesynth.onnx.cli", "export a trained run to one ONNX file"),
     "app": ("facesynth.runtime.app", "render a talking-head video from landmarks with ONNX Runtime"),
+    "batch": ("facesynth.batch.cli", "many videos -> one trained, evaluated, exported subject each + summary (Ray)"),
 }
 
 
@@ -78,7 +79,9 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog=f"facesynth {name}", description=help_)
     module.add_arguments(parser)
     _add_quiet(parser)
-    args = parser.parse_args(rest)
+    # A module with trailing positionals after options (e.g. Hydra overrides) opts in to intermixed parsing.
+    parse = parser.parse_intermixed_args if getattr(module, "INTERMIXED_ARGS", False) else parser.parse_args
+    args = parse(rest)
     install_sigterm_handler()  # SIGTERM unwinds: temporary outputs are removed
     if getattr(args, "quiet", False):
         set_quiet(True)

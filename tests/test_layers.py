@@ -5,7 +5,7 @@ ground   errors, io, metrics, landmarks, landmark_tables, geometry, imaging, pro
 stages   data; model (data); regressors; sadm (model, regressors); eri (model, regressors);
          mesh (data); codec (data): siblings never import each other
 runtime  torch-free: the runtime, the data layer and the ground only
-top      eval, runs, onnx, the CLIs (facesynth.cli and every ``cli`` / ``*_cli`` module)
+top      eval, runs, onnx, batch, the CLIs (facesynth.cli and every ``cli`` / ``*_cli`` module)
 """
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ PACKAGE = Path(__file__).resolve().parents[1] / "facesynth"
 
 GROUND = {"facesynth", "errors", "io", "metrics", "landmarks", "landmark_tables", "geometry", "imaging", "provenance",
           "contract", "artifact", "ops", "progress", "neutral", "faps", "retarget"}
-TOP = {"eval", "runs", "onnx", "cli", "__main__"}
+TOP = {"eval", "runs", "onnx", "batch", "cli", "__main__"}
 # what each part may import besides itself and the ground
 ALLOWED = {
     "ground": set(),

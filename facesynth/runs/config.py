@@ -20,7 +20,9 @@ from typing import Any, Optional
 
 from hydra import compose, initialize_config_dir
 from hydra.core.config_store import ConfigStore
+from hydra.errors import HydraException
 from omegaconf import II, MISSING, OmegaConf
+from omegaconf.errors import OmegaConfBaseException
 
 from facesynth.data.splits import TRAIN_FRACTION
 from facesynth.eri.config import EriConfig
@@ -131,15 +133,26 @@ def regressor_params(node) -> tuple[str, dict]:
     return d.pop("name"), d
 
 
+def compose_config(overrides: list[str]):
+    """The training config ``python train.py OVERRIDES`` runs with, composed by Hydra from
+    the repository's ``conf/`` (without the ``hydra`` node). Bad overrides raise
+    FacesynthError naming them."""
+    if not (CONF_DIR / "config.yaml").is_file():
+        raise FacesynthError(f"{CONF_DIR}: Hydra configs not found (composing a training config needs a source checkout)")
+    register_configs()
+    try:
+        with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+            return compose(config_name="config", overrides=list(overrides))
+    except (HydraException, OmegaConfBaseException) as exc:
+        msg = " ".join(str(exc).split())
+        raise FacesynthError(f"training config overrides {list(overrides)}: {msg}") from None
+
+
 def train_defaults(regressor: str) -> tuple[str, dict, SADMConfig]:
     """What ``python train.py regressor=NAME`` trains with: the regressor's name and
     hyper-parameters and the SADM settings (a regressor's config may set some, e.g. krr's
     augmentation), composed by Hydra from the repository's ``conf/`` (for benchmarks and
     scripts that call :func:`facesynth.sadm.fit.fit_sadm` directly)."""
-    if not (CONF_DIR / "config.yaml").is_file():
-        raise FacesynthError(f"{CONF_DIR}: Hydra configs not found (train_defaults needs a source checkout)")
-    register_configs()
-    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
-        cfg = compose(config_name="config", overrides=[f"regressor={regressor}"])
+    cfg = compose_config([f"regressor={regressor}"])
     name, params = regressor_params(cfg.regressor)
     return name, params, resolve_sadm_config(name, SADMConfig(**OmegaConf.to_container(cfg.sadm, resolve=True)))
