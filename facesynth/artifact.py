@@ -11,7 +11,6 @@ thing when a file is missing, unreadable, from another version or altered.
 from __future__ import annotations
 
 import hashlib
-import json
 import os
 import time
 from pathlib import Path
@@ -22,7 +21,7 @@ from safetensors.numpy import load_file, save_file
 
 from facesynth import __version__
 from facesynth.errors import FacesynthError
-from facesynth.io import atomic_path, write_json
+from facesynth.io import atomic_path, read_json_object, write_json
 from facesynth.provenance import package_versions
 
 T = TypeVar("T")
@@ -70,12 +69,7 @@ def read_manifest(directory: str | os.PathLike, manifest_file: str, fmt: str, ve
     if not path.is_file():
         article = "an" if what[:1].lower() in "aeiou" else "a"
         raise FacesynthError(f"{d}: not {article} {what} directory ({path.name} missing)")
-    try:
-        manifest = json.loads(path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise FacesynthError(f"{path}: invalid JSON ({exc})") from None
-    if not isinstance(manifest, dict):
-        raise FacesynthError(f"{path}: expected a JSON object, got {type(manifest).__name__}")
+    manifest = read_json_object(path)
     if manifest.get("format") != fmt:
         raise FacesynthError(f"{path}: format is {manifest.get('format')!r}, expected {fmt!r}")
     if manifest.get("format_version") != version:

@@ -180,6 +180,21 @@ def save_npy(path: str | os.PathLike, array) -> None:
         np.save(f, array, allow_pickle=False)
 
 
+def read_json_object(path: str | os.PathLike) -> dict:
+    """The JSON object in ``path``; FacesynthError naming the file when it is unreadable,
+    not JSON, or not an object."""
+    from facesynth.errors import FacesynthError
+
+    path = Path(path)
+    try:
+        doc = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise FacesynthError(f"{path}: invalid JSON ({exc})") from None
+    if not isinstance(doc, dict):
+        raise FacesynthError(f"{path}: expected a JSON object, got {type(doc).__name__}")
+    return doc
+
+
 def write_bytes(path: str | os.PathLike, data: bytes) -> None:
     """Write ``data`` to ``path`` atomically."""
     with atomic_path(path) as tmp:

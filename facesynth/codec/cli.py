@@ -93,13 +93,18 @@ def _sizes(text: str | None) -> tuple[int, ...] | None:
     return out
 
 
-def _load_video(path: Path) -> np.ndarray:
+def _read_npy(path: Path, field: str) -> np.ndarray:
+    """The array in ``path``; FacesynthError naming ``field`` when missing or unreadable."""
     if not path.is_file():
-        raise FacesynthError(f"{path}: file not found")
+        raise FacesynthError(f"{field}: file not found")
     try:
-        v = np.load(path, allow_pickle=False)
+        return np.load(path, allow_pickle=False)
     except Exception as exc:  # noqa: BLE001 - any unreadable file is a user error here
-        raise FacesynthError(f"{path}: not a readable .npy file ({exc})") from None
+        raise FacesynthError(f"{field}: not a readable .npy file ({str(exc)[:120]})") from None
+
+
+def _load_video(path: Path) -> np.ndarray:
+    v = _read_npy(path, str(path))
     if v.ndim == 3:
         v = v[None]
     if v.ndim != 4 or v.dtype != np.uint16:
@@ -113,12 +118,7 @@ def _load_mask(path: Path | None, video_path: Path, shape) -> np.ndarray | None:
         if not auto.is_file():
             return None
         path = auto
-    if not path.is_file():
-        raise FacesynthError(f"--mask {path}: file not found")
-    try:
-        m = np.load(path, allow_pickle=False)
-    except Exception as exc:  # noqa: BLE001 - any unreadable file is a user error here
-        raise FacesynthError(f"--mask {path}: not a readable .npy file ({str(exc)[:120]})") from None
+    m = _read_npy(path, f"--mask {path}")
     if m.dtype.kind not in "biuf":
         raise FacesynthError(f"--mask {path}: expected a bool or numeric (H, W) array, got dtype {m.dtype}")
     if m.shape != tuple(shape):

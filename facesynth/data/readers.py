@@ -19,7 +19,6 @@ approximate: docs/landmarks.md) and are an error otherwise.
 from __future__ import annotations
 
 import hashlib
-import json
 import os
 from pathlib import Path
 from typing import Callable
@@ -30,7 +29,7 @@ from facesynth.data.frames import ArrayFrames, ImageFiles, VideoFrames
 from facesynth.data.pts import read_pts, write_pts
 from facesynth.data.sequence import FaceSequence, validate_landmarks
 from facesynth.errors import FacesynthError
-from facesynth.io import atomic_path
+from facesynth.io import atomic_path, read_json_object
 from facesynth.landmarks import SCHEMES, get_scheme, scheme_for_points
 
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
@@ -89,7 +88,7 @@ def load_landmarks(path: str | os.PathLike, scheme: str | None = None) -> np.nda
     if path.suffix.lower() != ".npy":
         return load_sequence(path, scheme).landmarks
     arr = _np_load(path)
-    stored = stored_scheme(_read_meta(meta_file) if meta_file is not None and meta_file.is_file() else {}, arr, str(path))
+    stored = stored_scheme(read_json_object(meta_file) if meta_file is not None and meta_file.is_file() else {}, arr, str(path))
     lm = validate_landmarks(arr, str(path), allow_nan_rows=True, scheme=stored)
     if scheme is None or scheme == stored:
         return lm
@@ -109,16 +108,6 @@ def stored_scheme(meta: dict, landmarks: np.ndarray, where: str) -> str:
         known = " or ".join(f"(N, {s.n_points}, 2) ({s.name})" for s in SCHEMES.values())
         raise FacesynthError(f"{where}: landmarks must have shape {known}, got {tuple(shape)}")
     return found.name
-
-
-def _read_meta(path: Path) -> dict:
-    try:
-        meta = json.loads(path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise FacesynthError(f"{path}: invalid JSON ({exc})") from None
-    if not isinstance(meta, dict):
-        raise FacesynthError(f"{path}: expected a JSON object")
-    return meta
 
 
 def save_landmarks(path: str | os.PathLike, landmarks: np.ndarray) -> None:
@@ -186,7 +175,7 @@ def _check_ingest_pair(path: Path, lm: np.ndarray, meta: dict) -> None:
 
 
 def _read_ingest_folder(path: Path) -> FaceSequence:
-    meta = _read_meta(path / "meta.json") if (path / "meta.json").is_file() else {}
+    meta = read_json_object(path / "meta.json") if (path / "meta.json").is_file() else {}
     video = meta.get("video", {}) if isinstance(meta.get("video"), dict) else {}
     candidates = [path / video["file"]] if video.get("file") else []
     if video.get("path"):
