@@ -214,9 +214,31 @@ def detect_landmarks(
         landmarks (T, 68, 2) float32 with NaN rows where no face, boxes, sources.
     """
     det = detector or LandmarkDetector()
+
+    def fit(rgb: np.ndarray):
+        t0 = time.perf_counter()
+        box, source, n = det.detect(rgb)
+        t1 = time.perf_counter()
+        lm = None if box is None else det.landmarks(rgb, box)
+        return lm, box, source, n, t1 - t0, time.perf_counter() - t1
+
+    return collect_detections(frames, fit, N_LANDMARKS, SOURCES, on_frame)
+
+
+def collect_detections(
+    frames: Iterable[np.ndarray | None],
+    fit: Callable[[np.ndarray], tuple],
+    n_points: int,
+    source_names: tuple,
+    on_frame: Callable[[int, str], None] | None = None,
+) -> Detections:
+    """The frame loop every landmarker shares: check each uint8 RGB (H, W, 3) frame, call
+    ``fit(rgb) -> (landmarks (P, 2) or None, box (4,) or None, source, n_faces, detect_s,
+    landmarks_s)``, give skipped frames (``None``) and misses NaN rows, and gather the
+    results and their times into :class:`Detections` (landmarks (T, ``n_points``, 2))."""
     lms, boxes, sources, n_faces = [], [], [], []
     t_det = t_lm = 0.0
-    nan_lm = np.full((N_LANDMARKS, 2), np.nan, np.float32)
+    nan_lm = np.full((n_points, 2), np.nan, np.float32)
     for i, rgb in enumerate(frames):
         if rgb is None:
             lms.append(nan_lm)
@@ -226,21 +248,20 @@ def detect_landmarks(
             continue
         if rgb.ndim != 3 or rgb.shape[2] != 3 or rgb.dtype != np.uint8:
             raise FacesynthError(f"frame {i}: expected uint8 RGB (H, W, 3), got {rgb.dtype} {rgb.shape}")
-        t0 = time.perf_counter()
-        box, source, n = det.detect(rgb)
-        t1 = time.perf_counter()
-        lms.append(nan_lm if box is None else det.landmarks(rgb, box))
-        t_det += t1 - t0
-        t_lm += time.perf_counter() - t1
+        lm, box, source, n, dt_det, dt_lm = fit(rgb)
+        t_det += dt_det
+        t_lm += dt_lm
+        lms.append(nan_lm if lm is None else lm)
         boxes.append(np.full(4, np.nan) if box is None else box)
         sources.append(source)
         n_faces.append(n)
         if on_frame is not None:
             on_frame(i, source)
     return Detections(
-        landmarks=np.stack(lms).astype(np.float32) if lms else np.zeros((0, N_LANDMARKS, 2), np.float32),
+        landmarks=np.stack(lms).astype(np.float32) if lms else np.zeros((0, n_points, 2), np.float32),
         boxes=np.stack(boxes).astype(np.float32) if boxes else np.zeros((0, 4), np.float32),
         sources=sources,
         n_faces=np.asarray(n_faces, dtype=np.int64),
         timing_s={"detect": t_det, "landmarks": t_lm},
+        source_names=source_names,
     )

@@ -29,7 +29,7 @@ from typing import Callable, Iterable
 import cv2
 import numpy as np
 
-from facesynth.data.detect import Detections
+from facesynth.data.detect import Detections, collect_detections
 from facesynth.errors import FacesynthError, MissingExtraError
 from facesynth.landmarks import get_scheme
 
@@ -142,34 +142,13 @@ def detect_landmarks_mediapipe(
         counted under ``landmarks`` (MediaPipe runs detection inside the same call).
     """
     mp = landmarker or MediaPipeLandmarker()
-    n = SCHEME.n_points
-    nan_lm = np.full((n, 2), np.nan, np.float32)
-    lms, boxes, sources, n_faces = [], [], [], []
-    t_lm = 0.0
-    for i, rgb in enumerate(frames):
-        if rgb is None:
-            lms.append(nan_lm)
-            boxes.append(np.full(4, np.nan))
-            sources.append("skipped")
-            n_faces.append(0)
-            continue
-        if rgb.ndim != 3 or rgb.shape[2] != 3 or rgb.dtype != np.uint8:
-            raise FacesynthError(f"frame {i}: expected uint8 RGB (H, W, 3), got {rgb.dtype} {rgb.shape}")
+
+    def fit(rgb: np.ndarray):
         t0 = time.perf_counter()
         lm = mp.landmarks(rgb)
-        t_lm += time.perf_counter() - t0
-        found = lm is not None
-        lms.append(lm if found else nan_lm)
-        boxes.append(np.concatenate([lm.min(0), lm.max(0)]) if found else np.full(4, np.nan))
-        sources.append("mp_track" if found else "miss")
-        n_faces.append(int(found))
-        if on_frame is not None:
-            on_frame(i, sources[-1])
-    return Detections(
-        landmarks=np.stack(lms).astype(np.float32) if lms else np.zeros((0, n, 2), np.float32),
-        boxes=np.stack(boxes).astype(np.float32) if boxes else np.zeros((0, 4), np.float32),
-        sources=sources,
-        n_faces=np.asarray(n_faces, dtype=np.int64),
-        timing_s={"detect": 0.0, "landmarks": t_lm},
-        source_names=SOURCES,
-    )
+        dt = time.perf_counter() - t0
+        if lm is None:
+            return None, None, "miss", 0, 0.0, dt
+        return lm, np.concatenate([lm.min(0), lm.max(0)]), "mp_track", 1, 0.0, dt
+
+    return collect_detections(frames, fit, SCHEME.n_points, SOURCES, on_frame)
