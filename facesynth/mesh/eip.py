@@ -40,11 +40,14 @@ import scipy.sparse as sp
 from scipy.sparse.linalg import spsolve
 
 from facesynth.errors import FacesynthError, MissingExtraError
+from facesynth.landmarks import NOSE_BRIDGE
 from facesynth.mesh.eip_domain import Domain, locate, signed_areas, untangle
 from facesynth.mesh.laplacian import cotangent_laplacian, face_normals, ordered_boundary_loops
 from facesynth.mesh.paths import edge_graph, shortest_path
 
 FEATURES = ("eye_r", "eye_l", "mouth")
+# midline landmarks the cuts c and d pass through: nose bridge top, nose tip, subnasale, upper-lip top
+MIDLINE = (NOSE_BRIDGE[0], NOSE_BRIDGE[-1], 33, 51)
 
 
 def _igl():
@@ -252,7 +255,7 @@ def face_cuts(V: np.ndarray, F: np.ndarray, loops: dict[str, np.ndarray], landma
     """
     boundary = np.concatenate([loops[k] for k in ("outer", *FEATURES)])
     eyes = np.concatenate([loops["eye_r"], loops["eye_l"]])
-    mids = None if landmarks is None else np.asarray(landmarks)[[27, 30, 33, 51]]
+    mids = None if landmarks is None else np.asarray(landmarks)[list(MIDLINE)]
     use = mids is not None and (mids >= 0).all() and not np.isin(mids, boundary).any()
     if use:
         c = _path_via(V, F, [loops["eye_r"], mids[0], loops["eye_l"]], np.setdiff1d(boundary, eyes))

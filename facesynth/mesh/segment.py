@@ -21,14 +21,15 @@ import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 
 from facesynth.errors import FacesynthError
+from facesynth.landmarks import INNER_LIPS, LEFT_EYE, OUTER_LIPS, RIGHT_EYE
 from facesynth.mesh.laplacian import drop_ears, edges, ordered_boundary_loops
 from facesynth.mesh.paths import closed_contour, edge_graph, geodesic_distance
 
-# 0-based iBUG-68 index ranges of the features (the subject's right eye is iBUG 37-42).
-EYE_R = np.arange(36, 42)
-EYE_L = np.arange(42, 48)
-MOUTH_OUTER = np.arange(48, 60)
-MOUTH_INNER = np.arange(60, 68)
+# 0-based iBUG-68 index sets of the features (facesynth.landmarks; the subject's right eye is iBUG 37-42)
+EYE_R = np.array(RIGHT_EYE)
+EYE_L = np.array(LEFT_EYE)
+MOUTH_OUTER = np.array(OUTER_LIPS)
+MOUTH_INNER = np.array(INNER_LIPS)
 # the contour whose inside is removed for each feature
 FEATURE_CONTOURS = {"eye_r": EYE_R, "eye_l": EYE_L, "mouth": MOUTH_INNER}
 
