@@ -7,9 +7,9 @@ Each avatar is a linear model trained on its clip with ``train.py data=video reg
 Per pair (avatar <- driver, relative motion, driver neutral by ERI's rule): hull coverage
 (min / median over frames, frames below 99 %), Pearson r of mouth and eye opening, the
 jaw-width / nose-bridge-to-chin ratio against the avatar's own training frames
-(:mod:`facesynth.eval.reenact`). Self-driving: the first avatar's held-out frames, relative
-vs absolute motion, frame-level PSNR (the driver's neutral is then the avatar's own
-neutral frame). Speed: model call and retargeting CPU time per frame
+(:mod:`facesynth.eval.reenact`). Self-driving: each avatar's held-out frames, relative
+vs absolute motion, frame-level PSNR (the driver's neutral is then the
+avatar's own neutral frame). Speed: model call and retargeting CPU time per frame
 (batch 1, one thread, same run). ``--sheets DIR`` writes a contact sheet per pair
 (driver above, avatar output below) as ``reenact_AVATAR_by_DRIVER.jpg``.
 """
@@ -85,14 +85,17 @@ def main() -> None:
             img = sheet([drv.frame(i) for i in rows_shown], [res["frames"][i] for i in rows_shown])
             dest = Path(args.sheets) / f"reenact_{avatar}_by_{driver}.jpg"
             cv2.imwrite(str(dest), cv2.cvtColor(img, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, 80])
-    # self-driving on the first avatar's held-out frames
+    # self-driving on each avatar's held-out frames; the clip drives its own avatar, so its
+    # neutral is the avatar's (app: --driver-neutral AVATAR_NEUTRAL_ROW)
+    out["self_driving"] = {}
+    for avatar in dict.fromkeys(a for a, _ in PAIRS):
+        run, path = model_for(avatar, work)
+        seq, _, test = run_data(read_config(run))
+        held = np.asarray(seq.landmarks[test], np.float32)
+        neutral = np.asarray(read_metadata(path)["avatar_neutral"], np.float32)
+        out["self_driving"][avatar] = self_driving_psnr(path, held, seq.iter_frames(test), neutral)
     avatar = PAIRS[0][0]
     run, path = model_for(avatar, work)
-    seq, _, test = run_data(read_config(run))
-    held = np.asarray(seq.landmarks[test], np.float32)
-    # the clip drives its own avatar: its neutral is the avatar's (app: --driver-neutral AVATAR_NEUTRAL_ROW)
-    neutral = np.asarray(read_metadata(path)["avatar_neutral"], np.float32)
-    out["self_driving"] = {"clip": avatar, **self_driving_psnr(path, held, seq.iter_frames(test), neutral)}
     lm = np.asarray(load_sequence(shared_clip(PAIRS[0][1])).landmarks, np.float32)
     out["speed"] = {"model": f"{avatar}.onnx", **speed(path, lm, reps=args.reps)}
     out["load_average_end"] = os.getloadavg()[0]

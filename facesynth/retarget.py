@@ -23,7 +23,11 @@ Per driver frame ``D`` with the driver's neutral ``D_n`` and the avatar's neutra
    and translation (in avatar pixels) around the avatar's own neutral placement;
 5. the shape is projected onto the avatar's shape PCA (similarity-aligned to its mean) and
    its parameters clamped to +-k sqrt(lambda) (:class:`ShapeSpace`), so that it stays a face
-   the model was trained on.
+   the model was trained on. The eyelids are then put back as they were relative to their
+   eye corners (the corners stay clamped): a clip's shape PCA spends its few components on
+   head turns and the mouth, so the clamp would otherwise cut a driver's blinks and wide
+   eyes (docs/reenact.md: eye-opening r 0.68 -> 1.00 on lp_d3 driven by lp_d6). Eyelid
+   motion changes no proportion of the face, and the fold-free warp renders any of it.
 
 ``motion="absolute"`` returns the driver's landmarks unchanged (the behaviour before
 retargeting; for self-driving and tests).
@@ -38,7 +42,7 @@ import numpy as np
 from facesynth.errors import FacesynthError
 from facesynth.faps import FAPU_NAMES, RIGID_POINTS, face_axes, fapu
 from facesynth.geometry import similarity_fit
-from facesynth.landmarks import BROWS, EYES, JAW, MOUTH, N_LANDMARKS, NOSE, inter_ocular
+from facesynth.landmarks import BROWS, EYES, JAW, LEFT_EYE, MOUTH, N_LANDMARKS, NOSE, RIGHT_EYE, inter_ocular
 
 MOTIONS = ("relative", "absolute")
 def _point_units() -> np.ndarray:
@@ -67,11 +71,14 @@ class ShapeSpace:
     it and clamp their parameters to +-``limit``.
 
     mean : (136,) float64, components : (K, 136) orthonormal rows, limit : (K,) (k sqrt(lambda)).
+    keep_eyes : after clamping, restore each eye's contour relative to its two corners
+        (module docstring, step 5); False clamps the eyelids with the rest.
     """
 
     mean: np.ndarray
     components: np.ndarray
     limit: np.ndarray
+    keep_eyes: bool = True
 
     @classmethod
     def from_dict(cls, d: dict) -> "ShapeSpace":
@@ -115,6 +122,8 @@ class ShapeSpace:
         # components do not span (e.g. eye motion in a model of a head-turning clip) is kept
         excess = np.maximum(b - self.limit, 0.0) + np.minimum(b + self.limit, 0.0)
         rec = aligned - (excess @ self.components).reshape(N_LANDMARKS, 2)
+        if self.keep_eyes:
+            _restore_local(rec, aligned)
         n = ca * ca + sa * sa
         inv = np.array([[ca, sa], [-sa, ca]]) / n
         return (rec - self._mu) @ inv.T + mo
@@ -194,6 +203,22 @@ class Retargeter:
         if self.motion == "absolute":
             return d.astype(np.float32)
         return np.stack([self.one(f) for f in d]).astype(np.float32)
+
+
+EYE_PATCHES = tuple((np.asarray(eye), eye[0], eye[3]) for eye in (RIGHT_EYE, LEFT_EYE))  # contour and its two corners
+
+
+def _restore_local(rec: np.ndarray, before: np.ndarray) -> None:
+    """Put each eye contour of ``before`` (68, 2) onto ``rec``'s (68, 2) corners, in place:
+    the similarity taking the eye's two corners in ``before`` to those in ``rec`` (complex
+    arithmetic: z -> a + k z) moves its contour."""
+    for idx, c0, c1 in EYE_PATCHES:
+        s0, s1, d0, d1 = (complex(*p) for p in (before[c0], before[c1], rec[c0], rec[c1]))
+        if s1 == s0:
+            continue
+        k = (d1 - d0) / (s1 - s0)
+        z = (before[idx, 0] - s0.real + 1j * (before[idx, 1] - s0.imag)) * k + d0
+        rec[idx, 0], rec[idx, 1] = z.real, z.imag
 
 
 def _one_face(x, where: str) -> np.ndarray:

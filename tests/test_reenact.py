@@ -163,7 +163,7 @@ def test_shape_space_clamps_along_the_components_only():
     comps = np.linalg.qr(rng.normal(size=(136, 3)))[0].T  # orthonormal rows
     comps -= np.outer(comps @ mean, mean)  # orthogonal to the mean (no scale change)
     comps = np.linalg.qr(comps.T)[0].T
-    space = ShapeSpace(mean, comps, np.array([0.02, 0.01, 0.01]))
+    space = ShapeSpace(mean, comps, np.array([0.02, 0.01, 0.01]), keep_eyes=False)  # the eyelids: the next test
     frame = np.array([[2.0, -0.5, 100.0], [0.5, 2.0, 50.0]])  # model frame -> image frame
     inside = (mean + 0.5 * space.limit @ comps).reshape(68, 2)
     shape = apply_affine(inside, frame)
@@ -177,3 +177,31 @@ def test_shape_space_clamps_along_the_components_only():
     assert abs(before[0]) > 5 * space.limit[0]
     # one projection step: the similarity re-fit of the moved shape leaves it near the limit
     assert abs(b[0]) <= 1.5 * space.limit[0]
+
+
+def test_shape_space_keeps_the_eyelids_relative_to_their_corners():
+    from facesynth.landmarks import LEFT_EYE, RIGHT_EYE
+    from facesynth.retarget import ShapeSpace
+
+    rng = np.random.default_rng(1)
+    mean = _faces()[0] - _faces()[0].mean(0)
+    mean = (mean / np.linalg.norm(mean)).reshape(-1)
+    comps = np.linalg.qr(rng.normal(size=(136, 3)))[0].T
+    comps -= np.outer(comps @ mean, mean)
+    comps = np.linalg.qr(comps.T)[0].T
+    limit = np.array([0.02, 0.01, 0.01])
+    wide = (mean + 10 * limit[0] * comps[0]).reshape(68, 2).copy()
+    wide[[37, 38, 43, 44], 1] -= 0.02  # upper lids up: wider eyes than the model has seen
+    wide[[40, 41, 46, 47], 1] += 0.02
+
+    def local(shape, eye):  # the eye contour in the frame of its two corners (translation, rotation, scale removed)
+        z = shape[list(eye), 0] + 1j * shape[list(eye), 1]
+        return (z - z[0]) / (z[3] - z[0])
+
+    kept = ShapeSpace(mean, comps, limit).project(wide)
+    cut = ShapeSpace(mean, comps, limit, keep_eyes=False).project(wide)
+    for eye in (RIGHT_EYE, LEFT_EYE):
+        np.testing.assert_allclose(local(kept, eye), local(wide, eye), atol=1e-9)
+        assert np.abs(local(cut, eye) - local(wide, eye)).max() > 1e-3  # without: the clamp moves the lids too
+    others = [i for i in range(68) if i not in RIGHT_EYE + LEFT_EYE]
+    np.testing.assert_allclose(kept[others], cut[others], atol=1e-12)  # the rest of the face is clamped alike
