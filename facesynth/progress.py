@@ -1,6 +1,6 @@
 """Progress for every step that can take more than a couple of seconds: one place.
 
-* :func:`bar` is a tqdm bar (items/s, ETA) on stderr that disappears when done;
+* :func:`bar` is a tqdm bar (items/s, ETA) on stderr that disappears when done (terminals only);
 * :func:`stage` is a context manager that prints one line per finished stage with its time,
   e.g. ``[facesynth] evaluation: 60 test frames x 4 noise levels in 8.4 s``;
 * :func:`set_quiet` (``--quiet`` on every command, ``quiet=true`` for ``train.py``) turns
@@ -37,10 +37,14 @@ def bar(iterable: Iterable | None = None, total: int | None = None, desc: str = 
     """A tqdm progress bar (rate in ``unit``/s) unless quiet or ``enabled`` is False.
 
     Leaves no line behind when it closes: the finished stage's line comes from :func:`stage`.
+    Only on a terminal: when stderr is a file or a pipe (CI, batch workers, ``2> log``) the
+    bar is off (tqdm's ``disable=None``), since each redraw would be a new line there; the
+    stage lines still say what finished and how long it took.
     """
     kwargs.setdefault("leave", False)
     kwargs.setdefault("dynamic_ncols", True)
-    return tqdm(iterable, total=total, desc=desc, unit=unit, disable=_QUIET or not enabled, file=sys.stderr, **kwargs)
+    return tqdm(iterable, total=total, desc=desc, unit=unit, disable=True if _QUIET or not enabled else None,
+                file=sys.stderr, **kwargs)
 
 
 def note(message: str) -> None:
