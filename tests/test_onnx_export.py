@@ -151,3 +151,12 @@ def test_landmark_feature_kinds_export_with_parity(features, tmp_path):
     syn = Synthesizer(model, GlobalAppearance(model, reg, features)).eval()
     path = export_synthesizer(syn, tmp_path / f"{features}.onnx")
     _assert_parity(_ort(path), syn, driving_landmarks(seed=5, n=5))
+
+
+def test_printed_summary_describes_the_bulky_avatar_metadata():
+    from facesynth.onnx.cli import _brief
+
+    meta = {"regressor": "linear", "avatar_neutral": [[1.0, 2.0]] * 68, "avatar_neutral_row": 3,
+            "shape_pca": {"mean": [0.0] * 136, "components": [[0.0] * 136] * 2, "limit": [0.1, 0.2]}, "background_jpeg": "x" * 5000}
+    out = _brief(meta)
+    assert out == {"regressor": "linear", "avatar_neutral_row": 3, "shape_pca_components": 2, "background_jpeg_chars": 5000}

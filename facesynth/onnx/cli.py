@@ -99,11 +99,23 @@ def export_model(run_dir, out, opset: int = OPSET, components: int | None = DEFA
         raise FacesynthError(f"{run_dir}: holds an ERI model only; pass --target IMAGE_OR_DIR to export it for a target face")
     with stage("ONNX export"):
         path, syn, meta = export_run(run_dir, out, opset, components, predicted_variance, landmarks, basis)
-    summary = {"out": str(path), "bytes": path.stat().st_size, **meta, "opset": opset}
+    summary = {"out": str(path), "bytes": path.stat().st_size, **_brief(meta), "opset": opset}
     if check:
         with stage("ONNX Runtime vs torch check"):
             summary["max_abs_diff_vs_torch"] = _checked(path, check_export, syn)
     return summary
+
+
+def _brief(meta: dict) -> dict:
+    """The metadata for the printed summary: the avatar's bulky entries (its neutral
+    landmarks, shape PCA, neutral frame as base64 JPEG: tens of kB) are stored in the model
+    but only described here."""
+    out = {k: v for k, v in meta.items() if k not in ("avatar_neutral", "shape_pca", "background_jpeg")}
+    if "shape_pca" in meta:
+        out["shape_pca_components"] = len(meta["shape_pca"]["limit"])
+    if "background_jpeg" in meta:
+        out["background_jpeg_chars"] = len(meta["background_jpeg"])
+    return out
 
 
 def export_eri_model(run_dir, out, target, target_landmarks=None, target_frame: int | None = None,
