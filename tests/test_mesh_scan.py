@@ -68,6 +68,20 @@ def test_geodesic_region_survives_an_isometric_bend_and_the_euclidean_ball_does_
     assert change["euclidean"] > 0.01 and change["euclidean"] > 5 * change["geodesic"]  # measured 1.6 %
 
 
+def test_spots_enclosed_by_the_region_are_kept_and_the_outside_is_not():
+    from facesynth.mesh.segment import _close_islands
+
+    f = synthetic_face(21, dome=0.0)
+    V, F = f["vertices"], f["faces"]
+    c = V[F].mean(axis=1)
+    region = F[np.linalg.norm(c[:, :2], axis=1) < 4.0]
+    spot = np.linalg.norm(c[:, :2] - [0.5, 0.5], axis=1) < 1.0  # inside the disk
+    region_with_hole = F[(np.linalg.norm(c[:, :2], axis=1) < 4.0) & ~spot]
+    closed = _close_islands(V, F, region_with_hole)
+    assert len(closed) == len(region) and {tuple(t) for t in closed.tolist()} == {tuple(t) for t in region.tolist()}
+    assert len(_close_islands(V, F, region)) == len(region)  # nothing enclosed: unchanged
+
+
 def test_segmentation_errors(face):
     f, _ = face
     with pytest.raises(FacesynthError, match="68"):

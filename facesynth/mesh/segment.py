@@ -138,9 +138,11 @@ def _close_islands(V: np.ndarray, F: np.ndarray, Fk: np.ndarray) -> np.ndarray:
     """``Fk`` (rows of ``F``) plus every patch of ``F`` left out of it but enclosed by it (a
     spot beyond the radius inside the region, e.g. skin stretched between two features that
     neither reaches): the region's holes are then only the mesh's own openings."""
-    n = len(V)
-    key = lambda T: (T[:, 0] * n + T[:, 1]) * n + T[:, 2]  # noqa: E731
-    out = ~np.isin(key(F), key(Fk))
+    _, inv = np.unique(np.concatenate([F, Fk]), axis=0, return_inverse=True)
+    inv = inv.ravel()
+    taken = np.zeros(inv.max() + 1, bool)
+    taken[inv[len(F):]] = True
+    out = ~taken[inv[:len(F)]]
     loops = ordered_boundary_loops(Fk)
     if len(loops) < 2 or not out.any():
         return Fk
@@ -202,7 +204,9 @@ def label_loops(V: np.ndarray, F: np.ndarray, landmarks: np.ndarray) -> tuple[di
 def segment_face(vertices: np.ndarray, faces: np.ndarray, landmarks, radius: float, metric: str = "geodesic",
                  sources: str | dict = SOURCES[0], remove_features: bool | str = True, method: str = "heat",
                  colors: np.ndarray | None = None) -> FaceRegion:
-    """Cut the face region out of a mesh (see the module docstring).
+    """Cut the face region out of a mesh (see the module docstring). Spots beyond the radius
+    that the region encloses are kept: its only holes are the mesh's own openings and, with
+    ``remove_features``, the features.
 
     Parameters
     ----------
