@@ -7,7 +7,9 @@ Sections (ICT face from ../shared/data/mesh, its 53 blendshapes at weight 1 as t
   of the new vertices to the original surface (libigl point-mesh distance), crease angle
   across the loop against the same edges on the intact mesh, colour error (colour = position).
 - ``segmentation``: share of the kept-vertex set that changes between neutral and each
-  blendshape at a fixed radius, geodesic (heat; exact MMP) against a Euclidean ball.
+  blendshape at a fixed radius, for several choices of source features (``SEGMENTATION_VARIANTS``),
+  geodesic (heat; exact MMP for the default) against a Euclidean ball; the default at
+  radius +-0.5.
 - ``drift``: per-frame EIP and HM of neutral + 53 blendshapes; how far the same vertex moves
   in a ``size`` geometry image (the mesh's own UVs: 0 by construction, one fixed layout).
 - ``codec``: an 8-frame blendshape animation as UV, EIP and HM geometry videos; RD sweep
@@ -34,6 +36,7 @@ from facesynth.codec.rd import CONFIGS, bd_rate
 from facesynth.codec.scan_cli import scan_geometry_video
 from facesynth.codec.sources import blendshape_weights, load_ict_mesh
 from facesynth.data.shared import shared_mesh_dir
+from facesynth.landmarks import EYES, INNER_LIPS, JAW, MOUTH, NOSE, OUTER_EYE_CORNERS, RIGID_NOSE_EYES
 from facesynth.mesh.holes import fill_holes, loop_crease_angles, punch_hole
 from facesynth.mesh.laplacian import ordered_boundary_loops
 from facesynth.mesh.scan import process_scan, uv_drift
@@ -71,19 +74,68 @@ def bench_holes(m, lm) -> list[dict]:
     return out
 
 
-def bench_segmentation(m, lm, names, shapes, radius: float) -> dict:
+def _bridge_mouth(V: np.ndarray, F: np.ndarray, lm: np.ndarray):
+    """The mesh with its mouth opening (the boundary loop nearest the inner-lip landmarks)
+    closed by a fan to the loop's centroid: a variant in which geodesics may cross the mouth."""
+    c = V[lm[list(INNER_LIPS)]].mean(0)
+    lp = min(ordered_boundary_loops(F), key=lambda loop: np.linalg.norm(V[loop].mean(0) - c))
+    fan = np.stack([lp, np.roll(lp, -1), np.full(len(lp), len(V))], 1)
+    return np.vstack([V, V[lp].mean(0)]), np.vstack([F, fan])
+
+
+# name -> (segment_face keywords, bridge the mouth); the first is segment_face's default
+SEGMENTATION_VARIANTS = {
+    "anchored (default)": (dict(sources="anchored"), False),
+    "points (paper: eyes + mouth)": (dict(sources="points"), False),
+    "contours": (dict(sources="contours"), False),
+    "points, mouth bridged": (dict(sources="points"), True),
+    "eye corners + nose": (dict(sources={"eyes_nose": (RIGID_NOSE_EYES, 1)}), False),
+    "eyes + nose + mouth": (dict(sources={"all": (EYES + NOSE + MOUTH, 1)}), False),
+    "eye corners + nose, mouth x2": (dict(sources={"eyes_nose": (RIGID_NOSE_EYES, 1), "mouth": (MOUTH, 2)}), False),
+    "eye corners + nose, mouth x2, chin x1.5": (dict(sources={"eyes_nose": (RIGID_NOSE_EYES, 1), "mouth": (MOUTH, 2),
+                                                              "chin": (JAW[7:10], 1.5)}), False),
+}
+
+
+def bench_segmentation(m, lm, names, shapes, radius: float, exact: bool = True) -> dict:
+    """Kept-set change against neutral per blendshape, per variant and metric (before the
+    eye/mouth cut); ``radius_sweep``: the default at radius +-0.5; ``inter_ocular``: the
+    largest relative change of the outer eye-corner distance (what a per-frame radius
+    normalisation would divide by); ``landmark_motion_cm``: displacement of a few landmarks
+    under the mouth shapes."""
     V, F, B = m["vertices"], m["faces"], m["blendshapes"]
+
+    def kept(Vt, kw, bridge, r=radius):
+        Ft = F
+        if bridge:
+            Vt, Ft = _bridge_mouth(Vt, F, lm)
+        k = segment_face(Vt, Ft, lm, r, remove_features=False, **kw).kept
+        return set(k[k < len(V)].tolist())
+
+    def change(kw, bridge=False, r=radius):
+        base = kept(V, kw, bridge, r)
+        ch = np.array([len(base ^ kept(V + B[k], kw, bridge, r)) / len(base) for k in shapes])
+        worst = np.argsort(-ch)[:4]
+        return {"kept": len(base), "mean_pct": 100 * float(ch.mean()), "median_pct": 100 * float(np.median(ch)),
+                "max_pct": 100 * float(ch.max()), "within_1pct": int((ch <= 0.01).sum()), "of": len(ch),
+                "worst": {names[shapes[i]]: round(100 * float(ch[i]), 2) for i in worst}}
+
     out = {}
-    for label, kw in (("geodesic_heat", dict(metric="geodesic", method="heat")),
-                      ("geodesic_exact", dict(metric="geodesic", method="exact")),
-                      ("euclidean", dict(metric="euclidean"))):
-        base = set(segment_face(V, F, lm, radius, remove_features=False, **kw).kept.tolist())
-        ch = np.array([len(base ^ set(segment_face(V + B[k], F, lm, radius, remove_features=False, **kw).kept.tolist()))
-                       / len(base) for k in shapes])
-        worst = np.argsort(-ch)[:5]
-        out[label] = {"kept": len(base), "mean_pct": 100 * float(ch.mean()), "median_pct": 100 * float(np.median(ch)),
-                      "max_pct": 100 * float(ch.max()), "within_1pct": int((ch <= 0.01).sum()), "of": len(ch),
-                      "worst": {names[shapes[i]]: round(100 * float(ch[i]), 2) for i in worst}}
+    for label, (kw, bridge) in SEGMENTATION_VARIANTS.items():
+        out[label] = {"geodesic_heat": change(dict(kw, metric="geodesic"), bridge),
+                      "euclidean": change(dict(kw, metric="euclidean"), bridge)}
+    default = next(iter(SEGMENTATION_VARIANTS))
+    if exact:
+        out[default]["geodesic_exact"] = change(dict(metric="geodesic", method="exact"))
+    out["radius_sweep"] = {f"{r:g}": {"geodesic_heat": change(dict(metric="geodesic"), r=r),
+                                      "euclidean": change(dict(metric="euclidean"), r=r)}
+                           for r in (radius - 0.5, radius + 0.5)}
+    io = [np.linalg.norm(np.subtract(*(V + (0 if k is None else B[k]))[lm[list(OUTER_EYE_CORNERS)]]))
+          for k in (None, *shapes)]
+    out["inter_ocular"] = {"neutral_cm": float(io[0]), "max_rel_change": float(np.max(np.abs(np.array(io) / io[0] - 1)))}
+    # how far the lower lip (iBUG 58), the chin (iBUG 9) and the nose base (iBUG 34) move
+    out["landmark_motion_cm"] = {names[k]: {f"ibug{i + 1}": round(float(np.linalg.norm(B[k][lm[i]])), 2) for i in (57, 8, 33)}
+                                 for k in shapes if names[k] in ("jawOpen", "mouthClose", "mouthLeft", "mouthPucker")}
     return out
 
 
@@ -248,7 +300,7 @@ def main(argv=None) -> int:
     if "holes" in sections:
         res["holes"] = bench_holes(m, lm)
     if "segmentation" in sections:
-        res["segmentation"] = bench_segmentation(m, lm, names, shapes, args.radius)
+        res["segmentation"] = bench_segmentation(m, lm, names, shapes, args.radius, exact=not args.quick)
     if "drift" in sections:
         res["drift"] = bench_drift(m, lm, shapes, args.size, args.plots)
     if "codec" in sections:

@@ -24,6 +24,7 @@ from facesynth.errors import FacesynthError
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     from facesynth.mesh.scan import DEFAULT_RADIUS, METHODS
+    from facesynth.mesh.segment import SOURCES
 
     p.add_argument("inputs", type=Path, nargs="+", help="one .npz (vertices, faces) or one OBJ/PLY per frame")
     p.add_argument("output", type=Path, help="uint16 (T, H, W, 3) .npy")
@@ -31,6 +32,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--size", type=int, default=256, help="geometry image side in pixels (default 256)")
     p.add_argument("--radius", type=float, default=DEFAULT_RADIUS,
                    help="geodesic segmentation radius in mesh units (paper: 60-65 mm male, 45-50 mm female)")
+    p.add_argument("--sources", choices=SOURCES, default=SOURCES[0],
+                   help="segmentation features: anchored (eye corners + nose, mouth, chin; default), points "
+                        "(eyes + mouth, the paper's) or contours")
     p.add_argument("--method", choices=METHODS, default="eip", help="eip (expression-invariant) or hm (disk)")
     p.add_argument("--no-fill", action="store_true", help="do not fill holes first")
 
@@ -74,7 +78,8 @@ def load_landmarks(path: Path, n_frames: int, n_vertices: list[int]) -> np.ndarr
 
 
 def scan_geometry_video(vertices: list[np.ndarray], faces: list[np.ndarray], landmarks: np.ndarray, size: int,
-                        radius: float | None = None, method: str = "eip", fill: bool = True):
+                        radius: float | None = None, method: str = "eip", fill: bool = True,
+                        sources: str | None = None):
     """Process every frame (:func:`facesynth.mesh.scan.process_scan`) and build the video.
 
     Returns ``(video uint16 (T, H, W, 3), mask (H, W), quantiser, frames: list of ScanFrame,
@@ -82,7 +87,8 @@ def scan_geometry_video(vertices: list[np.ndarray], faces: list[np.ndarray], lan
     from facesynth.codec.geometry import build_layout, geometry_video_layouts
     from facesynth.mesh.scan import DEFAULT_RADIUS, process_scan
 
-    frames = [process_scan(v, f, lm, DEFAULT_RADIUS if radius is None else radius, method, fill)
+    extra = {} if sources is None else {"sources": sources}
+    frames = [process_scan(v, f, lm, DEFAULT_RADIUS if radius is None else radius, method, fill, **extra)
               for v, f, lm in zip(vertices, faces, landmarks, strict=True)]
     layouts = [build_layout(fr.faces, np.clip(fr.uv, 0.0, 1.0), size) for fr in frames]
     video, q, mask = geometry_video_layouts(layouts, [fr.vertices for fr in frames])
@@ -98,7 +104,7 @@ def run(args: argparse.Namespace) -> int:
     verts, faces = load_sequence(args.inputs)
     lm = load_landmarks(args.landmarks, len(verts), [len(v) for v in verts])
     video, mask, q, frames, _ = scan_geometry_video(verts, faces, lm, args.size, args.radius, args.method,
-                                                    not args.no_fill)
+                                                    not args.no_fill, args.sources)
     side = {"lo": q.lo, "hi": q.hi}
     for t, fr in enumerate(frames):
         side[f"uv_{t}"], side[f"faces_{t}"], side[f"source_{t}"] = fr.uv, fr.faces, fr.source

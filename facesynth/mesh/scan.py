@@ -17,7 +17,7 @@ from facesynth.mesh.eip import harmonic_disk, parameterise
 from facesynth.mesh.eip_domain import Domain
 from facesynth.mesh.holes import fill_holes
 from facesynth.mesh.laplacian import ordered_boundary_loops
-from facesynth.mesh.segment import FEATURE_CONTOURS, segment_face
+from facesynth.mesh.segment import FEATURE_CONTOURS, SOURCES, segment_face
 
 # The paper's radius for male faces, 60-65 mm, in the ICT face's units (cm).
 DEFAULT_RADIUS = 6.0
@@ -67,18 +67,20 @@ def _feature_loop_vertices(V: np.ndarray, F: np.ndarray, lm: np.ndarray) -> np.n
 
 def process_scan(vertices: np.ndarray, faces: np.ndarray, landmarks, radius: float = DEFAULT_RADIUS,
                  method: str = "eip", fill: bool = True, colors: np.ndarray | None = None,
-                 domain: Domain | None = None, metric: str = "geodesic", features: bool | str = "always"
-                 ) -> ScanFrame:
+                 domain: Domain | None = None, metric: str = "geodesic", features: bool | str = "always",
+                 sources: str = SOURCES[0]) -> ScanFrame:
     """Fill, segment and parameterise one scan.
 
     Parameters
     ----------
     vertices : (V, 3); faces : (F, 3), consistently oriented with normals towards the viewer.
-    landmarks : (68,) int, iBUG-68 landmark vertices (eyes and mouth needed; nose 28, 31,
-        34 and upper lip 52 steer the EIP's cuts when present, -1 where absent).
+    landmarks : (68,) int, iBUG-68 landmark vertices (eyes and mouth needed, and with the
+        default ``sources`` the nose and chin 8-10; nose 28, 31, 34 and upper lip 52 steer the
+        EIP's cuts when present, -1 where absent).
     radius : segmentation radius in mesh units (:data:`DEFAULT_RADIUS`, for cm).
     method : ``eip`` (expression-invariant) or ``hm`` (harmonic map to the disk).
     fill : fill the holes that are not the rim, the eyes or the mouth first.
+    sources : segmentation sources (:func:`~facesynth.mesh.segment.feature_distance`).
     features : ``remove_features`` of :func:`~facesynth.mesh.segment.segment_face`; the
         default cuts every opening at its landmark contour, so that the mouth is the inner-lip
         line in every frame.
@@ -94,7 +96,7 @@ def process_scan(vertices: np.ndarray, faces: np.ndarray, landmarks, radius: flo
     if fill:
         fm = fill_holes(V, F, colors=colors, keep_open=_feature_loop_vertices(V, F, lm))
         V, F, colors, n_filled = fm.vertices, fm.faces, fm.colors, len(fm.loops)
-    region = segment_face(V, F, lm, radius, metric=metric, colors=colors, remove_features=features)
+    region = segment_face(V, F, lm, radius, metric=metric, sources=sources, colors=colors, remove_features=features)
     if region.extra_loops:
         raise FacesynthError(f"scan: {len(region.extra_loops)} holes left inside the face region (fill them)")
     local = np.full(len(V), -1, np.int64)
