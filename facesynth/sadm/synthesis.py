@@ -156,6 +156,7 @@ class Synthesizer(nn.Module):
         self.appearance = appearance
         self.warp = ToTarget(model.reference, model.span)
         self.register_buffer("ref_points", torch.from_numpy(model.reference.points.copy()))
+        self.scheme = model.scheme  # the landmark scheme of the input (recorded by the export)
 
     def with_appearance(self, appearance: nn.Module) -> "Synthesizer":
         """A copy (eval mode) with another appearance model, sharing everything else."""
