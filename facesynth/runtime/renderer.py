@@ -141,7 +141,8 @@ class Renderer:
         """Check (B, P, 2) (or one (P, 2)) finite real landmarks of the model's scheme (P its
         point count) -> C-contiguous float32 (B, P, 2). Another scheme's points are an error
         that names both schemes."""
-        shape = np.shape(landmarks)
+        landmarks = as_array(landmarks, "landmarks")  # a ragged list fails here, clearly
+        shape = landmarks.shape
         other = scheme_for_points(shape[-2]) if len(shape) >= 2 and shape[-1] == 2 else None
         if other is not None and other is not self.scheme:
             raise FacesynthError(f"landmarks: this model takes {self.scheme.name} landmarks ({self.scheme.n_points} points), "
