@@ -98,7 +98,7 @@ def test_scheme_mismatch_between_model_and_landmarks_is_a_clear_error(dense):
 @pytest.mark.parametrize("name", ["linear", "mlp"])
 def test_478_point_model_trains_exports_and_matches_torch_in_onnx_runtime(dense, tmp_path, name):
     pytest.importorskip("onnx")
-    from facesynth.onnx.synthesis import check_export, export_synthesizer
+    from facesynth.onnx.synthesis import check_export, export_run, export_synthesizer
     from facesynth.runtime import Renderer
 
     seq68, seq, model, tex = dense
@@ -117,6 +117,10 @@ def test_478_point_model_trains_exports_and_matches_torch_in_onnx_runtime(dense,
     with torch.no_grad():
         t_crop, t_mask, _ = syn(torch.from_numpy(lm))
     assert np.abs(crops - t_crop.numpy()).max() <= 1e-4 and masks.sum() > 0.3 * masks.size
+    # what `facesynth export` writes (compressed appearance, int8 basis) matches too
+    path2, syn2, meta = export_run(tmp_path / "run", tmp_path / "default.onnx", components=4, landmarks=seq.landmarks)
+    assert meta["appearance_basis"] == "int8" and meta["appearance_components"] == 4
+    assert check_export(syn2, path2, lm, tol=1e-4) <= 1e-4
     with pytest.raises(FacesynthError, match=r"this model takes mediapipe478 landmarks \(478 points\), got ibug68 ones"):
         r.render(seq68.landmarks[:1])
 
