@@ -25,7 +25,7 @@ default export per regressor.
 Both landmark schemes in one run: ``--dense DIR`` (a folder that ``facesynth ingest
 --landmarker mediapipe`` wrote, e.g. of the same clip) measures a ``mediapipe478`` model
 too, under ``schemes.mediapipe478`` (same settings), and ``summary`` becomes
-``{scheme: {regressor: frames/s}}``. ``--variants default`` and ``--no-torch`` shorten a run.
+``{scheme: {regressor: frames/s}}``. ``--variants default``, ``--no-torch`` and ``--max-epochs`` shorten a run.
 
 Prints ONE JSON line.
 
@@ -136,6 +136,7 @@ def main(argv=None) -> int:
     p.add_argument("--variants", default="uncompressed,compressed,default", help="export variants to measure")
     p.add_argument("--no-torch", action="store_true", help="skip the torch eager figures")
     p.add_argument("--dense", type=Path, help="a mediapipe478 ingest folder: measure that scheme too, same settings")
+    p.add_argument("--max-epochs", type=int, help="cap the MLP's training epochs (speed does not depend on them)")
     args = p.parse_args(argv)
 
     from facesynth.data import load_sequence, shared_clip
@@ -190,6 +191,8 @@ def _bench_clip(seq, args) -> dict:
             entry: dict = {}
             t0 = time.perf_counter()
             rname, params, sadm_cfg = train_defaults(name)  # as train.py regressor=NAME
+            if args.max_epochs and "max_epochs" in params:
+                params = {**params, "max_epochs": args.max_epochs}
             sadm = fit_sadm(model, seq, rows, tex, rname, params, sadm_cfg)
             entry["fit_s"] = round(time.perf_counter() - t0, 2)
             entry["summary"] = sadm.regressor.summary()
