@@ -13,6 +13,9 @@ from facesynth.model.reference import ReferenceFrame
 from facesynth.ops import pad_by_tensor, sum4
 
 
+PER_PIXEL_TRIANGLES = 256  # above this many triangles, pixels gather their triangle's map (dense meshes)
+
+
 class ToTarget(nn.Module):
     """Warp reference-frame textures onto target landmark sets (piecewise affine).
 
@@ -176,6 +179,8 @@ class ToTarget(nn.Module):
         self.register_buffer("ones4", torch.ones(1, 4))
         self.register_buffer("canvas_max", torch.tensor([float(w), float(h)]))  # (x, y) limits
         self.register_buffer("zero2", torch.zeros(2))
+        # per-pixel source lookup (:meth:`_source_per_pixel`): offsets of the 8 fields of each triangle
+        self.register_buffer("field_offset", torch.arange(8, dtype=torch.int64).reshape(1, 8, 1) * (n_tri + 2))
 
     @property
     def n_candidates(self) -> int:
@@ -284,6 +289,8 @@ class ToTarget(nn.Module):
         """
         tab = torch.cat([F.pad(maps, (0, 0, 1, 0)), self.overlap_map + maps[:, :1] * 0.0], 1)  # (B, T + 2, 6), row t + 1 = triangle t
         org = F.pad(origin, (0, 0, 1, 1))  # (B, T + 2, 2)
+        if self.n_tri > PER_PIXEL_TRIANGLES:
+            return self._source_per_pixel(tab, org, s, cols, rows)
         zero = cols * 0.0
         dx = cols - org[..., 0:1]  # (B, T + 2, Wb)
         u0 = (tab[..., 0:1] * dx + tab[..., 2:3]).flatten(1)  # (B, (T + 2) Wb)
@@ -297,6 +304,21 @@ class ToTarget(nn.Module):
         dy = rows.unsqueeze(1) - torch.gather(y0, 1, index).reshape_as(s)  # (B, 1, Hb, Wb)
         u = torch.gather(u0, 1, index).reshape_as(s) + torch.gather(uy, 1, index).reshape_as(s) * dy
         v = torch.gather(v0, 1, index).reshape_as(s) + torch.gather(vy, 1, index).reshape_as(s) * dy
+        return u, v
+
+    def _source_per_pixel(self, tab: torch.Tensor, org: torch.Tensor, s: torch.Tensor, cols: torch.Tensor,
+                          rows: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """:meth:`source` for dense meshes: each pixel gathers its triangle's (x_0, y_0, u_x, u_y,
+        u_0, v_x, v_y, v_0) instead of reading (T + 2) Wb-entry tables; same products, same order."""
+        n = self.n_tri + 2
+        table = torch.cat([org.transpose(1, 2), tab.transpose(1, 2)], 1).flatten(1)  # (B, 8 (T + 2))
+        t = (torch.clamp(s, self.code_base, self.code_base + self.n_tri + 1) - self.code_base).to(torch.int64)
+        index = (t.flatten(1).unsqueeze(1) + self.field_offset).flatten(1)  # (B, 8 N)
+        f = torch.gather(table, 1, index).reshape(-1, 8, *s.shape[2:])  # (B, 8, Hb, Wb)
+        dx = cols - f[:, 0:1]
+        dy = rows.unsqueeze(1) - f[:, 1:2]
+        u = f[:, 2:3] * dx + f[:, 4:5] + f[:, 3:4] * dy
+        v = f[:, 5:6] * dx + f[:, 7:8] + f[:, 6:7] * dy
         return u, v
 
     def bilinear(self, textures: torch.Tensor, u: torch.Tensor, v: torch.Tensor, inside: torch.Tensor) -> torch.Tensor:
