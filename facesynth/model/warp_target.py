@@ -12,7 +12,6 @@ from torch.nn import functional as F
 from facesynth.model.reference import ReferenceFrame
 from facesynth.ops import pad_by_tensor, sum4
 
-
 PER_PIXEL_TRIANGLES = 256  # above this many triangles, pixels gather their triangle's map (dense meshes)
 
 
@@ -310,7 +309,6 @@ class ToTarget(nn.Module):
                           rows: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """:meth:`source` for dense meshes: each pixel gathers its triangle's (x_0, y_0, u_x, u_y,
         u_0, v_x, v_y, v_0) instead of reading (T + 2) Wb-entry tables; same products, same order."""
-        n = self.n_tri + 2
         table = torch.cat([org.transpose(1, 2), tab.transpose(1, 2)], 1).flatten(1)  # (B, 8 (T + 2))
         t = (torch.clamp(s, self.code_base, self.code_base + self.n_tri + 1) - self.code_base).to(torch.int64)
         index = (t.flatten(1).unsqueeze(1) + self.field_offset).flatten(1)  # (B, 8 N)
