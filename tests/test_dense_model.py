@@ -151,3 +151,20 @@ def test_per_pixel_source_equals_the_table_lookup(dense, monkeypatch):
         img_tab, mask_tab = wt.ToTarget(model.reference, model.span)(t, target)
     assert torch.equal(mask, mask_tab) and mask.sum() > 0
     assert (img - img_tab).abs().max() <= 1e-5
+
+
+@pytest.mark.parametrize("name", ["poly2", "svr", "krr"])
+def test_every_regressor_fits_on_956_landmark_inputs(dense, name):
+    """The other regressors on the 478 aligned points (956 inputs, train.py's defaults): they
+    fit, and the synthesizer renders finite faces at held-out-like landmarks."""
+    from facesynth.runs.config import train_defaults
+
+    _, seq, model, tex = dense
+    rname, params, cfg = train_defaults(name)
+    sadm = fit_sadm(model, seq, np.arange(len(seq)), tex, rname, params, cfg)
+    assert sadm.features(seq.landmarks[:2]).shape == (2, 956)
+    with torch.no_grad():
+        crop, mask, _ = sadm.synthesizer()(torch.from_numpy(seq.landmarks[-3:] + np.float32(0.5)))
+    assert torch.isfinite(crop).all() and mask.sum() > 0
+    b = sadm.predict_params(seq.landmarks)
+    assert np.corrcoef(b[:, 0], model.appearance_params(tex)[:, 0])[0, 1] > 0.5  # it learnt the first component
