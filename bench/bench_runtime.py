@@ -22,9 +22,15 @@ basis) and ``default`` (what ``facesynth export`` writes: compressed, and the ba
 ``summary`` repeats the headline: batch-1 one-thread frames/s (wall, CPU, best round) of the
 default export per regressor.
 
+Both landmark schemes in one run: ``--dense DIR`` (a folder that ``facesynth ingest
+--landmarker mediapipe`` wrote, e.g. of the same clip) measures a ``mediapipe478`` model
+too, under ``schemes.mediapipe478`` (same settings), and ``summary`` becomes
+``{scheme: {regressor: frames/s}}``. ``--variants default``, ``--no-torch`` and ``--max-epochs`` shorten a run.
+
 Prints ONE JSON line.
 
     PYTHONPATH=. python bench/bench_runtime.py [--regressors linear,mlp] [--components 40] [--reps 1000]
+    PYTHONPATH=. python bench/bench_runtime.py --regressors linear,mlp --variants default --no-torch --dense /tmp/mp/lp_d6
 """
 
 from __future__ import annotations
@@ -72,7 +78,7 @@ def _throughput(fn, reps: int, batch: int) -> dict:
             "frames_per_s_cpu": round(batch / t["cpu_ms_p50"] * 1e3, 1)}
 
 
-def _measure(syn, path, lm, reps: int, reps32: int) -> dict:
+def _measure(syn, path, lm, reps: int, reps32: int, with_torch: bool = True) -> dict:
     """ONNX Runtime and torch eager figures of one exported model."""
     import torch
 
@@ -93,6 +99,8 @@ def _measure(syn, path, lm, reps: int, reps32: int) -> dict:
             "wall": round(1e3 / b["wall_ms_p50"], 1), "cpu": round(1e3 / b["cpu_ms_p50"], 1),
             "wall_best_round": round(1e3 / b["wall_ms_best_round_p50"], 1), "cpu_best_round": round(1e3 / b["cpu_ms_best_round_p50"], 1)}
     res["onnxruntime"] = ort_res
+    if not with_torch:
+        return res
     torch_res = {}
     xt = torch.from_numpy(lm)
     with torch.no_grad():
@@ -125,9 +133,33 @@ def main(argv=None) -> int:
     p.add_argument("--reps", type=int, default=1000,
                    help="batch-1 repetitions per setting (about a second each: a median robust to shorter bursts of other load)")
     p.add_argument("--reps32", type=int, default=20, help="batch-32 repetitions")
+    p.add_argument("--variants", default="uncompressed,compressed,default", help="export variants to measure")
+    p.add_argument("--no-torch", action="store_true", help="skip the torch eager figures")
+    p.add_argument("--dense", type=Path, help="a mediapipe478 ingest folder: measure that scheme too, same settings")
+    p.add_argument("--max-epochs", type=int, help="cap the MLP's training epochs (speed does not depend on them)")
     args = p.parse_args(argv)
 
     from facesynth.data import load_sequence, shared_clip
+
+    clip = shared_clip(args.clip)
+    if clip is None:
+        print(json.dumps({"error": f"shared clip {args.clip!r} is absent"}))
+        return 2
+    start = {"bench": "runtime", "clip": args.clip, "cpu_count": os.cpu_count(),
+             "loadavg_at_start": [round(v, 2) for v in os.getloadavg()]}
+    out = {**start, **_bench_clip(load_sequence(clip), args)}
+    if args.dense is not None:
+        dense = _bench_clip(load_sequence(args.dense), args)
+        out = {**start, "schemes": {"ibug68": out, dense["landmark_scheme"]: dense},
+               "summary": {"ibug68": out["summary"], dense["landmark_scheme"]: dense["summary"]}}
+    out["loadavg_at_end"] = [round(v, 2) for v in os.getloadavg()]
+    out["peak_rss_mb"] = round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1)
+    print(json.dumps(out))
+    return 0
+
+
+def _bench_clip(seq, args) -> dict:
+    """Every figure of one sequence (its own landmark scheme)."""
     from facesynth.model import FaceModel, FaceModelConfig
     from facesynth.onnx.config import DEFAULT_COMPONENTS
     from facesynth.onnx.synthesis import compress_for_export, export_synthesizer, quantize_for_export
@@ -135,11 +167,6 @@ def main(argv=None) -> int:
     from facesynth.runs.config import train_defaults
     from facesynth.sadm.fit import fit_sadm
 
-    clip = shared_clip(args.clip)
-    if clip is None:
-        print(json.dumps({"error": f"shared clip {args.clip!r} is absent"}))
-        return 2
-    seq = load_sequence(clip)
     rows = np.arange(0, len(seq), args.step)
     held = np.setdiff1d(np.arange(len(seq)), rows)
     t0 = time.perf_counter()
@@ -150,12 +177,13 @@ def main(argv=None) -> int:
     train_lm = lm[rows]
     keep = DEFAULT_COMPONENTS if args.components is None else args.components
     names = [s for s in args.regressors.split(",") if s] or sorted(REGISTRY)
+    variants = [v for v in args.variants.split(",") if v]
     out = {
-        "bench": "runtime", "clip": args.clip, "train_frames": int(len(rows)), "heldout_frames": int(len(held)),
+        "landmark_scheme": seq.scheme, "n_landmarks": int(seq.landmarks.shape[1]),
+        "train_frames": int(len(rows)), "heldout_frames": int(len(held)),
         "reference_size": list(model.reference.size), "n_shape": model.shape_pca.n_components,
         "n_appearance": model.appearance_pca.n_components, "n_triangles": model.reference.n_triangles,
-        "components_kept": keep, "cpu_count": os.cpu_count(), "loadavg_at_start": [round(v, 2) for v in os.getloadavg()],
-        "model_fit_s": round(fit_s, 1), "summary": {}, "regressors": {},
+        "components_kept": keep, "model_fit_s": round(fit_s, 1), "summary": {}, "regressors": {},
     }
     with tempfile.TemporaryDirectory(prefix="bench_runtime_") as tmp_dir:  # the exported files are removed
         tmp = Path(tmp_dir)
@@ -163,6 +191,8 @@ def main(argv=None) -> int:
             entry: dict = {}
             t0 = time.perf_counter()
             rname, params, sadm_cfg = train_defaults(name)  # as train.py regressor=NAME
+            if args.max_epochs and "max_epochs" in params:
+                params = {**params, "max_epochs": args.max_epochs}
             sadm = fit_sadm(model, seq, rows, tex, rname, params, sadm_cfg)
             entry["fit_s"] = round(time.perf_counter() - t0, 2)
             entry["summary"] = sadm.regressor.summary()
@@ -170,20 +200,19 @@ def main(argv=None) -> int:
             small, info = compress_for_export(syn, train_lm, keep)
             default, q_info = quantize_for_export(small, train_lm)
             for tag, s_ in (("uncompressed", syn), ("compressed", small), ("default", default)):
+                if tag not in variants:
+                    continue
                 path = export_synthesizer(s_, tmp / f"{name}_{tag}.onnx", {"data_fingerprint": model.fingerprint})
                 res = {"appearance_components": int(s_.appearance.components.shape[0]),
                        "appearance_basis": "float32" if s_.appearance.basis is None else "int8",
                        "heldout_texture_psnr_db": _heldout_psnr(s_, lm[held], tex_held)}
-                res.update(_measure(s_, path, lm, args.reps, args.reps32))
+                res.update(_measure(s_, path, lm, args.reps, args.reps32, not args.no_torch))
                 entry[tag] = res
             entry["compression"] = {k: v for k, v in info.items() if k != "kept_components"}
             entry["quantization"] = q_info
             out["regressors"][name] = entry
-            out["summary"][name] = entry["default"]["onnxruntime"]["frames_per_s_batch1_threads1"]
-    out["loadavg_at_end"] = [round(v, 2) for v in os.getloadavg()]
-    out["peak_rss_mb"] = round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1)
-    print(json.dumps(out))
-    return 0
+            out["summary"][name] = entry[variants[-1]]["onnxruntime"]["frames_per_s_batch1_threads1"]
+    return out
 
 
 if __name__ == "__main__":

@@ -98,12 +98,14 @@ def test_bad_models_are_clear_errors(model_path, tmp_path):
     with pytest.raises(FacesynthError, match="not a loadable ONNX model"):
         Renderer(tmp_path / "junk.onnx")
     m = onnx.load(str(model_path))
-    for prop in m.metadata_props:
-        if prop.key == "landmark_scheme":
-            prop.value = "mediapipe478"
-    onnx.save(m, str(tmp_path / "scheme.onnx"))
-    with pytest.raises(FacesynthError, match="landmark scheme 'mediapipe478'"):
-        Renderer(tmp_path / "scheme.onnx")
+    for scheme, match in (("mediapipe478", r"metadata 'n_landmarks' is 68, but scheme 'mediapipe478' has 478 points"),
+                          ("dlib5", r"landmark scheme 'dlib5'; this runtime knows ibug68, mediapipe478")):
+        for prop in m.metadata_props:
+            if prop.key == "landmark_scheme":
+                prop.value = scheme
+        onnx.save(m, str(tmp_path / "scheme.onnx"))
+        with pytest.raises(FacesynthError, match=match):
+            Renderer(tmp_path / "scheme.onnx")
     del m.metadata_props[:]
     onnx.save(m, str(tmp_path / "plain.onnx"))
     with pytest.raises(FacesynthError, match="not a facesynth synthesis model"):

@@ -17,11 +17,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--max-test-frames", type=int, metavar="N",
                    help="whole-frame PSNR on N evenly spaced test frames (default: EvalConfig.max_test_frames, 100; "
                         "0: every test frame)")
+    p.add_argument("--common-landmarks", type=Path, metavar="PATH",
+                   help="dlib (T, 68, 2) landmarks for psnr_frame_common (default: found as docs/sadm.md says)")
     p.add_argument("--json", type=Path, help="write the metrics here (JSON)")
 
 
 def run(args: argparse.Namespace) -> int:
     from facesynth import progress
+    from facesynth.eval.common_region import common_landmarks
     from facesynth.eval.sadm_eval import EvalConfig, evaluate_sadm
     from facesynth.io import write_json
     from facesynth.runs.rundir import read_config, run_data, summary_lines
@@ -39,8 +42,10 @@ def run(args: argparse.Namespace) -> int:
     ecfg = EvalConfig(noise=noise, frame_level=not args.no_frame)
     if args.max_test_frames is not None:
         ecfg.max_test_frames = args.max_test_frames
+    ecfg.common_landmarks = str(args.common_landmarks) if args.common_landmarks else None
+    common = common_landmarks(seq, ecfg.common_landmarks) if ecfg.frame_level and seq.has_frames else None
     with progress.stage("evaluation"):
-        metrics, _ = evaluate_sadm(sadm, seq, tr, te, ecfg, int(cfg.seed))
+        metrics, _ = evaluate_sadm(sadm, seq, tr, te, ecfg, int(cfg.seed), common=common)
     metrics["evaluated_data"] = {"name": seq.name, "fingerprint": seq.fingerprint}
     print("\n".join(summary_lines(metrics)))
     if args.json:

@@ -17,6 +17,7 @@ import cv2
 import numpy as np
 
 from facesynth import progress
+from facesynth.eval.common_region import REGIONS, hull_box, region_masks
 from facesynth.imaging import composite
 
 MARGIN = 8  # px around the crops' footprint: > feather erosion + Gaussian support + bilinear reach
@@ -47,7 +48,20 @@ def _shift(place: np.ndarray, y0: int, x0: int) -> np.ndarray:
     return p
 
 
-def frame_level(model, predict, seq, rows, tex_te, oracle, cfg, seed, keys, noisy, n_grid: int = 6):
+def _union(a: tuple, b: tuple) -> tuple:
+    return min(a[0], b[0]), max(a[1], b[1]), min(a[2], b[2]), max(a[3], b[3])
+
+
+def _place(mask: np.ndarray, src: tuple, dst: tuple) -> np.ndarray:
+    """A bool mask over frame box ``src`` (y0, y1, x0, x1) re-cut to frame box ``dst`` (False outside ``src``)."""
+    out = np.zeros((dst[1] - dst[0], dst[3] - dst[2]), bool)
+    y0, y1, x0, x1 = max(src[0], dst[0]), min(src[1], dst[1]), max(src[2], dst[2]), min(src[3], dst[3])
+    if y1 > y0 and x1 > x0:
+        out[y0 - dst[0] : y1 - dst[0], x0 - dst[2] : x1 - dst[2]] = mask[y0 - src[0] : y1 - src[0], x0 - src[2] : x1 - src[2]]
+    return out
+
+
+def frame_level(model, predict, seq, rows, tex_te, oracle, cfg, seed, keys, noisy, n_grid: int = 6, common=None):
     """Pooled frame-level PSNR per row and noise level, per-frame PSNR, and grid tiles.
 
     Parameters
@@ -56,15 +70,19 @@ def frame_level(model, predict, seq, rows, tex_te, oracle, cfg, seed, keys, nois
     rows : (N_test,) sequence rows of the test frames; tex_te, oracle : (N_test, C * M)
     cfg : EvalConfig (noise, max_test_frames, feather, batch_size); keys : noise keys
     noisy : callable (landmarks, sigma, seed) -> noisy landmarks
+    common : (N_test, 68, 2) dlib landmarks of the test frames, or None: also measure over
+        their common region (:mod:`facesynth.eval.common_region`)
 
     Returns
     -------
-    psnr : {row: {noise key: dB}}
+    psnr : {row: {noise key: dB}}; with ``common``, also ``psnr["common"]``:
+        {region: {row: {noise key: dB}}} for the regions of :data:`REGIONS` (the caller pops it)
     per_frame : {"index": (n,) test-row positions evaluated, "psnr": {row: (n,) dB at sigma 0}}
     grid : list of dicts (real, synth uint8 crops, frame row, psnr)
     """
     pick = subset(len(rows), cfg.max_test_frames)
     n = len(pick)
+    common = None if common is None else np.asarray(common)[pick]
     lm = seq.landmarks[rows[pick]]
     mean = np.broadcast_to(np.clip(model.appearance_pca.mean, 0, 1), (n, tex_te.shape[1]))
     # each frame's noise is seeded by its row, so a frame gets the same noise in any subset
@@ -73,6 +91,7 @@ def frame_level(model, predict, seq, rows, tex_te, oracle, cfg, seed, keys, nois
     sources = {"sadm": {k: predict(v) for k, v in lm_noisy.items()}, "mean_texture": mean, "oracle": oracle[pick],
                "rewarp": tex_te[pick]}
     sq = {name: {k: np.zeros((n, 2)) for k in keys} for name in sources}
+    sq_common = {reg: {name: {k: np.zeros((n, 2)) for k in keys} for name in sources} for reg in REGIONS}
     show = set(subset(n, n_grid).tolist())
     k0 = keys[[float(s) for s in cfg.noise].index(0.0)] if 0.0 in [float(s) for s in cfg.noise] else keys[0]
     grid = []
@@ -92,30 +111,38 @@ def frame_level(model, predict, seq, rows, tex_te, oracle, cfg, seed, keys, nois
             y0, y1, x0, x1 = _roi(places, cmask.shape[1:3], frame.shape[:2])
             region = cv2.warpAffine(cmask[b], _shift(cplace[b], y0, x0), (x1 - x0, y1 - y0)) > 0.999
             region = cv2.erode(region.astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
-            # only the region's pixels are compared: paste into its bounding box plus a margin
+            # only the regions' pixels are compared: paste into their bounding box plus a margin
             # (alpha at a pixel depends on the mask within erosion + blur reach < MARGIN)
             ys, xs = np.nonzero(region)
-            ry0, ry1 = max(ys.min() - MARGIN, 0), min(ys.max() + 1 + MARGIN, y1 - y0)
-            rx0, rx1 = max(xs.min() - MARGIN, 0), min(xs.max() + 1 + MARGIN, x1 - x0)
-            region = region[ry0:ry1, rx0:rx1]
-            y0, y1, x0, x1 = y0 + ry0, y0 + ry1, x0 + rx0, x0 + rx1
+            box = (max(y0 + ys.min() - MARGIN, 0), min(y0 + ys.max() + 1 + MARGIN, frame.shape[0]),
+                   max(x0 + xs.min() - MARGIN, 0), min(x0 + xs.max() + 1 + MARGIN, frame.shape[1]))
+            if common is not None:
+                box = _union(box, hull_box(common[j], frame.shape[:2], MARGIN))
+            region = _place(region, (y0, y1, x0, x1), box)
+            regions = region_masks(common[j], box) if common is not None else {}
+            y0, y1, x0, x1 = box
             sub = frame[y0:y1, x0:x1]
-            sub_r = sub[region].astype(np.float64)
+            sub_f = sub.astype(np.float64)
             for k in keys:
                 img, msk, plc = crops[k]
                 for i, name in enumerate(sources):
                     r = i * len(idx) + b
                     out = composite(img[r], msk[r], _shift(plc[r], y0, x0), sub, cfg.feather)
-                    d = out[region] - sub_r
-                    sq[name][k][j] = (float((d**2).sum()), d.size)
+                    d2 = ((out - sub_f) ** 2).sum(-1)
+                    sq[name][k][j] = (float(d2[region].sum()), 3 * int(region.sum()))
+                    for reg, m in regions.items():
+                        sq_common[reg][name][k][j] = (float(d2[m].sum()), 3 * int(m.sum()))
                     if name == "sadm" and k == k0 and j in show:
                         ys, xs = np.nonzero(region)
-                        box = (slice(ys.min(), ys.max() + 1), slice(xs.min(), xs.max() + 1))
-                        grid.append({"real": sub[box].copy(), "synth": out[box].copy(), "frame": int(rows[pick[j]]),
+                        crop_box = (slice(ys.min(), ys.max() + 1), slice(xs.min(), xs.max() + 1))
+                        grid.append({"real": sub[crop_box].copy(), "synth": out[crop_box].copy(), "frame": int(rows[pick[j]]),
                                      "psnr": _db(*sq[name][k][j])})
             bar.update(1)
     bar.close()
     pooled = {name: {k: _db(*v.sum(0)) for k, v in d_.items()} for name, d_ in sq.items()}
+    if common is not None:
+        pooled["common"] = {reg: {name: {k: _db(*v.sum(0)) for k, v in d_.items()} for name, d_ in per.items()}
+                            for reg, per in sq_common.items()}
     per_frame = {"index": pick, "psnr": {name: np.array([_db(*r) for r in d_[k0]]) for name, d_ in sq.items()}}
     return pooled, per_frame, grid
 

@@ -86,6 +86,9 @@ def write_report(metrics: dict, out_dir: str | os.PathLike, plots: list[str], he
     if "psnr_frame" in metrics:
         doc.heading("Test PSNR in the original frame (dB, whole pipeline, face region)")
         _table(doc, metrics["psnr_frame"])
+    for region, table in metrics.get("psnr_frame_common_regions", {}).items():
+        doc.heading(f"Test PSNR in the original frame over the common region, {region} (dB; dlib hull 0-26 eroded 3 px)")
+        _table(doc, table)
     if "psnr_train_ref" in metrics:
         doc.heading("Training-frame PSNR in the reference frame (the paper's Table 2 setting)")
         _table(doc, metrics["psnr_train_ref"])

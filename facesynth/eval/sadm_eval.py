@@ -9,6 +9,11 @@
 * rows ``mean_texture`` (no SADM), ``oracle`` (the true texture projected on the
   appearance PCA) and, at frame level, ``rewarp`` (the frame's own texture re-warped:
   resampling loss alone).
+* ``psnr_frame_common``: as ``psnr_frame`` (same frames, same compositing) but over a
+  region that does not depend on the landmark scheme: the hull of the clip's dlib points
+  0-26 eroded 3 px (:mod:`facesynth.eval.common_region`), so ``ibug68`` and
+  ``mediapipe478`` models compare; ``psnr_frame_common_regions``: {eyes, mouth_interior,
+  rest, whole}: {row: {noise: dB}} inside it.
 * ``ncc``: per-component normalised cross-correlation of predicted vs true b_g on the
   test frames at sigma 0 (the paper's Table 1).
 """
@@ -16,6 +21,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Optional
 
 import numpy as np
 import torch
@@ -32,7 +38,10 @@ class EvalConfig:
     """noise: landmark noise levels (frame px). max_test_frames: the frame-level PSNR is
     measured on this many evenly spaced test frames (None or 0: every test frame); 100 keeps
     every row within 0.1 dB of the all-frames figures on lp_d6 (60 did not: docs/eval.md).
-    feather: paste edge width; batch_size: frames per batched prediction/render."""
+    feather: paste edge width; batch_size: frames per batched prediction/render.
+    common_region: also measure ``psnr_frame_common`` (needs the clip's dlib landmarks);
+    common_landmarks: where they are (a (T, 68, 2) .npy or clip folder indexed by video
+    frame; None: found as :func:`facesynth.eval.common_region.common_landmarks` says)."""
 
     noise: list = field(default_factory=lambda: [0.0, 1.0, 2.0, 3.0])
     frame_level: bool = True
@@ -40,6 +49,8 @@ class EvalConfig:
     max_test_frames: int | None = 100
     feather: float = 2.0
     batch_size: int = 32
+    common_region: bool = True
+    common_landmarks: Optional[str] = None
 
 
 def _key(s: float) -> str:
@@ -77,8 +88,12 @@ def evaluate_sadm(
     seed: int = 0,
     train_textures: np.ndarray | None = None,
     test_textures: np.ndarray | None = None,
+    common: np.ndarray | None = None,
 ) -> tuple[dict, dict]:
     """Evaluate on ``test_rows`` (and ``train_rows``).
+
+    ``common``: (len(seq), 68, 2) dlib landmarks of every row for ``psnr_frame_common``
+    (:func:`facesynth.eval.common_region.common_landmarks`); None: not measured.
 
     Returns
     -------
@@ -142,10 +157,14 @@ def evaluate_sadm(
         with progress.stage("frame-level PSNR") as st:
             pooled, per_frame, extras["grid"] = frame_level(
                 model, lambda lm: _predict(syn, lm, cfg.batch_size), seq, test_rows, tex_te, oracle, cfg, seed, keys,
-                noisy_landmarks)
+                noisy_landmarks, common=None if common is None else common[test_rows])
             n = len(per_frame["index"])
             st.set(f"{n} of {len(test_rows)} test frames x {len(keys)} noise levels")
+        common_pooled = pooled.pop("common", None)
         metrics["psnr_frame"] = pooled
+        if common_pooled is not None:
+            metrics["psnr_frame_common"] = common_pooled["whole"]
+            metrics["psnr_frame_common_regions"] = common_pooled
         metrics["frame_level_frames"] = {"evaluated": n, "test_frames": int(len(test_rows)),
                                          "max_test_frames": cfg.max_test_frames, "spacing": "evenly spaced"}
         extras["per_frame"].update(frame_index=per_frame["index"], psnr_frame=per_frame["psnr"])

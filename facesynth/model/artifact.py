@@ -13,14 +13,13 @@ import numpy as np
 from facesynth.artifact import manifest_field, read_tensors, rebuild, save_artifact
 from facesynth.artifact import read_manifest as _read_manifest
 from facesynth.errors import FacesynthError
-from facesynth.landmarks import DEFAULT_SCHEME
+from facesynth.landmarks import SCHEMES, get_scheme
 from facesynth.model.face_model import FaceModel, FaceModelConfig
 from facesynth.model.pca import PCAModel
 from facesynth.model.reference import ReferenceFrame
 
 FORMAT = "facesynth.face_model"
 FORMAT_VERSION = 1
-LANDMARK_SCHEME = DEFAULT_SCHEME.name
 TENSORS, MANIFEST = "face_model.safetensors", "face_model.json"
 WHAT = "face model"
 
@@ -39,7 +38,7 @@ def save_face_model(model: FaceModel, directory: str | os.PathLike, extra: dict 
         "span": model.span.astype(np.int64),
     }
     return save_artifact(directory, TENSORS, MANIFEST, tensors, {
-        "landmark_scheme": LANDMARK_SCHEME,
+        "landmark_scheme": model.scheme,
         "reference_size": list(model.reference.size),
         "config": asdict(model.config),
         "shape_total_variance": model.shape_pca.total_variance,
@@ -51,11 +50,12 @@ def save_face_model(model: FaceModel, directory: str | os.PathLike, extra: dict 
 
 
 def read_manifest(directory: str | os.PathLike) -> dict:
-    """The checked manifest of a face model directory."""
+    """The checked manifest of a face model directory (its ``landmark_scheme`` one of
+    :data:`facesynth.landmarks.SCHEMES`)."""
     manifest = _read_manifest(directory, MANIFEST, FORMAT, FORMAT_VERSION, WHAT)
-    if manifest.get("landmark_scheme") != LANDMARK_SCHEME:
+    if manifest.get("landmark_scheme") not in SCHEMES:
         raise FacesynthError(f"{Path(directory) / MANIFEST}: landmark scheme {manifest.get('landmark_scheme')!r}, "
-                             f"expected {LANDMARK_SCHEME!r}")
+                             f"expected one of {', '.join(sorted(SCHEMES))}")
     return manifest
 
 
@@ -81,6 +81,7 @@ def load_face_model(directory: str | os.PathLike) -> FaceModel:
             span=t["span"],
             fingerprint=manifest_field(manifest, "data_fingerprint", where),
             meta=manifest.get("meta", {}),
+            scheme=manifest["landmark_scheme"],
         )
         check_face_model(model)
         return model
@@ -119,7 +120,7 @@ def check_reference(ref: ReferenceFrame, n_points: int) -> None:
 
 def check_face_model(model: FaceModel) -> None:
     """The tensors of a rebuilt face model fit together; ValueError naming the first that does not."""
-    n_points = DEFAULT_SCHEME.n_points
+    n_points = get_scheme(model.scheme).n_points
     check_pca(model.shape_pca, "shape PCA", 2 * n_points)
     check_reference(model.reference, n_points)
     if model.span.shape != (len(model.reference.triangles), 2):

@@ -19,6 +19,7 @@ import torch
 from facesynth.data.sequence import FaceSequence, validate_landmarks
 from facesynth.errors import FacesynthError
 from facesynth.geometry import apply_affine, similarity_fit
+from facesynth.landmarks import DEFAULT_SCHEME, get_scheme
 from facesynth.model.pca import PCAModel
 from facesynth.model.procrustes import generalised_procrustes
 from facesynth.model.reference import ReferenceFrame
@@ -56,15 +57,20 @@ class FaceModel:
     ----------
     config : FaceModelConfig
     shape_pca : PCAModel
-        Over flattened (68 * 2,) Procrustes-aligned shapes (unit-norm scale).
+        Over flattened (P * 2,) Procrustes-aligned shapes (unit-norm scale), P the
+        scheme's point count.
     reference : ReferenceFrame
-        Mean shape at ``reference_width`` pixels, triangulated.
+        Mean shape at ``reference_width`` pixels, triangulated (the scheme's fixed
+        triangulation less the triangles folded on the mean, or Delaunay).
     appearance_pca : PCAModel
         Over flattened (C * M,) textures in [0, 1], channel-major, M = mask pixels.
     span : np.ndarray
         int64 (T, 2) candidate block sizes for rendering (see :class:`ToTarget`).
     fingerprint : str
         Fingerprint of the training data.
+    scheme : str
+        Landmark scheme of the training data (``ibug68``, ``mediapipe478``): every
+        landmark array given to the model must be in it.
     """
 
     config: FaceModelConfig
@@ -74,6 +80,7 @@ class FaceModel:
     span: np.ndarray
     fingerprint: str = ""
     meta: dict = field(default_factory=dict)
+    scheme: str = DEFAULT_SCHEME.name
 
     # ------------------------------------------------------------------ fitting
     @classmethod
@@ -87,7 +94,7 @@ class FaceModel:
     ) -> tuple["FaceModel", np.ndarray]:
         """:meth:`fit`, also returning the training textures (len(rows), C * M) it sampled."""
         cfg = config or FaceModelConfig()
-        seq.require_scheme("ibug68", "the face model")
+        scheme = get_scheme(seq.scheme)
         rows = np.arange(len(seq)) if rows is None else np.asarray(rows)
         if len(rows) < 3:
             raise FacesynthError(f"{seq.name}: need at least 3 frames to fit a face model, got {len(rows)}")
@@ -95,8 +102,14 @@ class FaceModel:
         lm = seq.landmarks[rows].astype(np.float64)
         aligned, mean = generalised_procrustes(lm)
         shape_pca = PCAModel.fit(aligned.reshape(len(rows), -1), cfg.n_shape, cfg.shape_variance)
-        ref = ReferenceFrame.from_mean_shape(mean, cfg.reference_width, cfg.margin)
-        model = cls(cfg, shape_pca, ref, None, np.zeros((ref.n_triangles, 2), np.int64), seq.fingerprint)  # type: ignore[arg-type]
+        fixed = None if scheme.triangles is None else scheme.triangulation()
+        ref = ReferenceFrame.from_mean_shape(mean, cfg.reference_width, cfg.margin, fixed)
+        model = cls(cfg, shape_pca, ref, None, np.zeros((ref.n_triangles, 2), np.int64), seq.fingerprint,  # type: ignore[arg-type]
+                    scheme=scheme.name)
+        dropped = [] if fixed is None else _dropped(fixed, ref.triangles)
+        if dropped:
+            log.warning("%s: %d triangles of the %s triangulation are folded on the mean shape and left out "
+                        "of the reference frame (%s)", seq.name, len(dropped), scheme.name, dropped)
         canvas_shapes = model.to_canvas(seq.landmarks[rows])[0]
         extremes = model._shape_extremes()
         model.span = candidate_spans(ref, np.concatenate([canvas_shapes, extremes]), cfg.span_safety)
@@ -109,6 +122,7 @@ class FaceModel:
             "train_frames": int(len(rows)),
             "fit_seconds": {"shape": t1 - t0, "textures": t2 - t1, "appearance_pca": t3 - t2},
             "sequence": seq.name,
+            "triangles_folded_on_mean": dropped,
         }
         log.info(
             "face model: %d shape / %d appearance components (%.1f%% / %.1f%% variance), %d mask pixels",
@@ -128,34 +142,34 @@ class FaceModel:
 
     @property
     def mean_shape(self) -> np.ndarray:
-        """(68, 2) Procrustes mean (unit norm)."""
+        """(P, 2) Procrustes mean (unit norm)."""
         return self.shape_pca.mean.reshape(-1, 2)
 
     def align(self, landmarks: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Similarity-align (N, 68, 2) landmarks to the mean shape.
+        """Similarity-align (N, P, 2) landmarks to the mean shape.
 
-        Returns aligned shapes (N, 68, 2) and the (N, 2, 3) transforms used.
+        Returns aligned shapes (N, P, 2) and the (N, 2, 3) transforms used.
         """
-        lm = validate_landmarks(landmarks, "landmarks").astype(np.float64)
+        lm = validate_landmarks(landmarks, "landmarks", scheme=self.scheme).astype(np.float64)
         m = similarity_fit(lm, self.mean_shape[None].astype(np.float64))
         return apply_affine(lm, m), m
 
     def shape_params(self, landmarks: np.ndarray, clamp: bool = False) -> np.ndarray:
-        """b_s of (N, 68, 2) landmarks -> (N, K_s) float32."""
+        """b_s of (N, P, 2) landmarks -> (N, K_s) float32."""
         aligned, _ = self.align(landmarks)
         b = self.shape_pca.project(aligned.reshape(len(aligned), -1))
         return self.shape_pca.clamp(b, self.config.clamp_k) if clamp else b
 
     def shape_from_params(self, b_s: np.ndarray) -> np.ndarray:
-        """(N, K_s) -> (N, 68, 2) shapes in the model's normalised frame."""
+        """(N, K_s) -> (N, P, 2) shapes in the model's normalised frame."""
         return self.shape_pca.reconstruct(b_s).reshape(len(b_s), -1, 2)
 
     def to_canvas(self, landmarks: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Map (N, 68, 2) frame landmarks into reference-frame pixels by a similarity.
+        """Map (N, P, 2) frame landmarks into reference-frame pixels by a similarity.
 
-        Returns canvas landmarks (N, 68, 2) float32 and the (N, 2, 3) frame->canvas transforms.
+        Returns canvas landmarks (N, P, 2) float32 and the (N, 2, 3) frame->canvas transforms.
         """
-        lm = validate_landmarks(landmarks, "landmarks").astype(np.float64)
+        lm = validate_landmarks(landmarks, "landmarks", scheme=self.scheme).astype(np.float64)
         m = similarity_fit(lm, self.reference.points[None].astype(np.float64))
         return apply_affine(lm, m).astype(np.float32), m
 
@@ -198,7 +212,7 @@ class FaceModel:
         return out
 
     def textures_from_images(self, images: np.ndarray, landmarks: np.ndarray, sampler: ToReference | None = None) -> np.ndarray:
-        """uint8 (B, H, W, 3) images + (B, 68, 2) landmarks -> (B, C * M) float32 textures.
+        """uint8 (B, H, W, 3) images + (B, P, 2) landmarks -> (B, C * M) float32 textures.
 
         With ``config.antialias`` each image is low-pass filtered before sampling, with a
         Gaussian of sigma = s / 2 where s (> 1) is frame pixels per reference pixel: point
@@ -216,7 +230,7 @@ class FaceModel:
         return tex.reshape(len(images), -1).numpy()
 
     def frame_scale(self, landmarks: np.ndarray) -> np.ndarray:
-        """Frame pixels per reference pixel for (B, 68, 2) landmarks -> (B,)."""
+        """Frame pixels per reference pixel for (B, P, 2) landmarks -> (B,)."""
         _, m = self.to_canvas(landmarks)
         return 1.0 / np.sqrt(np.abs(np.linalg.det(m[:, :, :2])))
 
@@ -248,7 +262,7 @@ class FaceModel:
         Parameters
         ----------
         textures : (B, C * M) float32
-        landmarks : (B, 68, 2) frame pixels
+        landmarks : (B, P, 2) frame pixels
 
         Returns
         -------
@@ -278,6 +292,12 @@ class FaceModel:
             "channels": self.n_channels,
             "config": asdict(self.config),
         }
+
+
+def _dropped(fixed: np.ndarray, kept: np.ndarray) -> list[int]:
+    """Rows of the fixed triangulation (T, 3) that are not in ``kept`` (T', 3)."""
+    keep = {tuple(t) for t in kept.tolist()}
+    return [i for i, t in enumerate(fixed.tolist()) if tuple(t) not in keep]
 
 
 __all__ = ["FaceModel", "FaceModelConfig", "apply_affine_t", "similarity_to"]

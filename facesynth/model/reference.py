@@ -12,6 +12,7 @@ import numpy as np
 from scipy.spatial import Delaunay
 
 from facesynth.errors import FacesynthError
+from facesynth.landmarks import folded_triangles
 
 
 @dataclass
@@ -19,11 +20,14 @@ class ReferenceFrame:
     """Attributes
     ----------
     points : np.ndarray
-        float32 (68, 2): reference landmarks, (x, y) pixels in the reference image.
+        float32 (P, 2): reference landmarks, (x, y) pixels in the reference image (P from
+        the landmark scheme: 68, 478).
     size : tuple of int
         (H, W) of the reference image.
     triangles : np.ndarray
-        int64 (T, 3): Delaunay triangulation of ``points`` (counter-clockwise in image axes).
+        int64 (T, 3): the scheme's fixed triangulation less the triangles folded on the
+        mean shape, or the Delaunay triangulation of ``points`` (counter-clockwise in image
+        axes). Points in no triangle (MediaPipe's irises) do not move the warp.
     """
 
     points: np.ndarray
@@ -31,9 +35,12 @@ class ReferenceFrame:
     triangles: np.ndarray
 
     @classmethod
-    def from_mean_shape(cls, mean_shape: np.ndarray, width: int = 128, margin: float = 0.1) -> "ReferenceFrame":
-        """Scale a (68, 2) mean shape so that its landmark bounding box is ``width`` pixels
-        wide, add ``margin`` (fraction of the width) on every side, and triangulate."""
+    def from_mean_shape(cls, mean_shape: np.ndarray, width: int = 128, margin: float = 0.1,
+                        triangles: np.ndarray | None = None) -> "ReferenceFrame":
+        """Scale a (P, 2) mean shape so that its landmark bounding box is ``width`` pixels
+        wide, add ``margin`` (fraction of the width) on every side, and triangulate it:
+        with Delaunay, or with the fixed ``triangles`` (T, 3) of the landmark scheme less
+        those folded on this mean (dropped: a folded triangle overlaps its neighbours)."""
         if width < 16:
             raise FacesynthError(f"reference width must be >= 16 px, got {width}")
         pts = np.asarray(mean_shape, np.float64)
@@ -42,8 +49,13 @@ class ReferenceFrame:
         pad = margin * width
         pts = (pts - lo) * scale + pad
         size = (int(np.ceil(pts[:, 1].max() + pad)) + 1, int(np.ceil(pts[:, 0].max() + pad)) + 1)
-        tri = Delaunay(pts).simplices.astype(np.int64)
-        return cls(pts.astype(np.float32), size, orient_ccw(pts, tri))
+        if triangles is None:
+            tri = orient_ccw(pts, Delaunay(pts).simplices.astype(np.int64))
+        else:
+            tri = np.asarray(triangles, np.int64)[~folded_triangles(pts, np.asarray(triangles, np.int64))]
+            if len(tri) == 0:
+                raise FacesynthError("every triangle of the fixed triangulation is folded on the mean shape")
+        return cls(pts.astype(np.float32), size, tri)
 
     @property
     def n_triangles(self) -> int:

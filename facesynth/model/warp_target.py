@@ -12,6 +12,8 @@ from torch.nn import functional as F
 from facesynth.model.reference import ReferenceFrame
 from facesynth.ops import pad_by_tensor, sum4
 
+PER_PIXEL_TRIANGLES = 256  # above this many triangles, pixels gather their triangle's map (dense meshes)
+
 
 class ToTarget(nn.Module):
     """Warp reference-frame textures onto target landmark sets (piecewise affine).
@@ -96,9 +98,19 @@ class ToTarget(nn.Module):
         # towards -x it ends it: code matrix (T, E) of the lo -> hi direction
         code = c + 1.0 + np.arange(n_tri, dtype=np.float64)
         he_sign = np.where(he_from == lo, 1.0, -1.0).reshape(-1)
-        code_m = np.zeros((n_tri, n_edge))
-        np.add.at(code_m, (np.repeat(np.arange(n_tri), 3), he_edge), he_sign * np.repeat(code, 3))
-        self.register_buffer("edge_codes", torch.from_numpy(code_m.astype(np.float32)))
+        # each edge has one or two triangles: its code is a sum of two gathered terms, valid[t] *
+        # signed code, with boundary edges reading a constant 0 (index T); a dense (T, E) matmul
+        # would cost T E per image (1.2 M for the 478-point mesh)
+        edge_tri = np.full((2, n_edge), n_tri, np.int64)
+        edge_code = np.zeros((2, n_edge))
+        slot = np.zeros(n_edge, np.int64)
+        for half, (t, ed) in enumerate(zip(np.repeat(np.arange(n_tri), 3), he_edge, strict=True)):
+            edge_tri[slot[ed], ed], edge_code[slot[ed], ed] = t, he_sign[half] * code[t]
+            slot[ed] += 1
+        if slot.max() > 2:
+            raise ValueError("triangulation has an edge shared by more than two triangles")
+        self.register_buffer("edge_tri", torch.from_numpy(edge_tri.reshape(1, -1)))  # (1, 2 E) into [valid, 0]
+        self.register_buffer("edge_code", torch.from_numpy(edge_code.astype(np.float32)))  # (2, E)
         edge_coords = np.stack([2 * edges[:, 0], 2 * edges[:, 0] + 1, 2 * edges[:, 1], 2 * edges[:, 1] + 1]).reshape(-1)
         # columns each edge may cross: an edge lies in the bounding box of each of its
         # triangles, so the narrower of their spans bounds it
@@ -166,6 +178,8 @@ class ToTarget(nn.Module):
         self.register_buffer("ones4", torch.ones(1, 4))
         self.register_buffer("canvas_max", torch.tensor([float(w), float(h)]))  # (x, y) limits
         self.register_buffer("zero2", torch.zeros(2))
+        # per-pixel source lookup (:meth:`_source_per_pixel`): offsets of the 8 fields of each triangle
+        self.register_buffer("field_offset", torch.arange(8, dtype=torch.int64).reshape(1, 8, 1) * (n_tri + 2))
 
     @property
     def n_candidates(self) -> int:
@@ -218,7 +232,10 @@ class ToTarget(nn.Module):
         # reversed, so the product adds +code inside either); degenerate ones are skipped
         det_t = det.transpose(1, 2)
         valid = (det_t > 1e-6).to(ed.dtype) - (det_t < -1e-6).to(ed.dtype)  # (B, 1, T)
-        codes = torch.matmul(valid, self.edge_codes)  # (B, 1, E): signed codes, lo -> hi direction
+        valid = torch.cat([valid.flatten(1), valid[:, 0, :1] * 0.0], 1)  # (B, T + 1): index T reads 0
+        index = torch.zeros_like(valid[:, :1], dtype=torch.int64) + self.edge_tri
+        terms = torch.gather(valid, 1, index).reshape(-1, 2, self.n_edges) * self.edge_code
+        codes = (terms[:, 0] + terms[:, 1]).unsqueeze(1)  # (B, 1, E): signed codes, lo -> hi direction
         dx = xb - xa
         delta = torch.where(dx > 0, codes, -codes)
         slope = (yb - ya) / torch.where(dx == 0, 1.0, dx)
@@ -271,6 +288,8 @@ class ToTarget(nn.Module):
         """
         tab = torch.cat([F.pad(maps, (0, 0, 1, 0)), self.overlap_map + maps[:, :1] * 0.0], 1)  # (B, T + 2, 6), row t + 1 = triangle t
         org = F.pad(origin, (0, 0, 1, 1))  # (B, T + 2, 2)
+        if self.n_tri > PER_PIXEL_TRIANGLES:
+            return self._source_per_pixel(tab, org, s, cols, rows)
         zero = cols * 0.0
         dx = cols - org[..., 0:1]  # (B, T + 2, Wb)
         u0 = (tab[..., 0:1] * dx + tab[..., 2:3]).flatten(1)  # (B, (T + 2) Wb)
@@ -284,6 +303,20 @@ class ToTarget(nn.Module):
         dy = rows.unsqueeze(1) - torch.gather(y0, 1, index).reshape_as(s)  # (B, 1, Hb, Wb)
         u = torch.gather(u0, 1, index).reshape_as(s) + torch.gather(uy, 1, index).reshape_as(s) * dy
         v = torch.gather(v0, 1, index).reshape_as(s) + torch.gather(vy, 1, index).reshape_as(s) * dy
+        return u, v
+
+    def _source_per_pixel(self, tab: torch.Tensor, org: torch.Tensor, s: torch.Tensor, cols: torch.Tensor,
+                          rows: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """:meth:`source` for dense meshes: each pixel gathers its triangle's (x_0, y_0, u_x, u_y,
+        u_0, v_x, v_y, v_0) instead of reading (T + 2) Wb-entry tables; same products, same order."""
+        table = torch.cat([org.transpose(1, 2), tab.transpose(1, 2)], 1).flatten(1)  # (B, 8 (T + 2))
+        t = (torch.clamp(s, self.code_base, self.code_base + self.n_tri + 1) - self.code_base).to(torch.int64)
+        index = (t.flatten(1).unsqueeze(1) + self.field_offset).flatten(1)  # (B, 8 N)
+        f = torch.gather(table, 1, index).reshape(-1, 8, *s.shape[2:])  # (B, 8, Hb, Wb)
+        dx = cols - f[:, 0:1]
+        dy = rows.unsqueeze(1) - f[:, 1:2]
+        u = f[:, 2:3] * dx + f[:, 4:5] + f[:, 3:4] * dy
+        v = f[:, 5:6] * dx + f[:, 7:8] + f[:, 6:7] * dy
         return u, v
 
     def bilinear(self, textures: torch.Tensor, u: torch.Tensor, v: torch.Tensor, inside: torch.Tensor) -> torch.Tensor:

@@ -63,6 +63,10 @@ def run_avatar_metadata(run_dir, syn) -> dict:
     style inputs: the runtime says so)."""
     from facesynth.runs.rundir import read_config, run_data
 
+    if getattr(syn, "scheme", "ibug68") != "ibug68":
+        log.info("no reenactment metadata: the driven avatar (retargeting, FAPs) is 68-point only, this model takes %s",
+                 syn.scheme)
+        return {}
     try:
         seq, rows, _ = run_data(read_config(run_dir))
     except FacesynthError as exc:

@@ -35,7 +35,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help=f"appearance basis storage (default {DEFAULT_BASIS}): int8 is 4x smaller, an integer matmul, "
                         "its PSNR against float32 measured and recorded; or float32")
     p.add_argument("--landmarks", default=None,
-                   help="training landmarks (.npy (N, 68, 2)) for the compression (default: reloaded from RUN/config.yaml)")
+                   help="training landmarks (.npy (N, P, 2), run's scheme) for the compression (default: reloaded from RUN/config.yaml)")
     eri = p.add_argument_group("ERI model (exported when --target is given)")
     eri.add_argument("--target", metavar="IMAGE_OR_DIR",
                      help="target neutral face: an image, or a folder in ingest layout (its neutral frame is used)")
@@ -67,6 +67,16 @@ def summary_json(summary: dict) -> str:
         raise FacesynthError(f"export summary holds a non-finite figure: {summary}") from None
 
 
+def _run_scheme(run_dir) -> str:
+    """The landmark scheme of a run's face model (its manifest): --landmarks are read in it
+    (a 478-point folder is mapped for a 68-point model; 68 points for a 478-point one are an error)."""
+    from pathlib import Path
+
+    from facesynth.model.artifact import read_manifest
+
+    return read_manifest(Path(run_dir) / "face_model")["landmark_scheme"]
+
+
 def run(args: argparse.Namespace) -> int:
     from facesynth.data import load_landmarks  # lazy, as below: keeps --help fast (no torch)
 
@@ -76,7 +86,7 @@ def run(args: argparse.Namespace) -> int:
         summary = export_eri_model(args.run, args.out, args.target, args.target_landmarks, args.target_frame,
                                    args.variant, args.raw_ratios, args.opset, not args.no_check)
     else:
-        lm = load_landmarks(args.landmarks, scheme="ibug68") if args.landmarks else None
+        lm = load_landmarks(args.landmarks, scheme=_run_scheme(args.run)) if args.landmarks else None
         comps = DEFAULT_COMPONENTS if args.components is None else args.components
         summary = export_model(args.run, args.out, args.opset, comps, args.predicted_variance, lm, not args.no_check,
                                args.basis)

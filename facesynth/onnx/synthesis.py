@@ -1,6 +1,6 @@
 """ONNX export of the whole synthesis graph (torch side; the runtime side is torch-free).
 
-    landmarks (B, 68, 2) frame px -> crop (B, C, H, W) in [0, 1], mask (B, 1, H, W),
+    landmarks (B, P, 2) frame px -> crop (B, C, H, W) in [0, 1], mask (B, 1, H, W),
                                      placement (B, 2, 3) crop px -> frame px
 
 :class:`SynthesisGraph` computes exactly what :class:`facesynth.sadm.synthesis.Synthesizer`
@@ -28,8 +28,6 @@ from torch import nn
 
 from facesynth import __version__
 from facesynth.contract import (
-    LANDMARK_SCHEME,
-    N_LANDMARKS,
     OPSET,
     OUTPUT_NAMES,
     SYNTHESIS_FORMAT,
@@ -38,6 +36,7 @@ from facesynth.contract import (
     SYNTHESIS_OUTPUT_LAYOUT,
 )
 from facesynth.errors import FacesynthError
+from facesynth.landmarks import get_scheme
 from facesynth.onnx.avatar import run_avatar_metadata
 from facesynth.onnx.common import SimilarityAlignment, check_parity, save_graph
 from facesynth.onnx.config import BASIS_KINDS, DEFAULT_BASIS, DEFAULT_COMPONENTS
@@ -57,7 +56,7 @@ class SynthesisGraph(nn.Module):
 
     Forward
     -------
-    landmarks : (B, 68, 2) float32 frame pixels, iBUG order
+    landmarks : (B, P, 2) float32 frame pixels in the model's landmark scheme (P = 68, 478)
     returns : crop (B, C, H, W), mask (B, 1, H, W), placement (B, 2, 3)
     """
 
@@ -81,7 +80,7 @@ class SynthesisGraph(nn.Module):
             self.register_buffer("app_mean", app.mean.clone())
 
     def forward(self, landmarks: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        both, ab, mu = self.align(landmarks)  # (B, 2, 68, 2): to the mean shape, to the canvas
+        both, ab, mu = self.align(landmarks)  # (B, 2, P, 2): to the mean shape, to the canvas
         aligned, canvas = both[:, 0], both[:, 1]
         b_s = torch.matmul(aligned.flatten(1), self.shape_proj) + self.shape_offset
         b_s = torch.minimum(torch.maximum(b_s, -self.shape_limit), self.shape_limit)
@@ -126,8 +125,8 @@ def export_synthesizer(syn: Synthesizer, path: str | os.PathLike, metadata: dict
         "facesynth_version": __version__,
         "format": SYNTHESIS_FORMAT,
         "regressor": regressor_name(syn),
-        "landmark_scheme": LANDMARK_SCHEME,
-        "n_landmarks": N_LANDMARKS,
+        "landmark_scheme": syn.scheme,
+        "n_landmarks": get_scheme(syn.scheme).n_points,
         "reference_size": list(ref),
         "canvas_size": list(syn.warp.canvas),
         "channels": int(getattr(syn.appearance, "channels", 3)),
@@ -147,7 +146,7 @@ def export_synthesizer(syn: Synthesizer, path: str | os.PathLike, metadata: dict
 
 
 def _example_landmarks(syn: Synthesizer) -> np.ndarray:
-    """(2, 68, 2) plausible frame landmarks (the reference shape, shifted) for tracing."""
+    """(2, P, 2) plausible frame landmarks (the reference shape, shifted) for tracing."""
     pts = syn.ref_points.detach().cpu().numpy().astype(np.float32)
     return np.stack([pts + 20.0, pts * 1.1 + 5.0]).astype(np.float32)
 

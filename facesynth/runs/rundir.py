@@ -101,7 +101,7 @@ def summary_lines(metrics: dict) -> list[str]:
     """Short printable summary of a metrics dict."""
     lines = [f"regressor={metrics['regressor']} shape={metrics['n_shape']} appearance={metrics['n_appearance']} "
              f"train={metrics['train_frames']} test={metrics['test_frames']}"]
-    for key in ("psnr_ref", "psnr_frame", "psnr_train_ref"):
+    for key in ("psnr_ref", "psnr_frame", "psnr_frame_common", "psnr_train_ref"):
         if key in metrics:
             for row, vals in metrics[key].items():
                 lines.append(f"{key:15s} {row:13s} " + "  ".join(f"s{k}={v:6.2f}" for k, v in vals.items()))

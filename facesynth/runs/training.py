@@ -20,6 +20,7 @@ from facesynth import __version__, progress
 from facesynth.data import temporal_split
 from facesynth.eri.train import train_eri
 from facesynth.errors import FacesynthError
+from facesynth.eval.common_region import common_landmarks
 from facesynth.eval.eri_report import write_eri_report
 from facesynth.eval.report import write_plots, write_report
 from facesynth.eval.sadm_eval import EvalConfig, evaluate_sadm
@@ -68,6 +69,10 @@ def run_training(cfg, out_dir: str | Path) -> dict:
         return metrics
     if cfg.model.kind != "aam":
         raise FacesynthError(f"model.kind must be 'aam' or 'eri', got {cfg.model.kind!r}")
+    eval_cfg = _dataclass_from(cfg.eval, EvalConfig)
+    # the common region's landmarks are found (or their absence reported) before any training
+    common = (common_landmarks(seq, eval_cfg.common_landmarks)
+              if eval_cfg.common_region and eval_cfg.frame_level and seq.has_frames else None)
     with progress.stage("face model") as st:
         model, tex_tr = FaceModel.fit_with_textures(seq, _dataclass_from(cfg.model, FaceModelConfig), rows=tr)
         st.set(f"{len(tr)} training frames, {model.shape_pca.n_components} shape / "
@@ -81,8 +86,7 @@ def run_training(cfg, out_dir: str | Path) -> dict:
         sadm = fit_sadm(model, seq, tr, tex_tr, name, params, _dataclass_from(cfg.sadm, SADMConfig), cfg.seed)
     t2 = time.perf_counter()
     with progress.stage("evaluation"):
-        metrics, extras = evaluate_sadm(sadm, seq, tr, te, _dataclass_from(cfg.eval, EvalConfig), cfg.seed,
-                                        train_textures=tex_tr)
+        metrics, extras = evaluate_sadm(sadm, seq, tr, te, eval_cfg, cfg.seed, train_textures=tex_tr, common=common)
     t3 = time.perf_counter()
     provenance = {
         "facesynth_version": __version__,

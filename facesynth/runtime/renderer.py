@@ -16,9 +16,10 @@ import numpy as np
 import onnxruntime as ort
 
 from facesynth import __version__
-from facesynth.contract import FORMAT_HINTS, LANDMARK_SCHEME, N_LANDMARKS, OUTPUT_NAMES, SYNTHESIS_FORMAT, SYNTHESIS_INPUT
+from facesynth.contract import FORMAT_HINTS, OUTPUT_NAMES, SYNTHESIS_FORMAT, SYNTHESIS_INPUT
 from facesynth.errors import FacesynthError
 from facesynth.imaging import composite
+from facesynth.landmarks import SCHEMES, scheme_for_points
 from facesynth.runtime.checks import as_array, check_coordinate_range, check_metadata_size, check_outputs
 
 
@@ -108,14 +109,21 @@ class Renderer:
         if fmt != self.format:
             hint = f" ({FORMAT_HINTS[fmt]})" if fmt in FORMAT_HINTS else ""
             raise FacesynthError(f"{where}: not a facesynth {self.kind_name} model (format {fmt!r}, expected {self.format!r}){hint}")
-        scheme = self.metadata.get("landmark_scheme")
-        if scheme != LANDMARK_SCHEME:
-            raise FacesynthError(f"{where}: landmark scheme {scheme!r}; this runtime feeds {LANDMARK_SCHEME!r} ({N_LANDMARKS} points)")
+        name = self.metadata.get("landmark_scheme")
+        if name not in SCHEMES:
+            raise FacesynthError(f"{where}: landmark scheme {name!r}; this runtime knows {', '.join(sorted(SCHEMES))}")
+        self.scheme = SCHEMES[name]
+        if self.metadata.get("n_landmarks", self.scheme.n_points) != self.scheme.n_points:
+            raise FacesynthError(f"{where}: metadata 'n_landmarks' is {self.metadata.get('n_landmarks')!r}, but scheme "
+                                 f"{name!r} has {self.scheme.n_points} points")
         inputs = [i.name for i in self.session.get_inputs()]
         outputs = [o.name for o in self.session.get_outputs()]
         if inputs != [self.input_name] or tuple(outputs) != OUTPUT_NAMES:
             raise FacesynthError(f"{where}: inputs {inputs} / outputs {outputs}, expected [{self.input_name}] / {list(OUTPUT_NAMES)}")
-        self.input_shape: tuple[int, ...] = (N_LANDMARKS, 2)
+        self.input_shape: tuple[int, ...] = (self.scheme.n_points, 2)
+        dims = self.session.get_inputs()[0].shape
+        if self.input_name == SYNTHESIS_INPUT and (len(dims) != 3 or dims[1] != self.scheme.n_points):
+            raise FacesynthError(f"{where}: input shape {dims}, expected (B, {self.scheme.n_points}, 2) for {name}")
         channels = self.metadata.get("channels", 3)
         if channels not in (1, 3):
             raise FacesynthError(f"{where}: metadata 'channels' is {channels!r}, expected 1 or 3")
@@ -130,14 +138,25 @@ class Renderer:
 
     # ------------------------------------------------------------ validation
     def validate(self, landmarks) -> np.ndarray:
-        """Check (B, 68, 2) (or one (68, 2)) finite real landmarks -> C-contiguous float32 (B, 68, 2)."""
-        x = check_batch(landmarks, "landmarks", (N_LANDMARKS, 2), "(x, y) pixels", f"{LANDMARK_SCHEME} points, x y",
+        """Check (B, P, 2) (or one (P, 2)) finite real landmarks of the model's scheme (P its
+        point count) -> C-contiguous float32 (B, P, 2). Another scheme's points are an error
+        that names both schemes."""
+        landmarks = as_array(landmarks, "landmarks")  # a ragged list fails here, clearly
+        shape = landmarks.shape
+        other = scheme_for_points(shape[-2]) if len(shape) >= 2 and shape[-1] == 2 else None
+        if other is not None and other is not self.scheme:
+            raise FacesynthError(f"landmarks: this model takes {self.scheme.name} landmarks ({self.scheme.n_points} points), "
+                                 f"got {other.name} ones {tuple(shape)} (the driver and the model must share a scheme"
+                                 + (f"; map them with get_scheme({other.name!r}).to_ibug68(...)" if self.scheme.name == "ibug68" else "")
+                                 + ")")
+        n = self.scheme.n_points
+        x = check_batch(landmarks, "landmarks", (n, 2), "(x, y) pixels", f"{self.scheme.name} points, x y",
                         " (drop frames without a face)")
         check_coordinate_range(x)
         extent = (x.max(1) - x.min(1)).max(1)  # (B,) larger side of each face's bounding box
         if (extent < 1.0).any():
             bad = np.flatnonzero(extent < 1.0)
-            raise FacesynthError(f"landmarks: degenerate faces (all {N_LANDMARKS} points within 1 px) in batch rows {bad[:10].tolist()}")
+            raise FacesynthError(f"landmarks: degenerate faces (all {n} points within 1 px) in batch rows {bad[:10].tolist()}")
         return x
 
     # -------------------------------------------------------------- running
@@ -164,7 +183,8 @@ class Renderer:
 
         Parameters
         ----------
-        landmarks : (B, 68, 2) or (68, 2) array, frame pixels (x, y), iBUG order
+        landmarks : (B, P, 2) or (P, 2) array, frame pixels (x, y), in the model's scheme
+            (``self.scheme``: P = 68 for ibug68, 478 for mediapipe478)
         copy : bool
             Return copies; by default the returned arrays are this renderer's output
             buffers, overwritten by the next call with the same batch size.
@@ -185,7 +205,7 @@ class Renderer:
     def render_frame(self, landmarks, background: np.ndarray, feather: float = 2.0) -> np.ndarray:
         """One face composited into a frame.
 
-        landmarks : (68, 2) frame pixels; background : uint8 (H, W, 3) RGB.
+        landmarks : (P, 2) frame pixels; background : uint8 (H, W, 3) RGB.
         Returns uint8 (H, W, 3) (see :func:`facesynth.imaging.composite`).
         """
         bg = np.asarray(background)

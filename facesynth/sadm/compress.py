@@ -71,7 +71,7 @@ def select_outputs(regressor: nn.Module, keep: np.ndarray, n_out: int) -> nn.Mod
 
 
 def predicted_params(syn: Synthesizer, landmarks: np.ndarray, batch: int = 512) -> np.ndarray:
-    """Clamped b_g the synthesizer predicts for (N, 68, 2) frame landmarks -> (N, K) float64."""
+    """Clamped b_g the synthesizer predicts for (N, P, 2) frame landmarks -> (N, K) float64."""
     app = syn.appearance
     if not isinstance(app, GlobalAppearance):
         raise FacesynthError("appearance compression needs a global (PCA) appearance model")
@@ -118,7 +118,7 @@ def compress_synthesizer(
     Parameters
     ----------
     syn : Synthesizer with a :class:`GlobalAppearance`
-    landmarks : (N, 68, 2) frame landmarks the selection is measured on (the training frames)
+    landmarks : (N, P, 2) frame landmarks the selection is measured on (the training frames)
     keep, predicted_variance : exactly one: number of components, or the fraction q of the
         total predicted variance to keep
 
@@ -132,8 +132,10 @@ def compress_synthesizer(
     if getattr(syn.appearance, "basis", None) is not None:
         raise FacesynthError("appearance compression: compress before quantizing the basis (this synthesizer is int8)")
     landmarks = np.asarray(landmarks, np.float32)
-    if landmarks.ndim != 3 or landmarks.shape[1:] != (68, 2):
-        raise FacesynthError(f"appearance compression: landmarks must be (N, 68, 2), got {landmarks.shape}")
+    n_points = int(syn.ref_points.shape[0])
+    if landmarks.ndim != 3 or landmarks.shape[1:] != (n_points, 2):
+        raise FacesynthError(f"appearance compression: landmarks must be (N, {n_points}, 2) (the model's scheme), "
+                             f"got {landmarks.shape}")
     landmarks = landmarks[np.isfinite(landmarks).all(axis=(1, 2))]
     if len(landmarks) < 2:
         raise FacesynthError("appearance compression: needs at least 2 finite landmark rows (the training frames)")
@@ -166,7 +168,7 @@ def compress_synthesizer(
 
 
 def texture_psnr(full: Synthesizer, other: Synthesizer, landmarks: np.ndarray, batch: int = 512) -> float:
-    """PSNR (dB, peak 1) of ``other``'s reference texture vs ``full``'s over (N, 68, 2) landmarks."""
+    """PSNR (dB, peak 1) of ``other``'s reference texture vs ``full``'s over (N, P, 2) landmarks."""
     x = np.asarray(landmarks, np.float32)
     se, n = 0.0, 0
     with torch.no_grad():

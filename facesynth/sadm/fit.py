@@ -80,16 +80,16 @@ class SADM:
 
     def compressed(self, landmarks: np.ndarray, keep: int | None = None, predicted_variance: float | None = None):
         """The synthesizer with only the appearance components of largest predicted variance
-        over ``landmarks`` (N, 68, 2) (the training frames); the rest are folded into the
+        over ``landmarks`` (N, P, 2) (the training frames); the rest are folded into the
         mean. Returns ``(Synthesizer, info)``; see :func:`facesynth.sadm.compress.compress_synthesizer`."""
         return compress_synthesizer(self.synthesizer(), landmarks, keep, predicted_variance)
 
     def features(self, landmarks: np.ndarray) -> np.ndarray:
-        """(N, 68, 2) frame landmarks -> (N, F) regressor inputs."""
+        """(N, P, 2) frame landmarks -> (N, F) regressor inputs."""
         return ShapeFeatures.numpy(self.model, landmarks, self.config.features, self.config.clamp_shape)
 
     def predict_params(self, landmarks: np.ndarray) -> np.ndarray:
-        """(N, 68, 2) -> predicted b_g (N, K_g), clamped."""
+        """(N, P, 2) -> predicted b_g (N, K_g), clamped."""
         app = self.appearance().eval()
         enc = ShapeEncoder(self.model, self.config.clamp_shape)
         with torch.no_grad():
@@ -181,6 +181,7 @@ def save_sadm(sadm: SADM, run_dir: str | os.PathLike, extra: dict | None = None)
         "sadm": asdict(sadm.config),
         "search_table": sadm.search_table,
         "data_fingerprint": sadm.model.fingerprint,
+        "landmark_scheme": sadm.model.scheme,
         "face_model_sha256": face_model_manifest(d / "face_model")["tensors_sha256"],
         **(extra or {}),
     }, SADM_FORMAT, SADM_FORMAT_VERSION)
@@ -208,6 +209,10 @@ def load_sadm(run_dir: str | os.PathLike) -> SADM:
     if paired is not None and paired != face_model_manifest(d / "face_model").get("tensors_sha256"):
         raise FacesynthError(f"{d / 'face_model'}: not the face model this SADM was saved with "
                              f"(its SHA-256 differs from {where}'s 'face_model_sha256')")
+    scheme = meta.get("landmark_scheme", "ibug68")  # runs saved before schemes were recorded are 68-point
+    if scheme != model.scheme:
+        raise FacesynthError(f"{where}: landmark scheme {scheme!r}, but the face model in {d / 'face_model'} "
+                             f"has {model.scheme!r}")
     tensors = read_tensors(d / "sadm", SADM_TENSORS, meta, "SADM regressor")
     conf = manifest_field(meta, "regressor_config", where)
     sadm_conf = manifest_field(meta, "sadm", where)

@@ -16,15 +16,16 @@ import torch
 from torch import nn
 
 from facesynth.errors import FacesynthError
-from facesynth.landmarks import RIGID_NOSE_EYES
+from facesynth.landmarks import get_scheme
 from facesynth.model.face_model import FaceModel
 from facesynth.model.warp import ToTarget, apply_affine_t, invert_affine_t, similarity_to
 from facesynth.regressors.base import Regressor
 
 FEATURE_KINDS = ("bs", "landmarks", "bs+landmarks", "landmarks_rigid")
-# iBUG-68 points that expressions barely move: nose bridge and base (27-35), eye corners
-# (36, 39, 42, 45). ``landmarks_rigid`` aligns on these alone.
-RIGID_POINTS = RIGID_NOSE_EYES  # the landmarks_rigid features align on the nose and the eye corners
+# points that expressions barely move, the scheme's ``rigid_nose_eyes`` region (iBUG-68: nose
+# bridge and base 27-35, eye corners 36, 39, 42, 45): ``landmarks_rigid`` aligns on these alone
+RIGID_REGION = "rigid_nose_eyes"
+RIGID_POINTS = get_scheme("ibug68").regions[RIGID_REGION]  # the ibug68 ones
 
 
 class ShapeEncoder(nn.Module):
@@ -32,8 +33,8 @@ class ShapeEncoder(nn.Module):
 
     Forward
     -------
-    landmarks : (B, 68, 2) float32 frame pixels
-    returns : aligned (B, 68, 2) in the model's normalised frame, b_s (B, K_s) clamped
+    landmarks : (B, P, 2) float32 frame pixels
+    returns : aligned (B, P, 2) in the model's normalised frame, b_s (B, K_s) clamped
       to +-k sqrt(lambda) when ``clamp_k > 0``.
     """
 
@@ -56,13 +57,13 @@ class ShapeFeatures(nn.Module):
     """Regressor inputs from the aligned shape: ``bs`` (b_s, the paper), ``landmarks``
     (the aligned coordinates minus the mean, scaled to pixels of a 100-px face), or both;
     ``landmarks_rigid``: as ``landmarks`` but the similarity alignment is re-fitted on
-    :data:`RIGID_POINTS` alone (the eye corners and the nose), so that an expression
+    the scheme's :data:`RIGID_REGION` alone (the eye corners and the nose), so that an expression
     (an open mouth, raised brows) does not shift, rotate or rescale the whole shape the
     way a 68-point Procrustes fit does. A similarity of a similarity-aligned shape is a
     similarity of the frame landmarks, so this equals aligning the frame landmarks on the
     rigid points directly (least squares, Umeyama 1991).
 
-    Forward: aligned (B, 68, 2), b_s (B, K_s) -> features (B, F).
+    Forward: aligned (B, P, 2), b_s (B, K_s) -> features (B, F).
     """
 
     def __init__(self, model: FaceModel, kind: str = "bs"):
@@ -74,7 +75,7 @@ class ShapeFeatures(nn.Module):
         mean = model.shape_pca.mean.reshape(-1, 2)
         self.scale = float(100.0 / (mean[:, 0].max() - mean[:, 0].min()))
         if kind == "landmarks_rigid":
-            self.rigid = list(RIGID_POINTS)
+            self.rigid = get_scheme(model.scheme).region(RIGID_REGION).tolist()
             self.register_buffer("rigid_mean", torch.from_numpy(mean[self.rigid].astype(np.float32).copy()))
 
     def forward(self, aligned: torch.Tensor, b_s: torch.Tensor) -> torch.Tensor:
@@ -88,7 +89,7 @@ class ShapeFeatures(nn.Module):
 
     @staticmethod
     def numpy(model: FaceModel, landmarks: np.ndarray, kind: str = "bs", clamp: bool = True) -> np.ndarray:
-        """The same features computed from (N, 68, 2) frame landmarks -> (N, F) float32
+        """The same features computed from (N, P, 2) frame landmarks -> (N, F) float32
         (``clamp``: b_s clamped as by the graph's :class:`ShapeEncoder`)."""
         enc = ShapeEncoder(model, clamp)
         feat = ShapeFeatures(model, kind)
@@ -144,7 +145,7 @@ class Synthesizer(nn.Module):
 
     Forward
     -------
-    landmarks : (B, 68, 2) float32 frame pixels, iBUG order
+    landmarks : (B, P, 2) float32 frame pixels, in the face model's landmark scheme
     returns : crop (B, C, H, W) float32 in [0, 1] (zeros outside the face), mask (B, 1, H, W)
       in {0, 1}, placement (B, 2, 3) affine map from crop pixels to frame pixels.
     """
@@ -155,6 +156,7 @@ class Synthesizer(nn.Module):
         self.appearance = appearance
         self.warp = ToTarget(model.reference, model.span)
         self.register_buffer("ref_points", torch.from_numpy(model.reference.points.copy()))
+        self.scheme = model.scheme  # the landmark scheme of the input (recorded by the export)
 
     def with_appearance(self, appearance: nn.Module) -> "Synthesizer":
         """A copy (eval mode) with another appearance model, sharing everything else."""

@@ -1,0 +1,101 @@
+"""psnr_frame_common's region (facesynth.eval.common_region): the masks against an
+independent construction, where the dlib landmarks come from, and the figures in a run."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from _faces import face_template
+from matplotlib.path import Path as MplPath
+from scipy.ndimage import distance_transform_edt
+from scipy.spatial import ConvexHull
+
+from facesynth.data import FaceSequence
+from facesynth.errors import FacesynthError
+from facesynth.eval.common_region import common_landmarks, region_masks
+
+
+def _inside(poly: np.ndarray, shape) -> np.ndarray:
+    ys, xs = np.mgrid[0 : shape[0], 0 : shape[1]]
+    return MplPath(poly).contains_points(np.stack([xs.ravel(), ys.ravel()], -1)).reshape(shape)
+
+
+def test_region_masks_match_an_independent_construction():
+    lm = face_template(width=120, cx=100, cy=110).astype(np.float64) + 0.37
+    box = (10, 200, 5, 190)
+    masks = region_masks(lm, box)
+    shape = (box[1] - box[0], box[3] - box[2])
+    local = lm - (box[2], box[0])
+    hull = local[:27][ConvexHull(local[:27]).vertices]
+    want = distance_transform_edt(_inside(hull, shape)) > 3  # inside the hull, more than 3 px from its outside
+    whole = masks["whole"]
+    assert (whole != want).sum() <= 0.02 * want.sum()  # only boundary pixels may differ (fill/erosion conventions)
+    eyes = (_inside(local[36:42], shape) | _inside(local[42:48], shape)) & whole
+    mouth = _inside(local[60:68], shape) & whole
+
+    def perimeter(p):
+        return float(np.linalg.norm(p - np.roll(p, 1, 0), axis=1).sum())
+
+    # only pixels along the polygons' edges may differ (whether a centre on the edge is in)
+    assert (masks["eyes"] != eyes).sum() <= perimeter(local[36:42]) + perimeter(local[42:48]) and eyes.sum() > 100
+    assert (masks["mouth_interior"] != mouth).sum() <= perimeter(local[60:68]) and mouth.sum() > 100
+    # the regions partition the common region
+    parts = masks["eyes"].astype(int) + masks["mouth_interior"] + masks["rest"]
+    assert (parts[whole] == 1).all() and (parts[~whole] == 0).all()
+
+
+def test_common_landmarks_sources(tmp_path):
+    lm68 = face_template()[None].repeat(6, 0) + np.arange(6, dtype=np.float32)[:, None, None]
+    own = FaceSequence(lm68[1:], np.arange(1, 6), name="own")
+    np.testing.assert_array_equal(common_landmarks(own), lm68[1:])  # an ibug68 sequence: its own points
+    # a 478-point sequence: the 68 points beside the video that its meta.json records, by video frame
+    clip = tmp_path / "clip"
+    clip.mkdir()
+    np.save(clip / "landmarks.npy", lm68)
+    lm478 = np.zeros((3, 478, 2), np.float32)
+    meta = {"video": {"path": str(clip / "video.mp4")}}
+    dense = FaceSequence(lm478, np.array([0, 2, 5]), name="dense", meta=meta, scheme="mediapipe478")
+    np.testing.assert_array_equal(common_landmarks(dense), lm68[[0, 2, 5]])
+    np.testing.assert_array_equal(common_landmarks(dense, str(clip)), lm68[[0, 2, 5]])  # eval.common_landmarks
+    with pytest.raises(FacesynthError, match=r"dense: psnr_frame_common needs the clip's dlib 68 landmarks .*eval\.common_landmarks"):
+        common_landmarks(FaceSequence(lm478, np.arange(3), name="dense", scheme="mediapipe478"))
+    np.save(tmp_path / "short.npy", lm68[:4])
+    with pytest.raises(FacesynthError, match=r"short\.npy: 4 frames of common landmarks, but dense uses video frame 5"):
+        common_landmarks(dense, str(tmp_path / "short.npy"))
+    np.save(tmp_path / "dense.npy", np.zeros((6, 478, 2), np.float32))
+    with pytest.raises(FacesynthError, match=r"must be dlib's 68 points \(T, 68, 2\), got \(6, 478, 2\)"):
+        common_landmarks(dense, str(tmp_path / "dense.npy"))
+
+
+def test_psnr_frame_common_in_an_evaluation(shared_mesh):
+    """Both schemes' models on the same synthetic frames: the common figures exist for every
+    row and noise level; the mean texture and rewarp rows order as expected; on an ibug68
+    model the common region lies inside the face region, so both measure nearly alike."""
+    from _dense import dense_sequence
+
+    from facesynth.data.synthetic import make_synthetic_sequence
+    from facesynth.eval.sadm_eval import EvalConfig, evaluate_sadm
+    from facesynth.model import FaceModel, FaceModelConfig
+    from facesynth.sadm.fit import fit_sadm
+
+    seq68 = make_synthetic_sequence(n_frames=40, size=160, seed=5)
+    cfg = EvalConfig(noise=[0.0, 1.0], max_test_frames=8, train_level=False)
+    tr, te = np.arange(30), np.arange(30, 40)
+    out = {}
+    for seq in (seq68, dense_sequence(seq68, shared_mesh / "mediapipe_canonical_468_arrays.npz")):
+        model, tex = FaceModel.fit_with_textures(seq, FaceModelConfig(reference_width=64), rows=tr, progress=False)
+        sadm = fit_sadm(model, seq, tr, tex, "linear")
+        metrics, _ = evaluate_sadm(sadm, seq, tr, te, cfg, 0, train_textures=tex, common=seq68.landmarks)
+        json.dumps(metrics)
+        regions = metrics["psnr_frame_common_regions"]
+        assert set(regions) == {"whole", "eyes", "mouth_interior", "rest"}
+        assert metrics["psnr_frame_common"] == regions["whole"]
+        for table in regions.values():
+            assert set(table) == {"sadm", "mean_texture", "oracle", "rewarp"} and all(set(v) == {"0", "1"} for v in table.values())
+        c = metrics["psnr_frame_common"]
+        assert c["rewarp"]["0"] > c["mean_texture"]["0"]
+        out[seq.scheme] = metrics
+    ib = out["ibug68"]
+    assert abs(ib["psnr_frame_common"]["rewarp"]["0"] - ib["psnr_frame"]["rewarp"]["0"]) < 2.0

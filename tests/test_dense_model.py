@@ -1,0 +1,170 @@
+"""The face model, SADM, export and runtime on the 478-point MediaPipe scheme (issue 14),
+with 478-point landmarks made without MediaPipe (tests/_dense.py: the canonical mesh bent
+onto the synthetic subject's 68 points), and scheme mismatches as clear errors."""
+
+from __future__ import annotations
+
+import json
+from functools import lru_cache
+
+import cv2
+import numpy as np
+import pytest
+import torch
+from _dense import dense_sequence
+
+from facesynth.data.synthetic import make_synthetic_sequence
+from facesynth.errors import FacesynthError
+from facesynth.landmarks import MEDIAPIPE478, folded_triangles
+from facesynth.model import FaceModel, FaceModelConfig
+from facesynth.model.artifact import load_face_model, save_face_model
+from facesynth.sadm.fit import fit_sadm, load_sadm, save_sadm
+
+CFG = FaceModelConfig(reference_width=64, appearance_variance=0.95)
+
+
+@lru_cache(maxsize=1)
+def _data(mesh_dir):
+    seq68 = make_synthetic_sequence(n_frames=48, size=160, seed=3)
+    seq = dense_sequence(seq68, mesh_dir / "mediapipe_canonical_468_arrays.npz")
+    model, tex = FaceModel.fit_with_textures(seq, CFG, progress=False)
+    return seq68, seq, model, tex
+
+
+@pytest.fixture(scope="module")
+def dense(shared_mesh):
+    return _data(shared_mesh)
+
+
+def test_face_model_on_478_points_uses_the_fixed_triangulation(dense):
+    _, seq, model, _ = dense
+    assert model.scheme == "mediapipe478" and model.reference.points.shape == (478, 2)
+    fixed = MEDIAPIPE478.triangulation()
+    folded = folded_triangles(model.reference.points, fixed)
+    # the reference keeps exactly the scheme's triangles that are not folded on the mean, in order
+    np.testing.assert_array_equal(model.reference.triangles, fixed[~folded])
+    assert model.meta["triangles_folded_on_mean"] == np.flatnonzero(folded).tolist()
+    assert not folded_triangles(model.reference.points, model.reference.triangles).any()
+    assert np.isin(model.reference.triangles, MEDIAPIPE478.region("irises")).sum() == 0  # irises are no vertices
+    assert model.shape_pca.mean.shape == (956,)
+
+
+def test_texture_sampling_matches_opencv_affine_per_triangle(dense):
+    """Each reference pixel's source point is its triangle's affine map (OpenCV's
+    getAffineTransform from the reference triangle to the frame triangle)."""
+    _, seq, model, _ = dense
+    lm = seq.landmarks[5].astype(np.float64)
+    sampler = model.sampler()
+    src = (sampler.weights.double() @ torch.from_numpy(lm)).numpy()  # (M, 2)
+    tri_index, _ = model.reference.rasterise()
+    flat = sampler.mask_index.numpy()
+    h, w = model.reference.size
+    ys, xs = np.divmod(flat, w)
+    t_of = tri_index.reshape(-1)[flat]
+    for t in np.unique(t_of)[::40]:
+        tri = model.reference.triangles[t]
+        a = cv2.getAffineTransform(model.reference.points[tri].astype(np.float32), lm[tri].astype(np.float32))
+        sel = t_of == t
+        want = np.stack([xs[sel], ys[sel], np.ones(sel.sum())], -1) @ a.T
+        np.testing.assert_allclose(src[sel], want, atol=1e-3)
+
+
+def test_face_model_artifact_records_and_checks_the_scheme(dense, tmp_path):
+    _, seq, model, _ = dense
+    save_face_model(model, tmp_path / "fm")
+    manifest = json.loads((tmp_path / "fm" / "face_model.json").read_text())
+    assert manifest["landmark_scheme"] == "mediapipe478"
+    back = load_face_model(tmp_path / "fm")
+    assert back.scheme == "mediapipe478"
+    np.testing.assert_allclose(back.shape_params(seq.landmarks[:4]), model.shape_params(seq.landmarks[:4]), atol=1e-5)
+    for scheme, match in (("ibug68", r"face model tensors do not fit together \(shape PCA"),
+                          ("dlib5", r"landmark scheme 'dlib5', expected one of ibug68, mediapipe478")):
+        manifest["landmark_scheme"] = scheme
+        (tmp_path / "fm" / "face_model.json").write_text(json.dumps(manifest))
+        with pytest.raises(FacesynthError, match=match):
+            load_face_model(tmp_path / "fm")
+
+
+def test_scheme_mismatch_between_model_and_landmarks_is_a_clear_error(dense):
+    seq68, seq, model, _ = dense
+    with pytest.raises(FacesynthError, match=r"landmarks must have shape \(N, 478, 2\) .*these look like ibug68 landmarks"):
+        model.shape_params(seq68.landmarks[:2])
+    model68 = FaceModel.fit(seq68, CFG, rows=np.arange(12), progress=False)
+    assert model68.scheme == "ibug68"
+    with pytest.raises(FacesynthError, match=r"these look like mediapipe478 landmarks: map them with .*to_ibug68"):
+        model68.render(model68.appearance_pca.mean[None], seq.landmarks[:1])
+
+
+@pytest.mark.parametrize("name", ["linear", "mlp"])
+def test_478_point_model_trains_exports_and_matches_torch_in_onnx_runtime(dense, tmp_path, name):
+    pytest.importorskip("onnx")
+    from facesynth.onnx.synthesis import check_export, export_run, export_synthesizer
+    from facesynth.runtime import Renderer
+
+    seq68, seq, model, tex = dense
+    rows = np.arange(len(seq))
+    sadm = fit_sadm(model, seq, rows, tex, name, {"max_epochs": 20, "hidden": [32]} if name == "mlp" else {})
+    save_sadm(sadm, tmp_path / "run")
+    assert json.loads((tmp_path / "run" / "sadm" / "sadm.json").read_text())["landmark_scheme"] == "mediapipe478"
+    syn = load_sadm(tmp_path / "run").synthesizer()
+    path = export_synthesizer(syn, tmp_path / "m.onnx")
+    r = Renderer(path)
+    assert r.metadata["landmark_scheme"] == "mediapipe478" and r.metadata["n_landmarks"] == 478
+    assert r.input_shape == (478, 2)
+    lm = seq.landmarks[::9] + np.float32(0.3)
+    assert check_export(syn, path, lm, tol=1e-4) <= 1e-4
+    crops, masks, _ = r.render(lm)
+    with torch.no_grad():
+        t_crop, t_mask, _ = syn(torch.from_numpy(lm))
+    assert np.abs(crops - t_crop.numpy()).max() <= 1e-4 and masks.sum() > 0.3 * masks.size
+    # what `facesynth export` writes (compressed appearance, int8 basis) matches too
+    path2, syn2, meta = export_run(tmp_path / "run", tmp_path / "default.onnx", components=4, landmarks=seq.landmarks)
+    assert meta["appearance_basis"] == "int8" and meta["appearance_components"] == 4
+    assert check_export(syn2, path2, lm, tol=1e-4) <= 1e-4
+    with pytest.raises(FacesynthError, match=r"this model takes mediapipe478 landmarks \(478 points\), got ibug68 ones"):
+        r.render(seq68.landmarks[:1])
+
+
+def test_sadm_run_with_a_face_model_of_another_scheme_is_refused(dense, tmp_path):
+    _, seq, model, tex = dense
+    save_sadm(fit_sadm(model, seq, np.arange(len(seq)), tex, "linear"), tmp_path / "run")
+    meta_path = tmp_path / "run" / "sadm" / "sadm.json"
+    meta = json.loads(meta_path.read_text())
+    meta["landmark_scheme"] = "ibug68"
+    meta_path.write_text(json.dumps(meta))
+    with pytest.raises(FacesynthError, match=r"sadm\.json: landmark scheme 'ibug68', but the face model .* has 'mediapipe478'"):
+        load_sadm(tmp_path / "run")
+
+
+def test_per_pixel_source_equals_the_table_lookup(dense, monkeypatch):
+    """A dense mesh reads each pixel's affine map by a per-pixel gather; a sparse one from
+    (triangle, column) tables: both give the same render (the same products)."""
+    import facesynth.model.warp_target as wt
+
+    _, seq, model, tex = dense
+    target = torch.from_numpy(model.to_canvas(seq.landmarks[:3] + np.float32(0.7))[0])
+    t = torch.from_numpy(tex[:3]).reshape(3, 3, -1)
+    assert model.reference.n_triangles > wt.PER_PIXEL_TRIANGLES
+    with torch.no_grad():
+        img, mask = wt.ToTarget(model.reference, model.span)(t, target)
+        monkeypatch.setattr(wt, "PER_PIXEL_TRIANGLES", 10**6)
+        img_tab, mask_tab = wt.ToTarget(model.reference, model.span)(t, target)
+    assert torch.equal(mask, mask_tab) and mask.sum() > 0
+    assert (img - img_tab).abs().max() <= 1e-5
+
+
+@pytest.mark.parametrize("name", ["poly2", "svr", "krr"])
+def test_every_regressor_fits_on_956_landmark_inputs(dense, name):
+    """The other regressors on the 478 aligned points (956 inputs, train.py's defaults): they
+    fit, and the synthesizer renders finite faces at held-out-like landmarks."""
+    from facesynth.runs.config import train_defaults
+
+    _, seq, model, tex = dense
+    rname, params, cfg = train_defaults(name)
+    sadm = fit_sadm(model, seq, np.arange(len(seq)), tex, rname, params, cfg)
+    assert sadm.features(seq.landmarks[:2]).shape == (2, 956)
+    with torch.no_grad():
+        crop, mask, _ = sadm.synthesizer()(torch.from_numpy(seq.landmarks[-3:] + np.float32(0.5)))
+    assert torch.isfinite(crop).all() and mask.sum() > 0
+    b = sadm.predict_params(seq.landmarks)
+    assert np.corrcoef(b[:, 0], model.appearance_params(tex)[:, 0])[0, 1] > 0.5  # it learnt the first component
