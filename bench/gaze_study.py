@@ -25,6 +25,7 @@ import json
 from dataclasses import replace
 
 import numpy as np
+import torch
 
 from facesynth.data import load_sequence, temporal_split
 from facesynth.eval.sadm_eval import noisy_landmarks
@@ -33,7 +34,8 @@ from facesynth.model import FaceModel, FaceModelConfig
 from facesynth.sadm.ceiling import region_masks
 from facesynth.sadm.fit import SADMConfig, fit_sadm, resolve_sadm_config
 
-VARIANTS = ("main", "gaze", "gaze_in_sample", "inside", "inside_x4", "both")
+VARIANTS = ("main", "gaze", "gaze_in_sample", "gaze_eyes", "gaze_eyes_in_sample", "inside", "inside_x4", "both",
+            "both_eyes")
 
 
 def study(path: str, only=VARIANTS, seed: int = 0) -> dict:
@@ -47,10 +49,12 @@ def study(path: str, only=VARIANTS, seed: int = 0) -> dict:
     c = model.n_channels
     lm_te = {s: noisy_landmarks(seq.landmarks[te], s, seed, base_points=68) for s in (0.0, 2.0)}
 
-    def score(predict):
+    def score(syn):
         out = {"psnr_ref": [], "eyes": []}
         for s in (0.0, 2.0):
-            pred = np.clip(model.texture_from_params(predict(lm_te[s])), 0, 1) * 255.0
+            with torch.no_grad():
+                pred = np.concatenate([syn.texture(torch.from_numpy(lm_te[s][i:i + 64])).reshape(-1, tex_te.shape[1]).numpy()
+                                       for i in range(0, len(te), 64)]) * 255.0
             true = np.clip(tex_te, 0, 1) * 255.0
             out["psnr_ref"].append(round(psnr(pred, true), 3))
             e = (pred - true).reshape(len(te), c, -1)[:, :, eyes]
@@ -58,16 +62,19 @@ def study(path: str, only=VARIANTS, seed: int = 0) -> dict:
         return out
 
     base = resolve_sadm_config("krr", SADMConfig())
-    configs = {"main": replace(base, gaze=False), "gaze": replace(base, gaze_mode="path"),
-               "gaze_in_sample": replace(base, gaze_mode="path", gaze_folds=0),
+    configs = {"main": replace(base, gaze=False), "gaze": replace(base, gaze_mode="path", gaze_target="params"),
+               "gaze_in_sample": replace(base, gaze_mode="path", gaze_target="params", gaze_folds=0),
+               "gaze_eyes": replace(base, gaze_mode="path", gaze_target="eyes"),
+               "gaze_eyes_in_sample": replace(base, gaze_mode="path", gaze_target="eyes", gaze_folds=0),
+               "both_eyes": replace(base, gaze_mode="both", gaze_copies=4, gaze_target="eyes"),
                "inside": replace(base, gaze_mode="inside", gaze_copies=1),
                "inside_x4": replace(base, gaze_mode="inside", gaze_copies=4),
-               "both": replace(base, gaze_mode="both", gaze_copies=4)}
+               "both": replace(base, gaze_mode="both", gaze_copies=4, gaze_target="params")}
     res = {}
     for name in only:
         if name in configs:
             sadm = fit_sadm(model, seq, tr, tex_tr, "krr", None, configs[name], seed)
-            res[name] = {**score(sadm.predict_params), "alpha": None if sadm.gaze is None else sadm.gaze.alpha}
+            res[name] = {**score(sadm.synthesizer()), "alpha": None if sadm.gaze is None else sadm.gaze.alpha}
     return res
 
 

@@ -142,7 +142,7 @@ def test_gaze_path_recovers_gaze_dependent_appearance(gaze_data):
     errs = {}
     for on, folds, mode in ((False, 5, "path"), (True, 5, "path"), (True, 0, "path"), (True, 5, "inside")):
         sadm = fit_sadm(model, seq, tr, tex[tr], "linear", {"ridge": 100.0},
-                        SADMConfig(gaze=on, gaze_mode=mode, gaze_folds=folds, augment_copies=0))
+                        SADMConfig(gaze=on, gaze_mode=mode, gaze_folds=folds, augment_copies=0, gaze_target="params"))
         assert (sadm.gaze is not None) == (on and mode == "path")
         errs[(on, folds) if mode == "path" else mode] = ((sadm.predict_params(seq.landmarks[te])[:, :2] - y_te[:, :2]) ** 2).mean(0)
     var = y_te[:, :2].var(0)

@@ -96,7 +96,10 @@ class SynthesisGraph(nn.Module):
             b_g = self.appearance.raw_params(aligned, b_s, full)  # regressor (+ gaze inputs / gaze path)
             b_g = torch.minimum(torch.maximum(b_g, -self.app_limit), self.app_limit)
             # float32 matmul, or the int8 basis (MatMulInteger; facesynth.sadm.quantize)
-            tex = torch.clamp(self.appearance.deviation(b_g) + self.app_mean, 0.0, 1.0)
+            tex = self.appearance.deviation(b_g) + self.app_mean
+            if self.gaze:
+                tex = tex + self.appearance.texture_correction(full)
+            tex = torch.clamp(tex, 0.0, 1.0)
             tex = tex.reshape(-1, self.channels, self.n_tex)
         else:
             tex = torch.clamp(self.appearance(aligned, b_s, full) if self.gaze else self.appearance(aligned, b_s), 0.0, 1.0)

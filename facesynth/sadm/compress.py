@@ -153,7 +153,7 @@ def compress_synthesizer(
     new_app.mean = mean.float()
     new_app.components = app.components[keep_t].contiguous()
     new_app.limit = app.limit[keep_t].contiguous()
-    if getattr(app, "gaze", None) is not None:  # the gaze path predicts the same components
+    if getattr(app, "gaze", None) is not None and app.gaze.target == "params":  # it predicts the same components
         new_app.gaze = app.gaze.select_outputs(keep_idx)
     out = syn.with_appearance(new_app)
     var = b.var(0)

@@ -32,7 +32,8 @@ from facesynth.model.artifact import read_manifest as face_model_manifest
 from facesynth.model.face_model import FaceModel
 from facesynth.regressors import REGISTRY, Regressor, search
 from facesynth.sadm.compress import compress_synthesizer
-from facesynth.sadm.gaze import GazeInputs, GazePath, fit_gaze_path, has_irises
+from facesynth.sadm.gaze import TARGETS as GAZE_TARGETS
+from facesynth.sadm.gaze import GazeInputs, GazePath, eye_columns, fit_gaze_path, has_irises
 from facesynth.sadm.synthesis import GlobalAppearance, ShapeEncoder, ShapeFeatures, Synthesizer
 
 log = logging.getLogger(__name__)
@@ -61,6 +62,8 @@ class SADMConfig:
         added to its prediction), 'inside' (the gaze features appended to the main
         regressor's inputs, ``gaze_copies`` times), or 'both'
     gaze_copies : repeats of the 4 gaze features among the main regressor's inputs ('inside', 'both')
+    gaze_target : what the gaze path corrects: 'eyes' (the texture of the eye region, zero
+        elsewhere) or 'params' (b_g: every pixel)
     gaze_folds : contiguous blocks of the training segment for the gaze path's cross-fitted
         residuals and its alpha (0: in-sample residuals, default alpha)
     """
@@ -72,8 +75,9 @@ class SADMConfig:
     val_fraction: float = 0.15
     clamp_shape: bool = True
     gaze: Optional[bool] = None
-    gaze_mode: str = "path"
+    gaze_mode: str = "both"
     gaze_copies: int = 4
+    gaze_target: str = "eyes"
     gaze_folds: int = 5
 
 
@@ -192,6 +196,8 @@ def fit_sadm(
         raise FacesynthError(f"sadm.gaze=true needs a landmark scheme with irises; {seq.name} has {scheme.name}")
     if cfg.gaze_mode not in GAZE_MODES:
         raise FacesynthError(f"sadm.gaze_mode must be one of {GAZE_MODES}, got {cfg.gaze_mode!r}")
+    if cfg.gaze_target not in GAZE_TARGETS:
+        raise FacesynthError(f"sadm.gaze_target must be one of {GAZE_TARGETS}, got {cfg.gaze_target!r}")
     lm = seq.landmarks[rows]
     y = model.appearance_params(textures)
 
@@ -238,7 +244,7 @@ def fit_sadm(
     reg = REGISTRY[name].fit(x, yy, make_config(name, params), x_val, y[val_idx] if n_val else None, seed=seed)
     gaze = None
     if use_gaze and cfg.gaze_mode in ("path", "both"):
-        gaze = _fit_gaze(scheme, name, params, reg.eval(), x, yy, lm_all, pos, len(rows), cfg.gaze_folds, seed)
+        gaze = _fit_gaze(model, cfg, scheme, name, params, reg.eval(), x, yy, lm_all, pos, len(rows), seed)
         log.info("gaze path: alpha %g", gaze.alpha)
     return SADM(model, reg.eval(), name, cfg, reg.config_dict(), table, scheme.name, gaze)
 
@@ -248,10 +254,11 @@ def _predict(reg, x: np.ndarray, batch: int = 4096) -> np.ndarray:
         return np.concatenate([reg(torch.from_numpy(x[i:i + batch])).double().numpy() for i in range(0, len(x), batch)])
 
 
-def _fit_gaze(scheme, name, params, reg, x, y, lm, pos, n_rows, folds, seed) -> GazePath:
+def _fit_gaze(model, cfg, scheme, name, params, reg, x, y, lm, pos, n_rows, seed) -> GazePath:
     """The gaze path on the main regressor's residuals: cross-fitted over ``folds``
     contiguous blocks of the ``n_rows`` training frames (``pos``: each design row's frame),
     or in-sample when ``folds`` < 2 (see facesynth.sadm.gaze)."""
+    folds = cfg.gaze_folds
     if folds >= 2:
         groups = np.minimum(pos * folds // n_rows, folds - 1)
         pred = np.empty_like(y, dtype=np.float64)
@@ -262,7 +269,12 @@ def _fit_gaze(scheme, name, params, reg, x, y, lm, pos, n_rows, folds, seed) -> 
             pred[out] = _predict(part, x[out])
     else:
         groups, pred = np.zeros(len(y), np.int64), _predict(reg, x)
-    return fit_gaze_path(scheme, lm, y - pred, groups)
+    if cfg.gaze_target == "params":
+        return fit_gaze_path(scheme, lm, y - pred, groups)
+    cols = eye_columns(model, scheme.base_scheme())
+    res = (y - pred) @ model.appearance_pca.components[:, cols].astype(np.float64)  # the residual's texture there
+    return fit_gaze_path(scheme, lm, res, groups, columns=cols, n_out=model.appearance_pca.components.shape[1],
+                         target=cfg.gaze_target)
 
 
 def save_sadm(sadm: SADM, run_dir: str | os.PathLike, extra: dict | None = None) -> Path:
@@ -323,7 +335,8 @@ def load_sadm(run_dir: str | os.PathLike) -> SADM:
         gaze = None
         if gaze_meta is not None:
             state = {k[len(GAZE_PREFIX):]: torch.from_numpy(v) for k, v in tensors.items() if k.startswith(GAZE_PREFIX)}
-            gaze = GazePath.from_state(scheme, state, float(dict(gaze_meta).get("alpha", "nan"))).eval()
+            gaze = GazePath.from_state(scheme, state, float(dict(gaze_meta).get("alpha", "nan")),
+                                       str(dict(gaze_meta).get("target", "params"))).eval()
         cfg = SADMConfig(**{k: v for k, v in dict(sadm_conf).items() if k in SADMConfig.__dataclass_fields__})
         sadm = SADM(model, reg.eval(), name, cfg, conf, meta.get("search_table", []), scheme.name, gaze)
         _smoke_test(sadm)

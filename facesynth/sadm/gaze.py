@@ -10,17 +10,26 @@ e = b - a, y along e rotated by +90 degrees in image axes (x right, y down), bot
 
 They are invariant to similarity transforms of the frame, so frame landmarks suffice.
 
-Given to the main regressor among 136 aligned coordinates, a few strong inputs drown in a
-kernel over many (issue 14's throwaway test on lp_d6: +0.2-0.6 dB inside the kernel, +0.74
-dB as a separate ridge). So gaze has its own path: a ridge regression from the features,
-their squares and pairwise products (4 + 10 = 14 inputs, z-scored) to the residual of the
-main regressor's b_g prediction; the synthesis predicts main + gaze path (before b_g's clamp).
+Two ways to use them (``SADMConfig.gaze_mode``), both by default (``both``):
 
-* Residuals are **cross-fitted** (``folds`` contiguous blocks of the training segment: the
-  main regressor refitted without a block predicts that block), because a kernel regressor's
-  in-sample residuals are shrunk towards 0 (it partly memorises each training frame's
-  appearance, gaze included) and a ridge on them would learn too little; ``folds=0`` uses
-  the in-sample residuals (cheaper).
+* **gaze inputs** (``inside``, :class:`GazeInputs`): the 4 features (in pixels of a
+  100-px face, :data:`INPUT_SCALE`) appended ``gaze_copies`` times (default 4) to the main
+  regressor's inputs, so that its kernel sees gaze jointly with the eye-lid points;
+* **the gaze path** (``path``, :class:`GazePath`): issue 14's "a few strong inputs drown in a
+  kernel over many: give gaze its own path": a ridge regression from the features, their
+  squares and pairwise products (4 + 10 = 14 inputs, z-scored) to the residual of the main
+  regressor's prediction, added to it. ``gaze_target="eyes"`` (default): the residual
+  *texture* of the eye region (iBUG eye polygons dilated 3 px; the correction is zero
+  elsewhere); ``"params"``: the residual b_g (every pixel; it learned correlations outside
+  the eyes that cost lp_d10 0.2 dB, docs/sadm.md "Gaze").
+
+The path's details:
+
+* Residuals are **cross-fitted** (``gaze_folds`` contiguous blocks of the training segment:
+  the main regressor refitted without a block predicts that block), because a kernel
+  regressor's in-sample residuals are shrunk towards 0 (it partly memorises each training
+  frame's appearance, gaze included) and a ridge on them would learn too little;
+  ``gaze_folds=0`` uses the in-sample residuals (cheaper).
 * alpha (relative to the number of rows: lambda = alpha * N on z-scored inputs) is chosen
   from :data:`ALPHAS` by blocked cross-validation over the same folds, by the summed squared
   error of all outputs, then the ridge is refitted on every training row.
@@ -31,6 +40,7 @@ main regressor's b_g prediction; the synthesis predicts main + gaze path (before
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 import torch
 from torch import nn
@@ -38,6 +48,7 @@ from torch import nn
 from facesynth.errors import FacesynthError
 from facesynth.landmarks import LandmarkScheme
 
+TARGETS = ("params", "eyes")
 ALPHAS = (1e-3, 1e-2, 0.1, 1.0, 10.0)
 """Relative ridge strengths tried by the blocked cross-validation (lambda = alpha * N)."""
 FEATURE_NAMES = ("right_x", "right_y", "left_x", "left_y")
@@ -91,14 +102,20 @@ def expand(f: np.ndarray | torch.Tensor):
 
 
 class GazePath(nn.Module):
-    """Landmarks (B, P, 2) -> b_g correction (B, K): ridge on the z-scored expanded gaze features.
+    """Landmarks (B, P, 2) -> a correction (B, K): ridge on the z-scored expanded gaze features.
 
-    Built by :func:`fit_gaze_path` or from a state dict (``mu``, ``sd``, ``weight``, ``bias``).
+    ``target`` says what it corrects: ``"params"``, b_g (K = K_g, added before b_g's clamp),
+    or ``"eyes"``, the reference-frame texture (K = C M, channel-major, zero outside the eye
+    region: added to the texture). Built by :func:`fit_gaze_path` or from a state dict
+    (``mu``, ``sd``, ``weight``, ``bias``).
     """
 
     def __init__(self, scheme: LandmarkScheme, mu: torch.Tensor, sd: torch.Tensor, weight: torch.Tensor,
-                 bias: torch.Tensor, alpha: float = float("nan")):
+                 bias: torch.Tensor, alpha: float = float("nan"), target: str = "params"):
         super().__init__()
+        if target not in TARGETS:
+            raise FacesynthError(f"sadm.gaze_target must be one of {TARGETS}, got {target!r}")
+        self.target = target
         self.features = GazeFeatures(scheme)
         self.register_buffer("mu", mu.float())  # (E,)
         self.register_buffer("sd", sd.float())  # (E,)
@@ -112,14 +129,14 @@ class GazePath(nn.Module):
 
     def summary(self) -> dict:
         return {"inputs": FEATURE_NAMES, "expanded": int(self.mu.shape[0]), "outputs": int(self.bias.shape[0]),
-                "alpha": self.alpha, "scheme": self.features.scheme}
+                "alpha": self.alpha, "scheme": self.features.scheme, "target": self.target}
 
     def select_outputs(self, keep: np.ndarray) -> "GazePath":
         """A copy predicting only outputs ``keep`` (appearance compression)."""
         k = torch.as_tensor(np.asarray(keep, np.int64))
         out = GazePath.__new__(GazePath)
         nn.Module.__init__(out)
-        out.features, out.alpha = self.features, self.alpha
+        out.features, out.alpha, out.target = self.features, self.alpha, self.target
         for name in ("mu", "sd"):
             out.register_buffer(name, getattr(self, name))
         out.register_buffer("weight", self.weight[:, k].contiguous())
@@ -127,8 +144,8 @@ class GazePath(nn.Module):
         return out
 
     @classmethod
-    def from_state(cls, scheme: LandmarkScheme, state: dict, alpha: float = float("nan")) -> "GazePath":
-        return cls(scheme, state["mu"], state["sd"], state["weight"], state["bias"], alpha)
+    def from_state(cls, scheme: LandmarkScheme, state: dict, alpha: float = float("nan"), target: str = "params") -> "GazePath":
+        return cls(scheme, state["mu"], state["sd"], state["weight"], state["bias"], alpha, target)
 
 
 class GazeInputs(nn.Module):
@@ -166,13 +183,16 @@ def ridge_fit(z: np.ndarray, r: np.ndarray, lam: float) -> tuple[np.ndarray, np.
 
 
 def fit_gaze_path(scheme: LandmarkScheme, landmarks: np.ndarray, residuals: np.ndarray, groups: np.ndarray,
-                  alphas=ALPHAS) -> GazePath:
+                  alphas=ALPHAS, columns: np.ndarray | None = None, n_out: int | None = None,
+                  target: str = "params") -> GazePath:
     """Fit the gaze path.
 
     Parameters
     ----------
     landmarks : (N, P, 2) frame landmarks of the design rows (clean and noisy copies)
-    residuals : (N, K) b_g minus the main regressor's prediction for those rows
+    residuals : (N, K) what the path learns for those rows: b_g minus the main regressor's
+        prediction, or (``columns``) that residual's texture at the output columns ``columns``
+        of ``n_out`` (the eye region; the path's weights are zero elsewhere)
     groups : (N,) int fold of each row (contiguous blocks of the training segment; a noisy
         copy has its frame's fold); alpha is chosen by leave-one-fold-out squared error
         (with a single fold no choice can be made: the middle of ``alphas`` is used)
@@ -198,5 +218,24 @@ def fit_gaze_path(scheme: LandmarkScheme, landmarks: np.ndarray, residuals: np.n
     else:
         alpha = float(alphas[len(alphas) // 2])
     w, b = ridge_fit(z, r, alpha * len(z))
+    if columns is not None:
+        w_full, b_full = np.zeros((w.shape[0], n_out)), np.zeros(n_out)
+        w_full[:, columns], b_full[columns] = w, b
+        w, b = w_full, b_full
     t = torch.from_numpy
-    return GazePath(scheme, t(mu), t(sd), t(w), t(b), alpha)
+    return GazePath(scheme, t(mu), t(sd), t(w), t(b), alpha, target)
+
+
+def eye_columns(model, scheme: LandmarkScheme, dilate: int = 3) -> np.ndarray:
+    """int64 texture columns (channel-major, C M) of the eye region of ``model``'s reference
+    frame: the polygons of ``scheme``'s (the face model's scheme) ``right_eye`` and
+    ``left_eye`` dilated by ``dilate`` px (ibug68: the eye region of docs/sadm.md's breakdown)."""
+    ref = model.reference
+    h, w = ref.size
+    index = model.sampler().mask_index.numpy()
+    m = np.zeros((h, w), np.uint8)
+    for eye in ("right_eye", "left_eye"):
+        cv2.fillPoly(m, [np.round(ref.points[scheme.region(eye)]).astype(np.int32)], 1)
+    m = cv2.dilate(m, np.ones((2 * dilate + 1,) * 2, np.uint8)).reshape(-1)[index].astype(bool)
+    cols = np.flatnonzero(m)
+    return np.concatenate([c * len(index) + cols for c in range(model.n_channels)]).astype(np.int64)

@@ -150,7 +150,11 @@ class GlobalAppearance(nn.Module):
         if self.gaze_inputs is not None:
             x = torch.cat([x, self.gaze_inputs(landmarks)], 1)
         b_g = self.regressor(x)
-        return b_g if self.gaze is None else b_g + self.gaze(landmarks)
+        return b_g + self.gaze(landmarks) if self.gaze is not None and self.gaze.target == "params" else b_g
+
+    def texture_correction(self, landmarks: torch.Tensor | None) -> torch.Tensor | float:
+        """The gaze path's texture correction (B, C M) when it corrects the texture, else 0."""
+        return self.gaze(landmarks) if self.gaze is not None and self.gaze.target != "params" else 0.0
 
     @property
     def needs_landmarks(self) -> bool:
@@ -161,7 +165,7 @@ class GlobalAppearance(nn.Module):
         return torch.clamp(self.raw_params(aligned, b_s, landmarks), -self.limit, self.limit)
 
     def forward(self, aligned: torch.Tensor, b_s: torch.Tensor, landmarks: torch.Tensor | None = None) -> torch.Tensor:
-        tex = self.mean + self.deviation(self.params(aligned, b_s, landmarks))
+        tex = self.mean + self.deviation(self.params(aligned, b_s, landmarks)) + self.texture_correction(landmarks)
         return tex.reshape(tex.shape[0], self.channels, -1)
 
 
