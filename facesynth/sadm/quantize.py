@@ -30,7 +30,6 @@ import torch
 from torch import nn
 
 from facesynth.errors import FacesynthError
-from facesynth.landmarks import N_LANDMARKS
 from facesynth.ops import INT8_LEVELS, int8_matmul
 from facesynth.sadm.compress import texture_psnr
 from facesynth.sadm.synthesis import GlobalAppearance, Synthesizer
@@ -97,7 +96,7 @@ def quantize_synthesizer(syn: Synthesizer, landmarks: np.ndarray | None = None) 
     Parameters
     ----------
     syn : Synthesizer with a :class:`GlobalAppearance` (compressed or not) and finite limits
-    landmarks : (N, 68, 2) frame landmarks to measure the effect on (the training frames), optional
+    landmarks : (N, P, 2) frame landmarks (the synthesizer's scheme) to measure the effect on (the training frames), optional
 
     Returns
     -------
@@ -117,8 +116,8 @@ def quantize_synthesizer(syn: Synthesizer, landmarks: np.ndarray | None = None) 
     info = {"appearance_basis": "int8", "appearance_basis_bytes": int(basis.codes.numel())}
     if landmarks is not None:
         lm = np.asarray(landmarks, np.float32)
-        if lm.ndim != 3 or lm.shape[1:] != (N_LANDMARKS, 2):
-            raise FacesynthError(f"int8 appearance basis: landmarks must be (N, {N_LANDMARKS}, 2), got {lm.shape}")
+        if lm.ndim != 3 or lm.shape[1:] != (syn.n_points, 2):
+            raise FacesynthError(f"int8 appearance basis: landmarks must be (N, {syn.n_points}, 2), got {lm.shape}")
         lm = lm[np.isfinite(lm).all(axis=(1, 2))]
         if len(lm):
             info["quantization_psnr_vs_float_db"] = texture_psnr(syn, out, lm)
