@@ -204,3 +204,20 @@ def test_save_load_compress_and_onnx_parity(gaze_data, tmp_path):
     moved = lm[:1].copy()
     moved[:, 68:] += np.float32([3.0, 0.0])
     assert np.abs(sess.run(None, {SYNTHESIS_INPUT: moved})[0] - crop[:1]).max() > 1e-3
+
+
+def test_dlib_iris_ingest_keeps_dlib_points(shared_clip_dir, tmp_path):
+    """``--landmarker dlib+iris`` on the first frames of lp_d6: points 0-67 are the shipped
+    dlib landmarks, 68-77 MediaPipe's irises, inside their eyes (both extras needed)."""
+    pytest.importorskip("mediapipe")
+    pytest.importorskip("dlib")
+    from facesynth.data.iris import ingest_dlib_iris
+
+    clip = shared_clip_dir("lp_d6")
+    seq = ingest_dlib_iris(clip / "video.mp4", tmp_path / "out", max_frames=5)
+    assert seq.scheme == "ibug68+iris" and seq.landmarks.shape == (5, 78, 2)
+    np.testing.assert_allclose(seq.landmarks[:, :68], np.load(clip / "landmarks.npy")[:5], atol=1.0)
+    g = gaze_features(IBUG68_IRIS, seq.landmarks)
+    assert np.abs(g).max() < 0.5  # each iris centre lies between its eye's corners
+    with pytest.raises(FacesynthError, match="--copy"):
+        ingest_dlib_iris(clip / "video.mp4", tmp_path / "x", copy=True)
