@@ -2,13 +2,15 @@
 and the rigid subsets the methods align on.
 
 A landmark array is float32 (N, P, 2) of (x, y) pixel coordinates, 0-based, with P the
-scheme's ``n_points``. Two schemes are registered in :data:`SCHEMES`:
+scheme's ``n_points``. Three schemes are registered in :data:`SCHEMES`:
 
 * ``ibug68``: iBUG 300-W's 68-point markup (dlib's shape predictor, the ``.pts`` files of
   the 300-W data); the module-level constants (``JAW``, ``EYES``, ...) are its regions;
 * ``mediapipe478``: MediaPipe Face Mesh with refined irises, 468 mesh points + 2 x 5 iris
   points (index tables in :mod:`facesynth.landmark_tables`), with the canonical mesh's
   fixed triangulation and an approximate mapping to ``ibug68`` (docs/landmarks.md).
+* ``ibug68+iris``: dlib's 68 points followed by MediaPipe's 10 iris points (78 points; the
+  face model uses the first 68, SADM's gaze path the irises).
 
 Every module that needs to know which point is an eye corner or a lip takes the indices
 from here::
@@ -86,6 +88,9 @@ class LandmarkScheme:
         (``ibug68``: the face model triangulates the mean shape with Delaunay).
     ibug68 : tuple of 68 index tuples, or None
         iBUG point i = mean of this scheme's points ``ibug68[i]``; None when no mapping is known.
+    base : str or None
+        A scheme whose points are this one's first points, unchanged (``ibug68+iris``:
+        ``ibug68``, points 0-67); the face model of such a scheme is fitted on those alone.
     """
 
     name: str
@@ -94,6 +99,7 @@ class LandmarkScheme:
     description: str = ""
     triangles: tuple | None = field(default=None, repr=False)
     ibug68: tuple | None = field(default=None, repr=False)
+    base: str | None = None
 
     def region(self, name: str) -> np.ndarray:
         """int64 indices of region ``name``; FacesynthError naming the known regions."""
@@ -121,6 +127,11 @@ class LandmarkScheme:
             return (f"; these look like {other.name} landmarks: map them with "
                     f"get_scheme({other.name!r}).to_ibug68(...) or load_sequence(path, scheme='ibug68')")
         return f"; these look like {other.name} landmarks, which cannot be mapped to {self.name}"
+
+    def base_scheme(self) -> "LandmarkScheme":
+        """The scheme the face model of this one is fitted in: ``base`` if set, else itself
+        (its points are ``landmarks[..., :base_scheme().n_points, :]``)."""
+        return self if self.base is None else get_scheme(self.base)
 
     def triangulation(self) -> np.ndarray:
         """int64 (T, 3) fixed triangles; FacesynthError when the scheme has none."""
@@ -191,7 +202,29 @@ MEDIAPIPE478 = LandmarkScheme(
     ibug68=mp.IBUG68_FROM_MP478,
 )
 
-SCHEMES: dict[str, LandmarkScheme] = {s.name: s for s in (IBUG68, MEDIAPIPE478)}
+# ------------------------------------------------------------ dlib's 68 points + MediaPipe's irises, 78 points
+IBUG68_IRIS_RIGHT = tuple(range(68, 73))
+"""The subject's right iris: centre 68, then its 4 boundary points (MediaPipe 468-472, same order)."""
+IBUG68_IRIS_LEFT = tuple(range(73, 78))
+"""The subject's left iris: centre 73, then 74-77 (MediaPipe 473-477)."""
+
+IBUG68_IRIS = LandmarkScheme(
+    name="ibug68+iris",
+    n_points=78,
+    regions=MappingProxyType({
+        **IBUG68.regions,
+        "right_iris": IBUG68_IRIS_RIGHT, "left_iris": IBUG68_IRIS_LEFT, "irises": IBUG68_IRIS_RIGHT + IBUG68_IRIS_LEFT,
+        "iris_centres": (IBUG68_IRIS_RIGHT[0], IBUG68_IRIS_LEFT[0]),
+    }),
+    description="dlib's iBUG 68 points (0-67) + MediaPipe's irises (68-72 right, 73-77 left; centre first)",
+    ibug68=tuple((i,) for i in range(68)),
+    base="ibug68",
+)
+"""The lighter gaze variant: points 0-67 exactly as dlib gives them, then MediaPipe's 10 iris
+points of the same frame (``facesynth ingest --landmarker dlib+iris``). The face model and
+its warp use points 0-67 only (``base``); the irises feed SADM's gaze path."""
+
+SCHEMES: dict[str, LandmarkScheme] = {s.name: s for s in (IBUG68, MEDIAPIPE478, IBUG68_IRIS)}
 DEFAULT_SCHEME = IBUG68
 N_LANDMARKS = IBUG68.n_points
 

@@ -238,7 +238,8 @@ def test_scheme_mismatch_errors(tmp_path, rng):
         load_sequence(_folder(tmp_path, lm, "ibug68", "recorded_68"))  # meta.json and the array disagree
     with pytest.raises(FacesynthError, match="unknown landmark scheme 'dlib5'"):
         load_sequence(_folder(tmp_path, lm, "dlib5", "unknown"))
-    with pytest.raises(FacesynthError, match=r"\(N, 68, 2\) \(ibug68\) or \(N, 478, 2\) \(mediapipe478\), got \(5, 100, 2\)"):
+    expected = r"\(N, 68, 2\) \(ibug68\) or \(N, 478, 2\) \(mediapipe478\) or \(N, 78, 2\) \(ibug68\+iris\), got \(5, 100, 2\)"
+    with pytest.raises(FacesynthError, match=expected):
         load_sequence(_folder(tmp_path, lm[:, :100], None, "p100"))
     with pytest.raises(FacesynthError, match="unknown landmark scheme 'mp'"):
         load_sequence(tmp_path / "missing", scheme="mp")

@@ -21,8 +21,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("video", help="input video file (any format OpenCV decodes)")
     parser.add_argument("--out", required=True, metavar="DIR", help="output folder")
-    parser.add_argument("--landmarker", choices=("dlib", "mediapipe"), default="dlib",
-                        help="dlib: 68 iBUG points (default); mediapipe: 478 points with irises (scheme mediapipe478)")
+    parser.add_argument("--landmarker", choices=("dlib", "mediapipe", "dlib+iris"), default="dlib",
+                        help="dlib: 68 iBUG points (default); mediapipe: 478 points with irises (scheme mediapipe478); "
+                             "dlib+iris: dlib's 68 points + MediaPipe's 10 iris points (scheme ibug68+iris, both extras)")
     parser.add_argument("--every", type=int, default=1, metavar="N",
                         help="process every N-th frame (others get NaN rows); default 1")
     parser.add_argument("--max-frames", type=int, default=None, metavar="N",
@@ -41,14 +42,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from facesynth.data.ingest import ingest_video
+    from facesynth.data.iris import ingest_dlib_iris
 
     if args.max_side < 32:
         raise FacesynthError(f"--max-side must be >= 32, got {args.max_side}")
-    seq = ingest_video(
-        args.video, args.out, every=args.every, max_frames=args.max_frames, copy=args.copy,
-        export_pts=args.export_pts, progress=not (args.no_progress or args.quiet), max_side=args.max_side,
-        reuse_limit=args.reuse_limit, landmarker=args.landmarker,
-    )
+    kwargs = dict(every=args.every, max_frames=args.max_frames, copy=args.copy, export_pts=args.export_pts,
+                  progress=not (args.no_progress or args.quiet), max_side=args.max_side, reuse_limit=args.reuse_limit)
+    if args.landmarker == "dlib+iris":
+        seq = ingest_dlib_iris(args.video, args.out, **kwargs)
+    else:
+        seq = ingest_video(args.video, args.out, landmarker=args.landmarker, **kwargs)
     st = seq.meta["stats"]
     summary = {
         "out": str(args.out),

@@ -191,6 +191,10 @@ class FaceSequence:
         if scheme == self.scheme:
             return self
         target, source = get_scheme(scheme), get_scheme(self.scheme)
+        if source.base == target.name:  # exact: the first points are the base scheme's (ibug68+iris -> ibug68)
+            meta = {**self.meta, "mapped_from_scheme": self.scheme}
+            return FaceSequence(np.ascontiguousarray(self.landmarks[:, : target.n_points]), self.frame_index,
+                                self.frames, self.fps, self.name, meta, scheme)
         if target.name != "ibug68" or source.ibug68 is None:
             raise FacesynthError(f"{self.name}: {self.scheme} landmarks cannot be mapped to {scheme} "
                                  "(only mappings to ibug68 exist)")

@@ -81,6 +81,7 @@ def frame_level(model, predict, seq, rows, tex_te, oracle, cfg, seed, keys, nois
     grid : list of dicts (real, synth uint8 crops, frame row, psnr)
     """
     pick = subset(len(rows), cfg.max_test_frames)
+    n_model = model.mean_shape.shape[0]  # the landmarks may hold more points (irises) than the face model's
     n = len(pick)
     common = None if common is None else np.asarray(common)[pick]
     lm = seq.landmarks[rows[pick]]
@@ -100,11 +101,11 @@ def frame_level(model, predict, seq, rows, tex_te, oracle, cfg, seed, keys, nois
     bar = progress.bar(total=n, desc="frame-level PSNR", unit="frame")
     for start in range(0, n, bs):
         idx = np.arange(start, min(start + bs, n))
-        _, cmask, cplace = model.render(mean[idx], lm[idx])
+        _, cmask, cplace = model.render(mean[idx], lm[idx, :n_model])
         crops = {}
         for k in keys:
             texs = np.concatenate([(src[k] if isinstance(src, dict) else src)[idx] for src in sources.values()])
-            crops[k] = model.render(texs, np.tile(lm_noisy[k][idx], (len(sources), 1, 1)))
+            crops[k] = model.render(texs, np.tile(lm_noisy[k][idx, :n_model], (len(sources), 1, 1)))
         for b, j in enumerate(idx):
             frame = next(frames)
             places = np.concatenate([cplace[b : b + 1]] + [crops[k][2][b :: len(idx)] for k in keys])

@@ -20,6 +20,7 @@
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, field
 from typing import Optional
 
@@ -29,6 +30,7 @@ import torch
 from facesynth import progress
 from facesynth.data.sequence import FaceSequence
 from facesynth.eval.frame_level import frame_level
+from facesynth.landmarks import get_scheme
 from facesynth.metrics import ncc, psnr
 from facesynth.sadm.fit import SADM
 
@@ -57,12 +59,21 @@ def _key(s: float) -> str:
     return str(int(s)) if float(s).is_integer() else str(s)
 
 
-def noisy_landmarks(lm: np.ndarray, sigma: float, seed: int) -> np.ndarray:
-    """(N, 68, 2) landmarks plus seeded Gaussian noise of ``sigma`` px (the evaluation's noise; sigma 0: unchanged)."""
+def noisy_landmarks(lm: np.ndarray, sigma: float, seed: int, base_points: int | None = None) -> np.ndarray:
+    """(N, P, 2) landmarks plus seeded Gaussian noise of ``sigma`` px (the evaluation's noise; sigma 0: unchanged).
+
+    ``base_points``: the first this many points get the draws they would get alone (the
+    face model's points: an ``ibug68+iris`` run sees the noise of the ``ibug68`` run on
+    points 0-67); the others get draws of their own."""
     if sigma == 0:
         return lm
+    nb = lm.shape[-2] if base_points is None else base_points
     rng = np.random.default_rng([seed, int(round(sigma * 1000))])
-    return (lm + rng.normal(0, sigma, lm.shape)).astype(np.float32)
+    out = lm.astype(np.float64)
+    out[..., :nb, :] += rng.normal(0, sigma, lm[..., :nb, :].shape)
+    if lm.shape[-2] > nb:
+        out[..., nb:, :] += np.random.default_rng([seed, int(round(sigma * 1000)), 1]).normal(0, sigma, lm[..., nb:, :].shape)
+    return out.astype(np.float32)
 
 
 def _predict(syn, lm: np.ndarray, bs: int) -> np.ndarray:
@@ -109,9 +120,12 @@ def evaluate_sadm(
     cfg = config or EvalConfig()
     model = sadm.model
     syn = sadm.synthesizer()
+    n_model = syn.model_points
+    noisy = functools.partial(noisy_landmarks, base_points=n_model)
+    model_seq = seq.to_scheme(get_scheme(seq.scheme).base_scheme().name)  # what the face model samples
     test_rows = np.asarray(test_rows)
     lm_te = seq.landmarks[test_rows]
-    tex_te = model.sample_textures(seq, test_rows, progress=True) if test_textures is None else test_textures
+    tex_te = model.sample_textures(model_seq, test_rows, progress=True) if test_textures is None else test_textures
     b_true = model.appearance_params(tex_te)
     oracle = np.clip(model.texture_from_params(b_true), 0, 1)
     mean_tex = np.broadcast_to(np.clip(model.appearance_pca.mean, 0, 1), tex_te.shape)
@@ -120,7 +134,7 @@ def evaluate_sadm(
     pred0 = None
     mean_db, oracle_db = _psnr01(mean_tex, tex_te), _psnr01(oracle, tex_te)  # landmark noise does not change them
     for s, k in zip(cfg.noise, keys, strict=True):
-        pred = _predict(syn, noisy_landmarks(lm_te, s, seed), cfg.batch_size)
+        pred = _predict(syn, noisy(lm_te, s, seed), cfg.batch_size)
         pred0 = pred if s == 0 else pred0
         psnr_ref["sadm"][k] = _psnr01(pred, tex_te)
         psnr_ref["mean_texture"][k] = mean_db
@@ -134,6 +148,8 @@ def evaluate_sadm(
         "train_frames": int(len(train_rows)),
         "test_frames": int(len(test_rows)),
         "features": sadm.config.features,
+        "landmark_scheme": sadm.scheme,
+        "gaze": sadm.gaze_summary(),
         "psnr_ref": psnr_ref,
         "ncc": [float(v) for v in ncc(sadm.predict_params(lm_te), b_true)],
     }
@@ -144,11 +160,11 @@ def evaluate_sadm(
                            "psnr_ref": 10 * np.log10(255.0**2 / np.maximum(sq0.mean(1), 1e-12))}
     if cfg.train_level:
         train_rows = np.asarray(train_rows)
-        tex_tr = model.sample_textures(seq, train_rows) if train_textures is None else train_textures
+        tex_tr = model.sample_textures(model_seq, train_rows) if train_textures is None else train_textures
         mean_tr = np.broadcast_to(np.clip(model.appearance_pca.mean, 0, 1), tex_tr.shape)
         oracle_tr = np.clip(model.texture_from_params(model.appearance_params(tex_tr)), 0, 1)
         metrics["psnr_train_ref"] = {
-            "sadm": {k: _psnr01(_predict(syn, noisy_landmarks(seq.landmarks[train_rows], s, seed + 1), cfg.batch_size), tex_tr)
+            "sadm": {k: _psnr01(_predict(syn, noisy(seq.landmarks[train_rows], s, seed + 1), cfg.batch_size), tex_tr)
                      for s, k in zip(cfg.noise, keys, strict=True)},
             "mean_texture": dict.fromkeys(keys, _psnr01(mean_tr, tex_tr)),
             "oracle": dict.fromkeys(keys, _psnr01(oracle_tr, tex_tr)),
@@ -157,7 +173,7 @@ def evaluate_sadm(
         with progress.stage("frame-level PSNR") as st:
             pooled, per_frame, extras["grid"] = frame_level(
                 model, lambda lm: _predict(syn, lm, cfg.batch_size), seq, test_rows, tex_te, oracle, cfg, seed, keys,
-                noisy_landmarks, common=None if common is None else common[test_rows])
+                noisy, common=None if common is None else common[test_rows])
             n = len(per_frame["index"])
             st.set(f"{n} of {len(test_rows)} test frames x {len(keys)} noise levels")
         common_pooled = pooled.pop("common", None)

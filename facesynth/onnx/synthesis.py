@@ -56,13 +56,17 @@ class SynthesisGraph(nn.Module):
 
     Forward
     -------
-    landmarks : (B, P, 2) float32 frame pixels in the model's landmark scheme (P = 68, 478)
+    landmarks : (B, P, 2) float32 frame pixels in the synthesizer's scheme (P = 68, 78, 478;
+      the face model takes the first ``model_points``; a gaze path, when there is one, reads
+      the irises)
     returns : crop (B, C, H, W), mask (B, 1, H, W), placement (B, 2, 3)
     """
 
     def __init__(self, syn: Synthesizer):
         super().__init__()
         enc = syn.encoder
+        self.n_points, self.model_points = syn.n_points, syn.model_points
+        self.gaze = getattr(syn.appearance, "needs_landmarks", False)
         self.appearance = syn.appearance
         self.warp = syn.warp
         # both similarity alignments (to the model's mean shape and to the reference frame) in one solve
@@ -80,18 +84,24 @@ class SynthesisGraph(nn.Module):
             self.register_buffer("app_mean", app.mean.clone())
 
     def forward(self, landmarks: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        both, ab, mu = self.align(landmarks)  # (B, 2, P, 2): to the mean shape, to the canvas
+        full = landmarks
+        if self.n_points != self.model_points:
+            landmarks = landmarks[:, : self.model_points]
+        both, ab, mu = self.align(landmarks)  # (B, 2, P_model, 2): to the mean shape, to the canvas
         aligned, canvas = both[:, 0], both[:, 1]
         b_s = torch.matmul(aligned.flatten(1), self.shape_proj) + self.shape_offset
         b_s = torch.minimum(torch.maximum(b_s, -self.shape_limit), self.shape_limit)
         if self.global_appearance:
-            b_g = self.appearance.regressor(self.appearance.features(aligned, b_s))
+            b_g = self.appearance.raw_params(aligned, b_s, full)  # regressor (+ gaze inputs / gaze path)
             b_g = torch.minimum(torch.maximum(b_g, -self.app_limit), self.app_limit)
             # float32 matmul, or the int8 basis (MatMulInteger; facesynth.sadm.quantize)
-            tex = torch.clamp(self.appearance.deviation(b_g) + self.app_mean, 0.0, 1.0)
+            tex = self.appearance.deviation(b_g) + self.app_mean
+            if self.gaze:
+                tex = tex + self.appearance.texture_correction(full)
+            tex = torch.clamp(tex, 0.0, 1.0)
             tex = tex.reshape(-1, self.channels, self.n_tex)
         else:
-            tex = torch.clamp(self.appearance(aligned, b_s), 0.0, 1.0)
+            tex = torch.clamp(self.appearance(aligned, b_s, full) if self.gaze else self.appearance(aligned, b_s), 0.0, 1.0)
         crop, mask = self.warp(tex, canvas)
         return crop, mask, self.align.placement(ab, mu, 1)  # canvas px -> frame px
 
@@ -126,7 +136,7 @@ def export_synthesizer(syn: Synthesizer, path: str | os.PathLike, metadata: dict
         "format": SYNTHESIS_FORMAT,
         "regressor": regressor_name(syn),
         "landmark_scheme": syn.scheme,
-        "n_landmarks": get_scheme(syn.scheme).n_points,
+        "n_landmarks": syn.n_points,
         "reference_size": list(ref),
         "canvas_size": list(syn.warp.canvas),
         "channels": int(getattr(syn.appearance, "channels", 3)),
@@ -146,8 +156,17 @@ def export_synthesizer(syn: Synthesizer, path: str | os.PathLike, metadata: dict
 
 
 def _example_landmarks(syn: Synthesizer) -> np.ndarray:
-    """(2, P, 2) plausible frame landmarks (the reference shape, shifted) for tracing."""
+    """(2, P, 2) plausible frame landmarks (the reference shape, shifted) for tracing; points
+    beyond the face model's (the irises of ``ibug68+iris``) at the middle of each eye's
+    corners, else at the shape's centroid."""
     pts = syn.ref_points.detach().cpu().numpy().astype(np.float32)
+    extra = syn.n_points - len(pts)
+    if extra > 0:
+        pts = np.concatenate([pts, np.repeat(pts.mean(0, keepdims=True), extra, 0)])
+        sch = get_scheme(syn.scheme)
+        if "iris_centres" in sch.regions:
+            c, i = sch.region("eye_corners"), sch.region("iris_centres")
+            pts[i] = 0.5 * (pts[c[[0, 2]]] + pts[c[[1, 3]]]) + np.float32([[1.5, -0.5], [-1.0, 0.5]])
     return np.stack([pts + 20.0, pts * 1.1 + 5.0]).astype(np.float32)
 
 

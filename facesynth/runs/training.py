@@ -25,6 +25,7 @@ from facesynth.eval.eri_report import write_eri_report
 from facesynth.eval.report import write_plots, write_report
 from facesynth.eval.sadm_eval import EvalConfig, evaluate_sadm
 from facesynth.io import dumps_json, write_text
+from facesynth.landmarks import get_scheme
 from facesynth.model.face_model import FaceModel, FaceModelConfig
 from facesynth.provenance import package_versions
 from facesynth.runs.config import regressor_params
@@ -73,8 +74,9 @@ def run_training(cfg, out_dir: str | Path) -> dict:
     # the common region's landmarks are found (or their absence reported) before any training
     common = (common_landmarks(seq, eval_cfg.common_landmarks)
               if eval_cfg.common_region and eval_cfg.frame_level and seq.has_frames else None)
-    with progress.stage("face model") as st:
-        model, tex_tr = FaceModel.fit_with_textures(seq, _dataclass_from(cfg.model, FaceModelConfig), rows=tr)
+    with progress.stage("face model") as st:  # on the scheme's base points (ibug68+iris: the 68 dlib points)
+        model_seq = seq.to_scheme(get_scheme(seq.scheme).base_scheme().name)
+        model, tex_tr = FaceModel.fit_with_textures(model_seq, _dataclass_from(cfg.model, FaceModelConfig), rows=tr)
         st.set(f"{len(tr)} training frames, {model.shape_pca.n_components} shape / "
                f"{model.appearance_pca.n_components} appearance components")
     if float(np.ptp(tex_tr)) < 0.5 / 255:  # below half a grey level: float rounding of one colour

@@ -79,7 +79,8 @@ def predicted_params(syn: Synthesizer, landmarks: np.ndarray, batch: int = 512) 
     out = []
     with torch.no_grad():
         for i in range(0, len(x), batch):
-            out.append(app.params(*syn.encoder(torch.from_numpy(x[i:i + batch]))).double().numpy())
+            lm = torch.from_numpy(x[i:i + batch])
+            out.append(app.params(*syn.encoder(syn.model_landmarks(lm)), lm).double().numpy())
     return np.concatenate(out)
 
 
@@ -132,10 +133,9 @@ def compress_synthesizer(
     if getattr(syn.appearance, "basis", None) is not None:
         raise FacesynthError("appearance compression: compress before quantizing the basis (this synthesizer is int8)")
     landmarks = np.asarray(landmarks, np.float32)
-    n_points = int(syn.ref_points.shape[0])
-    if landmarks.ndim != 3 or landmarks.shape[1:] != (n_points, 2):
-        raise FacesynthError(f"appearance compression: landmarks must be (N, {n_points}, 2) (the model's scheme), "
-                             f"got {landmarks.shape}")
+    if landmarks.ndim != 3 or landmarks.shape[1:] != (syn.n_points, 2):
+        raise FacesynthError(f"appearance compression: landmarks must be (N, {syn.n_points}, 2) (the synthesizer's "
+                             f"scheme {syn.scheme}), got {landmarks.shape}")
     landmarks = landmarks[np.isfinite(landmarks).all(axis=(1, 2))]
     if len(landmarks) < 2:
         raise FacesynthError("appearance compression: needs at least 2 finite landmark rows (the training frames)")
@@ -154,6 +154,8 @@ def compress_synthesizer(
     new_app.mean = mean.float()
     new_app.components = app.components[keep_t].contiguous()
     new_app.limit = app.limit[keep_t].contiguous()
+    if getattr(app, "gaze", None) is not None and app.gaze.target == "params":  # it predicts the same components
+        new_app.gaze = app.gaze.select_outputs(keep_idx)
     out = syn.with_appearance(new_app)
     var = b.var(0)
     info = {

@@ -4,6 +4,7 @@
     RUN/face_model/         the face model artifact (facesynth.model.artifact)
     RUN/sadm/sadm.json      regressor name + hyper-parameters, SADM settings, provenance
     RUN/sadm/regressor.safetensors
+      (with the gaze path's tensors under ``gaze.*`` when it has one: schemes with irises)
 
 References
 ----------
@@ -25,16 +26,21 @@ import torch
 from facesynth.artifact import manifest_field, read_manifest, read_tensors, rebuild, save_artifact
 from facesynth.data.sequence import FaceSequence
 from facesynth.errors import FacesynthError
+from facesynth.landmarks import get_scheme
 from facesynth.model.artifact import load_face_model, save_face_model
 from facesynth.model.artifact import read_manifest as face_model_manifest
 from facesynth.model.face_model import FaceModel
 from facesynth.regressors import REGISTRY, Regressor, search
 from facesynth.sadm.compress import compress_synthesizer
+from facesynth.sadm.gaze import TARGETS as GAZE_TARGETS
+from facesynth.sadm.gaze import GazeInputs, GazePath, eye_columns, fit_gaze_path, has_irises
 from facesynth.sadm.synthesis import GlobalAppearance, ShapeEncoder, ShapeFeatures, Synthesizer
 
 log = logging.getLogger(__name__)
 SADM_FORMAT, SADM_FORMAT_VERSION = "facesynth.sadm", 1
 SADM_TENSORS, SADM_MANIFEST = "regressor.safetensors", "sadm.json"
+GAZE_PREFIX = "gaze."
+GAZE_MODES = ("path", "inside", "both")
 
 
 @dataclass
@@ -50,6 +56,16 @@ class SADMConfig:
     search : grid-search the regressor's hyper-parameters on the validation slice
     val_fraction : the last fraction of the training segment used as validation
     clamp_shape : clamp b_s to +-k sqrt(lambda) before the regressor
+    gaze : use gaze (facesynth.sadm.gaze): None = when the landmark scheme has irises
+        (``ibug68+iris``, ``mediapipe478``); True on a scheme without irises is an error
+    gaze_mode : 'path' (a ridge from the gaze features to the main regressor's residual,
+        added to its prediction), 'inside' (the gaze features appended to the main
+        regressor's inputs, ``gaze_copies`` times), or 'both'
+    gaze_copies : repeats of the 4 gaze features among the main regressor's inputs ('inside', 'both')
+    gaze_target : what the gaze path corrects: 'eyes' (the texture of the eye region, zero
+        elsewhere) or 'params' (b_g: every pixel)
+    gaze_folds : contiguous blocks of the training segment for the gaze path's cross-fitted
+        residuals and its alpha (0: in-sample residuals, default alpha)
     """
 
     features: str = "landmarks"
@@ -58,6 +74,11 @@ class SADMConfig:
     search: bool = False
     val_fraction: float = 0.15
     clamp_shape: bool = True
+    gaze: Optional[bool] = None
+    gaze_mode: str = "both"
+    gaze_copies: int = 4
+    gaze_target: str = "eyes"
+    gaze_folds: int = 5
 
 
 @dataclass
@@ -70,13 +91,16 @@ class SADM:
     config: SADMConfig
     regressor_config: dict = field(default_factory=dict)
     search_table: list = field(default_factory=list)
+    scheme: str = "ibug68"
+    gaze: GazePath | None = None
 
     def appearance(self) -> GlobalAppearance:
-        return GlobalAppearance(self.model, self.regressor, self.config.features)
+        return GlobalAppearance(self.model, self.regressor, self.config.features, gaze=self.gaze,
+                                gaze_inputs=gaze_inputs(self.config, get_scheme(self.scheme)))
 
     def synthesizer(self) -> Synthesizer:
-        """The whole landmarks -> face graph (eval mode)."""
-        return Synthesizer(self.model, self.appearance(), self.config.clamp_shape).eval()
+        """The whole landmarks -> face graph (eval mode); it takes (B, P, 2) landmarks of ``scheme``."""
+        return Synthesizer(self.model, self.appearance(), self.config.clamp_shape, self.scheme).eval()
 
     def compressed(self, landmarks: np.ndarray, keep: int | None = None, predicted_variance: float | None = None):
         """The synthesizer with only the appearance components of largest predicted variance
@@ -84,16 +108,43 @@ class SADM:
         mean. Returns ``(Synthesizer, info)``; see :func:`facesynth.sadm.compress.compress_synthesizer`."""
         return compress_synthesizer(self.synthesizer(), landmarks, keep, predicted_variance)
 
+    def gaze_summary(self) -> dict | None:
+        """How this SADM uses gaze (None: not at all): mode, gaze-input copies, the path's summary."""
+        inputs = gaze_inputs(self.config, get_scheme(self.scheme))
+        if inputs is None and self.gaze is None:
+            return None
+        return {"mode": self.config.gaze_mode, "input_copies": None if inputs is None else inputs.copies,
+                "path": None if self.gaze is None else self.gaze.summary()}
+
     def features(self, landmarks: np.ndarray) -> np.ndarray:
-        """(N, P, 2) frame landmarks -> (N, F) regressor inputs."""
-        return ShapeFeatures.numpy(self.model, landmarks, self.config.features, self.config.clamp_shape)
+        """(N, P, 2) frame landmarks -> (N, F) main-regressor inputs (gaze inputs included)."""
+        return main_features(self.model, self.config, get_scheme(self.scheme), landmarks)
 
     def predict_params(self, landmarks: np.ndarray) -> np.ndarray:
-        """(N, P, 2) -> predicted b_g (N, K_g), clamped."""
+        """(N, P, 2) -> predicted b_g (N, K_g), clamped (gaze path included)."""
         app = self.appearance().eval()
         enc = ShapeEncoder(self.model, self.config.clamp_shape)
+        lm = torch.from_numpy(np.asarray(landmarks, np.float32))
         with torch.no_grad():
-            return app.params(*enc(torch.from_numpy(np.asarray(landmarks, np.float32)))).numpy()
+            return app.params(*enc(lm[:, : self.model.mean_shape.shape[0]]), lm).numpy()
+
+
+def gaze_inputs(cfg: SADMConfig, scheme) -> GazeInputs | None:
+    """The main regressor's extra gaze inputs of ``cfg`` (None unless gaze is on in mode 'inside' / 'both')."""
+    on = has_irises(scheme) if cfg.gaze is None else bool(cfg.gaze)
+    return GazeInputs(scheme, cfg.gaze_copies) if on and cfg.gaze_mode in ("inside", "both") else None
+
+
+def main_features(model: FaceModel, cfg: SADMConfig, scheme, landmarks: np.ndarray) -> np.ndarray:
+    """(N, P, 2) frame landmarks -> (N, F) float32 main-regressor inputs: the shape features of
+    the model's points, then the gaze inputs (if any)."""
+    lm = np.asarray(landmarks, np.float32)
+    x = ShapeFeatures.numpy(model, lm[:, : model.mean_shape.shape[0]], cfg.features, cfg.clamp_shape)
+    extra = gaze_inputs(cfg, scheme)
+    if extra is None:
+        return x
+    with torch.no_grad():
+        return np.concatenate([x, extra(torch.from_numpy(lm)).numpy()], 1)
 
 
 def make_config(name: str, params: dict):
@@ -135,22 +186,47 @@ def fit_sadm(
     cfg = resolve_sadm_config(name, config)
     params = dict(params or {})
     rows = np.asarray(rows)
+    scheme = get_scheme(seq.scheme)
+    n_model = model.mean_shape.shape[0]
+    if scheme.base_scheme().n_points != n_model:
+        raise FacesynthError(f"{seq.name}: {scheme.name} landmarks do not fit a face model of {n_model} points "
+                             f"(fit the face model on seq.to_scheme({scheme.base_scheme().name!r}))")
+    use_gaze = has_irises(scheme) if cfg.gaze is None else bool(cfg.gaze)
+    if use_gaze and not has_irises(scheme):
+        raise FacesynthError(f"sadm.gaze=true needs a landmark scheme with irises; {seq.name} has {scheme.name}")
+    if cfg.gaze_mode not in GAZE_MODES:
+        raise FacesynthError(f"sadm.gaze_mode must be one of {GAZE_MODES}, got {cfg.gaze_mode!r}")
+    if cfg.gaze_target not in GAZE_TARGETS:
+        raise FacesynthError(f"sadm.gaze_target must be one of {GAZE_TARGETS}, got {cfg.gaze_target!r}")
     lm = seq.landmarks[rows]
     y = model.appearance_params(textures)
 
     def features(landmarks):
-        return ShapeFeatures.numpy(model, landmarks, cfg.features, cfg.clamp_shape)
+        return main_features(model, cfg, scheme, landmarks)
 
     n_val = int(round(len(rows) * cfg.val_fraction))
     fit_idx, val_idx = np.arange(len(rows) - n_val), np.arange(len(rows) - n_val, len(rows))
     rng = np.random.default_rng(seed)
+    rng_extra = np.random.default_rng([seed, 1])  # noise on points beyond the model's: the model's own draws unchanged
 
-    def design(idx):
+    def noisy(idx):
+        out = lm[idx] + 0  # a copy
+        out[:, :n_model] += rng.normal(0, cfg.augment_sigma, out[:, :n_model].shape).astype(np.float32)
+        if out.shape[1] > n_model:
+            out[:, n_model:] += rng_extra.normal(0, cfg.augment_sigma, out[:, n_model:].shape).astype(np.float32)
+        return out
+
+    def design_landmarks(idx):
+        """(landmarks of the design rows, their targets, their training-row positions)."""
         lms, ys = [lm[idx]], [y[idx]]
         for _ in range(cfg.augment_copies if cfg.augment_sigma > 0 else 0):
-            lms.append(lm[idx] + rng.normal(0, cfg.augment_sigma, lm[idx].shape).astype(np.float32))
+            lms.append(noisy(idx))
             ys.append(y[idx])
-        return features(np.concatenate(lms)), np.concatenate(ys)
+        return np.concatenate(lms), np.concatenate(ys), np.tile(idx, len(lms))
+
+    def design(idx):
+        lms, ys, _ = design_landmarks(idx)
+        return features(lms), ys
 
     table: list = []
     if cfg.search:
@@ -161,11 +237,44 @@ def fit_sadm(
                              REGISTRY[name].search_grid, make_config(name, params), seed)
         params = {**params, **(asdict(best) if hasattr(best, "__dataclass_fields__") else dict(best))}
         log.info("search for %s picked %s", name, params)
-    x, yy = design(np.arange(len(rows)))
+    lm_all, yy, pos = design_landmarks(np.arange(len(rows)))
+    x = features(lm_all)
     torch.manual_seed(seed)
     x_val = features(lm[val_idx]) if n_val else None
     reg = REGISTRY[name].fit(x, yy, make_config(name, params), x_val, y[val_idx] if n_val else None, seed=seed)
-    return SADM(model, reg.eval(), name, cfg, reg.config_dict(), table)
+    gaze = None
+    if use_gaze and cfg.gaze_mode in ("path", "both"):
+        gaze = _fit_gaze(model, cfg, scheme, name, params, reg.eval(), x, yy, lm_all, pos, len(rows), seed)
+        log.info("gaze path: alpha %g", gaze.alpha)
+    return SADM(model, reg.eval(), name, cfg, reg.config_dict(), table, scheme.name, gaze)
+
+
+def _predict(reg, x: np.ndarray, batch: int = 4096) -> np.ndarray:
+    with torch.no_grad():
+        return np.concatenate([reg(torch.from_numpy(x[i:i + batch])).double().numpy() for i in range(0, len(x), batch)])
+
+
+def _fit_gaze(model, cfg, scheme, name, params, reg, x, y, lm, pos, n_rows, seed) -> GazePath:
+    """The gaze path on the main regressor's residuals: cross-fitted over ``folds``
+    contiguous blocks of the ``n_rows`` training frames (``pos``: each design row's frame),
+    or in-sample when ``folds`` < 2 (see facesynth.sadm.gaze)."""
+    folds = cfg.gaze_folds
+    if folds >= 2:
+        groups = np.minimum(pos * folds // n_rows, folds - 1)
+        pred = np.empty_like(y, dtype=np.float64)
+        for f in range(folds):
+            out = groups == f
+            torch.manual_seed(seed)
+            part = REGISTRY[name].fit(x[~out], y[~out], make_config(name, params), None, None, seed=seed).eval()
+            pred[out] = _predict(part, x[out])
+    else:
+        groups, pred = np.zeros(len(y), np.int64), _predict(reg, x)
+    if cfg.gaze_target == "params":
+        return fit_gaze_path(scheme, lm, y - pred, groups)
+    cols = eye_columns(model, scheme.base_scheme())
+    res = (y - pred) @ model.appearance_pca.components[:, cols].astype(np.float64)  # the residual's texture there
+    return fit_gaze_path(scheme, lm, res, groups, columns=cols, n_out=model.appearance_pca.components.shape[1],
+                         target=cfg.gaze_target)
 
 
 def save_sadm(sadm: SADM, run_dir: str | os.PathLike, extra: dict | None = None) -> Path:
@@ -174,8 +283,13 @@ def save_sadm(sadm: SADM, run_dir: str | os.PathLike, extra: dict | None = None)
     d = Path(run_dir)
     save_face_model(sadm.model, d / "face_model")
     tensors = {k: v.detach().contiguous().numpy() for k, v in sadm.regressor.state_dict().items()}
+    if sadm.gaze is not None:
+        tensors.update({GAZE_PREFIX + k: v.detach().contiguous().numpy() for k, v in sadm.gaze.state_dict().items()})
     save_artifact(d / "sadm", SADM_TENSORS, SADM_MANIFEST, tensors, {
         "regressor": sadm.name,
+        "landmark_scheme": sadm.scheme,
+        "gaze": None if sadm.gaze is None else sadm.gaze.summary(),  # the path's tensors: gaze.* (None: no path)
+        "gaze_use": sadm.gaze_summary(),
         "regressor_config": sadm.regressor_config,
         "regressor_summary": sadm.regressor.summary(),
         "sadm": asdict(sadm.config),
@@ -217,10 +331,19 @@ def load_sadm(run_dir: str | os.PathLike) -> SADM:
     conf = manifest_field(meta, "regressor_config", where)
     sadm_conf = manifest_field(meta, "sadm", where)
 
+    scheme = get_scheme(meta.get("landmark_scheme", "ibug68"))  # runs saved before schemes were recorded: ibug68
+    gaze_meta = meta.get("gaze")
+
     def build() -> SADM:
-        reg = REGISTRY[name].from_state(conf, {k: torch.from_numpy(v) for k, v in tensors.items()})
+        reg = REGISTRY[name].from_state(conf, {k: torch.from_numpy(v) for k, v in tensors.items()
+                                               if not k.startswith(GAZE_PREFIX)})
+        gaze = None
+        if gaze_meta is not None:
+            state = {k[len(GAZE_PREFIX):]: torch.from_numpy(v) for k, v in tensors.items() if k.startswith(GAZE_PREFIX)}
+            gaze = GazePath.from_state(scheme, state, float(dict(gaze_meta).get("alpha", "nan")),
+                                       str(dict(gaze_meta).get("target", "params"))).eval()
         cfg = SADMConfig(**{k: v for k, v in dict(sadm_conf).items() if k in SADMConfig.__dataclass_fields__})
-        sadm = SADM(model, reg.eval(), name, cfg, conf, meta.get("search_table", []))
+        sadm = SADM(model, reg.eval(), name, cfg, conf, meta.get("search_table", []), scheme.name, gaze)
         _smoke_test(sadm)
         return sadm
 
@@ -230,7 +353,15 @@ def load_sadm(run_dir: str | os.PathLike) -> SADM:
 def _smoke_test(sadm: SADM) -> None:
     """One forward pass on the reference shape: tensors that do not fit the face model
     raise here (RuntimeError), not at first use; non-finite outputs raise ValueError."""
-    lm = torch.from_numpy(np.ascontiguousarray(sadm.model.reference.points, np.float32)[None])
+    lm = np.ascontiguousarray(sadm.model.reference.points, np.float32)
+    extra = get_scheme(sadm.scheme).n_points - len(lm)
+    if extra > 0:  # e.g. irises: put them at the model points' centroid (a finite input is all this needs)
+        lm = np.concatenate([lm, np.repeat(lm.mean(0, keepdims=True), extra, 0)])
+    sch = get_scheme(sadm.scheme)
+    if has_irises(sch):  # the gaze features need each iris off its eye's corners: at the reference's eye centres
+        corners, centres = sch.region("eye_corners"), sch.region("iris_centres")
+        lm[centres] = 0.5 * (lm[corners[[0, 2]]] + lm[corners[[1, 3]]])
+    lm = torch.from_numpy(lm[None])
     with torch.no_grad():
         outs = sadm.synthesizer()(lm)
     for out in outs if isinstance(outs, (tuple, list)) else (outs,):

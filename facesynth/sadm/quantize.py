@@ -96,7 +96,7 @@ def quantize_synthesizer(syn: Synthesizer, landmarks: np.ndarray | None = None) 
     Parameters
     ----------
     syn : Synthesizer with a :class:`GlobalAppearance` (compressed or not) and finite limits
-    landmarks : (N, P, 2) frame landmarks to measure the effect on (the training frames), optional
+    landmarks : (N, P, 2) frame landmarks (the synthesizer's scheme) to measure the effect on (the training frames), optional
 
     Returns
     -------
@@ -116,9 +116,9 @@ def quantize_synthesizer(syn: Synthesizer, landmarks: np.ndarray | None = None) 
     info = {"appearance_basis": "int8", "appearance_basis_bytes": int(basis.codes.numel())}
     if landmarks is not None:
         lm = np.asarray(landmarks, np.float32)
-        n_points = int(syn.ref_points.shape[0])  # the model's scheme
-        if lm.ndim != 3 or lm.shape[1:] != (n_points, 2):
-            raise FacesynthError(f"int8 appearance basis: landmarks must be (N, {n_points}, 2), got {lm.shape}")
+        if lm.ndim != 3 or lm.shape[1:] != (syn.n_points, 2):
+            raise FacesynthError(f"int8 appearance basis: landmarks must be (N, {syn.n_points}, 2) (scheme {syn.scheme}), "
+                                 f"got {lm.shape}")
         lm = lm[np.isfinite(lm).all(axis=(1, 2))]
         if len(lm):
             info["quantization_psnr_vs_float_db"] = texture_psnr(syn, out, lm)

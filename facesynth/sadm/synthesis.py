@@ -1,8 +1,13 @@
 """Synthesis from landmarks alone, as one torch graph (the graph that ONNX export traces):
 
     landmarks (frame px) -> similarity alignment -> b_s (clamped) -> shape features
-      -> SADM regressor -> b_g (clamped) -> texture in the reference frame
+      -> SADM regressor (+ gaze path, when the scheme has irises) -> b_g (clamped)
+      -> texture in the reference frame
       -> piecewise-affine warp to the landmarks -> crop + mask + placement in the frame
+
+The landmarks may have more points than the face model (``ibug68+iris``: 78 points, a
+68-point face model): the model's path takes the first ones, the gaze path
+(:mod:`facesynth.sadm.gaze`) reads the irises.
 
 Pasting the crop into a frame (feathered) is :func:`composite`, outside the graph.
 """
@@ -104,10 +109,17 @@ class GlobalAppearance(nn.Module):
     ``basis``: None (``b_g @ components`` in float32), or the export's int8 basis
     (:class:`facesynth.sadm.quantize.Int8Basis`, set by ``quantize_synthesizer``) mapping
     b_g (B, K) to the deviation from the mean texture (B, C M).
+    ``gaze``: None, or a :class:`facesynth.sadm.gaze.GazePath` whose output (from the input
+    landmarks, (B, P, 2) frame pixels) is added to the regressor's b_g before the clamp;
+    ``gaze_inputs``: None, or a :class:`facesynth.sadm.gaze.GazeInputs` whose output is
+    appended to the regressor's inputs.
     """
 
-    def __init__(self, model: FaceModel, regressor: Regressor, features: str = "bs", clamp: bool = True):
+    def __init__(self, model: FaceModel, regressor: Regressor, features: str = "bs", clamp: bool = True,
+                 gaze: nn.Module | None = None, gaze_inputs: nn.Module | None = None):
         super().__init__()
+        self.gaze = gaze
+        self.gaze_inputs = gaze_inputs
         pca = model.appearance_pca
         self.features = ShapeFeatures(model, features)
         self.regressor = regressor
@@ -130,13 +142,31 @@ class GlobalAppearance(nn.Module):
         """Texture deviation from the mean (B, C M) of clamped coefficients b_g (B, K)."""
         return torch.matmul(b_g, self.components) if self.basis is None else self.basis(b_g)
 
-    def params(self, aligned: torch.Tensor, b_s: torch.Tensor) -> torch.Tensor:
-        """b_g (B, K_g), clamped."""
-        b_g = self.regressor(self.features(aligned, b_s))
-        return torch.clamp(b_g, -self.limit, self.limit)
+    def raw_params(self, aligned: torch.Tensor, b_s: torch.Tensor, landmarks: torch.Tensor | None = None) -> torch.Tensor:
+        """b_g (B, K_g) before the clamp: the regressor's (gaze inputs appended to its inputs),
+        plus the gaze path's, both from ``landmarks``."""
+        if self.needs_landmarks and landmarks is None:
+            raise FacesynthError("this appearance model reads the irises (gaze): it needs the input landmarks")
+        x = self.features(aligned, b_s)
+        if self.gaze_inputs is not None:
+            x = torch.cat([x, self.gaze_inputs(landmarks)], 1)
+        b_g = self.regressor(x)
+        return b_g + self.gaze(landmarks) if self.gaze is not None and self.gaze.target == "params" else b_g
 
-    def forward(self, aligned: torch.Tensor, b_s: torch.Tensor) -> torch.Tensor:
-        tex = self.mean + self.deviation(self.params(aligned, b_s))
+    def texture_correction(self, landmarks: torch.Tensor | None) -> torch.Tensor | float:
+        """The gaze path's texture correction (B, C M) when it corrects the texture, else 0."""
+        return self.gaze(landmarks) if self.gaze is not None and self.gaze.target != "params" else 0.0
+
+    @property
+    def needs_landmarks(self) -> bool:
+        return self.gaze is not None or self.gaze_inputs is not None
+
+    def params(self, aligned: torch.Tensor, b_s: torch.Tensor, landmarks: torch.Tensor | None = None) -> torch.Tensor:
+        """b_g (B, K_g), clamped (``landmarks``: the input (B, P, 2), for the gaze path)."""
+        return torch.clamp(self.raw_params(aligned, b_s, landmarks), -self.limit, self.limit)
+
+    def forward(self, aligned: torch.Tensor, b_s: torch.Tensor, landmarks: torch.Tensor | None = None) -> torch.Tensor:
+        tex = self.mean + self.deviation(self.params(aligned, b_s, landmarks)) + self.texture_correction(landmarks)
         return tex.reshape(tex.shape[0], self.channels, -1)
 
 
@@ -145,18 +175,25 @@ class Synthesizer(nn.Module):
 
     Forward
     -------
-    landmarks : (B, P, 2) float32 frame pixels, in the face model's landmark scheme
+    landmarks : (B, P, 2) float32 frame pixels in landmark scheme ``scheme`` (default: the
+      face model's; P = ``n_points``; the face model uses the first ``model_points`` of them,
+      e.g. the 68 dlib points of ``ibug68+iris``)
     returns : crop (B, C, H, W) float32 in [0, 1] (zeros outside the face), mask (B, 1, H, W)
       in {0, 1}, placement (B, 2, 3) affine map from crop pixels to frame pixels.
     """
 
-    def __init__(self, model: FaceModel, appearance: nn.Module, clamp_shape: bool = True):
+    def __init__(self, model: FaceModel, appearance: nn.Module, clamp_shape: bool = True, scheme: str | None = None):
         super().__init__()
+        scheme = scheme or model.scheme
+        self.scheme = scheme  # the landmark scheme of the input (recorded by the export)
+        self.model_points = int(model.shape_pca.mean.shape[0]) // 2
+        self.n_points = get_scheme(scheme).n_points
+        if get_scheme(scheme).base_scheme().n_points != self.model_points:
+            raise FacesynthError(f"landmark scheme {scheme!r} does not fit a face model of {self.model_points} points")
         self.encoder = ShapeEncoder(model, clamp_shape)
         self.appearance = appearance
         self.warp = ToTarget(model.reference, model.span)
         self.register_buffer("ref_points", torch.from_numpy(model.reference.points.copy()))
-        self.scheme = model.scheme  # the landmark scheme of the input (recorded by the export)
 
     def with_appearance(self, appearance: nn.Module) -> "Synthesizer":
         """A copy (eval mode) with another appearance model, sharing everything else."""
@@ -165,13 +202,20 @@ class Synthesizer(nn.Module):
         out.appearance = appearance
         return out.eval()
 
+    def model_landmarks(self, landmarks: torch.Tensor) -> torch.Tensor:
+        """(B, P, 2) input -> (B, model_points, 2): the points the face model takes."""
+        return landmarks if self.n_points == self.model_points else landmarks[:, : self.model_points]
+
     def texture(self, landmarks: torch.Tensor) -> torch.Tensor:
         """Predicted reference-frame texture (B, C, M), clipped to [0, 1]."""
-        aligned, b_s = self.encoder(landmarks)
+        aligned, b_s = self.encoder(self.model_landmarks(landmarks))
+        if getattr(self.appearance, "needs_landmarks", False):
+            return torch.clamp(self.appearance(aligned, b_s, landmarks), 0.0, 1.0)
         return torch.clamp(self.appearance(aligned, b_s), 0.0, 1.0)
 
     def forward(self, landmarks: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         tex = self.texture(landmarks)
+        landmarks = self.model_landmarks(landmarks)
         to_canvas = similarity_to(landmarks, self.ref_points)
         crop, mask = self.warp(tex, apply_affine_t(landmarks, to_canvas))
         return crop, mask, invert_affine_t(to_canvas)
