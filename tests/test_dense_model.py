@@ -78,7 +78,7 @@ def test_face_model_artifact_records_and_checks_the_scheme(dense, tmp_path):
     assert back.scheme == "mediapipe478"
     np.testing.assert_allclose(back.shape_params(seq.landmarks[:4]), model.shape_params(seq.landmarks[:4]), atol=1e-5)
     for scheme, match in (("ibug68", r"face model tensors do not fit together \(shape PCA"),
-                          ("dlib5", r"landmark scheme 'dlib5', expected one of ibug68, mediapipe478")):
+                          ("dlib5", r"landmark scheme 'dlib5', expected one of ibug68, .*mediapipe478")):
         manifest["landmark_scheme"] = scheme
         (tmp_path / "fm" / "face_model.json").write_text(json.dumps(manifest))
         with pytest.raises(FacesynthError, match=match):
@@ -132,7 +132,7 @@ def test_sadm_run_with_a_face_model_of_another_scheme_is_refused(dense, tmp_path
     meta = json.loads(meta_path.read_text())
     meta["landmark_scheme"] = "ibug68"
     meta_path.write_text(json.dumps(meta))
-    with pytest.raises(FacesynthError, match=r"sadm\.json: landmark scheme 'ibug68', but the face model .* has 'mediapipe478'"):
+    with pytest.raises(FacesynthError, match=r"sadm\.json: landmark scheme 'ibug68' needs a face model in 'ibug68', but the one in .* has 'mediapipe478'"):
         load_sadm(tmp_path / "run")
 
 
@@ -162,7 +162,8 @@ def test_every_regressor_fits_on_956_landmark_inputs(dense, name):
     _, seq, model, tex = dense
     rname, params, cfg = train_defaults(name)
     sadm = fit_sadm(model, seq, np.arange(len(seq)), tex, rname, params, cfg)
-    assert sadm.features(seq.landmarks[:2]).shape == (2, 956)
+    gaze = 4 * cfg.gaze_copies if cfg.gaze_mode in ("inside", "both") else 0  # mediapipe478 has irises: gaze is on
+    assert sadm.features(seq.landmarks[:2]).shape == (2, 956 + gaze)
     with torch.no_grad():
         crop, mask, _ = sadm.synthesizer()(torch.from_numpy(seq.landmarks[-3:] + np.float32(0.5)))
     assert torch.isfinite(crop).all() and mask.sum() > 0

@@ -134,8 +134,8 @@ def compress_synthesizer(
         raise FacesynthError("appearance compression: compress before quantizing the basis (this synthesizer is int8)")
     landmarks = np.asarray(landmarks, np.float32)
     if landmarks.ndim != 3 or landmarks.shape[1:] != (syn.n_points, 2):
-        raise FacesynthError(f"appearance compression: landmarks must be (N, {syn.n_points}, 2) (the synthesizer's "
-                             f"scheme {syn.scheme}), got {landmarks.shape}")
+        raise FacesynthError(f"appearance compression: landmarks must be (N, {syn.n_points}, 2), got {landmarks.shape} "
+                             f"(scheme {syn.scheme})")
     landmarks = landmarks[np.isfinite(landmarks).all(axis=(1, 2))]
     if len(landmarks) < 2:
         raise FacesynthError("appearance compression: needs at least 2 finite landmark rows (the training frames)")

@@ -26,7 +26,7 @@ import torch
 from facesynth.artifact import manifest_field, read_manifest, read_tensors, rebuild, save_artifact
 from facesynth.data.sequence import FaceSequence
 from facesynth.errors import FacesynthError
-from facesynth.landmarks import get_scheme
+from facesynth.landmarks import SCHEMES, get_scheme
 from facesynth.model.artifact import load_face_model, save_face_model
 from facesynth.model.artifact import read_manifest as face_model_manifest
 from facesynth.model.face_model import FaceModel
@@ -287,7 +287,7 @@ def save_sadm(sadm: SADM, run_dir: str | os.PathLike, extra: dict | None = None)
         tensors.update({GAZE_PREFIX + k: v.detach().contiguous().numpy() for k, v in sadm.gaze.state_dict().items()})
     save_artifact(d / "sadm", SADM_TENSORS, SADM_MANIFEST, tensors, {
         "regressor": sadm.name,
-        "landmark_scheme": sadm.scheme,
+        "landmark_scheme": sadm.scheme,  # the input's; the face model's is its base (ibug68+iris -> ibug68)
         "gaze": None if sadm.gaze is None else sadm.gaze.summary(),  # the path's tensors: gaze.* (None: no path)
         "gaze_use": sadm.gaze_summary(),
         "regressor_config": sadm.regressor_config,
@@ -295,7 +295,6 @@ def save_sadm(sadm: SADM, run_dir: str | os.PathLike, extra: dict | None = None)
         "sadm": asdict(sadm.config),
         "search_table": sadm.search_table,
         "data_fingerprint": sadm.model.fingerprint,
-        "landmark_scheme": sadm.model.scheme,
         "face_model_sha256": face_model_manifest(d / "face_model")["tensors_sha256"],
         **(extra or {}),
     }, SADM_FORMAT, SADM_FORMAT_VERSION)
@@ -324,14 +323,16 @@ def load_sadm(run_dir: str | os.PathLike) -> SADM:
         raise FacesynthError(f"{d / 'face_model'}: not the face model this SADM was saved with "
                              f"(its SHA-256 differs from {where}'s 'face_model_sha256')")
     scheme = meta.get("landmark_scheme", "ibug68")  # runs saved before schemes were recorded are 68-point
-    if scheme != model.scheme:
-        raise FacesynthError(f"{where}: landmark scheme {scheme!r}, but the face model in {d / 'face_model'} "
-                             f"has {model.scheme!r}")
+    if scheme not in SCHEMES:
+        raise FacesynthError(f"{where}: unknown landmark scheme {scheme!r} (known: {', '.join(SCHEMES)})")
+    scheme = get_scheme(scheme)
+    if scheme.base_scheme().name != model.scheme:
+        raise FacesynthError(f"{where}: landmark scheme {scheme.name!r} needs a face model in "
+                             f"{scheme.base_scheme().name!r}, but the one in {d / 'face_model'} has {model.scheme!r}")
     tensors = read_tensors(d / "sadm", SADM_TENSORS, meta, "SADM regressor")
     conf = manifest_field(meta, "regressor_config", where)
     sadm_conf = manifest_field(meta, "sadm", where)
 
-    scheme = get_scheme(meta.get("landmark_scheme", "ibug68"))  # runs saved before schemes were recorded: ibug68
     gaze_meta = meta.get("gaze")
 
     def build() -> SADM:

@@ -117,8 +117,8 @@ def quantize_synthesizer(syn: Synthesizer, landmarks: np.ndarray | None = None) 
     if landmarks is not None:
         lm = np.asarray(landmarks, np.float32)
         if lm.ndim != 3 or lm.shape[1:] != (syn.n_points, 2):
-            raise FacesynthError(f"int8 appearance basis: landmarks must be (N, {syn.n_points}, 2) (scheme {syn.scheme}), "
-                                 f"got {lm.shape}")
+            raise FacesynthError(f"int8 appearance basis: landmarks must be (N, {syn.n_points}, 2), got {lm.shape} "
+                                 f"(scheme {syn.scheme})")
         lm = lm[np.isfinite(lm).all(axis=(1, 2))]
         if len(lm):
             info["quantization_psnr_vs_float_db"] = texture_psnr(syn, out, lm)
