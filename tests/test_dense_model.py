@@ -132,7 +132,8 @@ def test_sadm_run_with_a_face_model_of_another_scheme_is_refused(dense, tmp_path
     meta = json.loads(meta_path.read_text())
     meta["landmark_scheme"] = "ibug68"
     meta_path.write_text(json.dumps(meta))
-    with pytest.raises(FacesynthError, match=r"sadm\.json: landmark scheme 'ibug68' needs a face model in 'ibug68', but the one in .* has 'mediapipe478'"):
+    with pytest.raises(FacesynthError,
+                       match=r"sadm\.json: landmark scheme 'ibug68' needs a face model in 'ibug68', but the one in .* has 'mediapipe478'"):
         load_sadm(tmp_path / "run")
 
 
