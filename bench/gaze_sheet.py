@@ -6,8 +6,10 @@ band of each frame, synthesized from the landmarks alone and pasted into the rea
 
 ``--data`` is an ``ibug68+iris`` folder (its irises pick the frames: the test frames with the
 largest |horizontal gaze|, half looking to each side, at least 10 frames apart); each run is
-fed the landmarks of its own scheme (the first 68 points for an ``ibug68`` run). Prints one
-JSON line (frames, gaze values, file size).
+fed the landmarks of its own scheme (the first 68 points for an ``ibug68`` run), from
+``--data`` or, for a run of another scheme (``mediapipe478``), from that run's entry of
+``--landmarks`` (a folder ingested from the same video; ``-`` = ``--data``), matched by video
+frame. Prints one JSON line (frames, gaze values, file size).
 """
 
 from __future__ import annotations
@@ -47,6 +49,7 @@ def main() -> None:
     ap.add_argument("--data", required=True)
     ap.add_argument("--runs", nargs="+", required=True)
     ap.add_argument("--labels", nargs="+", required=True)
+    ap.add_argument("--landmarks", nargs="+", help="per run: a landmark folder of the same video, or - for --data")
     ap.add_argument("--out", required=True)
     ap.add_argument("--n", type=int, default=6)
     ap.add_argument("--width", type=int, default=300, help="width of each tile (px)")
@@ -59,8 +62,16 @@ def main() -> None:
     pos = pick_frames(gx, a.n)
     rows = te[pos]
     sadms = [load_sadm(r) for r in a.runs]
+    sources = a.landmarks or ["-"] * len(a.runs)
+    if len(sources) != len(a.runs) or len(a.labels) != len(a.runs):
+        raise SystemExit("error: give one --labels entry (and one --landmarks entry, if any) per run")
+    lms = []
+    for src in sources:
+        other = seq if src == "-" else load_sequence(src)
+        where = {int(f): i for i, f in enumerate(other.frame_index)}
+        lms.append(np.stack([other.landmarks[where[int(f)]] for f in seq.frame_index[rows]]))
     tiles = []
-    for row in rows:
+    for n_row, row in enumerate(rows):
         frame = seq.frame(int(row))
         lm = seq.landmarks[row]
         eye = lm[36:48]
@@ -69,10 +80,10 @@ def main() -> None:
         x0, x1 = int(cx - 0.95 * iod), int(cx + 0.95 * iod)
         y0, y1 = int(cy - 0.45 * iod), int(cy + 0.4 * iod)
         row_tiles = [frame]
-        for sadm in sadms:
+        for sadm, run_lm in zip(sadms, lms, strict=True):
             p = get_scheme(sadm.scheme).n_points
             with torch.no_grad():
-                crop, mask, place = sadm.synthesizer()(torch.from_numpy(lm[None, :p].copy()))
+                crop, mask, place = sadm.synthesizer()(torch.from_numpy(run_lm[n_row][None, :p].copy()))
             row_tiles.append(composite(crop[0].permute(1, 2, 0).numpy(), mask[0, 0].numpy(), place[0].numpy(), frame))
         cut = [t[max(y0, 0):y1, max(x0, 0):x1] for t in row_tiles]
         h = int(round(a.width * cut[0].shape[0] / cut[0].shape[1]))
