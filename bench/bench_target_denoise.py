@@ -32,18 +32,10 @@ sys.path.insert(0, str(ROOT))
 
 from facesynth.eval.common_region import common_landmarks, hull_box, region_masks  # noqa: E402
 from facesynth.eval.sadm_eval import noisy_landmarks  # noqa: E402
+from facesynth.geometry import apply_affine, invert_affine  # noqa: E402
 from facesynth.imaging import composite  # noqa: E402
 from facesynth.runs.rundir import read_config, run_data  # noqa: E402
 from facesynth.sadm.fit import load_sadm  # noqa: E402
-
-
-def back_to_frame(shapes: np.ndarray, transforms: np.ndarray) -> np.ndarray:
-    """(N, P, 2) model-frame shapes through the inverses of (N, 2, 3) frame->model similarities."""
-    out = np.empty_like(shapes)
-    for i, (s, t) in enumerate(zip(shapes, transforms, strict=True)):
-        inv = np.linalg.inv(np.vstack([t, [0.0, 0.0, 1.0]]))[:2]
-        out[i] = s @ inv[:, :2].T + inv[:, 2]
-    return out
 
 
 def measure(run, n_frames: int, sigma: float) -> dict:
@@ -76,7 +68,7 @@ def measure(run, n_frames: int, sigma: float) -> dict:
             rec = model.shape_from_params(model.shape_params(pts))
         else:
             rec = ((al.reshape(len(al), -1) - mu) @ basis.T @ basis + mu).reshape(al.shape)
-        return back_to_frame(rec, t).astype(np.float32)
+        return apply_affine(rec, invert_affine(t)).astype(np.float32)  # back to the frame
 
     def psnr(tex: np.ndarray, targets: np.ndarray) -> float:
         crop, mask, place = model.render(tex, targets)

@@ -26,7 +26,7 @@ import torch
 from facesynth.artifact import manifest_field, read_manifest, read_tensors, rebuild, save_artifact
 from facesynth.data.sequence import FaceSequence
 from facesynth.errors import FacesynthError
-from facesynth.landmarks import SCHEMES, get_scheme
+from facesynth.landmarks import get_scheme
 from facesynth.model.artifact import load_face_model, save_face_model
 from facesynth.model.artifact import read_manifest as face_model_manifest
 from facesynth.model.face_model import FaceModel
@@ -322,10 +322,10 @@ def load_sadm(run_dir: str | os.PathLike) -> SADM:
     if paired is not None and paired != face_model_manifest(d / "face_model").get("tensors_sha256"):
         raise FacesynthError(f"{d / 'face_model'}: not the face model this SADM was saved with "
                              f"(its SHA-256 differs from {where}'s 'face_model_sha256')")
-    scheme = meta.get("landmark_scheme", "ibug68")  # runs saved before schemes were recorded are 68-point
-    if scheme not in SCHEMES:
-        raise FacesynthError(f"{where}: unknown landmark scheme {scheme!r} (known: {', '.join(SCHEMES)})")
-    scheme = get_scheme(scheme)
+    try:  # runs saved before schemes were recorded are 68-point
+        scheme = get_scheme(meta.get("landmark_scheme", "ibug68"))
+    except FacesynthError as exc:
+        raise FacesynthError(f"{where}: {exc}") from None
     if scheme.base_scheme().name != model.scheme:
         raise FacesynthError(f"{where}: landmark scheme {scheme.name!r} needs a face model in "
                              f"{scheme.base_scheme().name!r}, but the one in {d / 'face_model'} has {model.scheme!r}")
