@@ -115,6 +115,25 @@ def test_tables_match_mediapipe_connection_sets():
     assert {e for e, n in surface.items() if n == 1} == {frozenset(e) for e in c.FACEMESH_FACE_OVAL} | holes
 
 
+def test_landmark_wire_parse_matches_attribute_reads(rng):
+    # the byte-level read of a NormalizedLandmarkList against protobuf's own attribute reads
+    pytest.importorskip("mediapipe")
+    from mediapipe.framework.formats import landmark_pb2
+
+    from facesynth.data.detect_mediapipe import landmark_xy
+
+    xyz = rng.uniform(-0.2, 1.2, (478, 3)).astype(np.float32)
+    xyz[5] = 0.0  # a zero coordinate is still on the wire (proto2 fields with presence)
+    msg = landmark_pb2.NormalizedLandmarkList()
+    for x, y, z in xyz.tolist():
+        msg.landmark.add(x=x, y=y, z=z)
+    expect = np.array([(p.x, p.y) for p in msg.landmark])
+    np.testing.assert_array_equal(landmark_xy(msg), expect)
+    msg.landmark[7].visibility = 0.5  # another layout: read point by point
+    np.testing.assert_array_equal(landmark_xy(msg), expect)
+    assert landmark_xy(landmark_pb2.NormalizedLandmarkList()).shape == (0, 2)
+
+
 # ------------------------------------------------------------------ MediaPipe on a shared clip
 @pytest.fixture(scope="module")
 def mp_cut(shared_clip_dir, tmp_path_factory):

@@ -64,6 +64,27 @@ def mediapipe_versions() -> dict[str, str]:
     return out
 
 
+# A NormalizedLandmarkList on the wire, when each landmark has exactly x, y, z (what Face
+# Mesh returns): field 1 (tag 0x0a), a 15-byte message of float fields 1, 2, 3 (tags 0x0d,
+# 0x15, 0x1d). Read with one np.frombuffer instead of 2 x 478 protobuf attribute reads
+# (0.01 against 0.3 ms a frame, 5 % of Face Mesh's own time).
+_WIRE = np.dtype([("tag", "u1"), ("len", "u1"), ("tx", "u1"), ("x", "<f4"), ("ty", "u1"), ("y", "<f4"),
+                  ("tz", "u1"), ("z", "<f4")])
+_WIRE_TAGS = {"tag": 0x0A, "len": 15, "tx": 0x0D, "ty": 0x15, "tz": 0x1D}
+
+
+def landmark_xy(landmark_list) -> np.ndarray:
+    """float64 (N, 2) normalised x, y of a MediaPipe ``NormalizedLandmarkList``: parsed
+    from its serialised bytes when they have the fixed x, y, z layout, else read point by
+    point (e.g. landmarks that also carry visibility or presence)."""
+    raw = landmark_list.SerializeToString()
+    if len(raw) % _WIRE.itemsize == 0:
+        rec = np.frombuffer(raw, _WIRE)
+        if all(bool((rec[k] == v).all()) for k, v in _WIRE_TAGS.items()):
+            return np.stack([rec["x"], rec["y"]], 1).astype(np.float64)
+    return np.array([(p.x, p.y) for p in landmark_list.landmark], np.float64).reshape(-1, 2)
+
+
 class MediaPipeLandmarker:
     """MediaPipe Face Mesh with refined irises: one face, 478 points per frame.
 
@@ -111,8 +132,7 @@ class MediaPipeLandmarker:
         if not res.multi_face_landmarks:
             return None
         h, w = rgb.shape[:2]
-        pts = res.multi_face_landmarks[0].landmark
-        xy = np.array([(p.x, p.y) for p in pts], np.float64)
+        xy = landmark_xy(res.multi_face_landmarks[0])
         if xy.shape != (SCHEME.n_points, 2):
             raise FacesynthError(f"MediaPipe returned {xy.shape[0]} landmarks, expected {SCHEME.n_points} (refine_landmarks=True)")
         return (xy * (w, h) - 0.5).astype(np.float32)
