@@ -170,3 +170,99 @@ def test_every_regressor_fits_on_956_landmark_inputs(dense, name):
     assert torch.isfinite(crop).all() and mask.sum() > 0
     b = sadm.predict_params(seq.landmarks)
     assert np.corrcoef(b[:, 0], model.appearance_params(tex)[:, 0])[0, 1] > 0.5  # it learnt the first component
+
+
+# ------------------------------------------------------------------ landmark denoising
+def test_denoise_projects_on_the_training_shapes(dense, rng):
+    from facesynth.model.denoise import ShapeDenoiser
+    from facesynth.model.face_model import SCHEME_DEFAULTS
+
+    _, seq, model, _ = dense
+    variance = SCHEME_DEFAULTS["dense"]["denoise_variance"]
+    pca = model.denoise_pca  # on by default for the dense scheme
+    assert pca is not None and pca.explained_variance_ratio >= variance
+    k, d = pca.n_components, pca.mean.shape[0]
+    assert 1 <= k < d // 4 and model.describe()["n_denoise_components"] == k
+    # the training shapes keep all but (1 - variance) of their spread (in the aligned frame)
+    aligned, _ = model.align(seq.landmarks)
+    back, _ = model.align(model.denoise(seq.landmarks))
+    resid = ((back - aligned) ** 2).sum() / (len(aligned) - 1)
+    assert resid <= (1 - variance) * pca.total_variance * 1.05
+    # the torch module (the graph's) equals the numpy form
+    once = model.denoise(seq.landmarks[:6])
+    with torch.no_grad():
+        got = ShapeDenoiser(pca)(torch.from_numpy(seq.landmarks[:6])).numpy()
+    np.testing.assert_allclose(got, once, atol=2e-3)
+    # of i.i.d. unit landmark noise (2P = 956 dimensions) it keeps about K + 4: the subspace's K
+    # and the 4 of the similarity, re-estimated from the noisy points (first order)
+    clean = np.repeat(seq.landmarks[:1], 400, 0)
+    noisy = clean + rng.normal(0, 1.0, clean.shape).astype(np.float32)
+    kept = ((model.denoise(noisy) - model.denoise(clean)) ** 2).sum((1, 2)).mean()
+    assert k < kept < k + 8, (kept, k)
+
+
+def test_synthesis_reads_the_denoised_landmarks(dense):
+    # the graph (Synthesizer), the model's numpy render (the evaluation's) and the SADM's numpy
+    # prediction agree: all read FaceModel.denoise's landmarks
+    from facesynth.sadm.fit import SADMConfig
+
+    _, seq, model, tex = dense
+    # without gaze: its eye-texture correction is the graph's, not b_g's (predict_params)
+    sadm = fit_sadm(model, seq, np.arange(len(seq)), tex, "linear", None, SADMConfig(gaze=False))
+    syn = sadm.synthesizer()
+    lm = seq.landmarks[::11] + np.float32(0.4)
+    with torch.no_grad():
+        crop, mask, place = syn(torch.from_numpy(lm))
+        pred = syn.texture(torch.from_numpy(lm)).reshape(len(lm), -1).numpy()
+    np.testing.assert_allclose(pred, np.clip(model.texture_from_params(sadm.predict_params(lm)), 0, 1), atol=2e-3)
+    crop2, mask2, place2 = model.render(pred, lm)
+    assert np.mean(mask[:, 0].numpy() != mask2) < 1e-3
+    both = (mask[:, 0].numpy() > 0) & (mask2 > 0)
+    assert np.abs(crop.permute(0, 2, 3, 1).numpy() - crop2)[both].max() < 2e-3
+    np.testing.assert_allclose(place.numpy(), place2, atol=1e-3)
+
+
+def test_denoise_settings_and_artifact(dense, tmp_path):
+    seq68, seq, model, _ = dense
+    save_face_model(model, tmp_path / "fm")
+    back = load_face_model(tmp_path / "fm")
+    np.testing.assert_array_equal(back.denoise_pca.components, model.denoise_pca.components)
+    np.testing.assert_array_equal(back.denoise(seq.landmarks[:3]), model.denoise(seq.landmarks[:3]))
+    rows = np.arange(12)
+    off = FaceModel.fit(seq, FaceModelConfig(reference_width=48, denoise_variance=1.0), rows=rows, progress=False)
+    assert off.denoise_pca is None
+    np.testing.assert_array_equal(off.denoise(seq.landmarks[:2]), seq.landmarks[:2])
+    m68 = FaceModel.fit(seq68, FaceModelConfig(reference_width=48), rows=rows, progress=False)
+    assert m68.denoise_pca is None  # off by default on the sparse scheme
+    save_face_model(m68, tmp_path / "fm68")
+    assert load_face_model(tmp_path / "fm68").denoise_pca is None
+    on68 = FaceModel.fit(seq68, FaceModelConfig(reference_width=48, denoise_variance=0.99), rows=rows, progress=False)
+    assert on68.denoise_pca is not None and on68.denoise_pca.mean.shape == (136,)
+    with pytest.raises(FacesynthError, match=r"model\.denoise_variance must be a fraction in \(0, 1\] \(1 = off\), got 1\.5"):
+        FaceModel.fit(seq68, FaceModelConfig(denoise_variance=1.5), rows=rows, progress=False)
+    with pytest.raises(FacesynthError, match=r"model\.reference_mouth_quantile must lie in \[0, 1\] \(0 = off\), got -0\.1"):
+        FaceModel.fit(seq68, FaceModelConfig(reference_mouth_quantile=-0.1), rows=rows, progress=False)
+
+
+def test_app_drives_a_478_point_model(dense, tmp_path, capsys):
+    pytest.importorskip("onnx")
+    from facesynth.cli import main
+    from facesynth.onnx.synthesis import export_synthesizer
+
+    seq68, seq, model, tex = dense
+    path = export_synthesizer(fit_sadm(model, seq, np.arange(len(seq)), tex, "linear").synthesizer(), tmp_path / "m.onnx")
+    np.save(tmp_path / "lm.npy", seq.landmarks[:5])
+    np.save(tmp_path / "lm68.npy", seq68.landmarks[:5])
+    out = tmp_path / "out.mp4"
+    base = ["app", "--model", str(path), "--out", str(out), "--size", "160x160", "--no-progress"]
+    assert main(base + ["--landmarks", str(tmp_path / "lm.npy"), "--save-landmarks", str(tmp_path / "saved.npy")]) == 0
+    cap = cv2.VideoCapture(str(out))
+    assert int(cap.get(cv2.CAP_PROP_FRAME_COUNT)) == 5
+    cap.release()
+    np.testing.assert_array_equal(np.load(tmp_path / "saved.npy"), seq.landmarks[:5])  # absolute motion: as given
+    capsys.readouterr()
+    out.unlink()
+    assert main(base + ["--landmarks", str(tmp_path / "lm.npy"), "--motion", "relative"]) == 2
+    assert "retargeting is 68-point only" in capsys.readouterr().err
+    assert main(base + ["--landmarks", str(tmp_path / "lm68.npy")]) == 2  # 68 points cannot become 478
+    assert "mediapipe478" in capsys.readouterr().err and not out.exists()

@@ -37,6 +37,11 @@ def save_face_model(model: FaceModel, directory: str | os.PathLike, extra: dict 
         "triangles": model.reference.triangles.astype(np.int64),
         "span": model.span.astype(np.int64),
     }
+    denoise = {}
+    if model.denoise_pca is not None:  # absent: landmarks used as given (also every model before it existed)
+        tensors.update(denoise_mean=model.denoise_pca.mean, denoise_components=model.denoise_pca.components,
+                       denoise_eigenvalues=model.denoise_pca.eigenvalues.astype(np.float64))
+        denoise = {"denoise_total_variance": model.denoise_pca.total_variance}
     return save_artifact(directory, TENSORS, MANIFEST, tensors, {
         "landmark_scheme": model.scheme,
         "reference_size": list(model.reference.size),
@@ -45,6 +50,7 @@ def save_face_model(model: FaceModel, directory: str | os.PathLike, extra: dict 
         "appearance_total_variance": model.appearance_pca.total_variance,
         "data_fingerprint": model.fingerprint,
         "meta": model.meta,
+        **denoise,
         **(extra or {}),
     }, FORMAT, FORMAT_VERSION)
 
@@ -82,6 +88,9 @@ def load_face_model(directory: str | os.PathLike) -> FaceModel:
             fingerprint=manifest_field(manifest, "data_fingerprint", where),
             meta=manifest.get("meta", {}),
             scheme=manifest["landmark_scheme"],
+            denoise_pca=None if "denoise_mean" not in t else PCAModel(
+                t["denoise_mean"], t["denoise_components"], t["denoise_eigenvalues"],
+                float(manifest_field(manifest, "denoise_total_variance", where))),
         )
         check_face_model(model)
         return model
@@ -126,3 +135,5 @@ def check_face_model(model: FaceModel) -> None:
     if model.span.shape != (len(model.reference.triangles), 2):
         raise ValueError(f"span: expected ({len(model.reference.triangles)}, 2), got {model.span.shape}")
     check_pca(model.appearance_pca, "appearance PCA", model.n_channels * model.n_pixels)
+    if model.denoise_pca is not None:
+        check_pca(model.denoise_pca, "denoise PCA", 2 * n_points)

@@ -18,11 +18,11 @@ import torch
 
 from facesynth.data.sequence import FaceSequence, validate_landmarks
 from facesynth.errors import FacesynthError
-from facesynth.geometry import apply_affine, similarity_fit
+from facesynth.geometry import apply_affine, invert_affine, similarity_fit
 from facesynth.landmarks import DEFAULT_SCHEME, get_scheme
 from facesynth.model.pca import PCAModel
 from facesynth.model.procrustes import generalised_procrustes
-from facesynth.model.reference import ReferenceFrame
+from facesynth.model.reference import ReferenceFrame, open_mouth
 from facesynth.model.warp import ToReference, ToTarget, apply_affine_t, candidate_spans, invert_affine_t, similarity_to
 from facesynth.progress import bar as progress_bar
 
@@ -47,6 +47,37 @@ class FaceModelConfig:
     clamp_k: float = 3.0
     span_safety: float = 1.3
     batch_size: int = 32
+    # fraction of the aligned training shapes' variance the landmark denoiser keeps: every
+    # landmark set the model synthesises from (the regressor's input and the warp target) is
+    # projected on that PCA first (FaceModel.denoise); 1 = off; None = the scheme's default
+    denoise_variance: float | None = None
+    # the reference frame's mouth opening, as a quantile of the training shapes' (the mean
+    # shape opened along the data: reference.open_mouth); 0 = the mean's own; None = the
+    # scheme's default
+    reference_mouth_quantile: float | None = None
+
+
+# The settings whose default depends on the landmark scheme (config None): a dense mesh (a
+# scheme with a fixed triangulation: hundreds of points, each with its own jitter, on small
+# triangles, and fixed triangles closing the mouth) against a sparse scheme (68 points,
+# Delaunay on the mean, whose inner-lip points stay apart; its reenactment drives eyelids past
+# the avatar's own range, retarget.ShapeSpace, where a projection on the training shapes would pull them back).
+# Figures: docs/sadm.md.
+SCHEME_DEFAULTS = {
+    "dense": {"denoise_variance": 0.999, "reference_mouth_quantile": 0.9},
+    "sparse": {"denoise_variance": 1.0, "reference_mouth_quantile": 0.0},
+}
+
+
+def scheme_default(scheme_name: str, name: str) -> float:
+    """The value of config field ``name`` that None stands for with scheme ``scheme_name``."""
+    return SCHEME_DEFAULTS["dense" if get_scheme(scheme_name).triangles is not None else "sparse"][name]
+
+
+def resolved(cfg: "FaceModelConfig", scheme_name: str, name: str) -> float:
+    """Config field ``name``, or its scheme default when None."""
+    v = getattr(cfg, name)
+    return scheme_default(scheme_name, name) if v is None else float(v)
 
 
 @dataclass
@@ -60,8 +91,9 @@ class FaceModel:
         Over flattened (P * 2,) Procrustes-aligned shapes (unit-norm scale), P the
         scheme's point count.
     reference : ReferenceFrame
-        Mean shape at ``reference_width`` pixels, triangulated (the scheme's fixed
-        triangulation less the triangles folded on the mean, or Delaunay).
+        Mean shape (its mouth opened to ``reference_mouth_quantile``, when set) at
+        ``reference_width`` pixels, triangulated (the scheme's fixed triangulation less the
+        triangles folded on it, or Delaunay).
     appearance_pca : PCAModel
         Over flattened (C * M,) textures in [0, 1], channel-major, M = mask pixels.
     span : np.ndarray
@@ -71,6 +103,10 @@ class FaceModel:
     scheme : str
         Landmark scheme of the training data (``ibug68``, ``mediapipe478``): every
         landmark array given to the model must be in it.
+    denoise_pca : PCAModel or None
+        Over flattened (P * 2,) Procrustes-aligned training shapes (as ``shape_pca``),
+        keeping ``denoise_variance`` of their variance: :meth:`denoise` projects on it.
+        None: landmarks are used as given.
     """
 
     config: FaceModelConfig
@@ -81,6 +117,7 @@ class FaceModel:
     fingerprint: str = ""
     meta: dict = field(default_factory=dict)
     scheme: str = DEFAULT_SCHEME.name
+    denoise_pca: PCAModel | None = None
 
     # ------------------------------------------------------------------ fitting
     @classmethod
@@ -100,12 +137,22 @@ class FaceModel:
             raise FacesynthError(f"{seq.name}: need at least 3 frames to fit a face model, got {len(rows)}")
         t0 = time.perf_counter()
         lm = seq.landmarks[rows].astype(np.float64)
+        denoise_variance = resolved(cfg, scheme.name, "denoise_variance")
+        mouth_q = resolved(cfg, scheme.name, "reference_mouth_quantile")
+        if not 0 < denoise_variance <= 1:
+            raise FacesynthError(f"model.denoise_variance must be a fraction in (0, 1] (1 = off), got {cfg.denoise_variance}")
+        if not 0 <= mouth_q <= 1:
+            raise FacesynthError(f"model.reference_mouth_quantile must lie in [0, 1] (0 = off), got {cfg.reference_mouth_quantile}")
         aligned, mean = generalised_procrustes(lm)
         shape_pca = PCAModel.fit(aligned.reshape(len(rows), -1), cfg.n_shape, cfg.shape_variance)
+        denoise_pca = None if denoise_variance == 1 else PCAModel.fit(aligned.reshape(len(rows), -1), None, denoise_variance)
         fixed = None if scheme.triangles is None else scheme.triangulation()
-        ref = ReferenceFrame.from_mean_shape(mean, cfg.reference_width, cfg.margin, fixed)
+        ref_shape, mouth = mean, {}
+        if mouth_q > 0:
+            ref_shape, mouth = open_mouth(mean, aligned, scheme.region("inner_lips"), mouth_q)
+        ref = ReferenceFrame.from_mean_shape(ref_shape, cfg.reference_width, cfg.margin, fixed)
         model = cls(cfg, shape_pca, ref, None, np.zeros((ref.n_triangles, 2), np.int64), seq.fingerprint,  # type: ignore[arg-type]
-                    scheme=scheme.name)
+                    scheme=scheme.name, denoise_pca=denoise_pca)
         dropped = [] if fixed is None else _dropped(fixed, ref.triangles)
         if dropped:
             log.warning("%s: %d triangles of the %s triangulation are folded on the mean shape and left out "
@@ -123,6 +170,7 @@ class FaceModel:
             "fit_seconds": {"shape": t1 - t0, "textures": t2 - t1, "appearance_pca": t3 - t2},
             "sequence": seq.name,
             "triangles_folded_on_mean": dropped,
+            "reference_mouth": mouth,
         }
         log.info(
             "face model: %d shape / %d appearance components (%.1f%% / %.1f%% variance), %d mask pixels",
@@ -172,6 +220,18 @@ class FaceModel:
         lm = validate_landmarks(landmarks, "landmarks", scheme=self.scheme).astype(np.float64)
         m = similarity_fit(lm, self.reference.points[None].astype(np.float64))
         return apply_affine(lm, m).astype(np.float32), m
+
+    def denoise(self, landmarks: np.ndarray) -> np.ndarray:
+        """(N, P, 2) frame landmarks -> float32 (N, P, 2): similarity-aligned to the mean
+        shape, projected on ``denoise_pca`` and mapped back (unchanged without it). The
+        numpy form of :class:`facesynth.model.denoise.ShapeDenoiser`."""
+        lm = validate_landmarks(landmarks, "landmarks", scheme=self.scheme)
+        if self.denoise_pca is None:
+            return np.asarray(lm, np.float32)
+        aligned, m = self.align(lm)
+        flat = aligned.reshape(len(aligned), -1)
+        proj = self.denoise_pca.reconstruct(self.denoise_pca.project(flat)).astype(np.float64).reshape(aligned.shape)
+        return apply_affine(proj, invert_affine(m)).astype(np.float32)
 
     def _shape_extremes(self) -> np.ndarray:
         """Shapes at +-clamp_k sigma along each shape component, in canvas pixels."""
@@ -257,7 +317,7 @@ class FaceModel:
         return self.sampler().to_image(t, fill).permute(0, 2, 3, 1).numpy()
 
     def render(self, textures: np.ndarray, landmarks: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Warp textures onto frame landmarks, in the reference-scale crop.
+        """Warp textures onto frame landmarks (after :meth:`denoise`), in the reference-scale crop.
 
         Parameters
         ----------
@@ -270,7 +330,7 @@ class FaceModel:
         mask : float32 (B, H, W)
         placement : float64 (B, 2, 3) affine map from crop pixels to frame pixels
         """
-        canvas, m = self.to_canvas(landmarks)
+        canvas, m = self.to_canvas(self.denoise(landmarks))
         with torch.no_grad():
             img, mask = self.renderer()(
                 torch.from_numpy(np.asarray(textures, np.float32)).reshape(len(textures), self.n_channels, -1).clamp(0, 1),
@@ -288,6 +348,7 @@ class FaceModel:
             "appearance_variance_kept": self.appearance_pca.explained_variance_ratio,
             "reference_size": list(self.reference.size),
             "n_triangles": self.reference.n_triangles,
+            "n_denoise_components": 0 if self.denoise_pca is None else self.denoise_pca.n_components,
             "n_mask_pixels": self.n_pixels,
             "channels": self.n_channels,
             "config": asdict(self.config),

@@ -86,6 +86,39 @@ class ReferenceFrame:
         return self.rasterise()[0] >= 0
 
 
+def lip_gap(shapes: np.ndarray, ring: np.ndarray) -> np.ndarray:
+    """Mouth opening of (..., P, 2) shapes: the mean distance between facing inner-lip points
+    over the distance between the inner mouth corners -> (...,). ``ring``: the scheme's
+    ``inner_lips`` (L points, a closed ring: corner, upper lip, the other corner at L / 2,
+    lower lip), so point k faces point L - k."""
+    ring = np.asarray(ring, np.int64)
+    n = len(ring)
+    upper, lower = ring[1 : n // 2], ring[n - 1 : n // 2 : -1]
+    s = np.asarray(shapes, np.float64)
+    width = np.linalg.norm(s[..., ring[0], :] - s[..., ring[n // 2], :], axis=-1)
+    return np.linalg.norm(s[..., upper, :] - s[..., lower, :], axis=-1).mean(-1) / width
+
+
+def open_mouth(mean: np.ndarray, shapes: np.ndarray, ring: np.ndarray, quantile: float) -> tuple[np.ndarray, dict]:
+    """The mean shape (P, 2) with its mouth opened to the ``quantile`` of the (N, P, 2)
+    aligned training shapes' :func:`lip_gap`, along the shapes' linear regression on the gap
+    (the way this face opens its mouth: jaw, lips and cheeks together). Unchanged when its
+    gap is already that wide. A reference frame whose lips touch gives the triangles that
+    close a fixed mesh's mouth no pixels, so the appearance model never holds the inside of
+    the mouth. Returns the shape and what was done (for the model's meta)."""
+    g = lip_gap(shapes, ring)
+    want, have = float(np.quantile(g, quantile)), float(lip_gap(mean, ring))
+    info = {"quantile": float(quantile), "gap_mean_shape": have, "gap_target": want}
+    dg = g - g.mean()
+    if want <= have or float(dg @ dg) == 0.0:
+        return mean, {**info, "opened": False}
+    slope = np.tensordot(dg, np.asarray(shapes, np.float64) - mean, 1) / float(dg @ dg)  # (P, 2) per unit of gap
+    out = np.asarray(mean, np.float64)
+    for _ in range(3):  # the gap is not exactly linear along the slope: a few secant steps
+        out = out + (want - lip_gap(out, ring)) * slope
+    return out, {**info, "opened": True, "gap_reference": float(lip_gap(out, ring))}
+
+
 def orient_ccw(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     """Reorder triangle vertices so that every triangle has positive signed area."""
     p = points[triangles]

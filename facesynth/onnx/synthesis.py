@@ -69,6 +69,7 @@ class SynthesisGraph(nn.Module):
         self.gaze = getattr(syn.appearance, "needs_landmarks", False)
         self.appearance = syn.appearance
         self.warp = syn.warp
+        self.denoise = syn.denoise
         # both similarity alignments (to the model's mean shape and to the reference frame) in one solve
         self.align = SimilarityAlignment([enc.mean_shape.double().numpy(), syn.ref_points.double().numpy()])
         # shape parameters: (aligned - mean) @ P^T = aligned @ P^T - mean @ P^T
@@ -84,6 +85,8 @@ class SynthesisGraph(nn.Module):
             self.register_buffer("app_mean", app.mean.clone())
 
     def forward(self, landmarks: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        landmarks = self.denoise(landmarks) if self.n_points == self.model_points else torch.cat(
+            [self.denoise(landmarks[:, : self.model_points]), landmarks[:, self.model_points :]], 1)
         full = landmarks
         if self.n_points != self.model_points:
             landmarks = landmarks[:, : self.model_points]

@@ -38,8 +38,10 @@ SHEET_DIR = Path("/tmp/facesynth_out")
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--model", required=True, help="ONNX model written by 'facesynth export'")
     src = p.add_mutually_exclusive_group(required=True)
-    src.add_argument("--landmarks", help="driving landmarks (T, 68, 2): .npy, a clip folder, or any readable sequence")
-    src.add_argument("--video", help="driving video; landmarks are detected with the 'ingest' extra (dlib)")
+    src.add_argument("--landmarks", help="driving landmarks (T, P, 2) in the model's scheme (mediapipe478 ones are mapped "
+                                         "for a 68-point model): .npy, a clip folder, or any readable sequence")
+    src.add_argument("--video", help="driving video; landmarks are detected in the model's scheme: dlib (the 'ingest' extra), "
+                                     "MediaPipe (the 'mediapipe' extra) or both (ibug68+iris)")
     p.add_argument("--driver-video", help="with --landmarks: the video they came from, shown left in --side-by-side")
     p.add_argument("--out", required=True, help="output video (.mp4, mp4v codec)")
     p.add_argument("--background", help="background image (default: the avatar's own frame from the model, else grey)")
@@ -47,7 +49,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="relative (default for models exported with their avatar metadata): the driver's motion on the avatar's own "
                         "face, in the avatar's frame; absolute (default otherwise): the driver's landmarks as they are, on grey")
     p.add_argument("--driver-neutral", type=int, help="driver row used as its neutral face (default: chosen automatically)")
-    p.add_argument("--save-landmarks", help="write the float32 (T, 68, 2) avatar landmarks rendered, one row per driver frame (.npy)")
+    p.add_argument("--save-landmarks", help="write the float32 (T, P, 2) avatar landmarks rendered, one row per driver frame (.npy)")
     p.add_argument("--size", help="output frame size WxH when no background is given (default: the landmarks' extent)")
     p.add_argument("--side-by-side", action="store_true", help="driver (video frame or drawn landmarks) left, rendering right")
     p.add_argument("--smooth", action="store_true", help="One Euro filter on the landmarks (Casiez et al. 2012)")
@@ -116,14 +118,31 @@ def read_video(path: str, max_frames: int | None) -> tuple[list[np.ndarray], flo
     return frames, float(fps)
 
 
-def detect_video_landmarks(frames: list[np.ndarray]) -> np.ndarray:
-    """Landmarks (T, 68, 2) of driver frames with the ingest extra (dlib); NaN rows where no face."""
-    try:
-        from facesynth.data import detect
-    except ModuleNotFoundError as exc:
-        raise MissingExtraError("ingest", exc.name or "facesynth.data.detect") from None
-    detect.check_extra()
-    return np.asarray(detect.detect_landmarks(frames).landmarks, np.float32)
+def detect_video_landmarks(frames: list[np.ndarray], scheme: str = "ibug68") -> np.ndarray:
+    """Landmarks (T, P, 2) of driver frames in the model's ``scheme``; NaN rows where no face:
+    dlib (the ``ingest`` extra) for ``ibug68``, MediaPipe (the ``mediapipe`` extra) for
+    ``mediapipe478``, both for ``ibug68+iris`` (dlib's 68 points and MediaPipe's irises)."""
+    if scheme not in ("ibug68", "mediapipe478", "ibug68+iris"):
+        raise FacesynthError(f"--video: no landmarker for a model in scheme {scheme!r}; give --landmarks")
+    out = []
+    if scheme != "mediapipe478":
+        try:
+            from facesynth.data import detect
+        except ModuleNotFoundError as exc:
+            raise MissingExtraError("ingest", exc.name or "facesynth.data.detect") from None
+        detect.check_extra()
+    if scheme != "ibug68":
+        from facesynth.data import detect_mediapipe
+
+        detect_mediapipe.check_extra()
+        out.append(np.asarray(detect_mediapipe.detect_landmarks_mediapipe(frames).landmarks, np.float32))
+    if scheme != "mediapipe478":
+        out.insert(0, np.asarray(detect.detect_landmarks(frames).landmarks, np.float32))
+    if scheme == "ibug68+iris":
+        from facesynth.data.iris import combine_landmarks
+
+        return combine_landmarks(*out)
+    return out[0]
 
 
 def draw_landmarks(background: np.ndarray, landmarks: np.ndarray) -> np.ndarray:
@@ -174,7 +193,7 @@ def fit_into(image: np.ndarray, size: tuple[int, int]) -> np.ndarray:
 
 
 def save_landmarks(path: str, landmarks: np.ndarray) -> None:
-    """Write float32 (T, 68, 2) landmarks to ``path`` (.npy) atomically."""
+    """Write float32 (T, P, 2) landmarks to ``path`` (.npy) atomically."""
     out = Path(path)
     with atomic_path(out) as tmp:
         with open(tmp, "wb") as fh:
@@ -213,22 +232,27 @@ def run(args: argparse.Namespace) -> int:
         raise FacesynthError(f"--save-landmarks: expected a .npy path, got {args.save_landmarks}")
     check_writable(args.out)  # before any decoding or rendering
     renderer = Renderer(args.model, threads=args.threads)
+    scheme = renderer.scheme.name
     avatar = Avatar(renderer.metadata, args.model)
+    if scheme != "ibug68" and args.motion == "relative":
+        raise FacesynthError(f"--motion relative: retargeting is 68-point only, and {args.model} takes {scheme} "
+                             "landmarks; use --motion absolute (a driver in the same scheme)")
     if args.motion is None:
         args.motion = "relative" if avatar.neutral is not None else "absolute"
         if avatar.neutral is None:
-            log.warning("%s has no avatar metadata (an older export): --motion absolute", args.model)
+            log.warning("%s has no avatar metadata (%s): --motion absolute", args.model,
+                        "an older export" if scheme == "ibug68" else f"retargeting is 68-point only, this model takes {scheme}")
     if args.motion == "relative":
         avatar.require_neutral()
     driver_frames = None
     if args.video:
         driver_frames, video_fps = read_video(args.video, args.max_frames)
-        landmarks = detect_video_landmarks(driver_frames)
+        landmarks = detect_video_landmarks(driver_frames, scheme)
     else:
         from facesynth.data.readers import load_landmarks
 
         video_fps = None
-        landmarks = load_landmarks(args.landmarks, scheme="ibug68")
+        landmarks = load_landmarks(args.landmarks, scheme=scheme)  # mediapipe478 -> ibug68 is mapped; the reverse is an error
         if args.max_frames:
             landmarks = landmarks[: args.max_frames]
         driver_video = args.driver_video or (clip_video(args.landmarks) if args.side_by_side else None)
@@ -259,7 +283,7 @@ def run(args: argparse.Namespace) -> int:
     out_w = 2 * w if args.side_by_side else w
     n = len(landmarks)
     latencies: list = []
-    rendered = np.full((n, 68, 2), np.nan, np.float32)  # the avatar landmarks of each frame (--save-landmarks)
+    rendered = np.full((n, renderer.scheme.n_points, 2), np.nan, np.float32)  # the avatar landmarks of each frame (--save-landmarks)
     sheet_idx = set(np.linspace(0, n - 1, min(6, n)).round().astype(int).tolist())
     sheet_top, sheet_bottom = [], []
     out = Path(args.out)

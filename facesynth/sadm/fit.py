@@ -124,7 +124,7 @@ class SADM:
         """(N, P, 2) -> predicted b_g (N, K_g), clamped (gaze path included)."""
         app = self.appearance().eval()
         enc = ShapeEncoder(self.model, self.config.clamp_shape)
-        lm = torch.from_numpy(np.asarray(landmarks, np.float32))
+        lm = torch.from_numpy(model_input(self.model, landmarks))
         with torch.no_grad():
             return app.params(*enc(lm[:, : self.model.mean_shape.shape[0]]), lm).numpy()
 
@@ -135,10 +135,21 @@ def gaze_inputs(cfg: SADMConfig, scheme) -> GazeInputs | None:
     return GazeInputs(scheme, cfg.gaze_copies) if on and cfg.gaze_mode in ("inside", "both") else None
 
 
+def model_input(model: FaceModel, landmarks: np.ndarray) -> np.ndarray:
+    """(N, P, 2) frame landmarks -> float32 (N, P, 2) with the face model's points denoised
+    (:meth:`FaceModel.denoise`; the rest, e.g. irises beyond them, as given): what the
+    synthesis graph reads (:meth:`Synthesizer.denoised`)."""
+    lm = np.array(landmarks, np.float32)
+    n = model.mean_shape.shape[0]
+    if model.denoise_pca is not None:
+        lm[:, :n] = model.denoise(lm[:, :n])
+    return lm
+
+
 def main_features(model: FaceModel, cfg: SADMConfig, scheme, landmarks: np.ndarray) -> np.ndarray:
     """(N, P, 2) frame landmarks -> (N, F) float32 main-regressor inputs: the shape features of
-    the model's points, then the gaze inputs (if any)."""
-    lm = np.asarray(landmarks, np.float32)
+    the model's points, then the gaze inputs (if any), of the :func:`model_input`."""
+    lm = model_input(model, landmarks)
     x = ShapeFeatures.numpy(model, lm[:, : model.mean_shape.shape[0]], cfg.features, cfg.clamp_shape)
     extra = gaze_inputs(cfg, scheme)
     if extra is None:
@@ -244,7 +255,7 @@ def fit_sadm(
     reg = REGISTRY[name].fit(x, yy, make_config(name, params), x_val, y[val_idx] if n_val else None, seed=seed)
     gaze = None
     if use_gaze and cfg.gaze_mode in ("path", "both"):
-        gaze = _fit_gaze(model, cfg, scheme, name, params, reg.eval(), x, yy, lm_all, pos, len(rows), seed)
+        gaze = _fit_gaze(model, cfg, scheme, name, params, reg.eval(), x, yy, model_input(model, lm_all), pos, len(rows), seed)
         log.info("gaze path: alpha %g", gaze.alpha)
     return SADM(model, reg.eval(), name, cfg, reg.config_dict(), table, scheme.name, gaze)
 

@@ -5,6 +5,9 @@
       -> texture in the reference frame
       -> piecewise-affine warp to the landmarks -> crop + mask + placement in the frame
 
+When the face model has a denoise PCA (:meth:`FaceModel.denoise`), the model's points are
+projected on it first, and everything after reads the denoised landmarks.
+
 The landmarks may have more points than the face model (``ibug68+iris``: 78 points, a
 68-point face model): the model's path takes the first ones, the gaze path
 (:mod:`facesynth.sadm.gaze`) reads the irises.
@@ -22,6 +25,7 @@ from torch import nn
 
 from facesynth.errors import FacesynthError
 from facesynth.landmarks import get_scheme
+from facesynth.model.denoise import shape_denoiser
 from facesynth.model.face_model import FaceModel
 from facesynth.model.warp import ToTarget, apply_affine_t, invert_affine_t, similarity_to
 from facesynth.regressors.base import Regressor
@@ -193,6 +197,7 @@ class Synthesizer(nn.Module):
         self.encoder = ShapeEncoder(model, clamp_shape)
         self.appearance = appearance
         self.warp = ToTarget(model.reference, model.span)
+        self.denoise = shape_denoiser(model.denoise_pca)  # FaceModel.denoise (identity without a denoise PCA)
         self.register_buffer("ref_points", torch.from_numpy(model.reference.points.copy()))
 
     def with_appearance(self, appearance: nn.Module) -> "Synthesizer":
@@ -206,15 +211,25 @@ class Synthesizer(nn.Module):
         """(B, P, 2) input -> (B, model_points, 2): the points the face model takes."""
         return landmarks if self.n_points == self.model_points else landmarks[:, : self.model_points]
 
+    def denoised(self, landmarks: torch.Tensor) -> torch.Tensor:
+        """(B, P, 2) input with the face model's points denoised (the rest, e.g. the irises
+        of ``ibug68+iris``, as given)."""
+        pts = self.denoise(self.model_landmarks(landmarks))
+        return pts if self.n_points == self.model_points else torch.cat([pts, landmarks[:, self.model_points :]], 1)
+
     def texture(self, landmarks: torch.Tensor) -> torch.Tensor:
         """Predicted reference-frame texture (B, C, M), clipped to [0, 1]."""
+        return self._texture(self.denoised(landmarks))
+
+    def _texture(self, landmarks: torch.Tensor) -> torch.Tensor:
         aligned, b_s = self.encoder(self.model_landmarks(landmarks))
         if getattr(self.appearance, "needs_landmarks", False):
             return torch.clamp(self.appearance(aligned, b_s, landmarks), 0.0, 1.0)
         return torch.clamp(self.appearance(aligned, b_s), 0.0, 1.0)
 
     def forward(self, landmarks: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        tex = self.texture(landmarks)
+        landmarks = self.denoised(landmarks)
+        tex = self._texture(landmarks)
         landmarks = self.model_landmarks(landmarks)
         to_canvas = similarity_to(landmarks, self.ref_points)
         crop, mask = self.warp(tex, apply_affine_t(landmarks, to_canvas))
