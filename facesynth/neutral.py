@@ -2,7 +2,8 @@
 the 3D transfer, the reenactment's driver and the exported avatar): among frames with a
 closed mouth, the one closest to the mean shape. Numpy only (the torch-free runtime uses it).
 
-Points are (x, y) pixels, iBUG-68 landmarks (N, 68, 2).
+Points are (x, y) pixels, iBUG-68 landmarks (N, 68, 2); :func:`select_neutral` also takes
+another registered scheme's (N, P, 2) and decides on their iBUG-68 view.
 """
 
 from __future__ import annotations
@@ -11,7 +12,7 @@ import numpy as np
 
 from facesynth.errors import FacesynthError
 from facesynth.geometry import generalised_procrustes
-from facesynth.landmarks import inter_ocular
+from facesynth.landmarks import inter_ocular, scheme_for_points
 
 INNER_UPPER = (61, 62, 63)  # inner-lip points facing INNER_LOWER across the mouth opening
 INNER_LOWER = (67, 66, 65)
@@ -31,7 +32,8 @@ def select_neutral(landmarks: np.ndarray, mouth_closed_max: float = 0.03) -> tup
 
     Parameters
     ----------
-    landmarks : (N, 68, 2) candidate frames (e.g. the training rows).
+    landmarks : (N, P, 2) candidate frames (e.g. the training rows): iBUG-68 points, or
+        those of another registered scheme (mapped with its ``to_ibug68``).
 
     Returns
     -------
@@ -39,8 +41,11 @@ def select_neutral(landmarks: np.ndarray, mouth_closed_max: float = 0.03) -> tup
     info : dict with the distance, the mouth gap and the number of candidates (for the artifact).
     """
     lm = np.asarray(landmarks, np.float64)
-    if lm.ndim != 3 or len(lm) < 1:
-        raise FacesynthError(f"neutral selection needs (N, 68, 2) landmarks, got {lm.shape}")
+    scheme = scheme_for_points(lm.shape[1]) if lm.ndim == 3 and lm.shape[-1] == 2 else None
+    if scheme is None or len(lm) < 1:
+        raise FacesynthError(f"neutral selection needs (N, 68, 2) landmarks (or another scheme's (N, P, 2)), got {lm.shape}")
+    if scheme.n_points != 68:
+        lm = scheme.to_ibug68(lm).astype(np.float64)
     gap = mouth_open(lm)
     cand = np.flatnonzero(gap <= mouth_closed_max)
     rule = f"mouth_open <= {mouth_closed_max}"

@@ -4,7 +4,9 @@ its own face shape and place in its own frame (numpy only: used by the torch-fre
 :class:`facesynth.runtime.Reenactor`, and by ERI's expression transfer).
 
 Per driver frame ``D`` with the driver's neutral ``D_n`` and the avatar's neutral ``A_n``
-(both (68, 2) frame pixels):
+(both (P, 2) frame pixels in one landmark scheme: ``ibug68``, P = 68, or ``mediapipe478``,
+P = 478; the FAP units and face axes are measured on their iBUG-68 view,
+:meth:`LandmarkScheme.to_ibug68`):
 
 1. head pose ``P``: the similarity mapping ``D_n`` onto ``D``, fitted on the rigid points
    no expression moves (:data:`facesynth.faps.RIGID_POINTS`: nose bridge and tip, eye
@@ -14,7 +16,8 @@ Per driver frame ``D`` with the driver's neutral ``D_n`` and the avatar's neutra
 3. scaling: the MPEG-4 FAP idea extended to every point. Each point and axis has a FAP
    unit (:data:`POINT_UNITS`: mouth and jaw by mouth width / mouth-nose separation, eyes
    by eye separation / eyelid opening, brows and nose by eye separation / eye-nose
-   separation), and its displacement is multiplied by avatar unit / driver unit
+   separation; a 478-point mesh point outside those regions takes the units of the nearest
+   point in them on the avatar's neutral), and its displacement is multiplied by avatar unit / driver unit
    (:func:`facesynth.faps.fapu` of both neutrals), then put on the avatar's face axes and
    added to ``A_n``; on the FAP feature points this is exactly ``faps_to_landmarks(A_n,
    compute_faps(D, D_n))`` along the FAP axes;
@@ -42,20 +45,59 @@ import numpy as np
 from facesynth.errors import FacesynthError
 from facesynth.faps import FAPU_NAMES, RIGID_POINTS, face_axes, fapu
 from facesynth.geometry import similarity_fit
-from facesynth.landmarks import BROWS, EYES, JAW, LEFT_EYE, MOUTH, N_LANDMARKS, NOSE, RIGHT_EYE, inter_ocular
+from facesynth.landmarks import IBUG68, LandmarkScheme, get_scheme, inter_ocular
 
 MOTIONS = ("relative", "absolute")
-def _point_units() -> np.ndarray:
-    """int (68, 2): the FAPU (index into FAPU_NAMES) scaling each point's (x, down) motion."""
+RETARGET_SCHEMES = ("ibug68", "mediapipe478")  # schemes whose every point is a face-model point
+# regions -> the FAP units of their (x, down) motion
+_REGION_UNITS = (("jaw", "MW", "MNS"), ("mouth", "MW", "MNS"), ("eyes", "ES", "IRISD"), ("irises", "ES", "IRISD"),
+                 ("brows", "ES", "ENS"), ("nose", "ES", "ENS"))
+
+
+def point_units(scheme: LandmarkScheme, neutral: np.ndarray | None = None) -> np.ndarray:
+    """int (P, 2): the FAPU (index into FAPU_NAMES) scaling each point's (x, down) motion, from
+    the scheme's regions; points in none of them (a mesh's cheeks and forehead) take the units
+    of the nearest region point on ``neutral`` (P, 2)."""
     u = {n: i for i, n in enumerate(FAPU_NAMES)}
-    out = np.zeros((N_LANDMARKS, 2), np.int64)
-    for pts, ux, uy in ((JAW, "MW", "MNS"), (MOUTH, "MW", "MNS"), (EYES, "ES", "IRISD"), (BROWS, "ES", "ENS"),
-                        (NOSE, "ES", "ENS")):
-        out[list(pts)] = (u[ux], u[uy])
+    out = np.full((scheme.n_points, 2), -1, np.int64)
+    for region, ux, uy in _REGION_UNITS:
+        if region in scheme.regions:
+            out[scheme.region(region)] = (u[ux], u[uy])
+    free = np.flatnonzero(out[:, 0] < 0)
+    if len(free):
+        if neutral is None:
+            raise FacesynthError(f"{scheme.name}: {len(free)} points outside the FAP regions need a neutral face for their units")
+        labelled = np.flatnonzero(out[:, 0] >= 0)
+        d = np.linalg.norm(np.asarray(neutral, np.float64)[free, None] - np.asarray(neutral, np.float64)[None, labelled], axis=-1)
+        out[free] = out[labelled[d.argmin(1)]]
     return out
 
 
-POINT_UNITS = _point_units()
+POINT_UNITS = point_units(IBUG68)
+
+
+def rigid_points(scheme: LandmarkScheme) -> list[int]:
+    """The scheme's points at :data:`RIGID_POINTS` (through its iBUG-68 correspondence)."""
+    return [p for i in RIGID_POINTS for p in scheme.ibug68[i]]
+
+
+def eye_patches(scheme: LandmarkScheme) -> tuple:
+    """Per eye: (contour points (the iris too, when the scheme has one), corner, corner)."""
+    c = scheme.region("eye_corners")
+    out = []
+    for side, corners in (("right", c[:2]), ("left", c[2:])):
+        idx = scheme.region(f"{side}_eye")
+        if f"{side}_iris" in scheme.regions:
+            idx = np.concatenate([idx, scheme.region(f"{side}_iris")])
+        out.append((idx, int(corners[0]), int(corners[1])))
+    return tuple(out)
+
+
+def retarget_scheme(name: str) -> LandmarkScheme:
+    """The registered scheme ``name`` if retargeting supports it, else FacesynthError."""
+    if name not in RETARGET_SCHEMES:
+        raise FacesynthError(f"retargeting takes {' or '.join(RETARGET_SCHEMES)} landmarks, not {name!r}")
+    return get_scheme(name)
 
 
 def eye_open(landmarks: np.ndarray) -> np.ndarray:
@@ -70,43 +112,50 @@ class ShapeSpace:
     """An avatar's shape PCA (the face model's, in its normalised frame): project shapes onto
     it and clamp their parameters to +-``limit``.
 
-    mean : (136,) float64, components : (K, 136) orthonormal rows, limit : (K,) (k sqrt(lambda)).
+    mean : (2P,) float64, components : (K, 2P) orthonormal rows, limit : (K,) (k sqrt(lambda)).
     keep_eyes : after clamping, restore each eye's contour relative to its two corners
         (module docstring, step 5); False clamps the eyelids with the rest.
+    scheme : the landmark scheme (P from it; its eye regions for ``keep_eyes``)
     """
 
     mean: np.ndarray
     components: np.ndarray
     limit: np.ndarray
     keep_eyes: bool = True
+    scheme: str = "ibug68"
 
     @classmethod
-    def from_dict(cls, d: dict) -> "ShapeSpace":
-        """From the exported model's ``shape_pca`` metadata: {mean, components, limit}."""
+    def from_dict(cls, d: dict, scheme: str = "ibug68") -> "ShapeSpace":
+        """From the exported model's ``shape_pca`` metadata: {mean, components, limit}, of ``scheme``."""
         try:
-            out = cls(*(np.asarray(d[k], np.float64) for k in ("mean", "components", "limit")))
+            out = cls(*(np.asarray(d[k], np.float64) for k in ("mean", "components", "limit")), scheme=scheme)
         except (KeyError, TypeError, ValueError) as exc:
             raise FacesynthError(f"shape_pca metadata: expected mean, components and limit ({exc})") from None
-        k = len(out.limit)
-        if out.mean.shape != (2 * N_LANDMARKS,) or out.components.shape != (k, 2 * N_LANDMARKS):
-            raise FacesynthError(f"shape_pca metadata: mean {out.mean.shape}, components {out.components.shape}, limit ({k},)")
         return out
 
     def to_dict(self) -> dict:
         return {k: np.round(getattr(self, k), 7).tolist() for k in ("mean", "components", "limit")}
 
     def __post_init__(self):
-        mean = self.mean.reshape(N_LANDMARKS, 2)
+        sch = retarget_scheme(self.scheme)
+        n = sch.n_points
+        k = len(self.limit)
+        if self.mean.shape != (2 * n,) or self.components.shape != (k, 2 * n):
+            raise FacesynthError(f"shape_pca metadata: mean {self.mean.shape}, components {self.components.shape}, limit ({k},) "
+                                 f"do not form a shape PCA of {self.scheme} ({n} points)")
+        self._n = n
+        self._eyes = eye_patches(sch)
+        mean = self.mean.reshape(n, 2)
         self._mu = mean.mean(0)
         mc = mean - self._mu
         # similarity fit of a shape onto the mean: [a, b] = shape.ravel() @ w / var(shape)
-        self._w = np.stack([mc.reshape(-1), np.stack([mc[:, 1], -mc[:, 0]], 1).reshape(-1)], 1)  # (136, 2)
+        self._w = np.stack([mc.reshape(-1), np.stack([mc[:, 1], -mc[:, 0]], 1).reshape(-1)], 1)  # (2P, 2)
         self._ct = np.ascontiguousarray(self.components.T)
         self._off = self.mean @ self._ct
-        self._avg = np.full(N_LANDMARKS, 1.0 / N_LANDMARKS)  # mean as a matmul (faster than .mean at this size)
+        self._avg = np.full(n, 1.0 / n)  # mean as a matmul (faster than .mean at this size)
 
     def project(self, shapes: np.ndarray) -> np.ndarray:
-        """(N, 68, 2) or (68, 2) frame-pixel shapes -> the nearest model shapes with clamped
+        """(N, P, 2) or (P, 2) frame-pixel shapes -> the nearest model shapes with clamped
         parameters, in the same frame (float64, same shape)."""
         x = np.asarray(shapes, np.float64)
         if x.ndim == 3:
@@ -121,9 +170,9 @@ class ShapeSpace:
         # move the shape back inside the box along the model's components only: what the
         # components do not span (e.g. eye motion in a model of a head-turning clip) is kept
         excess = np.maximum(b - self.limit, 0.0) + np.minimum(b + self.limit, 0.0)
-        rec = aligned - (excess @ self.components).reshape(N_LANDMARKS, 2)
+        rec = aligned - (excess @ self.components).reshape(self._n, 2)
         if self.keep_eyes:
-            _restore_local(rec, aligned)
+            _restore_local(rec, aligned, self._eyes)
         n = ca * ca + sa * sa
         inv = np.array([[ca, sa], [-sa, ca]]) / n
         return (rec - self._mu) @ inv.T + mo
@@ -134,26 +183,32 @@ class Retargeter:
 
     Parameters
     ----------
-    avatar_neutral : (68, 2) the avatar's neutral face, its frame pixels
-    driver_neutral : (68, 2) the driver's neutral face, the driver's frame pixels
+    avatar_neutral : (P, 2) the avatar's neutral face, its frame pixels
+    driver_neutral : (P, 2) the driver's neutral face, the driver's frame pixels
     shape_space : ShapeSpace, optional; projection and clamping (step 5), skipped if None
     motion : "relative" (default) or "absolute" (the driver's landmarks, unchanged)
     head_motion : with "relative": apply the driver's head motion (step 4); False keeps the
         avatar's neutral placement (ERI's expression transfer renders in the target's pose)
 
-    ``__call__``: (N, 68, 2) or (68, 2) driver frame landmarks -> float32 (N, 68, 2).
+    scheme : the landmark scheme of all of them (:data:`RETARGET_SCHEMES`; the shape space's)
+
+    ``__call__``: (N, P, 2) or (P, 2) driver frame landmarks -> float32 (N, P, 2).
     """
 
     def __init__(self, avatar_neutral, driver_neutral, shape_space: ShapeSpace | None = None, motion: str = "relative",
-                 head_motion: bool = True):
+                 head_motion: bool = True, scheme: str = "ibug68"):
         if motion not in MOTIONS:
             raise FacesynthError(f"motion must be one of {MOTIONS}, got {motion!r}")
+        sch = retarget_scheme(scheme)
+        if shape_space is not None and shape_space.scheme != sch.name:
+            raise FacesynthError(f"retargeting {sch.name} landmarks with a shape space of {shape_space.scheme}")
+        self.scheme = sch
         self.motion = motion
         self.head_motion = bool(head_motion)
-        self.avatar_neutral = _one_face(avatar_neutral, "avatar neutral")
-        self.driver_neutral = _one_face(driver_neutral, "driver neutral")
+        self.avatar_neutral = _one_face(avatar_neutral, "avatar neutral", sch.n_points)
+        self.driver_neutral = _one_face(driver_neutral, "driver neutral", sch.n_points)
         self.shape_space = shape_space
-        rigid = list(RIGID_POINTS)
+        rigid = rigid_points(sch)
         self._rigid = rigid
         dn = self.driver_neutral[rigid]
         self._dn_mu = dn.mean(0)
@@ -161,11 +216,14 @@ class Retargeter:
         dc = dn - self._dn_mu
         # pose fit (driver neutral -> frame, rigid points): [a, b] = frame_rigid.ravel() @ w
         self._pose_w = np.stack([dc.reshape(-1), np.stack([-dc[:, 1], dc[:, 0]], 1).reshape(-1)], 1) / float(np.vdot(dc, dc))
-        ratio = fapu(self.avatar_neutral) / fapu(self.driver_neutral)  # (5,)
-        axes_d, axes_a = face_axes(self.driver_neutral), face_axes(self.avatar_neutral)
+        a68, d68 = (x if sch.name == "ibug68" else sch.to_ibug68(x).astype(np.float64)
+                    for x in (self.avatar_neutral, self.driver_neutral))
+        ratio = fapu(a68) / fapu(d68)  # (5,)
+        axes_d, axes_a = face_axes(d68), face_axes(a68)
         # expression: disp_a = ((disp_d @ axes_d.T) * ratio_p) @ axes_a, one (2, 2) map per point
-        scale = ratio[POINT_UNITS]  # (68, 2)
-        e = np.einsum("ij,pj,jk->pik", axes_d.T, scale, axes_a)  # (68, 2, 2)
+        units = POINT_UNITS if sch.name == "ibug68" else point_units(sch, self.avatar_neutral)
+        scale = ratio[units]  # (P, 2)
+        e = np.einsum("ij,pj,jk->pik", axes_d.T, scale, axes_a)  # (P, 2, 2)
         self._e0, self._e1 = np.ascontiguousarray(e[:, 0]), np.ascontiguousarray(e[:, 1])
         self.unit_ratio = dict(zip(FAPU_NAMES, ratio.round(4).tolist(), strict=True))
         c = similarity_fit(self.driver_neutral[rigid], self.avatar_neutral[rigid])  # driver -> avatar
@@ -173,7 +231,7 @@ class Retargeter:
         self._c_inv_lin = np.linalg.inv(self._c_lin)
 
     def pose(self, frame: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The driver's head pose of one (68, 2) frame: the similarity (2x2, 2) mapping the
+        """The driver's head pose of one (P, 2) frame: the similarity (2x2, 2) mapping the
         driver's neutral onto it, fitted on the rigid points."""
         r = frame[self._rigid]
         ca, sa = r.reshape(-1) @ self._pose_w
@@ -181,7 +239,7 @@ class Retargeter:
         return lin, self._rigid_avg @ r - lin @ self._dn_mu
 
     def one(self, frame: np.ndarray) -> np.ndarray:
-        """One (68, 2) driver frame -> float64 (68, 2) avatar landmarks (relative motion)."""
+        """One (P, 2) driver frame -> float64 (P, 2) avatar landmarks (relative motion)."""
         lin, t = self.pose(frame)
         inv_t = lin / (lin[0, 0] ** 2 + lin[1, 0] ** 2)  # transpose of the similarity's inverse
         disp = (frame - t) @ inv_t - self.driver_neutral  # expression in the driver's neutral frame
@@ -198,21 +256,19 @@ class Retargeter:
         d = np.asarray(driver, np.float64)
         if d.ndim == 2:
             d = d[None]
-        if d.ndim != 3 or d.shape[1:] != (N_LANDMARKS, 2):
-            raise FacesynthError(f"driver landmarks: expected (N, {N_LANDMARKS}, 2), got {np.shape(driver)}")
+        n = self.scheme.n_points
+        if d.ndim != 3 or d.shape[1:] != (n, 2):
+            raise FacesynthError(f"driver landmarks: expected (N, {n}, 2) {self.scheme.name} landmarks, got {np.shape(driver)}")
         if self.motion == "absolute":
             return d.astype(np.float32)
         return np.stack([self.one(f) for f in d]).astype(np.float32)
 
 
-EYE_PATCHES = tuple((np.asarray(eye), eye[0], eye[3]) for eye in (RIGHT_EYE, LEFT_EYE))  # contour and its two corners
-
-
-def _restore_local(rec: np.ndarray, before: np.ndarray) -> None:
-    """Put each eye contour of ``before`` (68, 2) onto ``rec``'s (68, 2) corners, in place:
-    the similarity taking the eye's two corners in ``before`` to those in ``rec`` (complex
-    arithmetic: z -> a + k z) moves its contour."""
-    for idx, c0, c1 in EYE_PATCHES:
+def _restore_local(rec: np.ndarray, before: np.ndarray, patches: tuple) -> None:
+    """Put each eye contour of ``before`` (P, 2) onto ``rec``'s (P, 2) corners, in place
+    (``patches``: :func:`eye_patches`): the similarity taking the eye's two corners in
+    ``before`` to those in ``rec`` (complex arithmetic: z -> a + k z) moves its contour."""
+    for idx, c0, c1 in patches:
         s0, s1, d0, d1 = (complex(*p) for p in (before[c0], before[c1], rec[c0], rec[c1]))
         if s1 == s0:
             continue
@@ -221,11 +277,11 @@ def _restore_local(rec: np.ndarray, before: np.ndarray) -> None:
         rec[idx, 0], rec[idx, 1] = z.real, z.imag
 
 
-def _one_face(x, where: str) -> np.ndarray:
+def _one_face(x, where: str, n: int) -> np.ndarray:
     a = np.asarray(x, np.float64)
-    if a.shape != (N_LANDMARKS, 2) or not np.isfinite(a).all():
-        raise FacesynthError(f"{where}: expected finite ({N_LANDMARKS}, 2) landmarks, got shape {a.shape}")
+    if a.shape != (n, 2) or not np.isfinite(a).all():
+        raise FacesynthError(f"{where}: expected finite ({n}, 2) landmarks, got shape {a.shape}")
     return a
 
 
-__all__ = ["MOTIONS", "POINT_UNITS", "Retargeter", "ShapeSpace", "eye_open"]
+__all__ = ["MOTIONS", "POINT_UNITS", "RETARGET_SCHEMES", "Retargeter", "ShapeSpace", "eye_open", "point_units"]

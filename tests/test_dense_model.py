@@ -262,7 +262,49 @@ def test_app_drives_a_478_point_model(dense, tmp_path, capsys):
     np.testing.assert_array_equal(np.load(tmp_path / "saved.npy"), seq.landmarks[:5])  # absolute motion: as given
     capsys.readouterr()
     out.unlink()
-    assert main(base + ["--landmarks", str(tmp_path / "lm.npy"), "--motion", "relative"]) == 2
-    assert "retargeting is 68-point only" in capsys.readouterr().err
+    assert main(base + ["--landmarks", str(tmp_path / "lm.npy"), "--motion", "relative"]) == 2  # no avatar metadata
+    assert "no avatar_neutral in the metadata" in capsys.readouterr().err
     assert main(base + ["--landmarks", str(tmp_path / "lm68.npy")]) == 2  # 68 points cannot become 478
     assert "mediapipe478" in capsys.readouterr().err and not out.exists()
+
+
+def test_retargeting_478_points_is_a_similarity_for_a_similar_face(dense):
+    # closed form: an avatar whose neutral is the driver's under a similarity S (every FAP unit
+    # scaled alike) receives S of each driver frame, head motion included; any scheme
+    from facesynth.retarget import Retargeter, point_units
+
+    _, seq, model, _ = dense
+    lm = seq.landmarks.astype(np.float64)
+    theta, k, t = 0.2, 1.7, np.array([40.0, -25.0])
+    rot = k * np.array([[np.cos(theta), -np.sin(theta)], [np.sin(theta), np.cos(theta)]])
+    r = Retargeter(lm[0] @ rot.T + t, lm[0], scheme="mediapipe478")
+    np.testing.assert_allclose(r(lm[1:9]), lm[1:9] @ rot.T + t, atol=1e-3)
+    units = point_units(MEDIAPIPE478, lm[0])
+    assert units.shape == (478, 2) and (units >= 0).all()
+    assert (units[MEDIAPIPE478.region("inner_lips")] == units[MEDIAPIPE478.region("outer_lips")][0]).all()
+    with pytest.raises(FacesynthError, match=r"avatar neutral: expected finite \(478, 2\) landmarks"):
+        Retargeter(lm[0, :68], lm[0], scheme="mediapipe478")
+    with pytest.raises(FacesynthError, match=r"retargeting takes ibug68 or mediapipe478 landmarks, not 'ibug68\+iris'"):
+        Retargeter(lm[0], lm[0], scheme="ibug68+iris")
+
+
+def test_478_point_avatar_is_reenacted_from_its_metadata(dense, tmp_path):
+    # an export with its avatar metadata drives in relative motion: self-driving from the
+    # avatar's own neutral returns its own frames' shapes, projected on its shape space
+    pytest.importorskip("onnx")
+    from facesynth.onnx.avatar import avatar_metadata, shape_space
+    from facesynth.onnx.synthesis import export_synthesizer
+    from facesynth.runtime import Reenactor
+
+    _, seq, model, tex = dense
+    syn = fit_sadm(model, seq, np.arange(len(seq)), tex, "linear").synthesizer()
+    meta = avatar_metadata(syn, seq.landmarks, np.arange(len(seq)), seq)
+    assert np.shape(meta["avatar_neutral"]) == (478, 2) and len(meta["shape_pca"]["mean"]) == 956
+    path = export_synthesizer(syn, tmp_path / "avatar.onnx", meta)
+    neutral = np.asarray(meta["avatar_neutral"], np.float32)
+    re = Reenactor(path, driver_neutral=neutral)
+    space = shape_space(syn)
+    for i in (3, 17, 30):
+        frame, got = re.step(seq.landmarks[i])
+        np.testing.assert_allclose(got, space.project(seq.landmarks[i].astype(np.float64)), atol=2e-3)
+        assert frame.shape == seq.frame(0).shape

@@ -2,7 +2,7 @@
 into its ONNX metadata at export time (torch-side; the runtime reads it with
 :func:`facesynth.runtime.reenact.avatar_from_metadata`):
 
-* ``avatar_neutral``: the avatar's neutral landmarks (68, 2) in its frame pixels, chosen
+* ``avatar_neutral``: the avatar's neutral landmarks (P, 2) in its frame pixels, chosen
   among the training frames by ERI's rule (:func:`facesynth.neutral.select_neutral`),
   and ``avatar_neutral_row`` (the frame's index in the clip);
 * ``shape_pca``: the model's shape PCA (mean, orthonormal components, clamp limits
@@ -21,7 +21,7 @@ import numpy as np
 
 from facesynth.errors import FacesynthError
 from facesynth.neutral import select_neutral
-from facesynth.retarget import ShapeSpace
+from facesynth.retarget import RETARGET_SCHEMES, ShapeSpace
 
 log = logging.getLogger(__name__)
 JPEG_QUALITY = 90
@@ -38,11 +38,12 @@ def encode_jpeg(image: np.ndarray) -> str:
 def shape_space(syn) -> ShapeSpace:
     """The synthesizer's shape PCA (its :class:`ShapeEncoder` buffers) as a ShapeSpace."""
     enc = syn.encoder
-    return ShapeSpace(enc.mean.double().numpy(), enc.components.double().numpy(), enc.limit.double().numpy())
+    return ShapeSpace(enc.mean.double().numpy(), enc.components.double().numpy(), enc.limit.double().numpy(),
+                      scheme=getattr(syn, "scheme", "ibug68"))
 
 
 def avatar_metadata(syn, landmarks: np.ndarray, rows: np.ndarray | None = None, sequence=None) -> dict:
-    """Metadata entries for reenactment: the neutral among ``landmarks`` (N, 68, 2) (the
+    """Metadata entries for reenactment: the neutral among ``landmarks`` (N, P, 2) (the
     training frames; ``rows`` their indices in ``sequence``), the shape PCA and, when
     ``sequence`` has frames, the neutral frame as background."""
     lm = np.asarray(landmarks, np.float32)
@@ -63,9 +64,9 @@ def run_avatar_metadata(run_dir, syn) -> dict:
     style inputs: the runtime says so)."""
     from facesynth.runs.rundir import read_config, run_data
 
-    if getattr(syn, "scheme", "ibug68") != "ibug68":
-        log.info("no reenactment metadata: the driven avatar (retargeting, FAPs) is 68-point only, this model takes %s",
-                 syn.scheme)
+    if getattr(syn, "scheme", "ibug68") not in RETARGET_SCHEMES:
+        log.info("no reenactment metadata: retargeting takes %s landmarks, this model takes %s",
+                 " or ".join(RETARGET_SCHEMES), syn.scheme)
         return {}
     try:
         seq, rows, _ = run_data(read_config(run_dir))

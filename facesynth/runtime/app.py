@@ -224,6 +224,7 @@ def contact_sheet(top: list[np.ndarray], bottom: list[np.ndarray], width: int = 
 def run(args: argparse.Namespace) -> int:
     from tqdm.auto import tqdm
 
+    from facesynth.retarget import RETARGET_SCHEMES
     from facesynth.runtime.filters import smooth_landmarks
     from facesynth.runtime.reenact import Avatar, Reenactor, clip_video, driver_neutral_of, reenact_frames
     from facesynth.runtime.renderer import Renderer
@@ -234,14 +235,14 @@ def run(args: argparse.Namespace) -> int:
     renderer = Renderer(args.model, threads=args.threads)
     scheme = renderer.scheme.name
     avatar = Avatar(renderer.metadata, args.model)
-    if scheme != "ibug68" and args.motion == "relative":
-        raise FacesynthError(f"--motion relative: retargeting is 68-point only, and {args.model} takes {scheme} "
-                             "landmarks; use --motion absolute (a driver in the same scheme)")
+    if scheme not in RETARGET_SCHEMES and args.motion == "relative":
+        raise FacesynthError(f"--motion relative: retargeting takes {' or '.join(RETARGET_SCHEMES)} landmarks, and "
+                             f"{args.model} takes {scheme} ones; use --motion absolute (a driver in the same scheme)")
     if args.motion is None:
         args.motion = "relative" if avatar.neutral is not None else "absolute"
         if avatar.neutral is None:
             log.warning("%s has no avatar metadata (%s): --motion absolute", args.model,
-                        "an older export" if scheme == "ibug68" else f"retargeting is 68-point only, this model takes {scheme}")
+                        "an older export" if scheme in RETARGET_SCHEMES else f"retargeting does not take {scheme} landmarks")
     if args.motion == "relative":
         avatar.require_neutral()
     driver_frames = None

@@ -3,8 +3,8 @@ landmarks, frame by frame (no look-ahead), into the avatar's own frame.
 
     from facesynth.runtime import Reenactor
     r = Reenactor("avatar.onnx")                      # avatar neutral, shape PCA, frame: from the metadata
-    for lm in driver_landmarks:                       # (68, 2) frame pixels, one at a time
-        frame, avatar_lm = r.step(lm)                 # uint8 (H, W, 3), float32 (68, 2)
+    for lm in driver_landmarks:                       # (P, 2) frame pixels (the model's scheme), one at a time
+        frame, avatar_lm = r.step(lm)                 # uint8 (H, W, 3), float32 (P, 2)
 
 The driver's neutral is given (``driver_neutral``), or taken from the first
 ``neutral_frames`` frames (ERI's rule, :func:`facesynth.neutral.select_neutral`; before
@@ -21,10 +21,9 @@ import time
 import cv2
 import numpy as np
 
-from facesynth.contract import N_LANDMARKS
 from facesynth.errors import FacesynthError
 from facesynth.neutral import select_neutral
-from facesynth.retarget import MOTIONS, Retargeter, ShapeSpace
+from facesynth.retarget import MOTIONS, Retargeter, ShapeSpace, retarget_scheme
 from facesynth.runtime.blend import blend_face
 from facesynth.runtime.renderer import Renderer
 
@@ -35,18 +34,21 @@ NEUTRAL_FRAMES = 30  # one second of a 30 fps driver: long enough to meet a clos
 class Avatar:
     """What the model's metadata says about its own face (:mod:`facesynth.onnx.avatar`).
 
-    neutral : float64 (68, 2) or None; shape_space : ShapeSpace or None;
+    neutral : float64 (P, 2) or None (P of the model's scheme); shape_space : ShapeSpace or None;
     background : uint8 (H, W, 3) RGB or None (its neutral frame).
     """
 
     def __init__(self, metadata: dict, where: str = "model"):
         self.where = where
+        self.scheme = str(metadata.get("landmark_scheme", "ibug68"))
         n = metadata.get("avatar_neutral")
         self.neutral = None if n is None else np.asarray(n, np.float64)
-        if self.neutral is not None and self.neutral.shape != (N_LANDMARKS, 2):
-            raise FacesynthError(f"{where}: avatar_neutral metadata has shape {self.neutral.shape}, expected ({N_LANDMARKS}, 2)")
+        if self.neutral is not None:
+            p = retarget_scheme(self.scheme).n_points
+            if self.neutral.shape != (p, 2):
+                raise FacesynthError(f"{where}: avatar_neutral metadata has shape {self.neutral.shape}, expected ({p}, 2)")
         pca = metadata.get("shape_pca")
-        self.shape_space = None if pca is None else ShapeSpace.from_dict(pca)
+        self.shape_space = None if pca is None else ShapeSpace.from_dict(pca, self.scheme)
         self._jpeg = metadata.get("background_jpeg")
         self._background = None
 
@@ -73,7 +75,7 @@ class Reenactor:
     Parameters
     ----------
     model : path or Renderer
-    driver_neutral : (68, 2) the driver's neutral face, optional (see the module docstring)
+    driver_neutral : (P, 2) the driver's neutral face, optional (see the module docstring)
     motion : "relative" (default: the driver's motion on the avatar's own face) or "absolute"
         (the driver's landmarks as they are, the behaviour without retargeting)
     neutral_frames : frames collected to choose the driver's neutral when none is given
@@ -107,10 +109,11 @@ class Reenactor:
     def _set_neutral(self, neutral: np.ndarray) -> None:
         self.driver_neutral = np.asarray(neutral, np.float64)
         if self.motion == "relative":
-            self._retarget = Retargeter(self.avatar.neutral, self.driver_neutral, self.avatar.shape_space, "relative")
+            self._retarget = Retargeter(self.avatar.neutral, self.driver_neutral, self.avatar.shape_space, "relative",
+                                        scheme=self.avatar.scheme)
 
     def retarget(self, landmarks) -> np.ndarray:
-        """One driver frame (68, 2) -> float32 (68, 2) avatar landmarks in the avatar's frame."""
+        """One driver frame (P, 2) -> float32 (P, 2) avatar landmarks in the avatar's frame."""
         lm = self.renderer.validate(landmarks)
         if len(lm) != 1:
             raise FacesynthError(f"Reenactor: one face at a time, got a batch of {len(lm)}")
@@ -125,7 +128,7 @@ class Reenactor:
         return self._retarget.one(lm.astype(np.float64)).astype(np.float32)
 
     def step(self, landmarks) -> tuple[np.ndarray, np.ndarray]:
-        """One driver frame -> (uint8 (H, W, 3) frame, float32 (68, 2) avatar landmarks)."""
+        """One driver frame -> (uint8 (H, W, 3) frame, float32 (P, 2) avatar landmarks)."""
         avatar_lm = self.retarget(landmarks)
         t0 = time.perf_counter()
         crops, masks, placements = self.renderer.render(avatar_lm[None])
@@ -142,7 +145,7 @@ class Reenactor:
 
 
 def driver_neutral_of(landmarks: np.ndarray, index: int | None = None) -> tuple[np.ndarray, int]:
-    """The driver's neutral (68, 2) and its row: row ``index`` (``--driver-neutral N``) or
+    """The driver's neutral (P, 2) and its row: row ``index`` (``--driver-neutral N``) or
     :func:`facesynth.neutral.select_neutral` over the whole clip (a file driver)."""
     lm = np.asarray(landmarks, np.float64)
     if index is None:
@@ -163,8 +166,8 @@ def clip_video(path: str | os.PathLike) -> str | None:
 
 def reenact_frames(reenactor: Reenactor, landmarks: np.ndarray, rendered: np.ndarray | None = None,
                    latencies: list | None = None):
-    """uint8 (H, W, 3) frames of ``reenactor`` for (T, 68, 2) driver landmarks, one per row
-    (the background where a row is NaN). ``rendered`` (T, 68, 2), if given, receives the
+    """uint8 (H, W, 3) frames of ``reenactor`` for (T, P, 2) driver landmarks, one per row
+    (the background where a row is NaN). ``rendered`` (T, P, 2), if given, receives the
     avatar landmarks of each frame; ``latencies`` collects (model s, frame s) per frame."""
     for i, lm in enumerate(landmarks):
         t0 = time.perf_counter()
