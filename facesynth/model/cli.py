@@ -4,18 +4,24 @@ from __future__ import annotations
 
 import argparse
 import json
+from dataclasses import fields
 from pathlib import Path
+
+from facesynth.model.face_model import FaceModelConfig
+
+_DEFAULT = {f.name: f.default for f in fields(FaceModelConfig)}  # the help texts quote the dataclass
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("data", help="a sequence (ingest folder, .pts folder, .npz) or 'synthetic'")
     p.add_argument("--out", type=Path, help="write the model artifact here")
-    p.add_argument("--reference-width", type=int, default=128,
-                   help="width in pixels of the reference (shape-free) frame the textures are sampled in (default 128)")
-    p.add_argument("--shape-variance", type=float, default=0.98,
-                   help="fraction of the landmark shape variance the shape PCA keeps (default 0.98)")
-    p.add_argument("--appearance-variance", type=float, default=0.98,
-                   help="fraction of the texture variance the appearance PCA keeps (default 0.98)")
+    p.add_argument("--reference-width", type=int,
+                   help="width in pixels of the reference (shape-free) frame the textures are sampled in "
+                        f"(default {_DEFAULT['reference_width']})")
+    p.add_argument("--shape-variance", type=float,
+                   help=f"fraction of the landmark shape variance the shape PCA keeps (default {_DEFAULT['shape_variance']})")
+    p.add_argument("--appearance-variance", type=float,
+                   help=f"fraction of the texture variance the appearance PCA keeps (default {_DEFAULT['appearance_variance']})")
     p.add_argument("--grey", action="store_true", help="grey-level appearance (as in the paper)")
     p.add_argument("--train-fraction", type=float, default=0.75, help="fit on this leading fraction; report test figures on the rest")
     p.add_argument("--seed", type=int, default=0, help="seed of the synthetic subject (data 'synthetic'; default 0)")
@@ -25,18 +31,21 @@ def run(args: argparse.Namespace) -> int:
     import numpy as np
 
     from facesynth.data import load_sequence, temporal_split
+    from facesynth.landmarks import get_scheme
     from facesynth.metrics import psnr
-    from facesynth.model import FaceModel, FaceModelConfig, save_face_model
+    from facesynth.model import FaceModel, save_face_model
 
     if args.data == "synthetic":
         from facesynth.data.synthetic import make_synthetic_sequence
 
         seq = make_synthetic_sequence(240, 256, seed=args.seed)
     else:
-        seq = load_sequence(args.data, scheme="ibug68")  # the face model takes 68 points: a 478-point folder is mapped
+        seq = load_sequence(args.data)
+        seq = seq.to_scheme(get_scheme(seq.scheme).base_scheme().name)  # ibug68+iris: the face model takes the 68 points
     tr, te = temporal_split(len(seq), args.train_fraction)
-    cfg = FaceModelConfig(shape_variance=args.shape_variance, appearance_variance=args.appearance_variance,
-                          reference_width=args.reference_width, grey=args.grey)
+    given = {"shape_variance": args.shape_variance, "appearance_variance": args.appearance_variance,
+             "reference_width": args.reference_width}
+    cfg = FaceModelConfig(grey=args.grey, **{k: v for k, v in given.items() if v is not None})
     model, tex_tr = FaceModel.fit_with_textures(seq, cfg, rows=tr)
     tex_te = model.sample_textures(seq, te)
     recon = lambda t: np.clip(model.texture_from_params(model.appearance_params(t)), 0, 1) * 255  # noqa: E731
