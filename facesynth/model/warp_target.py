@@ -186,8 +186,6 @@ class ToTarget(nn.Module):
         self.register_buffer("ones4", torch.ones(1, 4))
         self.register_buffer("canvas_max", torch.tensor([float(w), float(h)]))  # (x, y) limits
         self.register_buffer("zero2", torch.zeros(2))
-        # per-pixel source lookup (:meth:`_source_per_pixel`): offsets of the 8 fields of each triangle
-        self.register_buffer("field_offset", torch.arange(8, dtype=torch.int64).reshape(1, 8, 1) * (n_tri + 2))
 
     @property
     def n_candidates(self) -> int:
@@ -316,15 +314,16 @@ class ToTarget(nn.Module):
     def _source_per_pixel(self, tab: torch.Tensor, org: torch.Tensor, s: torch.Tensor, cols: torch.Tensor,
                           rows: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """:meth:`source` for dense meshes: each pixel gathers its triangle's (x_0, y_0, u_x, u_y,
-        u_0, v_x, v_y, v_0) instead of reading (T + 2) Wb-entry tables; same products, same order."""
-        table = torch.cat([org, tab], 1).flatten(1)  # (B, 8 (T + 2))
-        t = (torch.clamp(s, self.code_base, self.code_base + self.n_tri + 1) - self.code_base).to(torch.int64)
-        index = (t.flatten(1).unsqueeze(1) + self.field_offset).flatten(1)  # (B, 8 N)
-        f = torch.gather(table, 1, index).reshape(-1, 8, *s.shape[2:])  # (B, 8, Hb, Wb)
-        dx = cols - f[:, 0:1]
-        dy = rows.unsqueeze(1) - f[:, 1:2]
-        u = f[:, 2:3] * dx + f[:, 4:5] + f[:, 3:4] * dy
-        v = f[:, 5:6] * dx + f[:, 7:8] + f[:, 6:7] * dy
+        u_0, v_x, v_y, v_0) instead of reading (T + 2) Wb-entry tables; same products, same order.
+        One gather per field, all with the pixel's triangle as index (one (B, 8 N) gather would
+        need an 8 N-element index sum every frame)."""
+        t = (torch.clamp(s, self.code_base, self.code_base + self.n_tri + 1) - self.code_base).to(torch.int64).flatten(1)
+        x0, y0, ux, uy, u0, vx, vy, v0 = (torch.gather(table[:, k], 1, t).reshape_as(s)
+                                          for table, k in [(org, 0), (org, 1)] + [(tab, k) for k in range(6)])
+        dx = cols - x0
+        dy = rows.unsqueeze(1) - y0
+        u = ux * dx + u0 + uy * dy
+        v = vx * dx + v0 + vy * dy
         return u, v
 
     def bilinear(self, textures: torch.Tensor, u: torch.Tensor, v: torch.Tensor, inside: torch.Tensor) -> torch.Tensor:
