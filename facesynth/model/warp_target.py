@@ -126,12 +126,9 @@ class ToTarget(nn.Module):
         self.register_buffer("ev_k", torch.from_numpy(ev_k.astype(np.float32)))
         # affine maps: vertices [x0 y0 x1 y1 x2 y2] -> edge vectors etc. (linear maps)
         vert = np.stack([2 * tri, 2 * tri + 1], -1).reshape(n_tri, 6)
-        # one element gather of the flat landmarks: triangle vertices field-major (6 * T: all x0,
-        # then all y0, ...), then edge end points (4 E) (GatherElements: row Gathers are far
-        # slower per index in ONNX Runtime; docs/runtime.md). The per-triangle quantities are
-        # (B, fields, T) throughout: elementwise ops then run along T, where a (B, T, fields)
-        # layout made ONNX Runtime broadcast over spans of 1 or 2 elements (several times
-        # slower at T = 884; the same products and sums either way)
+        # one element gather of the flat landmarks: triangle vertices field-major (6 T), then edge end
+        # points (4 E) (row Gathers are far slower per index in ONNX Runtime; docs/runtime.md). Per-triangle
+        # values are (B, fields, T), so elementwise ops run along T (docs/runtime.md, "Batch-1 tuning")
         self.register_buffer("coord_index", torch.from_numpy(np.concatenate([vert.T.reshape(-1), edge_coords])[None]))
         p_edges = np.zeros((4, 6), np.float32)  # [x0 y0 x1 y1 x2 y2] -> e1x e1y e2x e2y
         for j, (a, b) in enumerate([(2, 0), (3, 1), (4, 0), (5, 1)]):
@@ -166,13 +163,9 @@ class ToTarget(nn.Module):
         # that no large canvas coordinates cancel (float32 parity between torch and ONNX Runtime);
         # in raster coordinates (reference pixels minus the box origin)
         rp = ref.points[tri].astype(np.float64) - np.array([c0, r0], np.float64)  # (T, 3, 2)
-
-        def per_axis(d: np.ndarray) -> torch.Tensor:  # (T, 2) -> (2, 1, T): [[x], [y]]
-            return torch.from_numpy(np.ascontiguousarray(d.T[:, None, :].astype(np.float32)))
-
-        self.register_buffer("ref_d1", per_axis(rp[:, 1] - rp[:, 0]))  # (2, 1, T)
-        self.register_buffer("ref_d2", per_axis(rp[:, 2] - rp[:, 0]))
-        self.register_buffer("ref_0", per_axis(rp[:, 0]))
+        rp = rp.transpose(1, 2, 0)[:, :, None]  # (3, 2, 1, T): [[x], [y]] per vertex, float64
+        for name, d in (("ref_d1", rp[1] - rp[0]), ("ref_d2", rp[2] - rp[0]), ("ref_0", rp[0])):  # (2, 1, T)
+            self.register_buffer(name, torch.from_numpy(np.ascontiguousarray(d, np.float32)))
         # overlap pixels (covered twice or more, by a fold) read the raster at their own canvas
         # position: u = x - c0, v = y - r0 (table column T + 1, origin (0, 0)); (6, 1)
         self.register_buffer("overlap_map", torch.tensor([[1.0], [0.0], [-float(c0)], [0.0], [1.0], [-float(r0)]]))
