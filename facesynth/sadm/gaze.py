@@ -168,6 +168,8 @@ class GazePath(nn.Module):
             out.register_buffer(name, getattr(self, name))
         out.register_buffer("weight", self.weight[:, k].contiguous())
         out.register_buffer("bias", self.bias[k].contiguous())
+        if out.target == "eyes":
+            out._compact()
         return out
 
     @classmethod
