@@ -227,6 +227,14 @@ def test_save_load_compress_and_onnx_parity(gaze_data, tmp_path):
     assert sess.get_inputs()[0].shape[1:] == [78, 2]
     np.testing.assert_allclose(crop, t_crop.numpy(), atol=1e-4)
     np.testing.assert_allclose(place, t_place.numpy(), atol=1e-3)
+    # the gaze path's texture correction is computed on its eye columns only: no (14, C M) weight in the graph
+    import onnx
+
+    graph = onnx.load(str(path)).graph
+    shapes = [list(t.dims) for t in graph.initializer]
+    shapes += [list(a.t.dims) for n in graph.node if n.op_type == "Constant" for a in n.attribute if a.name == "value"]
+    n_eye = int(small.appearance.gaze.eye_columns.numel())
+    assert [14, n_eye] in shapes and [14, int(small.appearance.mean.numel())] not in shapes
     # the exported graph reads the irises: moving them changes the crop
     moved = lm[:1].copy()
     moved[:, 68:] += np.float32([3.0, 0.0])
