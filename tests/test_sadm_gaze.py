@@ -19,7 +19,7 @@ from facesynth.errors import FacesynthError
 from facesynth.landmarks import IBUG68_IRIS, MEDIAPIPE478, get_scheme, scheme_for_points
 from facesynth.model import FaceModel, FaceModelConfig
 from facesynth.sadm.fit import SADMConfig, fit_sadm, load_sadm, save_sadm
-from facesynth.sadm.gaze import expand, gaze_features, ridge_fit
+from facesynth.sadm.gaze import GazePath, expand, gaze_features, ridge_fit
 
 
 def _with_irises(lm68: np.ndarray, gaze: np.ndarray) -> np.ndarray:
@@ -113,6 +113,33 @@ def test_ridge_matches_scikit_learn():
     np.testing.assert_allclose(b, ref.intercept_, atol=1e-10)
 
 
+def test_eyes_path_compact_correction_equals_dense():
+    """An "eyes" path adds its correction from its nonzero columns only: the same texture as
+    the dense ``texture + path(landmarks)``, bit-identical outside the eye columns; its state
+    dict (the artifact) keeps the full-width weights, and a path rebuilt from it is the same."""
+    rng = np.random.default_rng(7)
+    e, k, b = 14, 600, 5
+    cols = np.sort(rng.choice(k, 40, replace=False))
+    w, bias = np.zeros((e, k)), np.zeros(k)
+    w[:, cols], bias[cols] = rng.normal(size=(e, 40)), rng.normal(size=40)
+    bias[cols[0]] = 0.0  # a column with weights but no bias is still an eye column
+    t = torch.from_numpy
+    path = GazePath(MEDIAPIPE478, t(rng.normal(size=e)), t(rng.uniform(0.5, 2.0, e)), t(w), t(bias), 0.1, "eyes")
+    np.testing.assert_array_equal(path.eye_columns.numpy(), cols)
+    assert set(path.state_dict()) == {"mu", "sd", "weight", "bias"}
+    lm = rng.uniform(100, 300, (b, MEDIAPIPE478.n_points, 2)).astype(np.float32)
+    tex = t(rng.uniform(0, 1, (b, k)).astype(np.float32))
+    with torch.no_grad():
+        dense = (tex + path(t(lm))).numpy()
+        got = path.add_to(tex, t(lm)).numpy()
+        again = GazePath.from_state(MEDIAPIPE478, path.state_dict(), 0.1, "eyes").add_to(tex, t(lm)).numpy()
+    np.testing.assert_allclose(got, dense, rtol=1e-6, atol=1e-6)
+    rest = np.setdiff1d(np.arange(k), cols)
+    np.testing.assert_array_equal(got[:, rest], tex.numpy()[:, rest])
+    assert np.abs(got[:, cols] - tex.numpy()[:, cols]).min() > 0
+    np.testing.assert_array_equal(again, got)
+
+
 @pytest.fixture(scope="module")
 def gaze_data():
     return make_gaze_data()
@@ -200,6 +227,14 @@ def test_save_load_compress_and_onnx_parity(gaze_data, tmp_path):
     assert sess.get_inputs()[0].shape[1:] == [78, 2]
     np.testing.assert_allclose(crop, t_crop.numpy(), atol=1e-4)
     np.testing.assert_allclose(place, t_place.numpy(), atol=1e-3)
+    # the gaze path's texture correction is computed on its eye columns only: no (14, C M) weight in the graph
+    import onnx
+
+    graph = onnx.load(str(path)).graph
+    shapes = [list(t.dims) for t in graph.initializer]
+    shapes += [list(a.t.dims) for n in graph.node if n.op_type == "Constant" for a in n.attribute if a.name == "value"]
+    n_eye = int(small.appearance.gaze.eye_columns.numel())
+    assert [14, n_eye] in shapes and [14, int(small.appearance.mean.numel())] not in shapes
     # the exported graph reads the irises: moving them changes the crop
     moved = lm[:1].copy()
     moved[:, 68:] += np.float32([3.0, 0.0])

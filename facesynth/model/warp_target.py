@@ -126,19 +126,20 @@ class ToTarget(nn.Module):
         self.register_buffer("ev_k", torch.from_numpy(ev_k.astype(np.float32)))
         # affine maps: vertices [x0 y0 x1 y1 x2 y2] -> edge vectors etc. (linear maps)
         vert = np.stack([2 * tri, 2 * tri + 1], -1).reshape(n_tri, 6)
-        # one element gather of the flat landmarks: triangle vertices (T * 6), then edge end points (4 E)
-        # (GatherElements: row Gathers are far slower per index in ONNX Runtime; docs/runtime.md)
-        self.register_buffer("coord_index", torch.from_numpy(np.concatenate([vert.reshape(-1), edge_coords])[None]))
-        p_edges = np.zeros((6, 4), np.float32)  # -> e1x e1y e2x e2y
+        # one element gather of the flat landmarks: triangle vertices field-major (6 T), then edge end
+        # points (4 E) (row Gathers are far slower per index in ONNX Runtime; docs/runtime.md). Per-triangle
+        # values are (B, fields, T), so elementwise ops run along T (docs/runtime.md, "Batch-1 tuning")
+        self.register_buffer("coord_index", torch.from_numpy(np.concatenate([vert.T.reshape(-1), edge_coords])[None]))
+        p_edges = np.zeros((4, 6), np.float32)  # [x0 y0 x1 y1 x2 y2] -> e1x e1y e2x e2y
         for j, (a, b) in enumerate([(2, 0), (3, 1), (4, 0), (5, 1)]):
-            p_edges[a, j], p_edges[b, j] = 1, -1
-        p_swap = np.zeros((4, 2), np.float32)  # -> e2y e2x (for det = e1x e2y - e1y e2x)
-        p_swap[3, 0] = p_swap[2, 1] = 1
+            p_edges[j, a], p_edges[j, b] = 1, -1
+        p_swap = np.zeros((2, 4), np.float32)  # -> e2y e2x (for det = e1x e2y - e1y e2x)
+        p_swap[0, 3] = p_swap[1, 2] = 1
         p_ab = np.zeros((4, 4), np.float32)  # -> det * [a1, b1, a2, b2] = [e2y, -e2x, -e1y, e1x]
-        p_ab[3, 0], p_ab[2, 1], p_ab[1, 2], p_ab[0, 3] = 1, -1, -1, 1
+        p_ab[0, 3], p_ab[1, 2], p_ab[2, 1], p_ab[3, 0] = 1, -1, -1, 1
         self.register_buffer("p_edges", torch.from_numpy(p_edges))
         self.register_buffer("p_swap", torch.from_numpy(p_swap))
-        self.register_buffer("p_det", torch.tensor([[1.0], [-1.0]]))
+        self.register_buffer("p_det", torch.tensor([[1.0, -1.0]]))
         self.register_buffer("p_ab", torch.from_numpy(p_ab))
         # the texture raster: the reference mask's bounding box plus 2 px, reference pixels
         # outside the mask filled with their nearest mask pixel's value, so that bilinear
@@ -162,12 +163,12 @@ class ToTarget(nn.Module):
         # that no large canvas coordinates cancel (float32 parity between torch and ONNX Runtime);
         # in raster coordinates (reference pixels minus the box origin)
         rp = ref.points[tri].astype(np.float64) - np.array([c0, r0], np.float64)  # (T, 3, 2)
-        self.register_buffer("ref_d1", torch.from_numpy((rp[:, 1] - rp[:, 0]).astype(np.float32)[:, :, None]))  # (T, 2, 1)
-        self.register_buffer("ref_d2", torch.from_numpy((rp[:, 2] - rp[:, 0]).astype(np.float32)[:, :, None]))
-        self.register_buffer("ref_0", torch.from_numpy(rp[:, 0].astype(np.float32)[:, :, None]))  # (T, 2, 1)
+        rp = rp.transpose(1, 2, 0)[:, :, None]  # (3, 2, 1, T): [[x], [y]] per vertex, float64
+        for name, d in (("ref_d1", rp[1] - rp[0]), ("ref_d2", rp[2] - rp[0]), ("ref_0", rp[0])):  # (2, 1, T)
+            self.register_buffer(name, torch.from_numpy(np.ascontiguousarray(d, np.float32)))
         # overlap pixels (covered twice or more, by a fold) read the raster at their own canvas
-        # position: u = x - c0, v = y - r0 (table row T + 1, origin (0, 0))
-        self.register_buffer("overlap_map", torch.tensor([[[1.0, 0.0, -float(c0), 0.0, 1.0, -float(r0)]]]))
+        # position: u = x - c0, v = y - r0 (table column T + 1, origin (0, 0)); (6, 1)
+        self.register_buffer("overlap_map", torch.tensor([[1.0], [0.0], [-float(c0)], [0.0], [1.0], [-float(r0)]]))
         # per-pixel constants: column x, row y, table offset x - C W (tables are (T + 2, W))
         ys, xs = np.mgrid[0:h, 0:w].astype(np.float32)
         self.register_buffer("col_x", torch.arange(w, dtype=torch.float32))
@@ -178,8 +179,6 @@ class ToTarget(nn.Module):
         self.register_buffer("ones4", torch.ones(1, 4))
         self.register_buffer("canvas_max", torch.tensor([float(w), float(h)]))  # (x, y) limits
         self.register_buffer("zero2", torch.zeros(2))
-        # per-pixel source lookup (:meth:`_source_per_pixel`): offsets of the 8 fields of each triangle
-        self.register_buffer("field_offset", torch.arange(8, dtype=torch.int64).reshape(1, 8, 1) * (n_tri + 2))
 
     @property
     def n_candidates(self) -> int:
@@ -193,13 +192,13 @@ class ToTarget(nn.Module):
 
     # ---------------------------------------------------------------- pieces
     def coordinates(self, target: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Target vertices (B, T, 6) [x0 y0 x1 y1 x2 y2], their edge vectors (B, T, 4)
+        """Target vertices (B, 6, T) [x0 y0 x1 y1 x2 y2], their edge vectors (B, 4, T)
         [e1x e1y e2x e2y] and the edge end points (B, 4, E) [x_lo, y_lo, x_hi, y_hi]."""
         flat = target.flatten(1)
         index = torch.zeros_like(flat[:, :1], dtype=torch.int64) + self.coord_index
         coords = torch.gather(flat, 1, index)
-        vert = coords[:, : 6 * self.n_tri].reshape(-1, self.n_tri, 6)
-        return vert, torch.matmul(vert, self.p_edges), coords[:, 6 * self.n_tri:].reshape(-1, 4, self.n_edges)
+        vert = coords[:, : 6 * self.n_tri].reshape(-1, 6, self.n_tri)
+        return vert, torch.matmul(self.p_edges, vert), coords[:, 6 * self.n_tri:].reshape(-1, 4, self.n_edges)
 
     def box(self, target: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """The canvas pixels that any triangle can cover: float (2,) tensors lo = [x_lo, y_lo]
@@ -221,7 +220,7 @@ class ToTarget(nn.Module):
         """Coverage code sum of every box pixel, float (B, Hb, Wb): 0 outside, ``C + t + 1``
         inside triangle t, more where triangles overlap.
 
-        ed : (B, 4, E) edge end points and det : (B, T, 1) determinants, from
+        ed : (B, 4, E) edge end points and det : (B, 1, T) determinants, from
         :meth:`coordinates` / :meth:`affine_maps`; lo, hi : the box from :meth:`box`;
         cols (Wb,) and rows_ext (Hb + 1,): its pixel columns and rows plus one row below.
         """
@@ -230,8 +229,7 @@ class ToTarget(nn.Module):
         xa, ya, xb, yb = ed[:, 0:1], ed[:, 1:2], ed[:, 2:3], ed[:, 3:4]  # (B, 1, E)
         # +1 for reference-oriented triangles, -1 for flipped ones (their edge events are
         # reversed, so the product adds +code inside either); degenerate ones are skipped
-        det_t = det.transpose(1, 2)
-        valid = (det_t > 1e-6).to(ed.dtype) - (det_t < -1e-6).to(ed.dtype)  # (B, 1, T)
+        valid = (det > 1e-6).to(ed.dtype) - (det < -1e-6).to(ed.dtype)  # (B, 1, T)
         valid = torch.cat([valid.flatten(1), valid[:, 0, :1] * 0.0], 1)  # (B, T + 1): index T reads 0
         index = torch.zeros_like(valid[:, :1], dtype=torch.int64) + self.edge_tri
         terms = torch.gather(valid, 1, index).reshape(-1, 2, self.n_edges) * self.edge_code
@@ -260,23 +258,23 @@ class ToTarget(nn.Module):
         minus the raster box origin), relative to each target triangle's vertex 0, and the
         triangles' determinants.
 
-        vert, e : from :meth:`coordinates`. Returns maps (B, T, 6): per triangle
+        vert, e : from :meth:`coordinates`. Returns maps (B, 6, T): per triangle
         [u_x, u_y, u_0, v_x, v_y, v_0] with u = u_0 + u_x (x - x_0) + u_y (y - y_0)
-        ((x_0, y_0) = ``vert[..., :2]``; barycentric interpolation), and det (B, T, 1)
+        ((x_0, y_0) = ``vert[:, :2]``; barycentric interpolation), and det (B, 1, T)
         (> 0 for counter-clockwise target triangles).
         """
-        det = torch.matmul(e[..., :2] * torch.matmul(e, self.p_swap), self.p_det)  # (B, T, 1)
+        det = torch.matmul(self.p_det, e[:, :2] * torch.matmul(self.p_swap, e))  # (B, 1, T)
         inv = 1.0 / torch.where(det.abs() > 1e-12, det, 1.0)
-        ab = (torch.matmul(e, self.p_ab) * inv).reshape(-1, self.n_tri, 2, 1, 2)  # [[a1 b1], [a2 b2]]
-        grad = ab[:, :, 0] * self.ref_d1 + ab[:, :, 1] * self.ref_d2  # (B, T, 2, 2): [[u_x u_y], [v_x v_y]]
-        maps = torch.cat([grad, self.ref_0 + grad[..., :1] * 0.0], -1)  # (B, T, 2, 3)
-        return maps.reshape(-1, self.n_tri, 6), det
+        ab = torch.matmul(self.p_ab, e) * inv  # (B, 4, T): [a1, b1, a2, b2]
+        grad = ab[:, 0:2].unsqueeze(1) * self.ref_d1 + ab[:, 2:4].unsqueeze(1) * self.ref_d2  # (B, 2, 2, T): [[u_x u_y], [v_x v_y]]
+        maps = torch.cat([grad, self.ref_0 + grad[:, :, :1] * 0.0], 2)  # (B, 2, 3, T)
+        return maps.reshape(-1, 6, self.n_tri), det
 
     def source(self, maps: torch.Tensor, origin: torch.Tensor, s: torch.Tensor, lo: torch.Tensor, hi: torch.Tensor,
                cols: torch.Tensor, rows: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Raster coordinates u, v (B, 1, Hb, Wb) of every box pixel given its code sum.
 
-        maps : (B, T, 6) from :meth:`affine_maps`; origin : (B, T, 2) the triangles' vertex 0
+        maps : (B, 6, T) from :meth:`affine_maps`; origin : (B, 2, T) the triangles' vertex 0
         (x_0, y_0); s : (B, 1, Hb, Wb) from :meth:`locate`; lo, hi : the box; cols (Wb,),
         rows (Hb,): its canvas coordinates. Tables (B, (T + 2) Wb) indexed by
         ``(s' - C) Wb + (x - x_lo)`` with s' = clamp(s, C, C + T + 1) hold
@@ -286,17 +284,18 @@ class ToTarget(nn.Module):
         of a small offset (a pixel's distance to its triangle's vertex), so float32 rounding
         stays at the level of the raster coordinates (<= 1e-5 px on a 400 px canvas).
         """
-        tab = torch.cat([F.pad(maps, (0, 0, 1, 0)), self.overlap_map + maps[:, :1] * 0.0], 1)  # (B, T + 2, 6), row t + 1 = triangle t
-        org = F.pad(origin, (0, 0, 1, 1))  # (B, T + 2, 2)
+        tab = torch.cat([F.pad(maps, (1, 0)), self.overlap_map + maps[:, :, :1] * 0.0], 2)  # (B, 6, T + 2), column t + 1 = triangle t
+        org = F.pad(origin, (1, 1))  # (B, 2, T + 2)
         if self.n_tri > PER_PIXEL_TRIANGLES:
             return self._source_per_pixel(tab, org, s, cols, rows)
         zero = cols * 0.0
-        dx = cols - org[..., 0:1]  # (B, T + 2, Wb)
-        u0 = (tab[..., 0:1] * dx + tab[..., 2:3]).flatten(1)  # (B, (T + 2) Wb)
-        uy = (tab[..., 1:2] + zero).flatten(1)
-        v0 = (tab[..., 3:4] * dx + tab[..., 5:6]).flatten(1)
-        vy = (tab[..., 4:5] + zero).flatten(1)
-        y0 = (org[..., 1:2] + zero).flatten(1)
+        tab, org = tab.unsqueeze(-1), org.unsqueeze(-1)  # (B, 6 | 2, T + 2, 1)
+        dx = cols - org[:, 0]  # (B, T + 2, Wb)
+        u0 = (tab[:, 0] * dx + tab[:, 2]).flatten(1)  # (B, (T + 2) Wb)
+        uy = (tab[:, 1] + zero).flatten(1)
+        v0 = (tab[:, 3] * dx + tab[:, 5]).flatten(1)
+        vy = (tab[:, 4] + zero).flatten(1)
+        y0 = (org[:, 1] + zero).flatten(1)
         wb = hi[0] - lo[0]
         offset = cols - (lo[0] + self.code_base * wb)  # (Wb,)
         index = (torch.clamp(s, self.code_base, self.code_base + self.n_tri + 1) * wb + offset).to(torch.int64).flatten(1)
@@ -308,15 +307,16 @@ class ToTarget(nn.Module):
     def _source_per_pixel(self, tab: torch.Tensor, org: torch.Tensor, s: torch.Tensor, cols: torch.Tensor,
                           rows: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """:meth:`source` for dense meshes: each pixel gathers its triangle's (x_0, y_0, u_x, u_y,
-        u_0, v_x, v_y, v_0) instead of reading (T + 2) Wb-entry tables; same products, same order."""
-        table = torch.cat([org.transpose(1, 2), tab.transpose(1, 2)], 1).flatten(1)  # (B, 8 (T + 2))
-        t = (torch.clamp(s, self.code_base, self.code_base + self.n_tri + 1) - self.code_base).to(torch.int64)
-        index = (t.flatten(1).unsqueeze(1) + self.field_offset).flatten(1)  # (B, 8 N)
-        f = torch.gather(table, 1, index).reshape(-1, 8, *s.shape[2:])  # (B, 8, Hb, Wb)
-        dx = cols - f[:, 0:1]
-        dy = rows.unsqueeze(1) - f[:, 1:2]
-        u = f[:, 2:3] * dx + f[:, 4:5] + f[:, 3:4] * dy
-        v = f[:, 5:6] * dx + f[:, 7:8] + f[:, 6:7] * dy
+        u_0, v_x, v_y, v_0) instead of reading (T + 2) Wb-entry tables; same products, same order.
+        One gather per field, all with the pixel's triangle as index (one (B, 8 N) gather would
+        need an 8 N-element index sum every frame)."""
+        t = (torch.clamp(s, self.code_base, self.code_base + self.n_tri + 1) - self.code_base).to(torch.int64).flatten(1)
+        x0, y0, ux, uy, u0, vx, vy, v0 = (torch.gather(table[:, k], 1, t).reshape_as(s)
+                                          for table, k in [(org, 0), (org, 1)] + [(tab, k) for k in range(6)])
+        dx = cols - x0
+        dy = rows.unsqueeze(1) - y0
+        u = ux * dx + u0 + uy * dy
+        v = vx * dx + v0 + vy * dy
         return u, v
 
     def bilinear(self, textures: torch.Tensor, u: torch.Tensor, v: torch.Tensor, inside: torch.Tensor) -> torch.Tensor:
@@ -350,7 +350,7 @@ class ToTarget(nn.Module):
         s = self.locate(ed, det, lo, hi, cols, rows).unsqueeze(1)  # (B, 1, Hb, Wb)
         cb = self.code_base
         inside = (s > cb * 0.5).to(textures.dtype)  # covered at least once (codes are >= C + 1)
-        u, v = self.source(maps, vert[..., :2], s, lo, hi, cols, rows[:-1])
+        u, v = self.source(maps, vert[:, :2], s, lo, hi, cols, rows[:-1])
         img = self.bilinear(textures, u, v, inside)
         # ONNX Pad order: begins of (B, C, H, W), then ends
         pads = torch.cat([self.zero2, lo.flip(0), self.zero2, (self.canvas_max - hi).flip(0)]).to(torch.int64)

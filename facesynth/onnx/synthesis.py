@@ -99,8 +99,8 @@ class SynthesisGraph(nn.Module):
             b_g = torch.minimum(torch.maximum(b_g, -self.app_limit), self.app_limit)
             # float32 matmul, or the int8 basis (MatMulInteger; facesynth.sadm.quantize)
             tex = self.appearance.deviation(b_g) + self.app_mean
-            if self.gaze:
-                tex = tex + self.appearance.texture_correction(full)
+            if self.gaze:  # the gaze path's texture correction, on its eye columns only
+                tex = self.appearance.add_texture_correction(tex, full)
             tex = torch.clamp(tex, 0.0, 1.0)
             tex = tex.reshape(-1, self.channels, self.n_tex)
         else:

@@ -106,8 +106,15 @@ class GazePath(nn.Module):
 
     ``target`` says what it corrects: ``"params"``, b_g (K = K_g, added before b_g's clamp),
     or ``"eyes"``, the reference-frame texture (K = C M, channel-major, zero outside the eye
-    region: added to the texture). Built by :func:`fit_gaze_path` or from a state dict
-    (``mu``, ``sd``, ``weight``, ``bias``).
+    region: added to the texture by :meth:`add_to`). Built by :func:`fit_gaze_path` or from a
+    state dict (``mu``, ``sd``, ``weight``, ``bias``; the saved form keeps the full width).
+
+    An ``"eyes"`` path also holds the compact form of its weights, built here from the
+    columns where ``weight`` or ``bias`` is nonzero (non-persistent buffers, so artifacts of
+    either age load the same): ``eye_columns`` (N,) int64, ``eye_weight`` (E, N),
+    ``eye_bias`` (N,). :meth:`add_to` computes only those N columns (a few percent of C M)
+    and adds them in place of a dense (E, C M) matmul whose other columns are zero; the sum
+    at every element is the same single addition, so the texture is unchanged.
     """
 
     def __init__(self, scheme: LandmarkScheme, mu: torch.Tensor, sd: torch.Tensor, weight: torch.Tensor,
@@ -122,10 +129,30 @@ class GazePath(nn.Module):
         self.register_buffer("weight", weight.float())  # (E, K)
         self.register_buffer("bias", bias.float())  # (K,)
         self.alpha = float(alpha)
+        if target == "eyes":
+            self._compact()
+
+    def _compact(self) -> None:
+        """The nonzero columns of an ``"eyes"`` path's weights (see the class docstring)."""
+        cols = torch.nonzero((self.weight != 0).any(0) | (self.bias != 0)).reshape(-1)
+        self.register_buffer("eye_columns", cols, persistent=False)  # (N,) into C M
+        self.register_buffer("eye_weight", self.weight[:, cols].contiguous(), persistent=False)  # (E, N)
+        self.register_buffer("eye_bias", self.bias[cols].contiguous(), persistent=False)  # (N,)
+
+    def standardized(self, landmarks: torch.Tensor) -> torch.Tensor:
+        """(B, E) z-scored expanded gaze features of frame landmarks (B, P, 2)."""
+        return (expand(self.features(landmarks)) - self.mu) / self.sd
 
     def forward(self, landmarks: torch.Tensor) -> torch.Tensor:
-        z = (expand(self.features(landmarks)) - self.mu) / self.sd
-        return torch.matmul(z, self.weight) + self.bias
+        return torch.matmul(self.standardized(landmarks), self.weight) + self.bias
+
+    def add_to(self, texture: torch.Tensor, landmarks: torch.Tensor) -> torch.Tensor:
+        """``texture + self(landmarks)`` for an ``"eyes"`` path, (B, C M) -> (B, C M), from the
+        compact weights: the N eye columns are computed and scatter-added (one ONNX
+        ScatterElements with reduction "add"); every other element is returned unchanged."""
+        corr = torch.matmul(self.standardized(landmarks), self.eye_weight) + self.eye_bias  # (B, N)
+        index = torch.zeros_like(corr, dtype=torch.int64) + self.eye_columns
+        return texture.scatter_add(1, index, corr)
 
     def summary(self) -> dict:
         return {"inputs": FEATURE_NAMES, "expanded": int(self.mu.shape[0]), "outputs": int(self.bias.shape[0]),
@@ -141,6 +168,8 @@ class GazePath(nn.Module):
             out.register_buffer(name, getattr(self, name))
         out.register_buffer("weight", self.weight[:, k].contiguous())
         out.register_buffer("bias", self.bias[k].contiguous())
+        if out.target == "eyes":
+            out._compact()
         return out
 
     @classmethod

@@ -161,6 +161,13 @@ class GlobalAppearance(nn.Module):
         """The gaze path's texture correction (B, C M) when it corrects the texture, else 0."""
         return self.gaze(landmarks) if self.gaze is not None and self.gaze.target != "params" else 0.0
 
+    def add_texture_correction(self, texture: torch.Tensor, landmarks: torch.Tensor | None) -> torch.Tensor:
+        """``texture + texture_correction(landmarks)`` (B, C M), computed on the gaze path's
+        eye columns only (:meth:`facesynth.sadm.gaze.GazePath.add_to`)."""
+        if self.gaze is None or self.gaze.target == "params":
+            return texture
+        return self.gaze.add_to(texture, landmarks)
+
     @property
     def needs_landmarks(self) -> bool:
         return self.gaze is not None or self.gaze_inputs is not None
@@ -170,7 +177,7 @@ class GlobalAppearance(nn.Module):
         return torch.clamp(self.raw_params(aligned, b_s, landmarks), -self.limit, self.limit)
 
     def forward(self, aligned: torch.Tensor, b_s: torch.Tensor, landmarks: torch.Tensor | None = None) -> torch.Tensor:
-        tex = self.mean + self.deviation(self.params(aligned, b_s, landmarks)) + self.texture_correction(landmarks)
+        tex = self.add_texture_correction(self.mean + self.deviation(self.params(aligned, b_s, landmarks)), landmarks)
         return tex.reshape(tex.shape[0], self.channels, -1)
 
 
