@@ -1,5 +1,8 @@
 """Where the sigma 0 -> 2 loss of frame-level PSNR comes from, and what a denoised warp
-target would win (issue 14's noise bound; a measurement for the next step, not a feature).
+target would win (issue 14's noise bound). This measurement led to the face model's
+landmark denoising (``model.denoise_variance``, docs/sadm.md), which ``FaceModel.render``
+applies itself: give it runs trained with ``model.denoise_variance=1`` (or before it
+existed) for ``raw`` to mean the landmarks as given.
 
     PYTHONPATH=. python bench/bench_target_denoise.py RUN [RUN ...] [--frames 40] [--sigma 2]
 

@@ -54,6 +54,21 @@ def test_matern32_equals_sklearn_kernel_ridge_with_matern_kernel():
                                rtol=1e-4, atol=1e-4 * np.abs(want).max())
 
 
+def test_global_scale_equals_sklearn_on_inputs_divided_by_their_rms_std():
+    from sklearn.gaussian_process.kernels import Matern
+    from sklearn.kernel_ridge import KernelRidge
+
+    x, y = _data()
+    xt, _ = _data(40, seed=1)
+    reg = KRRRegressor.fit(x, y, {"alpha": 0.2, "gamma_mult": 0.7, "blend": 1.0, "clip_inputs": False, "scale": "global"})
+    mx, s = x.mean(0), np.sqrt(np.mean(x.std(0) ** 2))  # one scale: the inputs keep their relative spreads
+    kern = Matern(length_scale=1.0 / np.sqrt(0.7 / x.shape[1]), nu=1.5)
+    krr = KernelRidge(alpha=0.2, kernel=kern).fit((x - mx) / s, y - y.mean(0))
+    want = krr.predict((xt - mx) / s) + y.mean(0)
+    np.testing.assert_allclose(reg.predict(xt), want, rtol=1e-4, atol=1e-4 * np.abs(want).max())
+    assert reg.config_dict()["scale"] == "global"
+
+
 def test_runs_saved_without_a_kernel_field_load_as_rbf():
     x, y = _data()
     rbf = KRRRegressor.fit(x, y, {"kernel": "rbf"})
@@ -116,7 +131,7 @@ def test_round_trip_and_onnx_parity(tmp_path, kernel):
 
 
 @pytest.mark.parametrize("bad", [{"alpha": 0.0}, {"gamma_mult": -1.0}, {"blend": 1.5}, {"ridge": -1.0}, {"alhpa": 1.0},
-                                 {"kernel": "laplacian"}])
+                                 {"kernel": "laplacian"}, {"scale": "minmax"}])
 def test_bad_config_is_a_clear_error(bad):
     x, y = _data(20)
     with pytest.raises(FacesynthError, match="regressor krr"):

@@ -66,9 +66,14 @@ class KRRConfig:
     blend: float = 0.5  # weight of the kernel part; 1 = pure KRR, 0 = pure linear ridge
     clip_inputs: bool = True  # clamp each input to its [min, max] over the training rows
     kernel: str = "matern32"  # "matern32" | "rbf" (runs saved before this field read as "rbf")
+    # "feature": each input z-scored; "global": one scale for all, their RMS std (the kernel then
+    # weighs coordinates by how much they move: the same on lp_d6 and lp_d10, +0.2-0.3 dB on
+    # lp_d3 with either scheme; docs/sadm.md)
+    scale: str = "feature"
 
 
 KERNELS = ("matern32", "rbf")
+SCALES = ("feature", "global")
 SQRT3 = float(np.sqrt(3.0))
 
 
@@ -83,6 +88,8 @@ def check_config(cfg: KRRConfig) -> None:
         raise FacesynthError(f"regressor krr: blend must lie in [0, 1], got {cfg.blend}")
     if cfg.kernel not in KERNELS:
         raise FacesynthError(f"regressor krr: kernel must be one of {KERNELS}, got {cfg.kernel!r}")
+    if cfg.scale not in SCALES:
+        raise FacesynthError(f"regressor krr: scale must be one of {SCALES}, got {cfg.scale!r}")
 
 
 def kernel_of_sqdist(d2, kernel: str):
@@ -133,6 +140,8 @@ class KRRRegressor(Regressor):
         x, y = check_xy(x, y, "regressor krr")
         n, d = x.shape
         mx, sx = standardiser(x)
+        if cfg.scale == "global":
+            sx = np.full_like(sx, float(np.sqrt(np.mean(sx**2))))
         z = (x - mx) / sx
         my = y.mean(0)
         gamma = float(cfg.gamma_mult) / d
@@ -167,7 +176,8 @@ class KRRRegressor(Regressor):
     def config_dict(self) -> dict:
         c = self.config
         return {"alpha": float(c.alpha), "gamma_mult": float(c.gamma_mult), "ridge": float(c.ridge),
-                "blend": float(c.blend), "clip_inputs": bool(c.clip_inputs), "kernel": c.kernel, "info": self.info}
+                "blend": float(c.blend), "clip_inputs": bool(c.clip_inputs), "kernel": c.kernel, "scale": c.scale,
+                "info": self.info}
 
     @classmethod
     def from_state(cls, config, tensors):
