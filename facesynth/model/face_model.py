@@ -19,7 +19,7 @@ import torch
 from facesynth.data.sequence import FaceSequence, validate_landmarks
 from facesynth.errors import FacesynthError
 from facesynth.geometry import apply_affine, invert_affine, similarity_fit
-from facesynth.landmarks import DEFAULT_SCHEME, get_scheme
+from facesynth.landmarks import DEFAULT_SCHEME, folded_triangles, get_scheme
 from facesynth.model.pca import PCAModel
 from facesynth.model.procrustes import generalised_procrustes
 from facesynth.model.reference import ReferenceFrame, open_mouth
@@ -92,8 +92,8 @@ class FaceModel:
         scheme's point count.
     reference : ReferenceFrame
         Mean shape (its mouth opened to ``reference_mouth_quantile``, when set) at
-        ``reference_width`` pixels, triangulated (the scheme's fixed triangulation less the
-        triangles folded on it, or Delaunay).
+        ``reference_width`` pixels, triangulated (the scheme's fixed triangulation, the
+        triangles folded on it turned and placed last, or Delaunay).
     appearance_pca : PCAModel
         Over flattened (C * M,) textures in [0, 1], channel-major, M = mask pixels.
     span : np.ndarray
@@ -149,14 +149,14 @@ class FaceModel:
         fixed = None if scheme.triangles is None else scheme.triangulation()
         ref_shape, mouth = mean, {}
         if mouth_q > 0:
-            ref_shape, mouth = open_mouth(mean, aligned, scheme.region("inner_lips"), mouth_q)
+            ref_shape, mouth = open_mouth(mean, aligned, scheme.region("inner_lips"), mouth_q, fixed)
         ref = ReferenceFrame.from_mean_shape(ref_shape, cfg.reference_width, cfg.margin, fixed)
         model = cls(cfg, shape_pca, ref, None, np.zeros((ref.n_triangles, 2), np.int64), seq.fingerprint,  # type: ignore[arg-type]
                     scheme=scheme.name, denoise_pca=denoise_pca)
-        dropped = [] if fixed is None else _dropped(fixed, ref.triangles)
-        if dropped:
-            log.warning("%s: %d triangles of the %s triangulation are folded on the mean shape and left out "
-                        "of the reference frame (%s)", seq.name, len(dropped), scheme.name, dropped)
+        folded = [] if fixed is None else np.flatnonzero(folded_triangles(ref.points, fixed)).tolist()
+        if folded:
+            log.info("%s: %d triangles of the %s triangulation are folded on the reference shape (%s): kept, "
+                     "turned and placed last", seq.name, len(folded), scheme.name, folded)
         canvas_shapes = model.to_canvas(seq.landmarks[rows])[0]
         extremes = model._shape_extremes()
         model.span = candidate_spans(ref, np.concatenate([canvas_shapes, extremes]), cfg.span_safety)
@@ -169,7 +169,7 @@ class FaceModel:
             "train_frames": int(len(rows)),
             "fit_seconds": {"shape": t1 - t0, "textures": t2 - t1, "appearance_pca": t3 - t2},
             "sequence": seq.name,
-            "triangles_folded_on_mean": dropped,
+            "triangles_folded_on_mean": folded,
             "reference_mouth": mouth,
         }
         log.info(
@@ -353,12 +353,6 @@ class FaceModel:
             "channels": self.n_channels,
             "config": asdict(self.config),
         }
-
-
-def _dropped(fixed: np.ndarray, kept: np.ndarray) -> list[int]:
-    """Rows of the fixed triangulation (T, 3) that are not in ``kept`` (T', 3)."""
-    keep = {tuple(t) for t in kept.tolist()}
-    return [i for i, t in enumerate(fixed.tolist()) if tuple(t) not in keep]
 
 
 __all__ = ["FaceModel", "FaceModelConfig", "apply_affine_t", "similarity_to"]

@@ -39,8 +39,11 @@ class ReferenceFrame:
                         triangles: np.ndarray | None = None) -> "ReferenceFrame":
         """Scale a (P, 2) mean shape so that its landmark bounding box is ``width`` pixels
         wide, add ``margin`` (fraction of the width) on every side, and triangulate it:
-        with Delaunay, or with the fixed ``triangles`` (T, 3) of the landmark scheme less
-        those folded on this mean (dropped: a folded triangle overlaps its neighbours)."""
+        with Delaunay, or with the fixed ``triangles`` (T, 3) of the landmark scheme. A fixed
+        triangle folded on this mean (it overlaps its neighbours there) is kept, turned
+        counter-clockwise and moved to the end of the list: reference pixels then belong to
+        the unfolded triangles first (:func:`locate` takes the first), and a frame where it
+        unfolds still covers it (dropping it left holes there)."""
         if width < 16:
             raise FacesynthError(f"reference width must be >= 16 px, got {width}")
         pts = np.asarray(mean_shape, np.float64)
@@ -52,9 +55,11 @@ class ReferenceFrame:
         if triangles is None:
             tri = orient_ccw(pts, Delaunay(pts).simplices.astype(np.int64))
         else:
-            tri = np.asarray(triangles, np.int64)[~folded_triangles(pts, np.asarray(triangles, np.int64))]
-            if len(tri) == 0:
+            tri = np.asarray(triangles, np.int64)
+            folded = folded_triangles(pts, tri)
+            if folded.all():
                 raise FacesynthError("every triangle of the fixed triangulation is folded on the mean shape")
+            tri = np.concatenate([tri[~folded], orient_ccw(pts, tri[folded])])
         return cls(pts.astype(np.float32), size, tri)
 
     @property
@@ -99,13 +104,20 @@ def lip_gap(shapes: np.ndarray, ring: np.ndarray) -> np.ndarray:
     return np.linalg.norm(s[..., upper, :] - s[..., lower, :], axis=-1).mean(-1) / width
 
 
-def open_mouth(mean: np.ndarray, shapes: np.ndarray, ring: np.ndarray, quantile: float) -> tuple[np.ndarray, dict]:
+OPEN_MOUTH_STEPS = (1.0, 0.8, 0.6, 0.4, 0.2)  # fractions of the opening tried, widest first
+
+
+def open_mouth(mean: np.ndarray, shapes: np.ndarray, ring: np.ndarray, quantile: float,
+               triangles: np.ndarray | None = None) -> tuple[np.ndarray, dict]:
     """The mean shape (P, 2) with its mouth opened to the ``quantile`` of the (N, P, 2)
     aligned training shapes' :func:`lip_gap`, along the shapes' linear regression on the gap
     (the way this face opens its mouth: jaw, lips and cheeks together). Unchanged when its
     gap is already that wide. A reference frame whose lips touch gives the triangles that
     close a fixed mesh's mouth no pixels, so the appearance model never holds the inside of
-    the mouth. Returns the shape and what was done (for the model's meta)."""
+    the mouth. With ``triangles`` (T, 3), the opening is cut back (:data:`OPEN_MOUTH_STEPS`)
+    until it folds no triangle that the mean does not fold: a triangle dropped from the
+    reference frame would leave a hole wherever a frame gives it area. Returns the shape and
+    what was done (for the model's meta)."""
     g = lip_gap(shapes, ring)
     want, have = float(np.quantile(g, quantile)), float(lip_gap(mean, ring))
     info = {"quantile": float(quantile), "gap_mean_shape": have, "gap_target": want}
@@ -113,10 +125,19 @@ def open_mouth(mean: np.ndarray, shapes: np.ndarray, ring: np.ndarray, quantile:
     if want <= have or float(dg @ dg) == 0.0:
         return mean, {**info, "opened": False}
     slope = np.tensordot(dg, np.asarray(shapes, np.float64) - mean, 1) / float(dg @ dg)  # (P, 2) per unit of gap
-    out = np.asarray(mean, np.float64)
+    mean = np.asarray(mean, np.float64)
+    out = mean
     for _ in range(3):  # the gap is not exactly linear along the slope: a few secant steps
         out = out + (want - lip_gap(out, ring)) * slope
-    return out, {**info, "opened": True, "gap_reference": float(lip_gap(out, ring))}
+    if triangles is None:
+        return out, {**info, "opened": True, "gap_reference": float(lip_gap(out, ring)), "fraction": 1.0}
+    tri = np.asarray(triangles, np.int64)
+    base = folded_triangles(mean, tri)
+    for frac in OPEN_MOUTH_STEPS:
+        cand = mean + frac * (out - mean)
+        if not (folded_triangles(cand, tri) & ~base).any():
+            return cand, {**info, "opened": True, "gap_reference": float(lip_gap(cand, ring)), "fraction": frac}
+    return mean, {**info, "opened": False, "fraction": 0.0}
 
 
 def orient_ccw(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
