@@ -17,7 +17,8 @@ P = 478; the FAP units and face axes are measured on their iBUG-68 view,
    unit (:data:`POINT_UNITS`: mouth and jaw by mouth width / mouth-nose separation, eyes
    by eye separation / eyelid opening, brows and nose by eye separation / eye-nose
    separation; a 478-point mesh point outside those regions takes the units of the nearest
-   point in them on the avatar's neutral), and its displacement is multiplied by avatar unit / driver unit
+   point in them on the avatar's neutral; with irises, IRISD is the iris diameter,
+   :func:`iris_diameter`), and its displacement is multiplied by avatar unit / driver unit
    (:func:`facesynth.faps.fapu` of both neutrals), then put on the avatar's face axes and
    added to ``A_n``; on the FAP feature points this is exactly ``faps_to_landmarks(A_n,
    compute_faps(D, D_n))`` along the FAP axes;
@@ -91,6 +92,30 @@ def eye_patches(scheme: LandmarkScheme) -> tuple:
             idx = np.concatenate([idx, scheme.region(f"{side}_iris")])
         out.append((idx, int(corners[0]), int(corners[1])))
     return tuple(out)
+
+
+def eyelid_pairs(scheme: LandmarkScheme) -> tuple[np.ndarray, np.ndarray]:
+    """(upper, lower) facing eyelid points of both eyes: each eye's contour is a ring from one
+    corner over the upper lid to the other corner (index n / 2) and back, so point k faces n - k."""
+    up, lo = [], []
+    for side in ("right_eye", "left_eye"):
+        ring = scheme.region(side)
+        n = len(ring)
+        up.append(ring[1 : n // 2])
+        lo.append(ring[n - 1 : n // 2 : -1])
+    return np.concatenate(up), np.concatenate(lo)
+
+
+def iris_diameter(scheme: LandmarkScheme, face: np.ndarray) -> float:
+    """Mean iris diameter (pixels) of a (P, 2) face of a scheme with irises (centre, then
+    boundary points): twice the mean centre-to-boundary distance, over both eyes. MPEG-4
+    takes the neutral's eyelid distance for IRISD (no iris points); a downcast neutral makes
+    that tiny, and every eyelid motion of the driver then shrinks on the avatar."""
+    out = []
+    for side in ("right_iris", "left_iris"):
+        idx = scheme.region(side)
+        out.append(2.0 * np.linalg.norm(face[idx[1:]] - face[idx[0]], axis=-1).mean())
+    return float(np.mean(out))
 
 
 def retarget_scheme(name: str) -> LandmarkScheme:
@@ -219,7 +244,11 @@ class Retargeter:
         a68, d68 = (x if sch.name == "ibug68" else sch.to_ibug68(x).astype(np.float64)
                     for x in (self.avatar_neutral, self.driver_neutral))
         ratio = fapu(a68) / fapu(d68)  # (5,)
+        if "irises" in sch.regions:  # IRISD from the irises themselves (see iris_diameter)
+            ratio[FAPU_NAMES.index("IRISD")] = iris_diameter(sch, self.avatar_neutral) / iris_diameter(sch, self.driver_neutral)
         axes_d, axes_a = face_axes(d68), face_axes(a68)
+        self._down = axes_a[1]
+        self._lid_up, self._lid_lo = eyelid_pairs(sch)
         # expression: disp_a = ((disp_d @ axes_d.T) * ratio_p) @ axes_a, one (2, 2) map per point
         units = POINT_UNITS if sch.name == "ibug68" else point_units(sch, self.avatar_neutral)
         scale = ratio[units]  # (P, 2)
@@ -229,6 +258,20 @@ class Retargeter:
         c = similarity_fit(self.driver_neutral[rigid], self.avatar_neutral[rigid])  # driver -> avatar
         self._c_lin, self._c_t = c[:, :2], c[:, 2]
         self._c_inv_lin = np.linalg.inv(self._c_lin)
+
+    def _lids_apart(self, expr: np.ndarray) -> np.ndarray:
+        """Eyelids that would cross (an upper point below its lower one along the avatar's
+        ``down`` axis: a driver's blink on an avatar whose neutral eyes are nearly shut) meet
+        at their midpoint instead; (P, 2) -> (P, 2), unchanged where no lid crosses."""
+        du, dl = expr[self._lid_up] @ self._down, expr[self._lid_lo] @ self._down
+        cross = du > dl
+        if not cross.any():
+            return expr
+        out = expr.copy()
+        mid = 0.5 * (du + dl)
+        out[self._lid_up[cross]] += np.outer(mid[cross] - du[cross], self._down)
+        out[self._lid_lo[cross]] += np.outer(mid[cross] - dl[cross], self._down)
+        return out
 
     def pose(self, frame: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The driver's head pose of one (P, 2) frame: the similarity (2x2, 2) mapping the
@@ -244,6 +287,7 @@ class Retargeter:
         inv_t = lin / (lin[0, 0] ** 2 + lin[1, 0] ** 2)  # transpose of the similarity's inverse
         disp = (frame - t) @ inv_t - self.driver_neutral  # expression in the driver's neutral frame
         expr = self.avatar_neutral + disp[:, 0:1] * self._e0 + disp[:, 1:2] * self._e1
+        expr = self._lids_apart(expr)
         if not self.head_motion:
             return expr if self.shape_space is None else self.shape_space.project(expr)
         # head motion C P C^-1 around the avatar's neutral placement

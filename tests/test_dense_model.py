@@ -252,6 +252,23 @@ def test_denoise_settings_and_artifact(dense, tmp_path):
         FaceModel.fit(seq68, FaceModelConfig(denoise_variance=1.5), rows=rows, progress=False)
     with pytest.raises(FacesynthError, match=r"model\.reference_mouth_quantile must lie in \[0, 1\] \(0 = off\), got -0\.1"):
         FaceModel.fit(seq68, FaceModelConfig(reference_mouth_quantile=-0.1), rows=rows, progress=False)
+    with pytest.raises(FacesynthError, match=r"model\.denoise_free must be one of \['eyes', 'none'\], got 'mouth'"):
+        FaceModel.fit(seq68, FaceModelConfig(denoise_free="mouth"), rows=rows, progress=False)
+
+
+def test_denoise_can_leave_the_eyes_as_given(dense, rng):
+    # denoise_free="eyes": the basis also spans every eye and iris coordinate, so those points
+    # come back exactly (a driver's eyelids outside the training range stay); the rest is denoised
+    _, seq, model, _ = dense
+    free = FaceModel.fit(seq, FaceModelConfig(reference_width=48, denoise_free="eyes"), rows=np.arange(24), progress=False)
+    eyes = np.concatenate([MEDIAPIPE478.region("eyes"), MEDIAPIPE478.region("irises")])
+    k = free.denoise_pca.n_components
+    np.testing.assert_allclose(free.denoise_pca.components @ free.denoise_pca.components.T, np.eye(k), atol=1e-5)
+    noisy = seq.landmarks[30:34] + rng.normal(0, 1.0, seq.landmarks[30:34].shape).astype(np.float32)
+    out = free.denoise(noisy)
+    np.testing.assert_allclose(out[:, eyes], noisy[:, eyes], atol=1e-3)
+    rest = np.setdiff1d(np.arange(478), eyes)
+    assert np.abs(out[:, rest] - noisy[:, rest]).mean() > 0.3
 
 
 def test_app_drives_a_478_point_model(dense, tmp_path, capsys):

@@ -1,10 +1,10 @@
 """Figures of reenactment (issue 13), shared by ``bench/bench_reenact.py`` and the tests.
 
-* coverage: per frame, the share of the avatar's face-outline hull (convex hull of the 68
+* coverage: per frame, the share of the avatar's face-outline hull (convex hull of the
   rendered landmarks, eroded 3 px) that the rendered mask covers (placed in the frame);
 * expression following: Pearson r between the driver's and the avatar's mouth opening
   (inner-lip gap / inter-ocular) and eye opening (eyelid gap / inter-ocular), measured on
-  the landmarks the avatar was rendered with;
+  the landmarks the avatar was rendered with (their iBUG-68 view for another scheme);
 * identity: median jaw width (0-16) / nose-bridge-to-chin (27-8) of the rendered avatar
   against the avatar's own training frames (relative difference);
 * self-driving: frame-level PSNR of a clip's held-out frames rendered with relative and
@@ -20,11 +20,19 @@ import time
 import cv2
 import numpy as np
 
+from facesynth.landmarks import scheme_for_points
 from facesynth.metrics import psnr
 from facesynth.neutral import mouth_open, select_neutral
 from facesynth.retarget import Retargeter, eye_open
 from facesynth.runtime.blend import blend_face
 from facesynth.runtime.reenact import Reenactor
+
+
+def ibug68_view(landmarks: np.ndarray) -> np.ndarray:
+    """(N, P, 2) landmarks of any registered scheme -> float64 (N, 68, 2) (mapped with the
+    scheme's ``to_ibug68``; iBUG-68 points as they are)."""
+    lm = np.asarray(landmarks, np.float64)
+    return lm if lm.shape[1] == 68 else scheme_for_points(lm.shape[1]).to_ibug68(lm).astype(np.float64)
 
 
 def shape_ratio(landmarks: np.ndarray) -> np.ndarray:
@@ -34,7 +42,7 @@ def shape_ratio(landmarks: np.ndarray) -> np.ndarray:
 
 
 def hull_mask(landmarks: np.ndarray, size: tuple[int, int], erode: int = 3) -> np.ndarray:
-    """bool (H, W): convex hull of (68, 2) landmarks, eroded by ``erode`` pixels."""
+    """bool (H, W): convex hull of (P, 2) landmarks, eroded by ``erode`` pixels."""
     m = np.zeros(size, np.uint8)
     hull = cv2.convexHull(np.round(landmarks * 16).astype(np.int32))
     cv2.fillConvexPoly(m, hull, 1, lineType=cv2.LINE_8, shift=4)
@@ -51,9 +59,9 @@ def placed_mask(mask: np.ndarray, placement: np.ndarray, size: tuple[int, int]) 
 
 def drive(model_path, driver: np.ndarray, motion: str = "relative", neutral: np.ndarray | None = None,
           frames: bool = False, sheet_rows=()) -> dict:
-    """Drive ``model_path`` with (T, 68, 2) ``driver`` landmarks, frame by frame.
+    """Drive ``model_path`` with (T, P, 2) ``driver`` landmarks (the model's scheme), frame by frame.
 
-    Returns {"landmarks": (T, 68, 2) rendered avatar landmarks, "coverage": (T,) hull
+    Returns {"landmarks": (T, P, 2) rendered avatar landmarks, "coverage": (T,) hull
     coverage, "frames": {row: uint8 frame} for ``sheet_rows``}.
     """
     if neutral is None and motion == "relative":
@@ -79,24 +87,24 @@ def drive(model_path, driver: np.ndarray, motion: str = "relative", neutral: np.
 def pair_figures(model_path, driver: np.ndarray, avatar_train: np.ndarray, sheet_rows=()) -> dict:
     """The acceptance figures of one (avatar model, driver landmarks) pair (relative motion)."""
     res = drive(model_path, driver, "relative", sheet_rows=sheet_rows)
-    a = res["landmarks"]
-    own = float(np.median(shape_ratio(avatar_train)))
+    a, d68 = ibug68_view(res["landmarks"]), ibug68_view(driver)
+    own = float(np.median(shape_ratio(ibug68_view(avatar_train))))
     got = float(np.median(shape_ratio(a)))
-    drv = float(np.median(shape_ratio(driver)))
+    drv = float(np.median(shape_ratio(d68)))
     out = {
         "frames": int(len(driver)),
         "coverage_min": round(float(res["coverage"].min()), 5),
         "coverage_median": round(float(np.median(res["coverage"])), 5),
         "frames_coverage_below_99": int((res["coverage"] < 0.99).sum()),
-        "mouth_open_r": round(float(np.corrcoef(mouth_open(driver), mouth_open(a))[0, 1]), 4),
-        "eye_open_r": round(float(np.corrcoef(eye_open(driver), eye_open(a))[0, 1]), 4),
+        "mouth_open_r": round(float(np.corrcoef(mouth_open(d68), mouth_open(a))[0, 1]), 4),
+        "eye_open_r": round(float(np.corrcoef(eye_open(d68), eye_open(a))[0, 1]), 4),
         "shape_ratio_avatar_own": round(own, 4),
         "shape_ratio_rendered": round(got, 4),
         "shape_ratio_driver": round(drv, 4),
         "shape_ratio_rel_diff": round(abs(got - own) / own, 4),
         "shape_ratio_rel_diff_absolute_motion": round(abs(drv - own) / own, 4),
     }
-    return {"figures": out, "frames": res["frames"], "landmarks": a}
+    return {"figures": out, "frames": res["frames"], "landmarks": res["landmarks"]}
 
 
 def self_driving_psnr(model_path, landmarks: np.ndarray, frames, neutral: np.ndarray) -> dict:

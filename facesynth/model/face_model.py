@@ -55,6 +55,10 @@ class FaceModelConfig:
     # shape opened along the data: reference.open_mouth); 0 = the mean's own; None = the
     # scheme's default
     reference_mouth_quantile: float | None = None
+    # points the denoiser leaves as given: "eyes" (the eye contours and irises: a driver's
+    # blinks and wide eyes outside the avatar's training range stay, as retarget.ShapeSpace
+    # keeps them; it doubles the sigma 2 loss, docs/sadm.md) or "none"; None = the scheme's default
+    denoise_free: str | None = None
 
 
 # The settings whose default depends on the landmark scheme (config None): a dense mesh (a
@@ -64,20 +68,39 @@ class FaceModelConfig:
 # the avatar's own range, retarget.ShapeSpace, where a projection on the training shapes would pull them back).
 # Figures: docs/sadm.md.
 SCHEME_DEFAULTS = {
-    "dense": {"denoise_variance": 0.999, "reference_mouth_quantile": 0.9},
-    "sparse": {"denoise_variance": 1.0, "reference_mouth_quantile": 0.0},
+    "dense": {"denoise_variance": 0.999, "reference_mouth_quantile": 0.9, "denoise_free": "none"},
+    "sparse": {"denoise_variance": 1.0, "reference_mouth_quantile": 0.0, "denoise_free": "none"},
 }
+DENOISE_FREE = {"eyes": ("eyes", "irises"), "none": ()}  # config value -> the scheme regions left free
 
 
-def scheme_default(scheme_name: str, name: str) -> float:
+def scheme_default(scheme_name: str, name: str):
     """The value of config field ``name`` that None stands for with scheme ``scheme_name``."""
     return SCHEME_DEFAULTS["dense" if get_scheme(scheme_name).triangles is not None else "sparse"][name]
 
 
-def resolved(cfg: "FaceModelConfig", scheme_name: str, name: str) -> float:
+def resolved(cfg: "FaceModelConfig", scheme_name: str, name: str):
     """Config field ``name``, or its scheme default when None."""
     v = getattr(cfg, name)
-    return scheme_default(scheme_name, name) if v is None else float(v)
+    return scheme_default(scheme_name, name) if v is None else v
+
+
+def denoise_model(aligned: np.ndarray, variance: float, free: np.ndarray) -> PCAModel:
+    """The denoiser's subspace over (N, P, 2) aligned training shapes: their PCA keeping
+    ``variance``, widened by every coordinate of the ``free`` points (an orthonormal basis of
+    both), so that the projection leaves those points as they are and fits the PCA's modes
+    to the others. Eigenvalues: the training shapes' variance along each basis vector."""
+    x = aligned.reshape(len(aligned), -1).astype(np.float64)
+    pca = PCAModel.fit(x, None, variance)
+    if len(free) == 0:
+        return pca
+    cols = np.stack([2 * np.asarray(free), 2 * np.asarray(free) + 1], 1).reshape(-1)
+    unit = np.zeros((len(cols), x.shape[1]))
+    unit[np.arange(len(cols)), cols] = 1.0
+    q, _ = np.linalg.qr(np.concatenate([pca.components.astype(np.float64), unit]).T)  # (2P, K + 2F)
+    comps = q.T.astype(np.float32)
+    ev = ((x - pca.mean) @ comps.T.astype(np.float64)).var(0, ddof=1)
+    return PCAModel(pca.mean, comps, ev, pca.total_variance)
 
 
 @dataclass
@@ -137,15 +160,19 @@ class FaceModel:
             raise FacesynthError(f"{seq.name}: need at least 3 frames to fit a face model, got {len(rows)}")
         t0 = time.perf_counter()
         lm = seq.landmarks[rows].astype(np.float64)
-        denoise_variance = resolved(cfg, scheme.name, "denoise_variance")
-        mouth_q = resolved(cfg, scheme.name, "reference_mouth_quantile")
+        denoise_variance = float(resolved(cfg, scheme.name, "denoise_variance"))
+        mouth_q = float(resolved(cfg, scheme.name, "reference_mouth_quantile"))
+        free = resolved(cfg, scheme.name, "denoise_free")
+        if free not in DENOISE_FREE:
+            raise FacesynthError(f"model.denoise_free must be one of {sorted(DENOISE_FREE)}, got {free!r}")
         if not 0 < denoise_variance <= 1:
             raise FacesynthError(f"model.denoise_variance must be a fraction in (0, 1] (1 = off), got {cfg.denoise_variance}")
         if not 0 <= mouth_q <= 1:
             raise FacesynthError(f"model.reference_mouth_quantile must lie in [0, 1] (0 = off), got {cfg.reference_mouth_quantile}")
         aligned, mean = generalised_procrustes(lm)
         shape_pca = PCAModel.fit(aligned.reshape(len(rows), -1), cfg.n_shape, cfg.shape_variance)
-        denoise_pca = None if denoise_variance == 1 else PCAModel.fit(aligned.reshape(len(rows), -1), None, denoise_variance)
+        free_points = np.unique(np.concatenate([scheme.region(r) for r in DENOISE_FREE[free] if r in scheme.regions] or [[]]))
+        denoise_pca = None if denoise_variance == 1 else denoise_model(aligned, denoise_variance, free_points.astype(np.int64))
         fixed = None if scheme.triangles is None else scheme.triangulation()
         ref_shape, mouth = mean, {}
         if mouth_q > 0:
