@@ -156,8 +156,9 @@ def barycentric(pix: np.ndarray, tri_pts: np.ndarray) -> np.ndarray:
     e1, e2 = v1 - v0, v2 - v0
     det = e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]
     d = pix[:, None, :] - v0[None]
-    l1 = (d[..., 0] * e2[:, 1] - d[..., 1] * e2[:, 0]) / det
-    l2 = (e1[:, 0] * d[..., 1] - e1[:, 1] * d[..., 0]) / det
+    with np.errstate(divide="ignore", invalid="ignore"):  # a zero-area triangle: inf / NaN, contains no point
+        l1 = (d[..., 0] * e2[:, 1] - d[..., 1] * e2[:, 0]) / det
+        l2 = (e1[:, 0] * d[..., 1] - e1[:, 1] * d[..., 0]) / det
     return np.stack([1 - l1 - l2, l1, l2], -1)
 
 
