@@ -335,3 +335,28 @@ def test_478_point_avatar_is_reenacted_from_its_metadata(dense, tmp_path):
         frame, got = re.step(seq.landmarks[i])
         np.testing.assert_allclose(got, space.project(seq.landmarks[i].astype(np.float64)), atol=2e-3)
         assert frame.shape == seq.frame(0).shape
+
+
+def test_app_detects_478_points_on_a_driver_video(dense, shared_clip_dir, tmp_path):
+    # --video with a 478-point model: MediaPipe's landmarks of the driver frames drive it as given
+    pytest.importorskip("mediapipe")
+    pytest.importorskip("onnx")
+    import cv2
+
+    from facesynth.cli import main
+    from facesynth.data.detect_mediapipe import detect_landmarks_mediapipe
+    from facesynth.onnx.synthesis import export_synthesizer
+
+    _, seq, model, tex = dense
+    path = export_synthesizer(fit_sadm(model, seq, np.arange(len(seq)), tex, "linear").synthesizer(), tmp_path / "m.onnx")
+    video = shared_clip_dir("lp_d6") / "video.mp4"
+    out, saved = tmp_path / "out.mp4", tmp_path / "lm.npy"
+    assert main(["app", "--model", str(path), "--video", str(video), "--max-frames", "6", "--out", str(out),
+                 "--save-landmarks", str(saved), "--no-progress"]) == 0
+    cap = cv2.VideoCapture(str(video))
+    frames = [cv2.cvtColor(cap.read()[1], cv2.COLOR_BGR2RGB) for _ in range(6)]
+    cap.release()
+    want = detect_landmarks_mediapipe(frames).landmarks
+    got = np.load(saved)
+    assert got.shape == (6, 478, 2) and np.isfinite(got).all()
+    np.testing.assert_allclose(got, want, atol=1e-3)

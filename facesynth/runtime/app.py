@@ -124,25 +124,24 @@ def detect_video_landmarks(frames: list[np.ndarray], scheme: str = "ibug68") -> 
     ``mediapipe478``, both for ``ibug68+iris`` (dlib's 68 points and MediaPipe's irises)."""
     if scheme not in ("ibug68", "mediapipe478", "ibug68+iris"):
         raise FacesynthError(f"--video: no landmarker for a model in scheme {scheme!r}; give --landmarks")
-    out = []
-    if scheme != "mediapipe478":
+    use_dlib, use_mp = scheme != "mediapipe478", scheme != "ibug68"
+    if use_dlib:  # both extras are checked before any frame is processed
         try:
             from facesynth.data import detect
         except ModuleNotFoundError as exc:
             raise MissingExtraError("ingest", exc.name or "facesynth.data.detect") from None
         detect.check_extra()
-    if scheme != "ibug68":
+    if use_mp:
         from facesynth.data import detect_mediapipe
 
         detect_mediapipe.check_extra()
-        out.append(np.asarray(detect_mediapipe.detect_landmarks_mediapipe(frames).landmarks, np.float32))
-    if scheme != "mediapipe478":
-        out.insert(0, np.asarray(detect.detect_landmarks(frames).landmarks, np.float32))
-    if scheme == "ibug68+iris":
+    dlib = np.asarray(detect.detect_landmarks(frames).landmarks, np.float32) if use_dlib else None
+    mp = np.asarray(detect_mediapipe.detect_landmarks_mediapipe(frames).landmarks, np.float32) if use_mp else None
+    if use_dlib and use_mp:
         from facesynth.data.iris import combine_landmarks
 
-        return combine_landmarks(*out)
-    return out[0]
+        return combine_landmarks(dlib, mp)
+    return dlib if use_dlib else mp
 
 
 def draw_landmarks(background: np.ndarray, landmarks: np.ndarray) -> np.ndarray:
