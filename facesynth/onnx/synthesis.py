@@ -85,8 +85,9 @@ class SynthesisGraph(nn.Module):
             self.register_buffer("app_mean", app.mean.clone())
 
     def forward(self, landmarks: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        landmarks = self.denoise(landmarks) if self.n_points == self.model_points else torch.cat(
-            [self.denoise(landmarks[:, : self.model_points]), landmarks[:, self.model_points :]], 1)
+        if not isinstance(self.denoise, nn.Identity):  # FaceModel.denoise on the model's points
+            landmarks = self.denoise(landmarks) if self.n_points == self.model_points else torch.cat(
+                [self.denoise(landmarks[:, : self.model_points]), landmarks[:, self.model_points :]], 1)
         full = landmarks
         if self.n_points != self.model_points:
             landmarks = landmarks[:, : self.model_points]
