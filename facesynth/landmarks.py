@@ -242,6 +242,26 @@ def scheme_for_points(n_points: int) -> LandmarkScheme | None:
     return next((s for s in SCHEMES.values() if s.n_points == n_points), None)
 
 
+def ibug68_view(landmarks: np.ndarray) -> np.ndarray:
+    """(..., P, 2) landmarks of the registered scheme with P points -> float64 (..., 68, 2):
+    iBUG-68 points as they are, another scheme's through its :meth:`LandmarkScheme.to_ibug68`."""
+    lm = np.asarray(landmarks)
+    scheme = scheme_for_points(lm.shape[-2]) if lm.ndim >= 2 and lm.shape[-1] == 2 else None
+    if scheme is None:
+        raise FacesynthError(f"landmarks of shape {lm.shape} are in no registered scheme")
+    return lm.astype(np.float64) if scheme is IBUG68 else scheme.to_ibug68(lm).astype(np.float64)
+
+
+def facing_pairs(ring) -> tuple[np.ndarray, np.ndarray]:
+    """The points of a closed contour (a region such as ``inner_lips`` or ``right_eye``: n
+    points from one corner over one side to the other corner at n / 2 and back over the
+    other side) that face each other across it: point k and point n - k, k = 1 .. n/2 - 1.
+    Returns int64 (first side, second side)."""
+    ring = np.asarray(ring, np.int64)
+    n = len(ring)
+    return ring[1 : n // 2], ring[n - 1 : n // 2 : -1]
+
+
 def folded_triangles(landmarks: np.ndarray, triangles: np.ndarray, reference: np.ndarray | None = None) -> np.ndarray:
     """bool (..., T): the fold check of a fixed triangulation. A triangle of ``landmarks``
     (..., P, 2) is folded when its orientation differs from that in ``reference`` (P, 2),

@@ -12,7 +12,7 @@ import numpy as np
 
 from facesynth.errors import FacesynthError
 from facesynth.geometry import generalised_procrustes
-from facesynth.landmarks import inter_ocular, scheme_for_points
+from facesynth.landmarks import ibug68_view, inter_ocular, scheme_for_points
 
 INNER_UPPER = (61, 62, 63)  # inner-lip points facing INNER_LOWER across the mouth opening
 INNER_LOWER = (67, 66, 65)
@@ -44,8 +44,7 @@ def select_neutral(landmarks: np.ndarray, mouth_closed_max: float = 0.03) -> tup
     scheme = scheme_for_points(lm.shape[1]) if lm.ndim == 3 and lm.shape[-1] == 2 else None
     if scheme is None or len(lm) < 1:
         raise FacesynthError(f"neutral selection needs (N, 68, 2) landmarks (or another scheme's (N, P, 2)), got {lm.shape}")
-    if scheme.n_points != 68:
-        lm = scheme.to_ibug68(lm).astype(np.float64)
+    lm = ibug68_view(lm)
     gap = mouth_open(lm)
     cand = np.flatnonzero(gap <= mouth_closed_max)
     rule = f"mouth_open <= {mouth_closed_max}"

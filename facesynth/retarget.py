@@ -46,7 +46,7 @@ import numpy as np
 from facesynth.errors import FacesynthError
 from facesynth.faps import FAPU_NAMES, RIGID_POINTS, face_axes, fapu
 from facesynth.geometry import similarity_fit
-from facesynth.landmarks import IBUG68, LandmarkScheme, get_scheme, inter_ocular
+from facesynth.landmarks import IBUG68, LandmarkScheme, facing_pairs, get_scheme, ibug68_view, inter_ocular
 
 MOTIONS = ("relative", "absolute")
 RETARGET_SCHEMES = ("ibug68", "mediapipe478")  # schemes whose every point is a face-model point
@@ -97,13 +97,8 @@ def eye_patches(scheme: LandmarkScheme) -> tuple:
 def eyelid_pairs(scheme: LandmarkScheme) -> tuple[np.ndarray, np.ndarray]:
     """(upper, lower) facing eyelid points of both eyes: each eye's contour is a ring from one
     corner over the upper lid to the other corner (index n / 2) and back, so point k faces n - k."""
-    up, lo = [], []
-    for side in ("right_eye", "left_eye"):
-        ring = scheme.region(side)
-        n = len(ring)
-        up.append(ring[1 : n // 2])
-        lo.append(ring[n - 1 : n // 2 : -1])
-    return np.concatenate(up), np.concatenate(lo)
+    right, left = facing_pairs(scheme.region("right_eye")), facing_pairs(scheme.region("left_eye"))
+    return np.concatenate([right[0], left[0]]), np.concatenate([right[1], left[1]])
 
 
 def iris_diameter(scheme: LandmarkScheme, face: np.ndarray) -> float:
@@ -241,8 +236,7 @@ class Retargeter:
         dc = dn - self._dn_mu
         # pose fit (driver neutral -> frame, rigid points): [a, b] = frame_rigid.ravel() @ w
         self._pose_w = np.stack([dc.reshape(-1), np.stack([-dc[:, 1], dc[:, 0]], 1).reshape(-1)], 1) / float(np.vdot(dc, dc))
-        a68, d68 = (x if sch.name == "ibug68" else sch.to_ibug68(x).astype(np.float64)
-                    for x in (self.avatar_neutral, self.driver_neutral))
+        a68, d68 = ibug68_view(self.avatar_neutral), ibug68_view(self.driver_neutral)
         ratio = fapu(a68) / fapu(d68)  # (5,)
         if "irises" in sch.regions:  # IRISD from the irises themselves (see iris_diameter)
             ratio[FAPU_NAMES.index("IRISD")] = iris_diameter(sch, self.avatar_neutral) / iris_diameter(sch, self.driver_neutral)

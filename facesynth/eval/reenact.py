@@ -20,19 +20,12 @@ import time
 import cv2
 import numpy as np
 
-from facesynth.landmarks import scheme_for_points
+from facesynth.landmarks import ibug68_view
 from facesynth.metrics import psnr
 from facesynth.neutral import mouth_open, select_neutral
 from facesynth.retarget import Retargeter, eye_open
 from facesynth.runtime.blend import blend_face
 from facesynth.runtime.reenact import Reenactor
-
-
-def ibug68_view(landmarks: np.ndarray) -> np.ndarray:
-    """(N, P, 2) landmarks of any registered scheme -> float64 (N, 68, 2) (mapped with the
-    scheme's ``to_ibug68``; iBUG-68 points as they are)."""
-    lm = np.asarray(landmarks, np.float64)
-    return lm if lm.shape[1] == 68 else scheme_for_points(lm.shape[1]).to_ibug68(lm).astype(np.float64)
 
 
 def shape_ratio(landmarks: np.ndarray) -> np.ndarray:

@@ -20,7 +20,8 @@ from facesynth.model.warp import apply_affine_t, invert_affine_t, similarity_to
 
 
 class ShapeDenoiser(nn.Module):
-    """Forward: landmarks (B, P, 2) frame pixels -> (B, P, 2) their projection, frame pixels."""
+    """Forward: landmarks (B, P', 2) frame pixels -> (B, P', 2): the face model's P points
+    (the first ones) projected, any points beyond them (the irises of ``ibug68+iris``) as given."""
 
     def __init__(self, pca: PCAModel):
         super().__init__()
@@ -31,10 +32,13 @@ class ShapeDenoiser(nn.Module):
         self.register_buffer("up", torch.from_numpy(np.asarray(pca.components, np.float32).copy()))  # (K, 2P)
 
     def forward(self, landmarks: torch.Tensor) -> torch.Tensor:
-        m = similarity_to(landmarks, self.mean_shape)
-        x = apply_affine_t(landmarks, m).flatten(1) - self.mean
+        n = self.mean_shape.shape[0]
+        pts = landmarks[:, :n] if landmarks.shape[1] > n else landmarks
+        m = similarity_to(pts, self.mean_shape)
+        x = apply_affine_t(pts, m).flatten(1) - self.mean
         proj = torch.matmul(torch.matmul(x, self.down), self.up) + self.mean
-        return apply_affine_t(proj.reshape(landmarks.shape), invert_affine_t(m))
+        out = apply_affine_t(proj.reshape(pts.shape), invert_affine_t(m))
+        return out if landmarks.shape[1] == n else torch.cat([out, landmarks[:, n:]], 1)
 
 
 def shape_denoiser(pca: PCAModel | None) -> nn.Module:

@@ -171,8 +171,9 @@ class FaceModel:
             raise FacesynthError(f"model.reference_mouth_quantile must lie in [0, 1] (0 = off), got {cfg.reference_mouth_quantile}")
         aligned, mean = generalised_procrustes(lm)
         shape_pca = PCAModel.fit(aligned.reshape(len(rows), -1), cfg.n_shape, cfg.shape_variance)
-        free_points = np.unique(np.concatenate([scheme.region(r) for r in DENOISE_FREE[free] if r in scheme.regions] or [[]]))
-        denoise_pca = None if denoise_variance == 1 else denoise_model(aligned, denoise_variance, free_points.astype(np.int64))
+        free_regions = [scheme.region(r) for r in DENOISE_FREE[free] if r in scheme.regions]
+        free_points = np.unique(np.concatenate([np.zeros(0, np.int64), *free_regions]))
+        denoise_pca = None if denoise_variance == 1 else denoise_model(aligned, denoise_variance, free_points)
         fixed = None if scheme.triangles is None else scheme.triangulation()
         ref_shape, mouth = mean, {}
         if mouth_q > 0:

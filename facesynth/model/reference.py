@@ -12,7 +12,7 @@ import numpy as np
 from scipy.spatial import Delaunay
 
 from facesynth.errors import FacesynthError
-from facesynth.landmarks import folded_triangles
+from facesynth.landmarks import facing_pairs, folded_triangles
 
 
 @dataclass
@@ -98,7 +98,7 @@ def lip_gap(shapes: np.ndarray, ring: np.ndarray) -> np.ndarray:
     lower lip), so point k faces point L - k."""
     ring = np.asarray(ring, np.int64)
     n = len(ring)
-    upper, lower = ring[1 : n // 2], ring[n - 1 : n // 2 : -1]
+    upper, lower = facing_pairs(ring)
     s = np.asarray(shapes, np.float64)
     width = np.linalg.norm(s[..., ring[0], :] - s[..., ring[n // 2], :], axis=-1)
     return np.linalg.norm(s[..., upper, :] - s[..., lower, :], axis=-1).mean(-1) / width

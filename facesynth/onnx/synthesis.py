@@ -86,8 +86,7 @@ class SynthesisGraph(nn.Module):
 
     def forward(self, landmarks: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         if not isinstance(self.denoise, nn.Identity):  # FaceModel.denoise on the model's points
-            landmarks = self.denoise(landmarks) if self.n_points == self.model_points else torch.cat(
-                [self.denoise(landmarks[:, : self.model_points]), landmarks[:, self.model_points :]], 1)
+            landmarks = self.denoise(landmarks)
         full = landmarks
         if self.n_points != self.model_points:
             landmarks = landmarks[:, : self.model_points]

@@ -138,7 +138,7 @@ def gaze_inputs(cfg: SADMConfig, scheme) -> GazeInputs | None:
 def model_input(model: FaceModel, landmarks: np.ndarray) -> np.ndarray:
     """(N, P, 2) frame landmarks -> float32 (N, P, 2) with the face model's points denoised
     (:meth:`FaceModel.denoise`; the rest, e.g. irises beyond them, as given): what the
-    synthesis graph reads (:meth:`Synthesizer.denoised`)."""
+    synthesis graph reads (its ``denoise``, :class:`facesynth.model.denoise.ShapeDenoiser`)."""
     lm = np.array(landmarks, np.float32)
     n = model.mean_shape.shape[0]
     if model.denoise_pca is not None:

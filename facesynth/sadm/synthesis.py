@@ -204,7 +204,8 @@ class Synthesizer(nn.Module):
         self.encoder = ShapeEncoder(model, clamp_shape)
         self.appearance = appearance
         self.warp = ToTarget(model.reference, model.span)
-        self.denoise = shape_denoiser(model.denoise_pca)  # FaceModel.denoise (identity without a denoise PCA)
+        # FaceModel.denoise on the model's points, the rest as given (identity without a denoise PCA)
+        self.denoise = shape_denoiser(model.denoise_pca)
         self.register_buffer("ref_points", torch.from_numpy(model.reference.points.copy()))
 
     def with_appearance(self, appearance: nn.Module) -> "Synthesizer":
@@ -218,15 +219,9 @@ class Synthesizer(nn.Module):
         """(B, P, 2) input -> (B, model_points, 2): the points the face model takes."""
         return landmarks if self.n_points == self.model_points else landmarks[:, : self.model_points]
 
-    def denoised(self, landmarks: torch.Tensor) -> torch.Tensor:
-        """(B, P, 2) input with the face model's points denoised (the rest, e.g. the irises
-        of ``ibug68+iris``, as given)."""
-        pts = self.denoise(self.model_landmarks(landmarks))
-        return pts if self.n_points == self.model_points else torch.cat([pts, landmarks[:, self.model_points :]], 1)
-
     def texture(self, landmarks: torch.Tensor) -> torch.Tensor:
         """Predicted reference-frame texture (B, C, M), clipped to [0, 1]."""
-        return self._texture(self.denoised(landmarks))
+        return self._texture(self.denoise(landmarks))
 
     def _texture(self, landmarks: torch.Tensor) -> torch.Tensor:
         aligned, b_s = self.encoder(self.model_landmarks(landmarks))
@@ -235,7 +230,7 @@ class Synthesizer(nn.Module):
         return torch.clamp(self.appearance(aligned, b_s), 0.0, 1.0)
 
     def forward(self, landmarks: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        landmarks = self.denoised(landmarks)
+        landmarks = self.denoise(landmarks)
         tex = self._texture(landmarks)
         landmarks = self.model_landmarks(landmarks)
         to_canvas = similarity_to(landmarks, self.ref_points)
