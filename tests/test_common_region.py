@@ -15,6 +15,7 @@ from scipy.spatial import ConvexHull
 from facesynth.data import FaceSequence
 from facesynth.errors import FacesynthError
 from facesynth.eval.common_region import common_landmarks, region_masks
+from facesynth.eval.regions_gap import PARTS, combine, needed, scheme_gap, substitute
 
 
 def _inside(poly: np.ndarray, shape) -> np.ndarray:
@@ -96,6 +97,43 @@ def test_psnr_frame_common_in_an_evaluation(shared_mesh):
             assert set(table) == {"sadm", "mean_texture", "oracle", "rewarp"} and all(set(v) == {"0", "1"} for v in table.values())
         c = metrics["psnr_frame_common"]
         assert c["rewarp"]["0"] > c["mean_texture"]["0"]
+        # the parts partition the region: their shares sum to 1 and their figures recombine into the whole's
+        shares = metrics["psnr_frame_common_shares"]
+        assert shares["whole"] == 1.0 and sum(shares[p] for p in PARTS) == pytest.approx(1.0, abs=1e-12)
+        assert all(0 < shares[p] < 1 for p in PARTS)
+        for row in c:
+            for k in ("0", "1"):
+                assert combine(shares, {p: regions[p][row][k] for p in PARTS}) == pytest.approx(c[row][k], abs=1e-9)
         out[seq.scheme] = metrics
     ib = out["ibug68"]
     assert abs(ib["psnr_frame_common"]["rewarp"]["0"] - ib["psnr_frame"]["rewarp"]["0"]) < 2.0
+
+
+def _metrics(parts: dict, shares: dict, oracle: dict) -> dict:
+    rows = {p: {"sadm": {"0": parts[p]}, "oracle": {"0": oracle[p]}} for p in PARTS}
+    whole = {"sadm": {"0": combine(shares, parts)}, "oracle": {"0": combine(shares, oracle)}}
+    return {"psnr_frame_common_regions": {"whole": whole, **rows}, "psnr_frame_common_shares": {"whole": 1.0, **shares}}
+
+
+def test_regions_gap_arithmetic_against_closed_forms():
+    shares = {"eyes": 0.03, "mouth_interior": 0.02, "rest": 0.95}
+    assert combine(shares, dict.fromkeys(PARTS, 27.0)) == pytest.approx(27.0)
+    # two equal halves at 20 and 30 dB: mse = (10^-2 + 10^-3) / 2
+    assert combine({"eyes": 0.5, "mouth_interior": 0.0, "rest": 0.5}, {"eyes": 20.0, "mouth_interior": 99.0, "rest": 30.0}) \
+        == pytest.approx(-10 * np.log10(0.0055))
+    m = _metrics({"eyes": 18.0, "mouth_interior": 17.0, "rest": 28.0}, shares, {"eyes": 25.0, "mouth_interior": 24.0, "rest": 32.0})
+    at = {"eyes": "oracle", "mouth_interior": "oracle"}
+    assert substitute(m, {}) == pytest.approx(m["psnr_frame_common_regions"]["whole"]["sadm"]["0"])
+    assert substitute(m, {p: "oracle" for p in PARTS}) == pytest.approx(m["psnr_frame_common_regions"]["whole"]["oracle"]["0"])
+    for rows in (None, at):
+        need = needed(m, "rest", 28.0, rows)  # put back, it gives the target exactly
+        parts = {p: m["psnr_frame_common_regions"][p][(rows or {}).get(p, "sadm")]["0"] for p in PARTS}
+        assert combine(shares, {**parts, "rest": need}) == pytest.approx(28.0)
+    assert needed(m, "rest", 40.0) == np.inf  # the eyes alone exceed a 40 dB budget
+    base = _metrics({"eyes": 17.0, "mouth_interior": 17.5, "rest": 27.9}, shares, dict.fromkeys(PARTS, 30.0))
+    gap = scheme_gap(m, base, 1.0)
+    assert gap["target"] == pytest.approx(base["psnr_frame_common_regions"]["whole"]["sadm"]["0"] + 1.0)
+    assert gap["difference"] == pytest.approx(gap["whole_dense"] - gap["whole_base"])
+    assert gap["rest_needed_eyes_mouth_at_oracle"] < gap["rest_needed"]
+    with pytest.raises(FacesynthError, match="run.json: no psnr_frame_common_regions"):
+        scheme_gap({}, base, where=("run.json", "b"))

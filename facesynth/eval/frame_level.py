@@ -76,7 +76,9 @@ def frame_level(model, predict, seq, rows, tex_te, oracle, cfg, seed, keys, nois
     Returns
     -------
     psnr : {row: {noise key: dB}}; with ``common``, also ``psnr["common"]``:
-        {region: {row: {noise key: dB}}} for the regions of :data:`REGIONS` (the caller pops it)
+        {region: {row: {noise key: dB}}} for the regions of :data:`REGIONS`, and
+        ``psnr["common_shares"]``: {region: its pixels / the whole region's, over the frames
+        evaluated} (the caller pops both)
     per_frame : {"index": (n,) test-row positions evaluated, "psnr": {row: (n,) dB at sigma 0}}
     grid : list of dicts (real, synth uint8 crops, frame row, psnr)
     """
@@ -144,6 +146,8 @@ def frame_level(model, predict, seq, rows, tex_te, oracle, cfg, seed, keys, nois
     if common is not None:
         pooled["common"] = {reg: {name: {k: _db(*v.sum(0)) for k, v in d_.items()} for name, d_ in per.items()}
                             for reg, per in sq_common.items()}
+        counts = {reg: float(per["sadm"][k0][:, 1].sum()) for reg, per in sq_common.items()}
+        pooled["common_shares"] = {reg: c / max(counts["whole"], 1.0) for reg, c in counts.items()}
     per_frame = {"index": pick, "psnr": {name: np.array([_db(*r) for r in d_[k0]]) for name, d_ in sq.items()}}
     return pooled, per_frame, grid
 

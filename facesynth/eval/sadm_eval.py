@@ -13,7 +13,9 @@
   region that does not depend on the landmark scheme: the hull of the clip's dlib points
   0-26 eroded 3 px (:mod:`facesynth.eval.common_region`), so ``ibug68`` and
   ``mediapipe478`` models compare; ``psnr_frame_common_regions``: {eyes, mouth_interior,
-  rest, whole}: {row: {noise: dB}} inside it.
+  rest, whole}: {row: {noise: dB}} inside it; ``psnr_frame_common_shares``: each region's
+  share of the whole region's pixels (the frames evaluated), so that region figures combine
+  into whole-region ones (:mod:`facesynth.eval.regions_gap`).
 * ``ncc``: per-component normalised cross-correlation of predicted vs true b_g on the
   test frames at sigma 0 (the paper's Table 1).
 """
@@ -177,10 +179,12 @@ def evaluate_sadm(
             n = len(per_frame["index"])
             st.set(f"{n} of {len(test_rows)} test frames x {len(keys)} noise levels")
         common_pooled = pooled.pop("common", None)
+        shares = pooled.pop("common_shares", None)
         metrics["psnr_frame"] = pooled
         if common_pooled is not None:
             metrics["psnr_frame_common"] = common_pooled["whole"]
             metrics["psnr_frame_common_regions"] = common_pooled
+            metrics["psnr_frame_common_shares"] = shares
         metrics["frame_level_frames"] = {"evaluated": n, "test_frames": int(len(test_rows)),
                                          "max_test_frames": cfg.max_test_frames, "spacing": "evenly spaced"}
         extras["per_frame"].update(frame_index=per_frame["index"], psnr_frame=per_frame["psnr"])
