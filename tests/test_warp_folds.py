@@ -87,3 +87,34 @@ def test_folds_parity_in_onnx_runtime(folded, tmp_path):
     for i, x in enumerate(lm):
         inside = _covered(_canvas(syn, x), tri, mask.shape[-2:])
         assert (inside & (mask[i, 0] < 0.5)).sum() == 0
+
+
+def test_a_triangle_folded_on_the_mean_still_covers_a_target_that_unfolds_it():
+    """A square split at a centre vertex that the mean pushes out past one side: that
+    triangle is folded on the mean (it overlaps the other three). The reference keeps it
+    (turned counter-clockwise, last), so a target with the centre back inside is covered
+    everywhere, including the quarter that only the folded triangle covers there
+    (dropping it, as before stop 21, left that quarter as a hole)."""
+    from facesynth.landmarks import folded_triangles
+    from facesynth.model.reference import ReferenceFrame
+    from facesynth.model.warp_target import ToTarget, candidate_spans
+
+    fixed = np.array([[1, 0, 4], [2, 1, 4], [3, 2, 4], [0, 3, 4]])
+    corners = np.array([[0.0, 40.0], [40.0, 40.0], [40.0, 0.0], [0.0, 0.0]])  # image axes, y down
+    mean = np.concatenate([corners, [[20.0, 52.0]]])  # centre pushed below side 0-1
+    assert folded_triangles(mean, fixed).tolist() == [True, False, False, False]
+    ref = ReferenceFrame.from_mean_shape(mean, width=64, margin=0.1, triangles=fixed)
+    assert ref.n_triangles == 4 and {frozenset(t) for t in ref.triangles[3:].tolist()} == {frozenset(fixed[0])}
+    assert not folded_triangles(ref.points, ref.triangles).any()
+    target = ref.points.astype(np.float64).copy()
+    target[4] = target[:4].mean(0)  # the centre back inside: every triangle unfolded
+    assert not folded_triangles(target, fixed).any()
+    inside = _covered(target, fixed, ref.size)
+    assert (inside & ~_covered(target, fixed[1:], ref.size)).sum() > 100  # the quarter only the folded one covers
+    warp = ToTarget(ref, candidate_spans(ref, target[None]))
+    tex = torch.ones(1, 3, warp.n_mask)
+    with torch.no_grad():
+        img, mask = warp(tex, torch.from_numpy(target[None].astype(np.float32)))
+    m = mask[0, 0].numpy() > 0.5
+    assert (inside & ~m).sum() == 0
+    assert (img[0].numpy().min(0)[inside] > 0.99).all()  # textured there, not black
