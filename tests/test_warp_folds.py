@@ -1,5 +1,6 @@
 """The render warp leaves no hole for folded landmark sets (swapped points, a jaw pushed
-across the cheek), in torch and in ONNX Runtime, with parity <= 1e-4 (issue 13)."""
+across the cheek), in torch and in ONNX Runtime, with parity <= 1e-4 (issue 13), nor where
+a triangle folded on the mean shape unfolds (issue 14)."""
 
 from __future__ import annotations
 
@@ -9,7 +10,9 @@ import torch
 from _onnx_models import exported, synthetic_synthesizer
 
 from facesynth.geometry import apply_affine, similarity_fit
-from facesynth.model.reference import barycentric
+from facesynth.landmarks import folded_triangles
+from facesynth.model.reference import ReferenceFrame, barycentric
+from facesynth.model.warp_target import ToTarget, candidate_spans
 from facesynth.runtime import Renderer
 
 
@@ -95,10 +98,6 @@ def test_a_triangle_folded_on_the_mean_still_covers_a_target_that_unfolds_it():
     (turned counter-clockwise, last), so a target with the centre back inside is covered
     everywhere, including the quarter that only the folded triangle covers there
     (dropping it, as before stop 21, left that quarter as a hole)."""
-    from facesynth.landmarks import folded_triangles
-    from facesynth.model.reference import ReferenceFrame
-    from facesynth.model.warp_target import ToTarget, candidate_spans
-
     fixed = np.array([[1, 0, 4], [2, 1, 4], [3, 2, 4], [0, 3, 4]])
     corners = np.array([[0.0, 40.0], [40.0, 40.0], [40.0, 0.0], [0.0, 0.0]])  # image axes, y down
     mean = np.concatenate([corners, [[20.0, 52.0]]])  # centre pushed below side 0-1

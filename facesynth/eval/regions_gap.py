@@ -41,7 +41,7 @@ def _tables(metrics: dict, where: str) -> tuple[dict, dict]:
                              "(train with eval.common_region=true and eval.frame_level=true)")
     missing = [p for p in PARTS if p not in regions or p not in shares]
     if missing:
-        raise FacesynthError(f"{where}: psnr_frame_common_regions has no {', '.join(missing)}")
+        raise FacesynthError(f"{where}: psnr_frame_common_regions / psnr_frame_common_shares lack {', '.join(missing)}")
     return regions, shares
 
 
@@ -64,8 +64,8 @@ def needed(metrics: dict, part: str, target_db: float, rows: dict | None = None,
     parts as in ``rows`` (default ``sadm``); ``inf`` if they alone already exceed the error budget."""
     regions, shares = _tables(metrics, where)
     total = sum(shares[p] for p in PARTS)
-    rest = sum(shares[p] * _mse(regions[p][(rows or {}).get(p, "sadm")][noise]) for p in PARTS if p != part)
-    budget = _mse(target_db) * total - rest
+    others = sum(shares[p] * _mse(regions[p][(rows or {}).get(p, "sadm")][noise]) for p in PARTS if p != part)
+    budget = _mse(target_db) * total - others
     return _db(budget / shares[part]) if budget > 0 else math.inf
 
 
