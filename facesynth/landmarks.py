@@ -140,6 +140,16 @@ class LandmarkScheme:
                                  "(triangulate its mean shape instead)")
         return np.asarray(self.triangles, np.int64).reshape(-1, 3)
 
+    def sparse_points(self) -> np.ndarray:
+        """int64 sorted indices of a sparse warp's vertices: the points the iBUG-68 mapping reads,
+        plus the eye and lip contours (``model.warp_points=sparse``); every point for ibug68."""
+        if self is IBUG68:
+            return np.arange(self.n_points)
+        idx = set(np.flatnonzero(self.ibug68_matrix().any(0)).tolist())
+        for region in ("eyes", "mouth"):
+            idx.update(int(i) for i in self.region(region))
+        return np.array(sorted(idx), np.int64)
+
     def ibug68_matrix(self) -> np.ndarray:
         """float64 (68, n_points) averaging matrix: ibug = M @ points (rows sum to 1)."""
         if self.ibug68 is None:

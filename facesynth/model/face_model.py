@@ -22,7 +22,7 @@ from facesynth.geometry import apply_affine, invert_affine, similarity_fit
 from facesynth.landmarks import DEFAULT_SCHEME, folded_triangles, get_scheme
 from facesynth.model.pca import PCAModel
 from facesynth.model.procrustes import generalised_procrustes
-from facesynth.model.reference import ReferenceFrame, open_mouth
+from facesynth.model.reference import ReferenceFrame, open_mouth, subset_triangulation
 from facesynth.model.warp import ToReference, ToTarget, apply_affine_t, candidate_spans, invert_affine_t, similarity_to
 from facesynth.progress import bar as progress_bar
 
@@ -59,6 +59,11 @@ class FaceModelConfig:
     # blinks and wide eyes outside the avatar's training range stay, as retarget.ShapeSpace
     # keeps them; it doubles the sigma 2 loss, docs/sadm.md) or "none"; None = the scheme's default
     denoise_free: str | None = None
+    # the warp's vertices on a scheme with a fixed triangulation: "mesh" (its own, e.g. 884
+    # triangles for 478 points) or "sparse" (Delaunay on LandmarkScheme.sparse_points: the
+    # iBUG-68 view plus the eye and lip contours, ~197 triangles; the other points are
+    # regressor inputs only; faster to render, docs/runtime.md); no effect on ibug68
+    warp_points: str = "mesh"
 
 
 # The settings whose default depends on the landmark scheme (config None): a dense mesh (a
@@ -72,6 +77,7 @@ SCHEME_DEFAULTS = {
     "sparse": {"denoise_variance": 1.0, "reference_mouth_quantile": 0.0, "denoise_free": "none"},
 }
 DENOISE_FREE = {"eyes": ("eyes", "irises"), "none": ()}  # config value -> the scheme regions left free
+WARP_POINTS = ("mesh", "sparse")
 
 
 def scheme_default(scheme_name: str, name: str):
@@ -169,12 +175,16 @@ class FaceModel:
             raise FacesynthError(f"model.denoise_variance must be a fraction in (0, 1] (1 = off), got {cfg.denoise_variance}")
         if not 0 <= mouth_q <= 1:
             raise FacesynthError(f"model.reference_mouth_quantile must lie in [0, 1] (0 = off), got {cfg.reference_mouth_quantile}")
+        if cfg.warp_points not in WARP_POINTS:
+            raise FacesynthError(f"model.warp_points must be one of {WARP_POINTS}, got {cfg.warp_points!r}")
         aligned, mean = generalised_procrustes(lm)
         shape_pca = PCAModel.fit(aligned.reshape(len(rows), -1), cfg.n_shape, cfg.shape_variance)
         free_regions = [scheme.region(r) for r in DENOISE_FREE[free] if r in scheme.regions]
         free_points = np.unique(np.concatenate([np.zeros(0, np.int64), *free_regions]))
         denoise_pca = None if denoise_variance == 1 else denoise_model(aligned, denoise_variance, free_points)
         fixed = None if scheme.triangles is None else scheme.triangulation()
+        if fixed is not None and cfg.warp_points == "sparse":
+            fixed = subset_triangulation(mean, scheme.sparse_points())
         ref_shape, mouth = mean, {}
         if mouth_q > 0:
             ref_shape, mouth = open_mouth(mean, aligned, scheme.region("inner_lips"), mouth_q, fixed)

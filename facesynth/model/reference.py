@@ -140,6 +140,13 @@ def open_mouth(mean: np.ndarray, shapes: np.ndarray, ring: np.ndarray, quantile:
     return mean, {**info, "opened": False, "fraction": 0.0}
 
 
+def subset_triangulation(points: np.ndarray, subset: np.ndarray) -> np.ndarray:
+    """int64 (T, 3) counter-clockwise Delaunay triangles of ``points[subset]`` ((P, 2) points,
+    ``subset`` indices into them), as indices into ``points``: the other points are no vertices."""
+    subset = np.asarray(subset, np.int64)
+    return subset[orient_ccw(points[subset], Delaunay(points[subset]).simplices.astype(np.int64))]
+
+
 def orient_ccw(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     """Reorder triangle vertices so that every triangle has positive signed area."""
     p = points[triangles]
