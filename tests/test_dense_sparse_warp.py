@@ -60,7 +60,10 @@ def test_sparse_warp_trains_exports_and_matches_torch(sparse, tmp_path):
 
     seq, model, tex = sparse
     save_sadm(fit_sadm(model, seq, np.arange(len(seq)), tex, "linear"), tmp_path / "run")
-    syn = load_sadm(tmp_path / "run").synthesizer()
+    loaded = load_sadm(tmp_path / "run")
+    np.testing.assert_array_equal(loaded.model.reference.triangles, model.reference.triangles)  # stored, not rebuilt
+    assert loaded.model.config.warp_points == "sparse"
+    syn = loaded.synthesizer()
     assert syn(torch.from_numpy(seq.landmarks[:2]))[1].sum() > 0
     path = export_synthesizer(syn, tmp_path / "m.onnx")
     assert check_export(syn, path, seq.landmarks[::7] + np.float32(0.3), tol=1e-4) <= 1e-4
