@@ -12,8 +12,8 @@ import importlib
 import logging
 import sys
 
-from facesynth.errors import FacesynthError
-from facesynth.io import Terminated, install_sigterm_handler
+from facesynth.errors import DiskFullError, FacesynthError
+from facesynth.io import Terminated, install_sigterm_handler, is_disk_full
 from facesynth.progress import set_quiet
 
 # name -> (module, one-line help). Keep in pipeline order.
@@ -30,12 +30,24 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
 }
 
 
+TRAINING_HELP = """\
+training (a Hydra script in the source checkout, not a subcommand):
+  python train.py                                   train + evaluate on the built-in synthetic subject
+  python train.py data=video data.path=DIR          train on an ingest folder (facesynth ingest VIDEO --out DIR)
+  python train.py --help                            every setting (regressor=krr|linear|poly2|mlp|svr, model=eri, ...)
+  the run folder (runs/DATE_REGRESSOR) is what 'facesynth evaluate' and 'facesynth export' read"""
+
+
 def _top_parser() -> argparse.ArgumentParser:
     lines = "\n".join(f"  {name:<21}{help_}" for name, (_, help_) in SUBCOMMANDS.items())
     p = argparse.ArgumentParser(
         prog="facesynth",
-        description="facesynth: learning-based facial expression synthesis.",
-        epilog=f"subcommands:\n{lines}\n\nRun 'facesynth SUBCOMMAND --help' for each one's options.",
+        description="facesynth: learning-based facial expression synthesis.\n\n"
+                    "Typical use: facesynth ingest VIDEO --out DIR\n"
+                    "             python train.py data=video data.path=DIR      (training: see below)\n"
+                    "             facesynth export RUN --out m.onnx\n"
+                    "             facesynth app --model m.onnx --landmarks DIR --out o.mp4",
+        epilog=f"{TRAINING_HELP}\n\nsubcommands:\n{lines}\n\nRun 'facesynth SUBCOMMAND --help' for each one's options.",
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument("subcommand", nargs="?", choices=list(SUBCOMMANDS), metavar="SUBCOMMAND")
@@ -90,6 +102,11 @@ def main(argv: list[str] | None = None) -> int:
         return int(module.run(args) or 0)
     except FacesynthError as exc:
         print(f"error: {exc}", file=sys.stderr)
+        return 2
+    except OSError as exc:  # a full disk met outside io's writers (they raise DiskFullError themselves)
+        if not is_disk_full(exc):
+            raise
+        print(f"error: {DiskFullError(exc.filename)}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)

@@ -17,3 +17,11 @@ class MissingExtraError(FacesynthError):
             f"the '{extra}' extra is needed for this ({module} is not installed): "
             + (install or f"pip install 'facesynth[{extra}]'")
         )
+
+
+class DiskFullError(FacesynthError):
+    """No space left on the device (or quota) while writing ``path``; nothing partial is left."""
+
+    def __init__(self, path):
+        self.path = path
+        super().__init__(f"no space left on device writing {path if path is not None else '(unknown file)'}")

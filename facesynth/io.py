@@ -11,6 +11,7 @@ scanned once per process).
 from __future__ import annotations
 
 import contextlib
+import errno
 import json
 import os
 import shutil
@@ -20,6 +21,47 @@ from pathlib import Path
 from typing import Any, Iterator
 
 TMP_TAG = ".facesynth-tmp-"
+DISK_FULL_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT})
+"""``OSError.errno`` values that mean the disk (or the user's quota) is full."""
+
+
+def is_disk_full(exc: BaseException) -> bool:
+    """True for an OSError saying the disk or quota is full."""
+    return isinstance(exc, OSError) and exc.errno in DISK_FULL_ERRNOS
+
+
+def _disk_full_error(path: Path):
+    from facesynth.errors import DiskFullError
+
+    return DiskFullError(path)
+
+
+def refuse_overwriting_inputs(outputs, inputs) -> None:
+    """FacesynthError, before any work, when an output path is one of the inputs (same
+    file by ``os.path.samefile``, or the same resolved path) or a folder that holds one
+    (an output folder is replaced as a whole). ``None`` entries are skipped.
+
+    Parameters
+    ----------
+    outputs, inputs : iterable of path-like or None
+    """
+    from facesynth.errors import FacesynthError
+
+    ins = [Path(p) for p in inputs if p is not None]
+    for out in (Path(p) for p in outputs if p is not None):
+        real_out = os.path.realpath(out)
+        for inp in ins:
+            real_in = os.path.realpath(inp)
+            same = real_in == real_out
+            if not same and out.exists() and inp.exists():
+                with contextlib.suppress(OSError):
+                    same = os.path.samefile(out, inp)
+            if same:
+                raise FacesynthError(f"{out}: the output is the input {inp}; writing it would destroy the input "
+                                     "(choose another output path)")
+            if out.is_dir() and real_in.startswith(real_out.rstrip(os.sep) + os.sep):
+                raise FacesynthError(f"{out}: the output folder holds the input {inp} and would be replaced as a "
+                                     "whole (choose another output folder)")
 
 
 def _tmp_prefix(path: Path) -> str:
@@ -89,8 +131,13 @@ def atomic_path(path: str | os.PathLike, suffix: str | None = None) -> Iterator[
     path = Path(path)
     _check_parent(path)
     remove_stale_temps(path)
-    fd, tmp = tempfile.mkstemp(prefix=f"{_tmp_prefix(path)}{os.getpid()}-",
-                               suffix=path.suffix if suffix is None else suffix, dir=path.parent)
+    try:
+        fd, tmp = tempfile.mkstemp(prefix=f"{_tmp_prefix(path)}{os.getpid()}-",
+                                   suffix=path.suffix if suffix is None else suffix, dir=path.parent)
+    except OSError as exc:
+        if is_disk_full(exc):
+            raise _disk_full_error(path) from None
+        raise
     os.close(fd)
     tmp_path = Path(tmp)
     try:
@@ -98,9 +145,14 @@ def atomic_path(path: str | os.PathLike, suffix: str | None = None) -> Iterator[
         # some writers (safetensors) replace the file: set the mode on what was written
         os.chmod(tmp_path, 0o666 & ~_umask())
         os.replace(tmp_path, path)
-    except BaseException:
+    except BaseException as exc:
+        from facesynth.errors import DiskFullError
+
         with contextlib.suppress(FileNotFoundError):
             tmp_path.unlink()
+        # a writer of the temporary file may itself write atomically: it names the temporary
+        if is_disk_full(exc) or (isinstance(exc, DiskFullError) and str(exc.path) == str(tmp_path)):
+            raise _disk_full_error(path) from None
         raise
 
 
@@ -116,7 +168,12 @@ def atomic_dir(path: str | os.PathLike) -> Iterator[Path]:
     path = Path(path)
     _check_parent(path)
     remove_stale_temps(path)
-    tmp = Path(tempfile.mkdtemp(prefix=f"{_tmp_prefix(path)}{os.getpid()}-", dir=path.parent))
+    try:
+        tmp = Path(tempfile.mkdtemp(prefix=f"{_tmp_prefix(path)}{os.getpid()}-", dir=path.parent))
+    except OSError as exc:
+        if is_disk_full(exc):
+            raise _disk_full_error(path) from None
+        raise
     os.chmod(tmp, 0o777 & ~_umask())
     try:
         yield tmp
@@ -131,9 +188,24 @@ def atomic_dir(path: str | os.PathLike) -> Iterator[Path]:
             shutil.rmtree(old, ignore_errors=True)
         else:
             os.replace(tmp, path)
-    except BaseException:
+    except BaseException as exc:
+        from facesynth.errors import DiskFullError
+
         shutil.rmtree(tmp, ignore_errors=True)
+        # name the file being written inside the folder (as it would be under ``path``) when known
+        if is_disk_full(exc):
+            raise _disk_full_error(_in_folder(exc.filename, tmp, path)) from None
+        if isinstance(exc, DiskFullError):
+            raise _disk_full_error(_in_folder(exc.path, tmp, path)) from None
         raise
+
+
+def _in_folder(filename, tmp: Path, path: Path) -> Path:
+    """``filename`` (inside the temporary folder ``tmp``) as it would be under ``path``."""
+    if filename:
+        with contextlib.suppress(ValueError):
+            return path / Path(filename).relative_to(tmp)
+    return path
 
 
 def _check_parent(path: Path) -> None:

@@ -140,6 +140,25 @@ def _ict_video(frames: int, size: int, seed: int):
     return vid, lay.mask, q
 
 
+def _refuse_overwriting_inputs(args: argparse.Namespace) -> None:
+    """FacesynthError when an output path of the action is one of its inputs."""
+    from facesynth.io import refuse_overwriting_inputs
+
+    a = vars(args)
+    out, inp = a.get("output"), a.get("input")
+    outputs = [out, a.get("preview"), a.get("plot"), a.get("json")]
+    if out is not None and args.action in ("geometry", "scan"):
+        outputs += [out.with_suffix(".mask.npy"), out.with_suffix(".scan.npz")]
+    if out is not None and args.action == "encode":
+        outputs.append(Path(str(out) + ".layout.npz"))
+    inputs = [inp, a.get("mask"), a.get("layout"), a.get("reference"), a.get("landmarks"), *(a.get("inputs") or [])]
+    if inp is not None and args.action in ("encode", "rd"):
+        inputs.append(inp.with_suffix(".mask.npy"))
+    if inp is not None and args.action == "decode":
+        inputs.append(Path(str(inp) + ".layout.npz"))
+    refuse_overwriting_inputs(outputs, inputs)
+
+
 def run(args: argparse.Namespace) -> int:
     from facesynth import progress
     from facesynth.codec.bitstream import decode_video, encode_video
@@ -149,6 +168,7 @@ def run(args: argparse.Namespace) -> int:
     from facesynth.io import atomic_path, check_writable, save_npy, write_bytes, write_json
     from facesynth.metrics import psnr
 
+    _refuse_overwriting_inputs(args)  # before any work, for every action
     if args.action == "scan":
         from facesynth.codec import scan_cli
 

@@ -41,7 +41,7 @@ from facesynth.data.pts import write_pts
 from facesynth.data.readers import array_sha256, load_sequence
 from facesynth.data.sequence import FaceSequence
 from facesynth.errors import FacesynthError
-from facesynth.io import atomic_dir, check_writable, write_json
+from facesynth.io import atomic_dir, check_writable, refuse_overwriting_inputs, write_json
 from facesynth.landmarks import LandmarkScheme, get_scheme
 from facesynth.progress import bar as progress_bar
 from facesynth.provenance import file_sha256, package_versions
@@ -99,10 +99,13 @@ class _Video:
             cap.release()
 
 
-def check_output_folder(out_dir: Path) -> None:
-    """An ingest output folder can be written: not a file, its parent writable, and, when it
-    exists and holds files, an earlier ingest folder (which is replaced as a whole)."""
+def check_output_folder(out_dir: Path, inputs=()) -> None:
+    """An ingest output folder can be written: not a file, its parent writable, not one of
+    ``inputs`` nor a folder holding one (e.g. the video copied into an earlier ingest
+    folder), and, when it exists and holds files, an earlier ingest folder (which is
+    replaced as a whole)."""
     check_writable(out_dir, folder=True)
+    refuse_overwriting_inputs([out_dir], inputs)
     if out_dir.is_dir() and any(out_dir.iterdir()) and not (out_dir / "meta.json").is_file():
         raise FacesynthError(f"{out_dir}: output folder exists and is not an ingest folder (no meta.json); "
                              "it would be replaced as a whole: choose a new or empty folder")
@@ -201,7 +204,7 @@ def ingest_video(
         raise FacesynthError(f"every must be >= 1, got {every}")
     if max_frames is not None and max_frames < 1:
         raise FacesynthError(f"max_frames must be >= 1, got {max_frames}")
-    check_output_folder(out_dir)  # before any frame is decoded
+    check_output_folder(out_dir, [video_path])  # before any frame is decoded
     if detector is None:  # a missing extra is reported before anything else
         (check_extra if landmarker == "dlib" else detect_mediapipe.check_extra)()
     video = _Video(video_path)

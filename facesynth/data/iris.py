@@ -119,7 +119,7 @@ def ingest_dlib_iris(video_path: str | os.PathLike, out_dir: str | os.PathLike, 
     if kwargs.get("copy") or kwargs.get("export_pts"):
         raise FacesynthError("--copy and --export-pts are not available with --landmarker dlib+iris "
                              "(the folder references the video by path; .pts files hold 68 points)")
-    check_output_folder(out_dir)
+    check_output_folder(out_dir, [video_path])
     detect.check_extra()
     detect_mediapipe.check_extra()
     with tempfile.TemporaryDirectory(prefix="facesynth-iris-") as tmp:

@@ -112,14 +112,17 @@ class FaceSequence:
         frames: FrameSource | None = None,
         *,
         where: str = "landmarks",
+        first_rows_only: bool = False,
         **kwargs,
     ) -> "FaceSequence":
         """Validate landmarks (T, P, 2) of ``scheme`` (keyword, default ``ibug68``), drop NaN
-        frames (logged), and build a sequence."""
+        frames (logged), and build a sequence. Fewer landmark rows than frames is warned
+        about unless ``first_rows_only`` (the landmarks cover the first frames on purpose,
+        e.g. an ingest limited by ``max_frames``)."""
         lm = validate_landmarks(landmarks, where, allow_nan_rows=True, scheme=kwargs.get("scheme", DEFAULT_SCHEME.name))
         if frames is not None and len(frames) and len(frames) < len(lm):
             raise FacesynthError(f"{where}: {len(lm)} landmark frames but only {len(frames)} image frames")
-        if frames is not None and len(frames) and len(lm) < len(frames):
+        if frames is not None and len(frames) and len(lm) < len(frames) and not first_rows_only:
             log.warning("%s: %d landmark rows for %d video frames: row t is paired with frame t, the last %d frames "
                         "are unused (landmarks of a shorter clip?)", where, len(lm), len(frames), len(frames) - len(lm))
         if frames is not None and all(int(v) > 0 for v in frames.size):
