@@ -51,3 +51,20 @@ FORMAT_HINTS = {
     ERI_FORMAT: "an ERI model: use facesynth.runtime.EriRenderer",
     SYNTHESIS_FORMAT: "a landmark-driven model: use facesynth.runtime.Renderer",
 }
+
+# The int8 appearance basis (facesynth.ops.int8_matmul, one MatMulInteger u8 x s8): coefficient
+# codes a in [-127, 127] travel as uint8 a + 128; weight codes q in [-CODE_LEVELS, CODE_LEVELS].
+# x86 without VNNI adds pairs of u8 x s8 products in a saturating int16 (vpmaddubsw): exact only
+# while 2 * 255 * |q| <= 32767. Files record their range as the metadata key "appearance_code_levels";
+# int8 files without it were written with LEGACY_CODE_LEVELS and saturate on such CPUs.
+COEF_LEVELS = 127
+U8_MAX, INT16_MAX = 255, 2**15 - 1
+CODE_LEVELS = INT16_MAX // (2 * U8_MAX)  # 64: 2 * 255 * 64 = 32640
+LEGACY_CODE_LEVELS = 127
+CODE_LEVELS_KEY = "appearance_code_levels"
+
+
+def pair_sum_bound(code_levels: int) -> int:
+    """Largest |u8 x s8 + u8 x s8| of the int8 appearance matmul with weight codes in
+    [-code_levels, code_levels] and activations in [0, 255]; int16-safe when <= INT16_MAX."""
+    return 2 * U8_MAX * int(code_levels)

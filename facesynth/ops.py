@@ -8,7 +8,17 @@ these ops and the parity tests hold torch eager and ONNX Runtime to the same num
   whose ``ReduceSum`` over axis 1 is several times slower in ONNX Runtime; a plain sum in
   torch eager, where a BLAS matmul here stalls the thread pool on busy cores);
 * :func:`int8_matmul`: ``(round(b * coef_scale) @ codes) * col_scale`` as standard integer
-  ops (one ``MatMulInteger``, u8 x s8), exact in torch eager too.
+  ops (one ``MatMulInteger``, u8 x s8), exact in torch eager too, and exact in ONNX Runtime on
+  every CPU as long as the weight codes stay within ``CODE_LEVELS`` (below).
+
+**Why 7-bit weight codes.** On x86 without VNNI, ONNX Runtime's u8 x s8 kernel multiplies
+with ``vpmaddubsw``, which adds *pairs* of u8 x s8 products into a saturating int16. The
+coefficient codes travel as u8 ``a + 128`` in [1, 255], so a pair of products reaches
+2 * 255 * |q|: with |q| <= 127 that is 64770 and the sum silently clips at 32767 (a wrong
+texture, no error); with |q| <= ``CODE_LEVELS`` = 64 (:mod:`facesynth.contract`) it is at
+most 32640 and every partial sum is exact. VNNI (``vpdpbusd``) and ARM's dot products widen to int32 first and
+are exact either way. ONNX Runtime's quantization guide gives the same advice
+(``reduce_range``: 7-bit weights on such CPUs).
 """
 
 from __future__ import annotations
@@ -16,9 +26,10 @@ from __future__ import annotations
 import torch
 from torch.nn import functional as F
 
-INT8_LEVELS = 127  # symmetric int8: codes in [-127, 127]
-EXACT_FLOAT32_K = 2**24 // (INT8_LEVELS * INT8_LEVELS) + 1  # 1041: below it a @ q is exact in float32
-_ZERO_POINT = 128  # coefficient codes travel as uint8 a + 128 (MatMulInteger's u8 x s8 path)
+from facesynth.contract import COEF_LEVELS, LEGACY_CODE_LEVELS
+
+_ZERO_POINT = 128  # MatMulInteger's u8 x s8 path: activation zero point (codes travel as uint8 a + 128)
+EXACT_FLOAT32_K = 2**24 // (COEF_LEVELS * LEGACY_CODE_LEVELS) + 1  # 1041: below it a @ q is exact in float32
 
 
 class _Pad(torch.autograd.Function):

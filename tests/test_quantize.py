@@ -12,6 +12,7 @@ import pytest
 import torch
 from _onnx_models import assert_export_matches, driving_landmarks, synthetic_model, synthetic_synthesizer
 
+from facesynth.contract import CODE_LEVELS
 from facesynth.errors import FacesynthError
 from facesynth.onnx.synthesis import export_synthesizer, quantize_for_export
 from facesynth.regressors import REGISTRY
@@ -30,14 +31,18 @@ def test_quantize_columns_bounds():
     w[:, 3] = 0.0
     codes, scale = quantize_columns(w)
     assert codes.dtype == np.int8 and scale.dtype == np.float32 and scale.shape == (50,)
-    assert np.abs(codes).max() == 127 and codes.min() >= -127
-    assert (np.abs(codes).max(0)[np.arange(50) != 3] == 127).all()  # every nonzero column uses the full range
+    assert np.abs(codes).max() == CODE_LEVELS == 64 and codes.min() >= -CODE_LEVELS  # 7-bit: int16-safe pair sums
+    assert (np.abs(codes).max(0)[np.arange(50) != 3] == CODE_LEVELS).all()  # every nonzero column uses the full range
     err = np.abs(codes * scale.astype(np.float64) - w)
     assert (err <= scale / 2 * (1 + 1e-6) + 1e-12).all()  # round to nearest: half a step at most
     assert (codes[:, 3] == 0).all() and scale[3] == 1.0
     for bad in (np.ones(5), np.full((2, 2), np.nan)):
         with pytest.raises(FacesynthError, match="int8 quantization"):
             quantize_columns(bad)
+    with pytest.raises(FacesynthError, match=r"levels must be in \[1, 127\]"):
+        quantize_columns(w, 128)
+    codes8, _ = quantize_columns(w, 127)  # the 8-bit range of older files, still available for comparisons
+    assert np.abs(codes8).max() == 127
 
 
 def test_int8_basis_is_the_integer_closed_form():
@@ -67,7 +72,7 @@ def test_int8_basis_is_the_integer_closed_form():
 def test_int8_basis_sums_exactly_beyond_float32_range():
     """With K > 1040 components the integer sums pass 2^24; torch sums them in float64."""
     k, d = 1100, 4
-    basis = Int8Basis.from_basis(np.ones((k, d)), np.ones(k))  # every code 127
+    basis = Int8Basis.from_basis(np.ones((k, d)), np.ones(k), levels=127)  # every code 127
     b = np.ones((1, k), np.float32)  # every coefficient code 127: sum 1100 * 127^2 > 2^24
     with torch.no_grad():
         got = basis(torch.from_numpy(b)).double().numpy()
@@ -95,7 +100,7 @@ def test_quantized_export_matches_quantized_torch(name, tmp_path):
     big = [i for i in m.graph.initializer if int(np.prod(i.dims)) == k * d]
     assert [i.data_type for i in big] == [onnx.TensorProto.INT8]
     assert {p.key: p.value for p in m.metadata_props}["appearance_basis"] == "int8"
-    assert info["appearance_basis_bytes"] == k * d
+    assert info["appearance_basis_bytes"] == k * d and info["appearance_code_levels"] == CODE_LEVELS
 
 
 def test_recorded_psnr_and_the_float_model_is_untouched():

@@ -12,13 +12,17 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 from pathlib import Path
 
 from facesynth.contract import OPSET
 from facesynth.eri.config import SVR_VARIANTS
 from facesynth.errors import FacesynthError
+from facesynth.io import atomic_path
 from facesynth.onnx.config import BASIS_KINDS, DEFAULT_BASIS, DEFAULT_COMPONENTS
 from facesynth.progress import stage
+
+log = logging.getLogger(__name__)
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -107,15 +111,15 @@ def export_model(run_dir, out, opset: int = OPSET, components: int | None = DEFA
     run_dir = Path(run_dir)
     if is_eri_run(run_dir):
         raise FacesynthError(f"{run_dir}: holds an ERI model only; pass --target IMAGE_OR_DIR to export it for a target face")
-    with stage("ONNX export"):
-        path, syn, meta = export_run(run_dir, out, opset, components, predicted_variance, landmarks, basis)
-    summary = {"out": str(path), "bytes": path.stat().st_size, **_brief(meta), "opset": opset}
-    if check:
-        with stage("ONNX Runtime vs torch check"):
-            summary["max_abs_diff_vs_torch"] = _checked(path, check_export, syn)
+    with atomic_path(out) as tmp:  # renamed onto --out only once the check has passed
+        with stage("ONNX export"):
+            _, syn, meta = export_run(run_dir, tmp, opset, components, predicted_variance, landmarks, basis)
+        summary = {"out": str(out), "bytes": tmp.stat().st_size, **_brief(meta), "opset": opset}
+        if check:
+            with stage("ONNX Runtime vs torch check"):
+                summary["max_abs_diff_vs_torch"] = _checked(out, tmp, lambda p: check_export(syn, p), meta)
+    log.info("exported %s (%s regressor, %.1f MB)", out, meta.get("regressor"), summary["bytes"] / 1e6)
     return summary
-
-
 def _brief(meta: dict) -> dict:
     """The metadata for the printed summary: the avatar's bulky entries (its neutral
     landmarks, shape PCA, neutral frame as base64 JPEG: tens of kB) are stored in the model
@@ -137,19 +141,32 @@ def export_eri_model(run_dir, out, target, target_landmarks=None, target_frame: 
 
     check_args(out, opset)
     image, landmarks, desc = load_target(target, target_landmarks, target_frame)
-    with stage("ONNX export (ERI)"):
-        path, syn, meta = export_eri_run(run_dir, out, image, landmarks, variant, raw_ratios, opset)
-    summary = {"out": str(path), "bytes": path.stat().st_size, "target": desc, **meta, "opset": opset}
-    if check:
-        with stage("ONNX Runtime vs torch check"):
-            summary["max_abs_diff_vs_torch"] = _checked(path, check_eri_export, syn)
+    with atomic_path(out) as tmp:  # renamed onto --out only once the check has passed
+        with stage("ONNX export (ERI)"):
+            _, syn, meta = export_eri_run(run_dir, tmp, image, landmarks, variant, raw_ratios, opset)
+        summary = {"out": str(out), "bytes": tmp.stat().st_size, "target": desc, **meta, "opset": opset}
+        if check:
+            with stage("ONNX Runtime vs torch check"):
+                summary["max_abs_diff_vs_torch"] = _checked(out, tmp, lambda p: check_eri_export(syn, p), meta)
+    log.info("exported %s (ERI, %.1f MB)", out, summary["bytes"] / 1e6)
     return summary
 
 
-def _checked(path: Path, check, syn) -> float:
-    """``check(syn, path)``; a model that fails its parity check is removed, not left behind."""
+def _checked(out, tmp: Path, check, meta: dict) -> float:
+    """``check(tmp)``: the written file against torch. A failure names ``out`` (which is then
+    not written) and the cause where it can be found: with an int8 basis, whether this CPU's
+    integer matmul is exact on the file's own codes; and the ``--basis float32`` way out."""
     try:
-        return check(syn, path)
-    except BaseException:
-        Path(path).unlink(missing_ok=True)
-        raise
+        return check(tmp)
+    except FacesynthError as exc:
+        detail = str(exc).split(": ", 1)[-1]
+        if meta.get("appearance_basis") != "int8":
+            raise FacesynthError(f"{out}: not written: {detail}") from None
+        from facesynth.onnx.int8check import matmul_errors, matmul_integer_codes
+
+        wrong, worst = matmul_errors(matmul_integer_codes(tmp))
+        cause = (f"this CPU's int8 matmul (ONNX Runtime's MatMulInteger) is wrong in {wrong} outputs by up to {worst} "
+                 "on the file's own codes" if wrong else "the int8 matmul is exact on this CPU, so the difference "
+                 "lies elsewhere in the graph")
+        raise FacesynthError(f"{out}: not written: {detail}; {cause}; export with --basis float32 to leave "
+                             "the int8 basis out") from None

@@ -31,7 +31,6 @@ Compositing into the frame (OpenCV warpAffine + feathering) stays outside the gr
 
 from __future__ import annotations
 
-import logging
 import os
 from pathlib import Path
 
@@ -52,8 +51,6 @@ from facesynth.model.warp import ToTarget, candidate_spans
 from facesynth.onnx.common import SimilarityAlignment, check_parity, save_graph
 from facesynth.provenance import array_fingerprint
 from facesynth.runtime.eri import EriRenderer
-
-log = logging.getLogger(__name__)
 
 METADATA_KEYS = ERI_METADATA_KEYS  # every file carries these (facesynth.contract)
 
@@ -194,7 +191,6 @@ def export_eri(
     example[1] = torch.linspace(-50, 50, N_FAPS)
     save_graph(graph, example, path, ERI_INPUT, OUTPUT_NAMES, meta, opset,
                "facesynth ERI graph: MPEG-4 FAPs -> target face crop, mask, placement")
-    log.info("exported %s (ERI, %s, %.1f MB)", path, syn.variant, path.stat().st_size / 1e6)
     return path
 
 

@@ -154,7 +154,6 @@ def export_synthesizer(syn: Synthesizer, path: str | os.PathLike, metadata: dict
     example = torch.from_numpy(_example_landmarks(syn))
     save_graph(graph, example, path, SYNTHESIS_INPUT, OUTPUT_NAMES, meta, opset,
                "facesynth synthesis graph: landmarks -> face crop, mask, placement")
-    log.info("exported %s (%s regressor, %.1f MB)", path, meta["regressor"], path.stat().st_size / 1e6)
     return path
 
 

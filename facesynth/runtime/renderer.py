@@ -21,6 +21,7 @@ from facesynth.errors import FacesynthError
 from facesynth.imaging import composite
 from facesynth.landmarks import SCHEMES, scheme_for_points
 from facesynth.runtime.checks import as_array, check_coordinate_range, check_metadata_size, check_outputs
+from facesynth.runtime.cpu import check_int8_basis
 
 
 def read_metadata(model_path: str | os.PathLike) -> dict:
@@ -113,6 +114,7 @@ class Renderer:
         if name not in SCHEMES:
             raise FacesynthError(f"{where}: landmark scheme {name!r}; this runtime knows {', '.join(sorted(SCHEMES))}")
         self.scheme = SCHEMES[name]
+        check_int8_basis(self.metadata, where)  # older int8 files saturate on x86 without VNNI
         if self.metadata.get("n_landmarks", self.scheme.n_points) != self.scheme.n_points:
             raise FacesynthError(f"{where}: metadata 'n_landmarks' is {self.metadata.get('n_landmarks')!r}, but scheme "
                                  f"{name!r} has {self.scheme.n_points} points")

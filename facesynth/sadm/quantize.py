@@ -1,10 +1,11 @@
 """Int8 appearance basis for deployment: the (K x C M) appearance matmul in 8-bit integers.
 
 At batch 1 the appearance reconstruction ``b_g @ P`` reads the whole (K, C M) basis every
-frame: 7 MB of float32 at K = 40 on lp_d6, more than a core's L2 cache, so its cost swings
-with whatever else shares the L3 (several times slower once other processes have evicted
-it; the measurements are in docs/runtime.md). Stored as int8 it is 1.76 MB, and
-ONNX Runtime runs it as one standard ``MatMulInteger`` (u8 x s8, the VNNI path of MLAS).
+frame: 7 MB of float32 at K = 40 on a 480x480 clip's face, more than a core's L2 cache, so
+its cost swings with whatever else shares the L3 (the measurements are in docs/runtime.md).
+Stored as int8 it is 1.76 MB, and ONNX Runtime runs it as one standard ``MatMulInteger``
+(u8 activations x s8 weights): ``vpdpbusd`` on x86 with VNNI, ``vpmaddubsw`` on x86 without
+it, dot-product instructions on ARM.
 
 Static symmetric quantization with a known input range (Jacob et al., "Quantization and
 Training of Neural Networks for Efficient Integer-Arithmetic-Only Inference", CVPR 2018):
@@ -12,15 +13,18 @@ Training of Neural Networks for Efficient Integer-Arithmetic-Only Inference", CV
 * coefficients: b_g is clamped to +-limit_k (3 sigma of component k), so
   ``a_k = round(127 b_k / limit_k)`` is an integer in [-127, 127] (no per-frame scale);
 * basis: ``W = diag(limit / 127) P`` is each component's contribution per coefficient step,
-  quantized per texture element (column): ``s_n = max_k |W_kn| / 127``,
-  ``q_kn = round(W_kn / s_n)`` in [-127, 127];
-* texture: ``mean + s * (a @ q)``. ``a @ q`` is exact in int32 (and in float32: every
-  partial sum is an integer below 2^24 for K <= 1040; torch sums in float64 above), so the
-  torch graph (:class:`Int8Basis` in eager mode) and ONNX Runtime compute the same numbers.
+  quantized per texture element (column) to **7-bit codes**: ``s_n = max_k |W_kn| / 64``,
+  ``q_kn = round(W_kn / s_n)`` in [-64, 64] (:data:`facesynth.contract.CODE_LEVELS`). Full 8-bit
+  codes would overflow the saturating int16 pair sums of the non-VNNI x86 kernel and give
+  wrong textures there without any error (:mod:`facesynth.ops` has the arithmetic);
+* texture: ``mean + s * (a @ q)``. ``a @ q`` is exact in int32 on every CPU (and in float32:
+  every partial sum is an integer below 2^24 for K <= 1040; torch sums in float64 above), so
+  the torch graph (:class:`Int8Basis` in eager mode) and ONNX Runtime compute the same numbers.
 
 The cost is two rounding errors of at most half a step each, measured by
 :func:`quantize_synthesizer` as the PSNR of the int8 vs the float texture over the
-training landmarks (recorded in the exported file).
+training landmarks (recorded in the exported file with the code range,
+``appearance_code_levels``, which the runtime reads to recognise older, saturating files).
 """
 
 from __future__ import annotations
@@ -29,40 +33,43 @@ import numpy as np
 import torch
 from torch import nn
 
+from facesynth.contract import CODE_LEVELS, COEF_LEVELS
 from facesynth.errors import FacesynthError
-from facesynth.ops import INT8_LEVELS, int8_matmul
+from facesynth.ops import int8_matmul
 from facesynth.sadm.compress import texture_psnr
 from facesynth.sadm.synthesis import GlobalAppearance, Synthesizer
 
-LEVELS = INT8_LEVELS
 
-
-def quantize_columns(weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def quantize_columns(weights: np.ndarray, levels: int = CODE_LEVELS) -> tuple[np.ndarray, np.ndarray]:
     """Symmetric per-column int8 quantization.
 
     Parameters
     ----------
     weights : (K, D) float array
+    levels : codes in [-levels, levels] (default the int16-safe :data:`facesynth.contract.CODE_LEVELS`)
 
     Returns
     -------
-    codes : (K, D) int8 in [-127, 127]
+    codes : (K, D) int8 in [-levels, levels]
     scale : (D,) float32, ``weights ~= codes * scale`` (a column of zeros gets scale 1)
     """
+    if not 1 <= int(levels) <= 127:
+        raise FacesynthError(f"int8 quantization: levels must be in [1, 127], got {levels}")
     w = np.asarray(weights, np.float64)
     if w.ndim != 2 or not np.isfinite(w).all():
         raise FacesynthError(f"int8 quantization: weights must be a finite 2-D array, got shape {w.shape}")
-    scale = np.abs(w).max(0) / LEVELS
+    scale = np.abs(w).max(0) / int(levels)
     scale = np.where(scale > 0, scale, 1.0).astype(np.float32)
-    codes = np.clip(np.rint(w / scale.astype(np.float64)), -LEVELS, LEVELS).astype(np.int8)
+    codes = np.clip(np.rint(w / scale.astype(np.float64)), -int(levels), int(levels)).astype(np.int8)
     return codes, scale
 
 
 class Int8Basis(nn.Module):
     """Appearance deviation from int8 codes: b (B, K) clamped coefficients -> (B, D).
 
-    Buffers: ``coef_scale`` (K,) = 127 / limit, ``codes`` (K, D) int8, ``codes_f`` the same
-    codes as float32 (torch's matmul), ``col_scale`` (D,). Build with :meth:`from_basis`.
+    Buffers: ``coef_scale`` (K,) = 127 / limit, ``codes`` (K, D) int8 in [-levels, levels],
+    ``codes_f`` the same codes as float32 (torch's matmul), ``col_scale`` (D,). Build with
+    :meth:`from_basis`; ``levels`` is the code range it was quantized to.
     """
 
     def __init__(self, coef_scale: torch.Tensor, codes: torch.Tensor, col_scale: torch.Tensor):
@@ -72,15 +79,21 @@ class Int8Basis(nn.Module):
         self.register_buffer("codes_f", codes.float())
         self.register_buffer("col_scale", col_scale.float())
 
+    @property
+    def levels(self) -> int:
+        """The largest |code| (the range the basis was quantized to is at least this)."""
+        return int(self.codes.abs().max()) if self.codes.numel() else 0
+
     @classmethod
-    def from_basis(cls, components: np.ndarray, limit: np.ndarray) -> "Int8Basis":
-        """Quantize a (K, D) basis whose coefficients are clamped to +-``limit`` (K,) (finite, > 0)."""
+    def from_basis(cls, components: np.ndarray, limit: np.ndarray, levels: int = CODE_LEVELS) -> "Int8Basis":
+        """Quantize a (K, D) basis whose coefficients are clamped to +-``limit`` (K,) (finite,
+        > 0) to codes in [-``levels``, ``levels``]."""
         lim = np.asarray(limit, np.float64)
         if not (np.isfinite(lim).all() and (lim > 0).all()):
             raise FacesynthError("int8 appearance basis: needs finite, positive clamping limits for every "
                                  "component (the model was built with clamping off); export with --basis float32")
-        codes, scale = quantize_columns(np.asarray(components, np.float64) * (lim / LEVELS)[:, None])
-        return cls(torch.from_numpy((LEVELS / lim).astype(np.float32)), torch.from_numpy(codes), torch.from_numpy(scale))
+        codes, scale = quantize_columns(np.asarray(components, np.float64) * (lim / COEF_LEVELS)[:, None], levels)
+        return cls(torch.from_numpy((COEF_LEVELS / lim).astype(np.float32)), torch.from_numpy(codes), torch.from_numpy(scale))
 
     def dequantized(self) -> torch.Tensor:
         """(K, D) float64 basis this module applies to unrounded coefficients."""
@@ -90,18 +103,21 @@ class Int8Basis(nn.Module):
         return int8_matmul(b, self.coef_scale, self.codes_f, self.codes, self.col_scale)
 
 
-def quantize_synthesizer(syn: Synthesizer, landmarks: np.ndarray | None = None) -> tuple[Synthesizer, dict]:
+def quantize_synthesizer(syn: Synthesizer, landmarks: np.ndarray | None = None,
+                         levels: int = CODE_LEVELS) -> tuple[Synthesizer, dict]:
     """A copy of ``syn`` whose appearance basis is int8 (:class:`Int8Basis`).
 
     Parameters
     ----------
     syn : Synthesizer with a :class:`GlobalAppearance` (compressed or not) and finite limits
     landmarks : (N, P, 2) frame landmarks (the synthesizer's scheme) to measure the effect on (the training frames), optional
+    levels : weight codes in [-levels, levels]; the default is exact on every CPU (a larger
+      range reproduces older files, for comparison: ``bench/bench_int8.py``)
 
     Returns
     -------
-    (Synthesizer, info): info records ``appearance_basis`` ("int8"), ``appearance_basis_bytes``
-    and, with landmarks, ``quantization_psnr_vs_float_db``: PSNR (peak 1) of the int8 vs the
+    (Synthesizer, info): info records ``appearance_basis`` ("int8"), ``appearance_basis_bytes``,
+    ``appearance_code_levels`` and, with landmarks, ``quantization_psnr_vs_float_db``: PSNR (peak 1) of the int8 vs the
     float texture (clipped to [0, 1]) over them.
     """
     app = syn.appearance
@@ -109,11 +125,12 @@ def quantize_synthesizer(syn: Synthesizer, landmarks: np.ndarray | None = None) 
         raise FacesynthError("int8 appearance basis: needs a global (PCA) appearance model")
     if app.basis is not None:
         raise FacesynthError("int8 appearance basis: the synthesizer is already quantized")
-    basis = Int8Basis.from_basis(app.components.double().numpy(), app.limit.double().numpy())
+    basis = Int8Basis.from_basis(app.components.double().numpy(), app.limit.double().numpy(), levels)
     new_app = app.shallow_copy()
     new_app.basis = basis
     out = syn.with_appearance(new_app)
-    info = {"appearance_basis": "int8", "appearance_basis_bytes": int(basis.codes.numel())}
+    info = {"appearance_basis": "int8", "appearance_basis_bytes": int(basis.codes.numel()),
+            "appearance_code_levels": int(levels)}
     if landmarks is not None:
         lm = np.asarray(landmarks, np.float32)
         if lm.ndim != 3 or lm.shape[1:] != (syn.n_points, 2):

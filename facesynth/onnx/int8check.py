@@ -1,0 +1,93 @@
+"""The int8 appearance matmul of an exported file, checked against int64 arithmetic.
+
+Two checks, one CPU-independent and one of this CPU:
+
+* :func:`pair_sum_worst` reads the file's weight codes and bounds, in int64, the largest sum
+  of two u8 x s8 products any column can form (two largest |codes| x 255): the file is exact
+  on every CPU when it fits int16 (:data:`facesynth.contract.INT16_MAX`), whichever pairs a
+  kernel forms;
+* :func:`matmul_errors` runs the file's own ``MatMulInteger`` (the same codes, zero point and
+  shapes, one node) in ONNX Runtime on worst-case activations and compares it with int64
+  arithmetic: what this CPU computes.
+
+``facesynth export`` uses the second to name the cause when its parity check fails;
+``tests/test_int8_cpus.py`` uses both, and the second under an emulated CPU without VNNI.
+"""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+
+from facesynth.contract import COEF_LEVELS, U8_MAX
+from facesynth.errors import FacesynthError
+
+ZERO_POINT = 128  # the activation zero point of facesynth.ops.int8_matmul
+
+
+def matmul_integer_codes(model_path: str | os.PathLike) -> np.ndarray:
+    """(K, D) int8 weight codes of the file's one ``MatMulInteger`` (FacesynthError if none)."""
+    import onnx
+    from onnx import numpy_helper
+
+    model = onnx.load(str(model_path))
+    inits = {i.name: i for i in model.graph.initializer}
+    nodes = [n for n in model.graph.node if n.op_type == "MatMulInteger"]
+    if len(nodes) != 1 or nodes[0].input[1] not in inits:
+        raise FacesynthError(f"{model_path}: expected one MatMulInteger with constant weights, found {len(nodes)}")
+    return numpy_helper.to_array(inits[nodes[0].input[1]])
+
+
+def pair_sum_worst(codes: np.ndarray) -> int:
+    """Largest |u8 x s8 + u8 x s8| over any two rows of a column, activations in [0, 255] (int64)."""
+    q = np.sort(np.abs(np.asarray(codes, np.int64)), axis=0)
+    top2 = q[-2:].sum(0) if len(q) >= 2 else q.sum(0)
+    return int(U8_MAX * top2.max()) if top2.size else 0
+
+
+def worst_activations(k: int, seed: int = 0) -> np.ndarray:
+    """(6, K) uint8 coefficient codes ``a + 128``: all at +127 and at -127 (the largest pair
+    sums of same-signed codes), alternating, zero, and two random rows."""
+    rng = np.random.default_rng(seed)
+    hi, lo = ZERO_POINT + COEF_LEVELS, ZERO_POINT - COEF_LEVELS
+    alt = np.where(np.arange(k) % 2 == 0, hi, lo)
+    rows = [np.full(k, hi), np.full(k, lo), alt, np.full(k, ZERO_POINT), *rng.integers(lo, hi + 1, (2, k))]
+    return np.stack(rows).astype(np.uint8)
+
+
+def probe_model(codes: np.ndarray) -> bytes:
+    """A one-node ONNX model: uint8 activations (B, K) -> int32 (B, D) = MatMulInteger with ``codes``."""
+    import onnx
+    from onnx import TensorProto, helper, numpy_helper
+
+    k, d = codes.shape
+    graph = helper.make_graph(
+        [helper.make_node("MatMulInteger", ["a", "q", "zp"], ["y"])], "int8_probe",
+        [helper.make_tensor_value_info("a", TensorProto.UINT8, [None, k])],
+        [helper.make_tensor_value_info("y", TensorProto.INT32, [None, d])],
+        [numpy_helper.from_array(np.asarray(codes, np.int8), "q"), numpy_helper.from_array(np.array(ZERO_POINT, np.uint8), "zp")],
+    )
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 18)])
+    model.ir_version = 8
+    onnx.checker.check_model(model)
+    return model.SerializeToString()
+
+
+def reference(codes: np.ndarray, activations: np.ndarray) -> np.ndarray:
+    """The exact products in int64: ``(a - 128) @ q``."""
+    return (np.asarray(activations, np.int64) - ZERO_POINT) @ np.asarray(codes, np.int64)
+
+
+def matmul_errors(codes: np.ndarray, activations: np.ndarray | None = None) -> tuple[int, int]:
+    """(wrong outputs, largest absolute error) of ONNX Runtime's ``MatMulInteger`` on this CPU
+    against int64 arithmetic, on :func:`worst_activations` by default."""
+    import onnxruntime as ort
+
+    a = worst_activations(codes.shape[0]) if activations is None else np.asarray(activations, np.uint8)
+    so = ort.SessionOptions()
+    so.intra_op_num_threads = 1
+    sess = ort.InferenceSession(probe_model(codes), so, providers=["CPUExecutionProvider"])
+    got = sess.run(None, {"a": a})[0].astype(np.int64)
+    err = np.abs(got - reference(codes, a))
+    return int((err > 0).sum()), int(err.max()) if err.size else 0
