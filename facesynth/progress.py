@@ -32,19 +32,60 @@ def is_quiet() -> bool:
     return _QUIET
 
 
+LOG_EVERY_S = 5.0
+"""Where stderr is not a terminal, a progress bar prints one plain line at most this often."""
+
+
+class _LogLines:
+    """A file for tqdm that turns its redraws into ``[facesynth] ...`` lines on stderr,
+    skipping the first (empty) one and the clearing ones."""
+
+    encoding = "utf-8"
+
+    def __init__(self):
+        self.first = True
+
+    def write(self, s: str) -> None:
+        s = s.strip("\r\n ")
+        if not s:
+            return
+        if self.first:  # the bar's initial draw (0 done)
+            self.first = False
+            return
+        sys.stderr.write(f"[facesynth] {s}\n")
+
+    def flush(self) -> None:
+        sys.stderr.flush()
+
+
 def bar(iterable: Iterable | None = None, total: int | None = None, desc: str = "", unit: str = "it",
         enabled: bool = True, **kwargs) -> tqdm:
     """A tqdm progress bar (rate in ``unit``/s) unless quiet or ``enabled`` is False.
 
     Leaves no line behind when it closes: the finished stage's line comes from :func:`stage`.
-    Only on a terminal: when stderr is a file or a pipe (CI, batch workers, ``2> log``) the
-    bar is off (tqdm's ``disable=None``), since each redraw would be a new line there; the
-    stage lines still say what finished and how long it took.
+    On a terminal it redraws in place; where stderr is a file or a pipe (CI, batch workers,
+    ``2> log``) each redraw would be a new line, so there it prints one plain line
+    (``[facesynth] desc: n/total unit [elapsed<remaining, rate]``) at most every
+    :data:`LOG_EVERY_S` seconds, none at the start: a long step is never silent, a short
+    one adds nothing.
     """
     kwargs.setdefault("leave", False)
+    if _QUIET or not enabled:
+        return tqdm(iterable, total=total, desc=desc, unit=unit, disable=True, **kwargs)
+    if not _isatty(sys.stderr):
+        kwargs.pop("dynamic_ncols", None)
+        return tqdm(iterable, total=total, desc=desc, unit=unit, file=_LogLines(), mininterval=LOG_EVERY_S,
+                    maxinterval=LOG_EVERY_S, ascii=True,
+                    bar_format="{desc}: {n_fmt}/{total_fmt} {unit} [{elapsed}<{remaining}, {rate_fmt}]", **kwargs)
     kwargs.setdefault("dynamic_ncols", True)
-    return tqdm(iterable, total=total, desc=desc, unit=unit, disable=True if _QUIET or not enabled else None,
-                file=sys.stderr, **kwargs)
+    return tqdm(iterable, total=total, desc=desc, unit=unit, file=sys.stderr, **kwargs)
+
+
+def _isatty(stream) -> bool:
+    try:
+        return bool(stream.isatty())
+    except (AttributeError, ValueError):
+        return False
 
 
 def note(message: str) -> None:

@@ -44,6 +44,7 @@ from facesynth.errors import FacesynthError
 from facesynth.io import atomic_dir, check_writable, refuse_overwriting_inputs, write_json
 from facesynth.landmarks import LandmarkScheme, get_scheme
 from facesynth.progress import bar as progress_bar
+from facesynth.progress import note
 from facesynth.provenance import file_sha256, package_versions
 
 log = logging.getLogger(__name__)
@@ -219,6 +220,8 @@ def ingest_video(
     if max_frames is not None:
         total = min(total, max_frames) if total else max_frames
 
+    if progress:
+        note(f"ingest: {video_path} ({video.width}x{video.height}, {total or '?'} frames) with {landmarker}")
     t0 = time.perf_counter()
     with _progress(total, progress) as bar:
         def on_frame(i: int, source: str) -> None:
