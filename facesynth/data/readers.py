@@ -174,16 +174,32 @@ def _check_ingest_pair(path: Path, lm: np.ndarray, meta: dict) -> None:
                              "(the folder mixes files of two ingests, or the landmarks were edited)")
 
 
+def ingest_video(path: str | os.PathLike, meta: dict | None = None) -> tuple[Path | None, float | None]:
+    """An ingest folder's video and frame rate, each None when absent: the video is
+    ``meta.json``'s ``video.file`` (in the folder), else its ``video.path``, else
+    ``video.mp4``; the rate is ``video.fps`` (0: unknown, as ingest records a video without
+    one; FacesynthError naming the file and field when it is not a number >= 0).
+    ``meta``: the folder's meta.json, if already read."""
+    path = Path(path)
+    if meta is None:
+        meta = read_json_object(path / "meta.json") if (path / "meta.json").is_file() else {}
+    video = meta.get("video", {}) if isinstance(meta.get("video"), dict) else {}
+    candidates = [path / str(video["file"])] if video.get("file") else []
+    if video.get("path"):
+        candidates.append(Path(str(video["path"])))
+    candidates.append(path / "video.mp4")
+    fps = video.get("fps")
+    if fps is not None and (isinstance(fps, bool) or not isinstance(fps, (int, float)) or not 0 <= fps < float("inf")):
+        raise FacesynthError(f"{path / 'meta.json'}: video.fps must be a positive number, got {fps!r}")
+    return next((c for c in candidates if c.is_file()), None), float(fps) if fps else None
+
+
 def _read_ingest_folder(path: Path) -> FaceSequence:
     meta = read_json_object(path / "meta.json") if (path / "meta.json").is_file() else {}
+    video_path, video_fps = ingest_video(path, meta)
     video = meta.get("video", {}) if isinstance(meta.get("video"), dict) else {}
-    candidates = [path / video["file"]] if video.get("file") else []
-    if video.get("path"):
-        candidates.append(Path(video["path"]))
-    candidates.append(path / "video.mp4")
-    video_path = next((c for c in candidates if c.is_file()), None)
     frames = VideoFrames(video_path) if video_path is not None else None
-    fps = float(video.get("fps") or (frames.fps if frames else 30.0) or 30.0)
+    fps = float(video_fps or (frames.fps if frames else 30.0) or 30.0)
     meta = {**meta, "source": str(path)}
     if video.get("sha256"):
         meta["source_sha256"] = video["sha256"]

@@ -16,8 +16,10 @@ percentiles of the model call and of the whole frame. Torch is never imported.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import logging
+import os
 import time
 from pathlib import Path
 from typing import Iterator
@@ -25,10 +27,21 @@ from typing import Iterator
 import cv2
 import numpy as np
 
-from facesynth.errors import FacesynthError, MissingExtraError
+from facesynth.errors import FacesynthError
 from facesynth.imaging import composite
-from facesynth.io import atomic_path, check_writable
+from facesynth.io import atomic_path, check_writable, refuse_overwriting_inputs
+from facesynth.progress import bar, stage
 from facesynth.runtime.checks import check_coordinate_range, check_frame_size, check_in_frame
+from facesynth.runtime.video import (
+    check_video,
+    contact_sheet,
+    detect_video_landmarks,
+    draw_landmarks,
+    fit_into,
+    open_writer,
+    read_video,
+    write_image,
+)
 
 log = logging.getLogger(__name__)
 GREY = 128
@@ -100,59 +113,6 @@ def load_background(path: str | None, size: tuple[int, int]) -> np.ndarray:
     return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
 
 
-def read_video(path: str, max_frames: int | None) -> tuple[list[np.ndarray], float]:
-    """All frames (uint8 RGB) of a video and its fps."""
-    cap = cv2.VideoCapture(str(path))
-    if not cap.isOpened():
-        raise FacesynthError(f"{path}: not a readable video")
-    fps = cap.get(cv2.CAP_PROP_FPS) or 30.0
-    frames = []
-    while max_frames is None or len(frames) < max_frames:
-        ok, bgr = cap.read()
-        if not ok:
-            break
-        frames.append(cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB))
-    cap.release()
-    if not frames:
-        raise FacesynthError(f"{path}: no frames decoded")
-    return frames, float(fps)
-
-
-def detect_video_landmarks(frames: list[np.ndarray], scheme: str = "ibug68") -> np.ndarray:
-    """Landmarks (T, P, 2) of driver frames in the model's ``scheme``; NaN rows where no face:
-    dlib (the ``ingest`` extra) for ``ibug68``, MediaPipe (the ``mediapipe`` extra) for
-    ``mediapipe478``, both for ``ibug68+iris`` (dlib's 68 points and MediaPipe's irises)."""
-    if scheme not in ("ibug68", "mediapipe478", "ibug68+iris"):
-        raise FacesynthError(f"--video: no landmarker for a model in scheme {scheme!r}; give --landmarks")
-    use_dlib, use_mp = scheme != "mediapipe478", scheme != "ibug68"
-    if use_dlib:  # both extras are checked before any frame is processed
-        try:
-            from facesynth.data import detect
-        except ModuleNotFoundError as exc:
-            raise MissingExtraError("ingest", exc.name or "facesynth.data.detect") from None
-        detect.check_extra()
-    if use_mp:
-        from facesynth.data import detect_mediapipe
-
-        detect_mediapipe.check_extra()
-    dlib = np.asarray(detect.detect_landmarks(frames).landmarks, np.float32) if use_dlib else None
-    mp = np.asarray(detect_mediapipe.detect_landmarks_mediapipe(frames).landmarks, np.float32) if use_mp else None
-    if use_dlib and use_mp:
-        from facesynth.data.iris import combine_landmarks
-
-        return combine_landmarks(dlib, mp)
-    return dlib if use_dlib else mp
-
-
-def draw_landmarks(background: np.ndarray, landmarks: np.ndarray) -> np.ndarray:
-    """The driver as dots on a copy of ``background`` (side-by-side view without a video)."""
-    out = background.copy()
-    if np.isfinite(landmarks).all():
-        for x, y in np.round(landmarks).astype(int):
-            cv2.circle(out, (int(x), int(y)), 2, (255, 64, 32), -1, lineType=cv2.LINE_AA)
-    return out
-
-
 # ----------------------------------------------------------------- rendering
 def render_frames(renderer, landmarks: np.ndarray, background: np.ndarray, feather: float = 2.0,
                   latencies: list | None = None) -> Iterator[np.ndarray]:
@@ -177,28 +137,6 @@ def render_frames(renderer, landmarks: np.ndarray, background: np.ndarray, feath
         yield frame
 
 
-def fit_into(image: np.ndarray, size: tuple[int, int]) -> np.ndarray:
-    """``image`` scaled to fit (H, W) with its aspect kept, centred on black."""
-    h, w = size
-    ih, iw = image.shape[:2]
-    if (ih, iw) == (h, w):
-        return image
-    s = min(h / ih, w / iw)
-    nh, nw = max(1, int(round(ih * s))), max(1, int(round(iw * s)))
-    out = np.zeros((h, w, 3), np.uint8)
-    y, x = (h - nh) // 2, (w - nw) // 2
-    out[y:y + nh, x:x + nw] = cv2.resize(image, (nw, nh), interpolation=cv2.INTER_AREA)
-    return out
-
-
-def save_landmarks(path: str, landmarks: np.ndarray) -> None:
-    """Write float32 (T, P, 2) landmarks to ``path`` (.npy) atomically."""
-    out = Path(path)
-    with atomic_path(out) as tmp:
-        with open(tmp, "wb") as fh:
-            np.save(fh, np.asarray(landmarks, np.float32))
-
-
 def latency_summary(latencies: list) -> dict:
     """p50/p90/p99 (ms) of the model call and of the whole frame."""
     if not latencies:
@@ -210,27 +148,65 @@ def latency_summary(latencies: list) -> dict:
     return out
 
 
-def contact_sheet(top: list[np.ndarray], bottom: list[np.ndarray], width: int = 240) -> np.ndarray:
-    """Two rows of thumbnails (uint8 RGB): drivers above renderings."""
-    def thumb(img):
-        h, w = img.shape[:2]
-        return cv2.resize(img, (width, int(round(h * width / w))), interpolation=cv2.INTER_AREA)
-
-    rows = [np.concatenate([thumb(i) for i in r], 1) for r in (top, bottom)]
-    return np.concatenate(rows, 0)
-
-
-def run(args: argparse.Namespace) -> int:
-    from tqdm.auto import tqdm
-
-    from facesynth.retarget import RETARGET_SCHEMES
-    from facesynth.runtime.filters import smooth_landmarks
-    from facesynth.runtime.reenact import Avatar, Reenactor, clip_video, driver_neutral_of, reenact_frames
-    from facesynth.runtime.renderer import Renderer
-
+# ------------------------------------------------------------------ checks
+def check_options(args: argparse.Namespace) -> list[str]:
+    """The numeric options and every output path, before any file is read; returns the outputs."""
+    if args.fps is not None and not 0 < args.fps < 1e4:
+        raise FacesynthError(f"--fps: expected a frame rate > 0 (frames per second), got {args.fps:g}")
+    if args.max_frames is not None and args.max_frames < 1:
+        raise FacesynthError(f"--max-frames: expected a number of frames >= 1, got {args.max_frames}")
     if args.save_landmarks and Path(args.save_landmarks).suffix != ".npy":
         raise FacesynthError(f"--save-landmarks: expected a .npy path, got {args.save_landmarks}")
-    check_writable(args.out)  # before any decoding or rendering
+    if args.contact_sheet and not cv2.haveImageWriter(str(args.contact_sheet)):
+        raise FacesynthError(f"--contact-sheet: no image format for {args.contact_sheet} (use .png or .jpg)")
+    outputs = [p for p in (args.out, args.contact_sheet, args.save_landmarks) if p]
+    for path in outputs:
+        check_writable(path)
+    if len({os.path.realpath(p) for p in outputs}) < len(outputs):
+        raise FacesynthError(f"--out, --contact-sheet and --save-landmarks name the same file: {' '.join(outputs)}")
+    return outputs
+
+
+def check_faces(landmarks: np.ndarray, where: str, max_frames: int | None) -> None:
+    """FacesynthError naming ``where`` when the driver has no frame, or no frame with a face."""
+    if not len(landmarks):
+        raise FacesynthError(f"{where}: holds no frames (0 landmark rows), nothing to render")
+    if not np.isfinite(landmarks).all(axis=(1, 2)).any():
+        rows = f"the first {len(landmarks)} rows (--max-frames)" if max_frames else f"all {len(landmarks)} rows"
+        raise FacesynthError(f"{where}: no frame has a face ({rows} are NaN), nothing to render")
+
+
+def detect_with_progress(frames: list[np.ndarray], scheme: str, where: str, enabled: bool) -> np.ndarray:
+    """:func:`facesynth.runtime.video.detect_video_landmarks` with a progress bar and a stage
+    line (both off under --quiet); FacesynthError naming ``where`` when no frame has a face."""
+    passes = 2 if scheme == "ibug68+iris" else 1
+    with stage("landmark detection") as st, bar(total=passes * len(frames), unit="frame", desc="landmarks",
+                                                  enabled=enabled) as b:
+        landmarks = detect_video_landmarks(frames, scheme, on_frame=lambda i, source: b.update(1))
+        found = int(np.isfinite(landmarks).all(axis=(1, 2)).sum())
+        st.set(f"{found} of {len(frames)} frames of {where} with a face")
+    if not found:
+        raise FacesynthError(f"{where}: no face found in any of its {len(frames)} frames, nothing to render")
+    return landmarks
+
+
+# ------------------------------------------------------------------ command
+def run(args: argparse.Namespace) -> int:
+    from facesynth.data.readers import ingest_video, load_landmarks
+    from facesynth.retarget import RETARGET_SCHEMES
+    from facesynth.runtime.filters import smooth_landmarks
+    from facesynth.runtime.reenact import Avatar, Reenactor, driver_neutral_of, reenact_frames
+    from facesynth.runtime.renderer import Renderer
+
+    outputs = check_options(args)  # before any decoding or rendering
+    meta_fps = driver_video = None
+    inputs = [args.model, args.background, args.video, args.landmarks, args.driver_video]
+    if args.landmarks and Path(args.landmarks).is_dir():  # an ingest folder: its meta.json names the video and rate
+        folder_video, meta_fps = ingest_video(args.landmarks)
+        inputs += [Path(args.landmarks, "landmarks.npy"), Path(args.landmarks, "meta.json"), folder_video]
+        driver_video = folder_video if args.side_by_side else None
+    driver_video = args.driver_video or driver_video
+    refuse_overwriting_inputs(outputs, inputs)
     renderer = Renderer(args.model, threads=args.threads)
     scheme = renderer.scheme.name
     avatar = Avatar(renderer.metadata, args.model)
@@ -244,25 +220,22 @@ def run(args: argparse.Namespace) -> int:
                         "an older export" if scheme in RETARGET_SCHEMES else f"retargeting does not take {scheme} landmarks")
     if args.motion == "relative":
         avatar.require_neutral()
-    driver_frames = None
+    driver_frames = video_fps = None
     if args.video:
         driver_frames, video_fps = read_video(args.video, args.max_frames)
-        landmarks = detect_video_landmarks(driver_frames, scheme)
+        landmarks = detect_with_progress(driver_frames, scheme, args.video, not args.no_progress)
     else:
-        from facesynth.data.readers import load_landmarks
-
-        video_fps = None
         landmarks = load_landmarks(args.landmarks, scheme=scheme)  # mediapipe478 -> ibug68 is mapped; the reverse is an error
         if args.max_frames:
             landmarks = landmarks[: args.max_frames]
-        driver_video = args.driver_video or (clip_video(args.landmarks) if args.side_by_side else None)
+        check_faces(landmarks, args.landmarks, args.max_frames)
         if driver_video:
             driver_frames, video_fps = read_video(driver_video, len(landmarks))
             if len(driver_frames) < len(landmarks):
                 raise FacesynthError(f"{driver_video}: {len(driver_frames)} frames for {len(landmarks)} landmark rows")
-    fps = float(args.fps or video_fps or 30.0)
-    if not fps > 0:
-        raise FacesynthError(f"--fps must be > 0, got {fps}")
+    fps = float(args.fps or meta_fps or video_fps or 30.0)
+    if not (args.fps or meta_fps or video_fps):
+        log.info("%s records no frame rate: %g fps (--fps sets it)", args.video or args.landmarks, fps)
     if args.smooth:
         landmarks = smooth_landmarks(landmarks, fps, args.min_cutoff, args.beta)
     neutral = None
@@ -279,7 +252,12 @@ def run(args: argparse.Namespace) -> int:
     else:
         background = load_background(None, parse_size(args.size) if args.size else default_size(landmarks))
     h, w = background.shape[:2]
-    check_in_frame(landmarks, (w, h), args.landmarks or "landmarks")  # before any rendering
+    # before any rendering; the driver's points are in its own frame, when known
+    driver_size = (w, h) if driver_frames is None else driver_frames[0].shape[1::-1]
+    check_in_frame(landmarks, driver_size, args.landmarks or args.video)
+    # without a driver video, its dots are drawn in its own frame (not on the avatar's face)
+    dots_on = background if args.motion == "absolute" or driver_frames is not None else \
+        load_background(None, default_size(landmarks))
     out_w = 2 * w if args.side_by_side else w
     n = len(landmarks)
     latencies: list = []
@@ -288,12 +266,11 @@ def run(args: argparse.Namespace) -> int:
     sheet_top, sheet_bottom = [], []
     out = Path(args.out)
     t_start = time.perf_counter()
-    with atomic_path(out) as tmp:
-        writer = cv2.VideoWriter(str(tmp), cv2.VideoWriter_fourcc(*"mp4v"), fps, (out_w, h))
-        if not writer.isOpened():
-            raise FacesynthError(f"{out}: OpenCV cannot write an mp4v video here")
+    with contextlib.ExitStack() as written:  # every output is renamed into place only once all are written
+        tmp = written.enter_context(atomic_path(out))
+        writer = open_writer(tmp, fps, (out_w, h), out)
         try:
-            bar = tqdm(total=n, unit="frame", desc="app", disable=args.no_progress or getattr(args, "quiet", False))
+            progress = bar(total=n, unit="frame", desc="app", enabled=not args.no_progress)
             reenactor.background = background
             if args.motion == "relative":
                 frames = reenact_frames(reenactor, landmarks, rendered, latencies)
@@ -304,19 +281,24 @@ def run(args: argparse.Namespace) -> int:
                 if driver_frames is not None:
                     left = fit_into(driver_frames[i], (h, w))
                 else:
-                    left = draw_landmarks(background, landmarks[i])
+                    left = fit_into(draw_landmarks(dots_on, landmarks[i]), (h, w))
                 shown = np.concatenate([left, frame], 1) if args.side_by_side else frame
                 writer.write(cv2.cvtColor(shown, cv2.COLOR_RGB2BGR))
                 if i in sheet_idx:
                     sheet_top.append(left)
                     sheet_bottom.append(frame)
-                bar.update(1)
-            bar.close()
+                progress.update(1)
+            progress.close()
         finally:
             writer.release()
+        check_video(tmp, n, (out_w, h), out)  # the writer reports no errors: a full disk shows here
+        if args.save_landmarks:
+            with open(written.enter_context(atomic_path(args.save_landmarks)), "wb") as fh:
+                np.save(fh, rendered, allow_pickle=False)
+        if args.contact_sheet:
+            write_image(written.enter_context(atomic_path(args.contact_sheet)), contact_sheet(sheet_top, sheet_bottom),
+                        args.contact_sheet)
     wall = time.perf_counter() - t_start
-    if args.save_landmarks:
-        save_landmarks(args.save_landmarks, rendered)
     summary = latency_summary(latencies)
     summary.update({"out": str(out), "size": [out_w, h], "fps": fps, "wall_s": round(wall, 3),
                     "frames_per_s": round(n / wall, 1) if wall > 0 else None,
@@ -327,12 +309,7 @@ def run(args: argparse.Namespace) -> int:
     if args.save_landmarks:
         summary["landmarks_out"] = str(args.save_landmarks)
     if args.contact_sheet:
-        sheet = contact_sheet(sheet_top, sheet_bottom)
-        sheet_path = Path(args.contact_sheet)
-        with atomic_path(sheet_path) as tmp:
-            if not cv2.imwrite(str(tmp), cv2.cvtColor(sheet, cv2.COLOR_RGB2BGR)):
-                raise FacesynthError(f"{sheet_path}: could not write the contact sheet")
-        summary["contact_sheet"] = str(sheet_path)
+        summary["contact_sheet"] = str(args.contact_sheet)
     if latencies:
         m, f = summary["model_ms"], summary["frame_ms"]
         print(f"{n} frames -> {out} ({out_w}x{h}, {fps:g} fps) in {wall:.1f} s; latency ms p50/p90/p99: "

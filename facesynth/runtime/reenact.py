@@ -15,7 +15,6 @@ that many frames have arrived, from the frames seen so far). Retargeting is
 from __future__ import annotations
 
 import base64
-import os
 import time
 
 import cv2
@@ -156,12 +155,6 @@ def driver_neutral_of(landmarks: np.ndarray, index: int | None = None) -> tuple[
     if not np.isfinite(row).all():
         raise FacesynthError(f"--driver-neutral: driver row {index} has no face (NaN)")
     return row, int(index) % len(lm)
-
-
-def clip_video(path: str | os.PathLike) -> str | None:
-    """A clip folder's ``video.mp4`` (the driver video of ``--landmarks FOLDER``), if present."""
-    p = os.path.join(str(path), "video.mp4")
-    return p if os.path.isdir(str(path)) and os.path.isfile(p) else None
 
 
 def reenact_frames(reenactor: Reenactor, landmarks: np.ndarray, rendered: np.ndarray | None = None,

@@ -1,0 +1,189 @@
+"""Video input and output of ``facesynth app``: the driver's frames and landmarks, the
+side-by-side and contact-sheet pictures, and the check that a written video reopens whole.
+
+Frames are uint8 RGB (H, W, 3) here; OpenCV's BGR stays inside these functions.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import sys
+from pathlib import Path
+from typing import Callable
+
+import cv2
+import numpy as np
+
+from facesynth.errors import DiskFullError, FacesynthError, MissingExtraError
+
+LOW_SPACE = 1 << 20  # bytes free below which a video that does not reopen is put down to a full disk
+
+
+@contextlib.contextmanager
+def ffmpeg_silenced():
+    """Silence file descriptor 2 while OpenCV opens a file: FFmpeg prints its own complaints
+    about a broken one (e.g. ``moov atom not found``) there, and the caller reports the
+    problem in one line instead."""
+    sys.stderr.flush()
+    saved = os.dup(2)
+    try:
+        with open(os.devnull, "w") as null:
+            os.dup2(null.fileno(), 2)
+        yield
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
+
+
+def read_video(path: str | os.PathLike, max_frames: int | None = None) -> tuple[list[np.ndarray], float | None]:
+    """All frames (uint8 RGB (H, W, 3)) of a video, at most ``max_frames``, and its frame
+    rate (None when the file records none)."""
+    with ffmpeg_silenced():
+        cap = cv2.VideoCapture(str(path))
+    if not cap.isOpened():
+        raise FacesynthError(f"{path}: not a readable video")
+    fps = cap.get(cv2.CAP_PROP_FPS)
+    frames = []
+    while max_frames is None or len(frames) < max_frames:
+        ok, bgr = cap.read()
+        if not ok:
+            break
+        frames.append(cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB))
+    cap.release()
+    if not frames:
+        raise FacesynthError(f"{path}: no frames decoded")
+    return frames, float(fps) if 0 < fps < 1e4 else None
+
+
+def landmarker_passes(scheme: str) -> tuple[bool, bool]:
+    """(dlib, MediaPipe): the landmarkers a model in ``scheme`` needs (each checked before any
+    frame: a missing extra is a one-line error): dlib (the ``ingest`` extra) for ``ibug68``,
+    MediaPipe (the ``mediapipe`` extra) for ``mediapipe478``, both for ``ibug68+iris``."""
+    if scheme not in ("ibug68", "mediapipe478", "ibug68+iris"):
+        raise FacesynthError(f"--video: no landmarker for a model in scheme {scheme!r}; give --landmarks")
+    use_dlib, use_mp = scheme != "mediapipe478", scheme != "ibug68"
+    if use_dlib:
+        try:
+            from facesynth.data import detect
+        except ModuleNotFoundError as exc:
+            raise MissingExtraError("ingest", exc.name or "facesynth.data.detect") from None
+        detect.check_extra()
+    if use_mp:
+        from facesynth.data import detect_mediapipe
+
+        detect_mediapipe.check_extra()
+    return use_dlib, use_mp
+
+
+def detect_video_landmarks(frames: list[np.ndarray], scheme: str = "ibug68",
+                           on_frame: Callable[[int, str], None] | None = None) -> np.ndarray:
+    """Landmarks (T, P, 2) of driver frames in the model's ``scheme``; NaN rows where no face
+    (landmarkers: :func:`landmarker_passes`; dlib's 68 points and MediaPipe's irises for
+    ``ibug68+iris``). ``on_frame(index, source)`` is called after each frame of each pass."""
+    use_dlib, use_mp = landmarker_passes(scheme)
+    dlib = mp = None
+    if use_dlib:
+        from facesynth.data import detect
+
+        dlib = np.asarray(detect.detect_landmarks(frames, on_frame=on_frame).landmarks, np.float32)
+    if use_mp:
+        from facesynth.data import detect_mediapipe
+
+        mp = np.asarray(detect_mediapipe.detect_landmarks_mediapipe(frames, on_frame=on_frame).landmarks, np.float32)
+    if use_dlib and use_mp:
+        from facesynth.data.iris import combine_landmarks
+
+        return combine_landmarks(dlib, mp)
+    return dlib if use_dlib else mp
+
+
+def draw_landmarks(background: np.ndarray, landmarks: np.ndarray) -> np.ndarray:
+    """The driver as dots (P, 2) on a copy of ``background`` (side-by-side view without a video)."""
+    out = background.copy()
+    if np.isfinite(landmarks).all():
+        for x, y in np.round(landmarks).astype(int):
+            cv2.circle(out, (int(x), int(y)), 2, (255, 64, 32), -1, lineType=cv2.LINE_AA)
+    return out
+
+
+def fit_into(image: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """``image`` scaled to fit (H, W) with its aspect kept, centred on black."""
+    h, w = size
+    ih, iw = image.shape[:2]
+    if (ih, iw) == (h, w):
+        return image
+    s = min(h / ih, w / iw)
+    nh, nw = max(1, int(round(ih * s))), max(1, int(round(iw * s)))
+    out = np.zeros((h, w, 3), np.uint8)
+    y, x = (h - nh) // 2, (w - nw) // 2
+    out[y:y + nh, x:x + nw] = cv2.resize(image, (nw, nh), interpolation=cv2.INTER_AREA)
+    return out
+
+
+def contact_sheet(top: list[np.ndarray], bottom: list[np.ndarray], width: int = 240) -> np.ndarray:
+    """Two rows of thumbnails (uint8 RGB): drivers above renderings."""
+    def thumb(img):
+        h, w = img.shape[:2]
+        return cv2.resize(img, (width, int(round(h * width / w))), interpolation=cv2.INTER_AREA)
+
+    rows = [np.concatenate([thumb(i) for i in r], 1) for r in (top, bottom)]
+    return np.concatenate(rows, 0)
+
+
+def open_writer(tmp: Path, fps: float, size: tuple[int, int], name: str | os.PathLike) -> cv2.VideoWriter:
+    """An mp4v ``cv2.VideoWriter`` of (W, H) ``size`` on ``tmp``; FacesynthError naming ``name``."""
+    writer = cv2.VideoWriter(str(tmp), cv2.VideoWriter_fourcc(*"mp4v"), fps, size)
+    if not writer.isOpened():
+        raise FacesynthError(f"{name}: OpenCV cannot write an mp4v video here")
+    return writer
+
+
+def write_image(tmp: Path, rgb: np.ndarray, name: str | os.PathLike) -> None:
+    """uint8 RGB ``rgb`` to ``tmp`` (format by extension), checked by reading it back."""
+    if not cv2.imwrite(str(tmp), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR)) or cv2.imread(str(tmp)) is None:
+        free = free_bytes(tmp.parent)
+        if free is not None and free < LOW_SPACE:
+            raise DiskFullError(name)
+        raise FacesynthError(f"{name}: could not write the image")
+
+
+def free_bytes(path: str | os.PathLike) -> int | None:
+    """Bytes free to an unprivileged user on the file system holding ``path`` (None if unknown)."""
+    try:
+        st = os.statvfs(path)
+    except OSError:
+        return None
+    return st.f_bavail * st.f_frsize
+
+
+def check_video(path: str | os.PathLike, n_frames: int, size: tuple[int, int], name: str | os.PathLike) -> None:
+    """Reopen the video just written at ``path`` and check it holds ``n_frames`` frames of
+    (W, H) ``size`` and that its last frame decodes: ``cv2.VideoWriter`` reports no write
+    errors, so a full disk would otherwise leave a file without its index that plays nothing.
+
+    Raises :class:`DiskFullError` (naming ``name``) when the file system is (nearly) full,
+    FacesynthError naming ``name`` and what was found otherwise.
+    """
+    with ffmpeg_silenced():
+        cap = cv2.VideoCapture(str(path))
+    try:
+        opened = cap.isOpened()
+        found = int(cap.get(cv2.CAP_PROP_FRAME_COUNT)) if opened else 0
+        got = (int(cap.get(cv2.CAP_PROP_FRAME_WIDTH)), int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT))) if opened else (0, 0)
+        last = False
+        if found == n_frames and n_frames > 0:
+            cap.set(cv2.CAP_PROP_POS_FRAMES, n_frames - 1)
+            last = cap.read()[0]
+    finally:
+        cap.release()
+    if found == n_frames and got == tuple(size) and last:
+        return
+    free = free_bytes(Path(path).parent)
+    if free is not None and free < LOW_SPACE:
+        raise DiskFullError(name)
+    what = f"{found} frames of {got[0]}x{got[1]}" if opened else "nothing readable"
+    if opened and found == n_frames and got == tuple(size):
+        what += " whose last frame does not decode"
+    raise FacesynthError(f"{name}: the video written does not reopen as {n_frames} frames of {size[0]}x{size[1]} "
+                         f"(found {what}); it was not kept")
