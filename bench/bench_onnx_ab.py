@@ -33,6 +33,29 @@ def _session(path: str) -> ort.InferenceSession:
     return ort.InferenceSession(path, so, providers=["CPUExecutionProvider"])
 
 
+def interleaved_times(sessions, lm: np.ndarray, rounds: int, reps: int) -> tuple[list, list]:
+    """Batch-1 wall and thread-CPU seconds per session, (rounds, reps) each: rounds of ``reps``
+    runs alternate between the sessions after 50 warm-up runs each."""
+    name = sessions[0].get_inputs()[0].name
+    for s in sessions:  # warm-up
+        for i in range(50):
+            s.run(None, {name: lm[i % len(lm):i % len(lm) + 1]})
+    wall = [[] for _ in sessions]
+    cpu = [[] for _ in sessions]
+    for _ in range(rounds):
+        for j, s in enumerate(sessions):
+            w, c = [], []
+            for i in range(reps):
+                k = (i * 7) % len(lm)
+                t0, c0 = time.perf_counter(), time.thread_time()
+                s.run(None, {name: lm[k:k + 1]})
+                c.append(time.thread_time() - c0)
+                w.append(time.perf_counter() - t0)
+            wall[j].append(w)
+            cpu[j].append(c)
+    return wall, cpu
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("models", nargs="+")
@@ -48,22 +71,7 @@ def main() -> None:
     ref = [sessions[0].run(None, {name: lm[i:i + 8]}) for i in range(0, len(lm), 8)]
     same = [all(all(np.array_equal(a, b) for a, b in zip(r, s.run(None, {name: lm[i * 8:i * 8 + 8]}), strict=True))
                 for i, r in enumerate(ref)) for s in sessions]
-    for s in sessions:  # warm-up
-        for i in range(50):
-            s.run(None, {name: lm[i % len(lm):i % len(lm) + 1]})
-    wall = [[] for _ in sessions]
-    cpu = [[] for _ in sessions]
-    for _ in range(args.rounds):
-        for j, s in enumerate(sessions):
-            w, c = [], []
-            for i in range(args.reps):
-                k = (i * 7) % len(lm)
-                t0, c0 = time.perf_counter(), time.thread_time()
-                s.run(None, {name: lm[k:k + 1]})
-                c.append(time.thread_time() - c0)
-                w.append(time.perf_counter() - t0)
-            wall[j].append(w)
-            cpu[j].append(c)
+    wall, cpu = interleaved_times(sessions, lm, args.rounds, args.reps)
     out = {"bench": "onnx_ab", "loadavg_at_start": load_start, "loadavg_at_end": list(os.getloadavg()),
            "frames": int(len(lm)), "rounds": args.rounds, "reps": args.reps, "models": {}}
     for m, w, c, eq in zip(args.models, wall, cpu, same, strict=True):

@@ -28,6 +28,7 @@ from torch import nn
 
 from facesynth import __version__
 from facesynth.contract import (
+    CODE_LEVELS_KEY,
     OPSET,
     OUTPUT_NAMES,
     SYNTHESIS_FORMAT,
@@ -150,6 +151,8 @@ def export_synthesizer(syn: Synthesizer, path: str | os.PathLike, metadata: dict
     }
     if isinstance(syn.appearance, GlobalAppearance):
         meta["appearance_basis"] = "float32" if syn.appearance.basis is None else "int8"
+        if syn.appearance.basis is not None:  # the runtime recognises saturating codes by it (facesynth.runtime.cpu)
+            meta[CODE_LEVELS_KEY] = syn.appearance.basis.levels
     meta.update(metadata or {})
     example = torch.from_numpy(_example_landmarks(syn))
     save_graph(graph, example, path, SYNTHESIS_INPUT, OUTPUT_NAMES, meta, opset,

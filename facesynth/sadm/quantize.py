@@ -23,7 +23,7 @@ Training of Neural Networks for Efficient Integer-Arithmetic-Only Inference", CV
 
 The cost is two rounding errors of at most half a step each, measured by
 :func:`quantize_synthesizer` as the PSNR of the int8 vs the float texture over the
-training landmarks (recorded in the exported file with the code range,
+training landmarks (recorded in the exported file, with the largest |code| as
 ``appearance_code_levels``, which the runtime reads to recognise older, saturating files).
 """
 
@@ -116,8 +116,8 @@ def quantize_synthesizer(syn: Synthesizer, landmarks: np.ndarray | None = None,
 
     Returns
     -------
-    (Synthesizer, info): info records ``appearance_basis`` ("int8"), ``appearance_basis_bytes``,
-    ``appearance_code_levels`` and, with landmarks, ``quantization_psnr_vs_float_db``: PSNR (peak 1) of the int8 vs the
+    (Synthesizer, info): info records ``appearance_basis`` ("int8"), ``appearance_basis_bytes``
+    and, with landmarks, ``quantization_psnr_vs_float_db``: PSNR (peak 1) of the int8 vs the
     float texture (clipped to [0, 1]) over them.
     """
     app = syn.appearance
@@ -129,8 +129,7 @@ def quantize_synthesizer(syn: Synthesizer, landmarks: np.ndarray | None = None,
     new_app = app.shallow_copy()
     new_app.basis = basis
     out = syn.with_appearance(new_app)
-    info = {"appearance_basis": "int8", "appearance_basis_bytes": int(basis.codes.numel()),
-            "appearance_code_levels": int(levels)}
+    info = {"appearance_basis": "int8", "appearance_basis_bytes": int(basis.codes.numel())}
     if landmarks is not None:
         lm = np.asarray(landmarks, np.float32)
         if lm.ndim != 3 or lm.shape[1:] != (syn.n_points, 2):
