@@ -1,15 +1,19 @@
-"""Hydra callback: after a sweep (``train.py -m``), one comparison table of all jobs
-(``comparison.md``, ``comparison.json``) and its plot beside it (``comparison.png``)."""
+"""Hydra callbacks: the run folder's lock (:class:`RunDirLock`, one ``train.py`` per folder)
+and, after a sweep (``train.py -m``), one comparison table of all jobs (``comparison.md``,
+``comparison.json``) and its plot beside it (``comparison.png``)."""
 
 from __future__ import annotations
 
 import json
+import sys
 from pathlib import Path
 from typing import Any
 
 from hydra.experimental.callback import Callback
 
+from facesynth.errors import FacesynthError
 from facesynth.io import write_json, write_text
+from facesynth.runs.lock import lock_run_dir, release_run_dirs
 
 
 def comparison_table(sweep_dir: str | Path) -> tuple[list[dict], str]:
@@ -75,3 +79,26 @@ class SweepTable(Callback):
             comparison_plot(rows, sweep_dir / "comparison.png")
             write_text(sweep_dir / "comparison.md", md)
             print(f"\ncomparison of {len(rows)} runs -> {sweep_dir / 'comparison.md'} (plot: comparison.png)\n{md}")
+
+
+class RunDirLock(Callback):
+    """Locks the run folder before Hydra writes anything into it (``on_run_start``; a sweep's
+    job folders in ``on_job_start``) and releases it when the run ends. A folder in use by
+    another live ``train.py`` is one line ``error: ...`` and exit status 2."""
+
+    @staticmethod
+    def _lock(run_dir) -> None:
+        try:
+            lock_run_dir(str(run_dir))
+        except FacesynthError as exc:
+            print(f"error: {exc}", file=sys.stderr)
+            sys.exit(2)
+
+    def on_run_start(self, config: Any, **kwargs: Any) -> None:
+        self._lock(config.hydra.run.dir)
+
+    def on_job_start(self, config: Any, **kwargs: Any) -> None:
+        self._lock(config.hydra.runtime.output_dir)
+
+    def on_job_end(self, config: Any, **kwargs: Any) -> None:
+        release_run_dirs()
