@@ -224,6 +224,8 @@ def test_row12_landmarks_from_another_ingest_are_refused(fake_ingest, tmp_path):
 
 
 def test_row13_fewer_landmark_rows_than_frames_warns(fake_ingest, tmp_path, caplog):
+    """An ingest limited by max_frames is not "a shorter clip": no warning; the same rows
+    without that record (landmarks of a shorter clip) are warned about."""
     from facesynth.data.ingest import ingest_video
 
     path, det, _ = fake_ingest
@@ -232,10 +234,16 @@ def test_row13_fewer_landmark_rows_than_frames_warns(fake_ingest, tmp_path, capl
     with caplog.at_level("WARNING"):
         seq = load_sequence(tmp_path / "a")
     assert len(seq) == 4
+    assert [r.getMessage() for r in caplog.records if r.levelname == "WARNING"] == []
+    meta = json.loads((tmp_path / "a" / "meta.json").read_text())
+    assert len(meta["landmarks"]["sha256"]) == 64 and meta["landmarks"]["max_frames"] == 4
+    meta["landmarks"]["max_frames"] = None
+    (tmp_path / "a" / "meta.json").write_text(json.dumps(meta))
+    caplog.clear()
+    with caplog.at_level("WARNING"):
+        assert len(load_sequence(tmp_path / "a")) == 4
     warnings = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
     assert len(warnings) == 1 and "4 landmark rows for 6 video frames" in warnings[0]
-    meta = json.loads((tmp_path / "a" / "meta.json").read_text())
-    assert len(meta["landmarks"]["sha256"]) == 64
 
 
 def test_row8_read_only_folder_is_refused_before_any_work(fake_ingest, tmp_path, monkeypatch):

@@ -205,7 +205,10 @@ def _read_ingest_folder(path: Path) -> FaceSequence:
         meta["source_sha256"] = video["sha256"]
     lm, where = _np_load(path / "landmarks.npy"), str(path / "landmarks.npy")
     _check_ingest_pair(path, lm, meta)
-    return FaceSequence.from_arrays(lm, frames, where=where, name=path.name, fps=fps, meta=meta, scheme=stored_scheme(meta, lm, where))
+    info = meta.get("landmarks") if isinstance(meta.get("landmarks"), dict) else {}
+    limited = isinstance(info.get("max_frames"), int) and len(lm) == info["max_frames"]  # ingest --max-frames N
+    return FaceSequence.from_arrays(lm, frames, where=where, name=path.name, fps=fps, meta=meta,
+                                    scheme=stored_scheme(meta, lm, where), first_rows_only=limited)
 
 
 def _read_pts_folder(path: Path, pts: list[Path]) -> FaceSequence:
