@@ -138,6 +138,32 @@ def test_reenactor_needs_no_look_ahead(avatar, shared_clip_dir):
     assert frame.shape == live.background.shape and frame.dtype == np.uint8
 
 
+def test_full_frame_moves_the_avatars_own_head(avatar):
+    """The avatar's frame is warped with the face: at its own neutral the output is the still
+    frame's composite; with the neutral moved by (12, -8) px the hair and forehead around the
+    face are the still frame's moved by the same (no second face left behind)."""
+    import cv2
+
+    from facesynth.runtime import Reenactor
+    from facesynth.runtime.renderer import read_metadata
+
+    path, *_ = avatar
+    n = np.asarray(read_metadata(path)["avatar_neutral"], np.float32)
+    full, still = Reenactor(path, motion="absolute"), Reenactor(path, motion="absolute", full_frame=False)
+    assert full.full_frame and not still.full_frame
+    a, b = full.step(n)[0], still.step(n)[0]
+    assert np.abs(a.astype(int) - b).max() <= 1
+    moved = full.step(n + np.float32([12, -8]))[0]
+    h, w = moved.shape[:2]
+    hull = np.zeros((h, w), np.uint8)
+    cv2.fillConvexPoly(hull, cv2.convexHull(np.round(n + [12, -8]).astype(np.int32)), 1)
+    band = (cv2.dilate(hull, np.ones((31, 31), np.uint8)) > 0) & (cv2.dilate(hull, np.ones((9, 9), np.uint8)) == 0)
+    band[int(n[0, 1]) - 8:] = False  # above the ears: the neck follows the head only in part
+    shifted = np.roll(full.avatar.background, (-8, 12), axis=(0, 1))
+    assert band.sum() > 2000
+    assert np.abs(moved.astype(int) - shifted)[band].max() <= 2
+
+
 def test_app_writes_the_rendered_landmarks(avatar, shared_clip_dir, tmp_path):
     path, *_ = avatar
     clip = shared_clip_dir("lp_d13")

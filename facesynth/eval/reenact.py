@@ -73,7 +73,8 @@ def drive(model_path, driver: np.ndarray, motion: str = "relative", neutral: np.
         cov[i] = (placed_mask(masks[0, 0], place[0], sz) & hull).sum() / max(1, hull.sum())
         if i in sheet_rows:
             crop = np.ascontiguousarray(crops[0].transpose(1, 2, 0))
-            shown[i] = blend_face(crop, masks[0, 0], place[0], re.background, re.feather, re.match_colour)
+            bg = re.frame_warp(a) if re.full_frame else re.background
+            shown[i] = blend_face(crop, masks[0, 0], place[0], bg, re.feather, re.match_colour)
     return {"landmarks": out_lm, "coverage": cov, "frames": shown}
 
 
@@ -104,8 +105,8 @@ def self_driving_psnr(model_path, landmarks: np.ndarray, frames, neutral: np.nda
     """Frame-level PSNR (dB, over the face hull) of held-out frames of the avatar's own clip
     driven by their own landmarks, relative vs absolute motion; ``frames`` yields the real
     uint8 RGB frames of the rows of ``landmarks``; ``neutral`` the driver's neutral."""
-    rel = Reenactor(model_path, neutral, "relative", match_colour=False)
-    ab = Reenactor(model_path, None, "absolute", match_colour=False)
+    rel = Reenactor(model_path, neutral, "relative", match_colour=False, full_frame=False)  # into the real frame
+    ab = Reenactor(model_path, None, "absolute", match_colour=False, full_frame=False)
     scores = {"relative": [], "absolute": []}
     for lm, real in zip(landmarks, frames, strict=False):
         hull = hull_mask(lm, real.shape[:2], erode=0)

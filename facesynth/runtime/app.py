@@ -241,10 +241,13 @@ def run(args: argparse.Namespace) -> int:
     neutral = None
     if args.motion == "relative" or args.driver_neutral is not None:
         neutral, neutral_row = driver_neutral_of(landmarks, args.driver_neutral)
-    reenactor = Reenactor(renderer, neutral, args.motion, feather=args.feather, match_colour=not args.no_colour_match)
+    # the avatar's own frame, warped so that its whole head follows the face (either motion)
+    full_frame = not args.background and avatar.neutral is not None and avatar.background is not None
+    reenactor = Reenactor(renderer, neutral, args.motion, feather=args.feather, match_colour=not args.no_colour_match,
+                          full_frame=full_frame)
     if args.background:
         background = load_background(args.background, (0, 0))
-    elif avatar.background is not None and args.motion == "relative":
+    elif full_frame:
         background = avatar.background
     elif driver_frames is not None and not args.size:
         h, w = driver_frames[0].shape[:2]
@@ -272,7 +275,7 @@ def run(args: argparse.Namespace) -> int:
         try:
             progress = bar(total=n, unit="frame", desc="app", enabled=not args.no_progress)
             reenactor.background = background
-            if args.motion == "relative":
+            if args.motion == "relative" or full_frame:
                 frames = reenact_frames(reenactor, landmarks, rendered, latencies)
             else:  # the driver's landmarks as they are, composited as before retargeting existed
                 rendered[:] = landmarks

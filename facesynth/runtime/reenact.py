@@ -9,7 +9,9 @@ landmarks, frame by frame (no look-ahead), into the avatar's own frame.
 The driver's neutral is given (``driver_neutral``), or taken from the first
 ``neutral_frames`` frames (ERI's rule, :func:`facesynth.neutral.select_neutral`; before
 that many frames have arrived, from the frames seen so far). Retargeting is
-:class:`facesynth.retarget.Retargeter`; compositing :func:`facesynth.runtime.blend.blend_face`.
+:class:`facesynth.retarget.Retargeter`; the avatar's own frame is warped so that its whole
+head follows the face (:class:`facesynth.runtime.fullframe.FrameWarp`), and the rendered
+face is composited into that warped frame (:func:`facesynth.runtime.blend.blend_face`).
 """
 
 from __future__ import annotations
@@ -24,6 +26,7 @@ from facesynth.errors import FacesynthError
 from facesynth.neutral import select_neutral
 from facesynth.retarget import MOTIONS, Retargeter, ShapeSpace, retarget_scheme
 from facesynth.runtime.blend import blend_face
+from facesynth.runtime.fullframe import FrameWarp
 from facesynth.runtime.renderer import Renderer
 
 GREY = 128
@@ -81,11 +84,15 @@ class Reenactor:
     background : uint8 (H, W, 3), optional; default the avatar's own frame from the
         metadata, else grey of the driver's landmark extent
     feather : soft edge in pixels (default: 4% of the face), match_colour : seam colour matching
+    full_frame : warp the avatar's own frame so that the whole head follows the face, and
+        composite into that (default: when no ``background`` is given and the metadata has the
+        avatar's neutral and frame); False pastes the face into the still ``background``
+    warp : the full-frame warp's interpolant, "affine" (default) or "tps" (:class:`FrameWarp`)
     """
 
     def __init__(self, model, driver_neutral=None, motion: str = "relative", neutral_frames: int = NEUTRAL_FRAMES,
                  background: np.ndarray | None = None, feather: float | None = None, match_colour: bool = True,
-                 threads: int = 1):
+                 threads: int = 1, full_frame: bool | None = None, warp: str = "affine"):
         if motion not in MOTIONS:
             raise FacesynthError(f"motion must be one of {MOTIONS}, got {motion!r}")
         if int(neutral_frames) < 1:
@@ -104,6 +111,14 @@ class Reenactor:
         if driver_neutral is not None:
             self._set_neutral(self.renderer.validate(driver_neutral)[0])
         self.background = background if background is not None else self.avatar.background
+        own = self.avatar.neutral is not None and self.avatar.background is not None
+        if full_frame is None:
+            full_frame = background is None and own
+        if full_frame and not own:
+            raise FacesynthError(f"{self.avatar.where}: a full-frame warp needs the avatar's neutral and frame in the "
+                                 "metadata (re-export the model)")
+        self.full_frame = bool(full_frame)
+        self.frame_warp = FrameWarp(self.avatar.background, self.avatar.neutral, warp) if self.full_frame else None
 
     def _set_neutral(self, neutral: np.ndarray) -> None:
         self.driver_neutral = np.asarray(neutral, np.float64)
@@ -132,7 +147,7 @@ class Reenactor:
         t0 = time.perf_counter()
         crops, masks, placements = self.renderer.render(avatar_lm[None])
         self.last_model_s = time.perf_counter() - t0
-        bg = self.background
+        bg = self.frame_warp(avatar_lm) if self.full_frame else self.background
         if bg is None:
             w, h = (int(np.ceil(v)) + 32 for v in avatar_lm.max(0))
             bg = self.background = np.full((h, w, 3), GREY, np.uint8)

@@ -1,0 +1,241 @@
+"""The whole avatar frame follows the head: a landmark-driven warp of the avatar's neutral
+frame (numpy + OpenCV, no torch), into which the synthesised face is then composited.
+
+Control points, all placed on the avatar's neutral face (its iBUG-68 view; :func:`head_points`):
+
+* the face's 68 landmarks, which go where the avatar's landmarks of the frame are;
+* a ring round the head (ears, over the hair), neck points below the jaw and an outer
+  ring, in the face's own units (origin between the eyes, unit the outer-eye-corner
+  distance, the face's axes);
+* anchors along the frame border.
+
+Each point but the landmarks follows a share ``w`` of the head's motion ``S`` (it goes to
+``p + w (S(p) - p)``): ``S`` is the similarity fitted from the neutral's eye corners, top of
+the nose bridge and top jaw points (by the ears) to the frame's, and ``w`` is 1 on the
+head's ring, falls off linearly outside it, more so below the chin, and is 0 at the
+shoulders and on the frame's border away from the head (:func:`motion_weight`): the border
+stays still, but where the head reaches it (hair cut by the frame's top) it moves with the
+head, and what comes in from outside the frame is its edge, replicated. Ring points well
+outside the frame, or on its border band, are dropped, on the neutral: the triangulation
+is fixed per avatar.
+
+Two interpolants of the control points' motion (``method``):
+
+* ``"affine"``: piecewise affine on the Delaunay triangulation of the control points in
+  the neutral frame. Each output pixel takes the affine map (output -> neutral pixels) of
+  the warped triangle covering it; the triangles are drawn from the still ones (border)
+  to the face, so where warped triangles overlap (a fold) the face's side wins, and a
+  pixel no warped triangle covers (a fold's gap) keeps its own neutral pixel. Never a
+  hole: every pixel reads some map.
+* ``"tps"``: a thin-plate spline from the warped control points back to the neutral ones
+  (so the inverse map is evaluated directly), on a grid of one node per ``TPS_STEP``
+  pixels, bilinearly upsampled; smooth, but its bending can overshoot between control
+  points that move differently (eyelids under still brows).
+
+The inverse map is sampled with ``cv2.remap`` (bilinear, border replicated).
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+from scipy.spatial import Delaunay
+
+from facesynth.errors import FacesynthError
+from facesynth.faps import face_axes
+from facesynth.geometry import apply_affine, similarity_fit
+from facesynth.landmarks import ibug68_view, inter_ocular
+
+METHODS = ("affine", "tps")
+# (x, down) in face units (origin between the eyes, unit the outer-eye-corner distance)
+HEAD_CENTRE, HEAD_AXES = (0.0, 0.1), (1.15, 1.5)  # an ellipse round the head: ears, hair
+HEAD_RING_DEG = np.arange(160.0, 381.0, 20.0)  # its points from one ear over the top of the head to the other
+OUTER_RING_DEG = np.arange(0.0, 360.0, 30.0)
+OUTER_SCALE = 1.6  # a ring at 1.6 x the head's ellipse, at part of its motion
+FALLOFF = 2.2  # the head's motion falls off linearly from its ellipse (1) to 2.2 x it (0)
+CHIN, SHOULDERS = 1.5, 3.0  # below the chin it falls off further, to nothing at the shoulders
+NECK = ((-0.6, 1.6), (0.6, 1.6), (0.0, 2.05))
+BORDER_STEPS = 8  # anchors per frame side (corners included)
+OUTSIDE = 0.25  # ring points further outside the frame than this share of its size are dropped
+INSIDE = 0.02  # and so are those closer to the border than this, inside (border anchors are there)
+# the head's motion: the similarity fitted on the eye corners, the top of the nose bridge and
+# the jaw's top points by the ears (the nose tip and the lower jaw turn ahead of the skull)
+HEAD_POINTS = [0, 1, 15, 16, 27, 36, 39, 42, 45]
+TPS_STEP = 8
+TPS_SMOOTH = 1e-6  # relative regularisation of the spline (coincident control points)
+
+
+def face_frame(face68: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+    """Origin (between the eyes), axes (2, 2) rows (x, down) and unit (outer-eye-corner
+    distance, pixels) of a (68, 2) face."""
+    f = np.asarray(face68, np.float64)
+    return f[36:48].mean(0), face_axes(f), float(inter_ocular(f))
+
+
+def motion_weight(face_xy: np.ndarray) -> np.ndarray:
+    """(K,) share of the head's motion that points at (K, 2) face-unit (x, down) positions
+    follow: 1 on and inside the head's ellipse, falling off linearly to 0 at ``FALLOFF``
+    times it, and below the chin further, to 0 at the shoulders."""
+    xy = np.asarray(face_xy, np.float64)
+    r = np.hypot(xy[:, 0] / HEAD_AXES[0], (xy[:, 1] - HEAD_CENTRE[1]) / HEAD_AXES[1])
+    w = np.clip(1.0 - (r - 1.0) / (FALLOFF - 1.0), 0.0, 1.0)
+    return w * np.clip(1.0 - (xy[:, 1] - CHIN) / (SHOULDERS - CHIN), 0.0, 1.0)
+
+
+def _ellipse(degrees: np.ndarray, scale: float = 1.0) -> np.ndarray:
+    t = np.deg2rad(degrees)
+    return np.stack([scale * HEAD_AXES[0] * np.cos(t), HEAD_CENTRE[1] + scale * HEAD_AXES[1] * np.sin(t)], 1)
+
+
+def head_points(neutral68: np.ndarray, size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """Control points besides the face's landmarks, on a (68, 2) neutral face in a frame of
+    ``size`` (W, H): points (K, 2) float64 and the share of the head's motion each follows
+    (K,) (:func:`motion_weight`; module docstring)."""
+    w, h = size
+    o, axes, unit = face_frame(neutral68)
+    pts = o + unit * np.concatenate([_ellipse(HEAD_RING_DEG), np.asarray(NECK), _ellipse(OUTER_RING_DEG, OUTER_SCALE)]) @ axes
+    out, near = OUTSIDE * max(w, h), INSIDE * max(w, h)
+    top = np.array([w - 1, h - 1])
+    inner = np.all((pts > near) & (pts < top - near), 1)
+    beyond = np.any((pts < -near) | (pts > top + near), 1) & np.all((pts > -out) & (pts < top + out), 1)
+    keep = inner | beyond  # not on the border band, where the anchors are
+    pts = pts[keep]
+    bx = np.linspace(0, w - 1, BORDER_STEPS + 1)
+    by = np.linspace(0, h - 1, BORDER_STEPS + 1)
+    border = np.concatenate([np.stack([bx, np.zeros_like(bx)], 1), np.stack([bx, np.full_like(bx, h - 1)], 1),
+                             np.stack([np.zeros_like(by[1:-1]), by[1:-1]], 1),
+                             np.stack([np.full_like(by[1:-1], w - 1), by[1:-1]], 1)])
+    pts = np.concatenate([pts, border])
+    return pts, motion_weight((pts - o) @ axes.T / unit)
+
+
+def head_region(face68: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """bool (H, W): the face's landmark hull grown to take in hair and neck (the convex hull
+    of the landmarks, the head ring and the neck points of :func:`head_points` on this face,
+    clipped to the frame)."""
+    w, h = size
+    o, axes, unit = face_frame(face68)
+    pts = np.concatenate([np.asarray(face68, np.float64), o + unit * np.concatenate([_ellipse(HEAD_RING_DEG), NECK]) @ axes])
+    mask = np.zeros((h, w), np.uint8)
+    cv2.fillConvexPoly(mask, cv2.convexHull(np.round(pts * 16).astype(np.int32)), 1, cv2.LINE_8, 4)
+    return mask.astype(bool)
+
+
+class FrameWarp:
+    """Warp an avatar's neutral frame so that its face lands on given landmarks, the head
+    around it following, the frame's border still.
+
+    frame : uint8 (H, W, 3) the avatar's neutral frame; neutral : (P, 2) its landmarks
+    (any registered scheme; the iBUG-68 view is used); method : "affine" (default) or "tps".
+
+    ``__call__(landmarks)``: (P, 2) avatar landmarks in the frame -> uint8 (H, W, 3).
+    """
+
+    def __init__(self, frame: np.ndarray, neutral: np.ndarray, method: str = "affine"):
+        if method not in METHODS:
+            raise FacesynthError(f"full-frame warp: method must be one of {METHODS}, got {method!r}")
+        frame = np.asarray(frame)
+        if frame.ndim != 3 or frame.dtype != np.uint8:
+            raise FacesynthError(f"full-frame warp: expected a uint8 (H, W, 3) frame, got {frame.dtype} {frame.shape}")
+        self.frame, self.method = frame, method
+        h, w = frame.shape[:2]
+        self.size = (w, h)
+        self.neutral68 = ibug68_view(neutral)
+        if not np.isfinite(self.neutral68).all():
+            raise FacesynthError("full-frame warp: the avatar's neutral landmarks are not finite")
+        extra, self.weights = head_points(self.neutral68, self.size)
+        self.src = np.concatenate([self.neutral68, extra])  # (K, 2) control points in the neutral frame
+        self.n_face = len(self.neutral68)
+        tri = Delaunay(self.src).simplices.astype(np.int64)
+        # drawing order: still triangles first, the face's last (folds: the face's side wins)
+        wk = np.concatenate([np.full(self.n_face, 2.0), self.weights])
+        self.triangles = tri[np.argsort(wk[tri].sum(1), kind="stable")]
+        self._grid = np.stack(np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32)), -1)
+
+    def control_points(self, landmarks: np.ndarray) -> np.ndarray:
+        """float64 (K, 2): where the control points go for (P, 2) avatar landmarks."""
+        face = ibug68_view(landmarks)
+        s = similarity_fit(self.neutral68[HEAD_POINTS], face[HEAD_POINTS])
+        extra = self.src[self.n_face:]
+        moved = extra + self.weights[:, None] * (apply_affine(extra, s) - extra)
+        return np.concatenate([face, moved])
+
+    def folds(self, landmarks: np.ndarray) -> int:
+        """Number of triangles whose orientation the warp turns (0: no fold)."""
+        dst = self.control_points(landmarks)
+        return int((np.sign(_signed_area(self.src, self.triangles)) != np.sign(_signed_area(dst, self.triangles))).sum())
+
+    def maps(self, landmarks: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """float32 (H, W) x and y maps: output pixel -> neutral-frame pixel (for ``cv2.remap``)."""
+        dst = self.control_points(landmarks)
+        return self._affine_maps(dst) if self.method == "affine" else self._tps_maps(dst)
+
+    def __call__(self, landmarks: np.ndarray) -> np.ndarray:
+        mx, my = self.maps(landmarks)
+        return cv2.remap(self.frame, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+
+    def _affine_maps(self, dst: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        w, h = self.size
+        tri = self.triangles
+        d = dst[tri]  # (T, 3, 2)
+        a = np.concatenate([d, np.ones((len(tri), 3, 1))], 2)  # (T, 3, 3) rows [x y 1]
+        det = np.linalg.det(a)
+        ok = np.abs(det) > 1e-9
+        m = np.zeros((len(tri), 2, 3))
+        m[:, 0, 0] = m[:, 1, 1] = 1.0  # degenerate triangles cover no pixel: identity
+        # rows [x y 1] @ M^T = src: M^T = A^-1 src
+        m[ok] = np.linalg.solve(a[ok], self.src[tri[ok]]).transpose(0, 2, 1)
+        ident = len(tri)
+        index = np.full((h, w), ident, np.int32)
+        for t in np.flatnonzero(ok):
+            cv2.fillConvexPoly(index, np.round(d[t] * 16).astype(np.int32), int(t), cv2.LINE_8, 4)
+        table = np.concatenate([m, np.array([[[1.0, 0, 0], [0, 1.0, 0]]])]).astype(np.float32)  # (T + 1, 2, 3)
+        g = table[index]  # (H, W, 2, 3)
+        xy = self._grid
+        mx = g[..., 0, 0] * xy[..., 0] + g[..., 0, 1] * xy[..., 1] + g[..., 0, 2]
+        my = g[..., 1, 0] * xy[..., 0] + g[..., 1, 1] * xy[..., 1] + g[..., 1, 2]
+        return mx, my
+
+    def _tps_maps(self, dst: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        w, h = self.size
+        gx = np.arange(0, w - 1 + TPS_STEP, TPS_STEP, dtype=np.float64)
+        gy = np.arange(0, h - 1 + TPS_STEP, TPS_STEP, dtype=np.float64)
+        nodes = np.stack(np.meshgrid(gx, gy), -1).reshape(-1, 2)
+        src = thin_plate(dst, self.src, nodes).reshape(len(gy), len(gx), 2)
+        # node (i, j) sits at pixel (j, i) * step: bilinear between nodes
+        out = cv2.remap(src.astype(np.float32), self._grid[..., 0] / TPS_STEP, self._grid[..., 1] / TPS_STEP,
+                        cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        return np.ascontiguousarray(out[..., 0]), np.ascontiguousarray(out[..., 1])
+
+
+def thin_plate(ctrl: np.ndarray, values: np.ndarray, at: np.ndarray, smooth: float = TPS_SMOOTH) -> np.ndarray:
+    """Thin-plate spline through ``values`` (K, 2) at ``ctrl`` (K, 2), evaluated at ``at``
+    (N, 2) -> (N, 2) (kernel r^2 log r, affine part; ``smooth`` x the mean kernel on the
+    diagonal keeps coincident control points solvable)."""
+    c = np.asarray(ctrl, np.float64)
+    k = len(c)
+    scale = float(np.ptp(c, 0).max()) or 1.0
+    cn, an = c / scale, np.asarray(at, np.float64) / scale
+
+    def kernel(r2):
+        return 0.5 * r2 * np.log(np.where(r2 > 0, r2, 1.0))
+
+    kk = kernel(((cn[:, None] - cn[None]) ** 2).sum(-1))
+    kk += np.eye(k) * smooth * (np.abs(kk).mean() or 1.0)
+    p = np.concatenate([np.ones((k, 1)), cn], 1)
+    a = np.zeros((k + 3, k + 3))
+    a[:k, :k], a[:k, k:], a[k:, :k] = kk, p, p.T
+    rhs = np.zeros((k + 3, 2))
+    rhs[:k] = values
+    coef = np.linalg.solve(a, rhs)
+    ka = kernel(((an[:, None] - cn[None]) ** 2).sum(-1))
+    return ka @ coef[:k] + np.concatenate([np.ones((len(an), 1)), an], 1) @ coef[k:]
+
+
+def _signed_area(points: np.ndarray, tri: np.ndarray) -> np.ndarray:
+    p = points[tri]
+    e1, e2 = p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]
+    return e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]
+
+
+__all__ = ["METHODS", "FrameWarp", "head_points", "head_region", "thin_plate"]

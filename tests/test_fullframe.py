@@ -1,0 +1,119 @@
+"""The full-frame warp (facesynth.runtime.fullframe): identity at the neutral, a rigid head
+motion equals OpenCV's warpAffine on the head, the border stays still, no folds."""
+
+import cv2
+import numpy as np
+import pytest
+
+from facesynth.errors import FacesynthError
+from facesynth.geometry import apply_affine
+from facesynth.runtime.fullframe import FrameWarp, head_points, head_region, thin_plate
+from tests._faces import face_template, smooth_image
+
+SIZE = 320
+
+
+@pytest.fixture(scope="module")
+def scene():
+    """A smooth (320, 320) frame with a 100-px-wide face in its middle."""
+    frame = (smooth_image(SIZE, SIZE, seed=3) * 255).round().astype(np.uint8)
+    face = face_template(width=100.0, cx=160.0, cy=170.0).astype(np.float64)
+    return frame, face
+
+
+def similarity(angle_deg: float, scale: float, shift, centre) -> np.ndarray:
+    a = np.deg2rad(angle_deg)
+    lin = scale * np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
+    c = np.asarray(centre, np.float64)
+    return np.concatenate([lin, (c + np.asarray(shift) - lin @ c)[:, None]], 1)
+
+
+@pytest.mark.parametrize("method", ["affine", "tps"])
+def test_the_neutral_is_the_identity(scene, method):
+    frame, face = scene
+    fw = FrameWarp(frame, face, method)
+    mx, my = fw.maps(face)
+    ys, xs = np.mgrid[0:SIZE, 0:SIZE]
+    np.testing.assert_allclose(mx, xs, atol=1e-3)
+    np.testing.assert_allclose(my, ys, atol=1e-3)
+    assert np.abs(fw(face).astype(int) - frame).max() <= 1
+    assert fw.folds(face) == 0
+
+
+def test_a_rigid_head_motion_is_opencvs_warp_on_the_head(scene):
+    """Landmarks moved by one similarity: inside the head's ring every control point moves by
+    it, so there the output is cv2.warpAffine's (bilinear both)."""
+    frame, face = scene
+    fw = FrameWarp(frame, face)
+    m = similarity(6.0, 1.04, (7.0, -5.0), face.mean(0))
+    out = fw(apply_affine(face, m))
+    ref = cv2.warpAffine(frame, m, (SIZE, SIZE), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    # pixels of the moved face's hull (a region all of whose triangles move rigidly), eroded by 2 px
+    inside = np.zeros((SIZE, SIZE), np.uint8)
+    cv2.fillConvexPoly(inside, cv2.convexHull(np.round(apply_affine(face, m)).astype(np.int32)), 1)
+    inside = cv2.erode(inside, np.ones((5, 5), np.uint8)).astype(bool)
+    assert inside.sum() > 5000
+    assert np.abs(out.astype(int) - ref)[inside].max() <= 1
+
+
+def test_the_border_stays_still_away_from_the_head(scene):
+    frame, face = scene
+    fw = FrameWarp(frame, face)
+    moved = apply_affine(face, similarity(8.0, 0.95, (10.0, 6.0), face.mean(0)))
+    dst = fw.control_points(moved)
+    still = fw.weights == 0
+    assert still.sum() >= 4  # at least the corners
+    np.testing.assert_array_equal(dst[fw.n_face:][still], fw.src[fw.n_face:][still])
+    mx, my = fw.maps(moved)
+    for y, x in ((0, 0), (0, SIZE - 1), (SIZE - 1, 0), (SIZE - 1, SIZE - 1)):
+        assert (mx[y, x], my[y, x]) == pytest.approx((x, y), abs=1e-3)
+    # the weights fall off: 1 on the head's ring, less on the outer ring, 0 at the corners
+    _, w = head_points(face, (SIZE, SIZE))
+    assert w.max() == 1.0 and w.min() == 0.0
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_head_motions_fold_nothing(scene, seed):
+    """Random head motions of a talking head's range (+-12 degrees, +-8 % scale, up to a fifth
+    of the face's width) with a mouth opening: every warped triangle keeps its orientation,
+    and every pixel reads a map inside the neutral frame's reach."""
+    frame, face = scene
+    rng = np.random.default_rng(seed)
+    fw = FrameWarp(frame, face)
+    lm = face.copy()
+    lm[[5, 6, 7, 8, 9, 10, 11] + list(range(55, 60)) + [65, 66, 67], 1] += rng.uniform(0, 15)  # the jaw drops
+    m = similarity(rng.uniform(-12, 12), rng.uniform(0.92, 1.08), rng.uniform(-20, 20, 2), face.mean(0))
+    moved = apply_affine(lm, m)
+    assert fw.folds(moved) == 0
+    mx, my = fw.maps(moved)
+    assert np.isfinite(mx).all() and np.isfinite(my).all()
+
+
+def test_thin_plate_interpolates_and_reproduces_affine_maps(rng):
+    ctrl = rng.uniform(0, 100, (20, 2))
+    m = np.array([[1.1, 0.2, 3.0], [-0.1, 0.9, -2.0]])
+    at = rng.uniform(0, 100, (50, 2))
+    np.testing.assert_allclose(thin_plate(ctrl, apply_affine(ctrl, m), at), apply_affine(at, m), atol=1e-6)
+    vals = rng.normal(0, 5, (20, 2))
+    np.testing.assert_allclose(thin_plate(ctrl, vals, ctrl), vals, atol=5e-3)  # the small regularisation
+
+
+def test_head_region_takes_in_hair_and_neck(scene):
+    _, face = scene
+    region = head_region(face, (SIZE, SIZE))
+    hull = np.zeros((SIZE, SIZE), np.uint8)
+    cv2.fillConvexPoly(hull, cv2.convexHull(np.round(face).astype(np.int32)), 1)
+    assert region[hull > 0].all()
+    assert region.sum() > 2 * hull.sum()
+    top = int(np.floor(face[:, 1].min()))
+    assert region[: top - 20, int(face[:, 0].mean())].any()  # above the brows: hair
+
+
+def test_bad_inputs(scene):
+    frame, face = scene
+    with pytest.raises(FacesynthError, match="method"):
+        FrameWarp(frame, face, "mls")
+    with pytest.raises(FacesynthError, match="uint8"):
+        FrameWarp(frame.astype(np.float32), face)
+    with pytest.raises(FacesynthError, match="not finite"):
+        FrameWarp(frame, np.full((68, 2), np.nan))
