@@ -18,7 +18,7 @@ from _faces import face_sequence_arrays, smooth_image
 from _onnx_models import driving_landmarks, exported, synthetic_synthesizer
 
 from facesynth.cli import main
-from facesynth.errors import FacesynthError
+from facesynth.errors import DiskFullError, FacesynthError
 
 ROOT = Path(__file__).resolve().parents[1]
 SIZE = 180  # the synthetic faces' frame side
@@ -178,46 +178,65 @@ def test_video_landmark_detection_shows_progress_and_respects_quiet(model_path, 
 
 
 # ------------------------------------------------- outputs checked before and after
-class _DroppingWriter:
-    """A cv2.VideoWriter that silently loses every frame after the first, as a full disk
-    does under OpenCV's FFmpeg writer (it reports no error)."""
+def _dropping_writes(monkeypatch):
+    """Every frame after a video's first is silently lost, as under OpenCV's FFmpeg writer
+    on a full disk (it reports no error): the frames are counted, not written."""
+    from facesynth.videofile import VideoOut
 
-    def __init__(self, tmp, fps, size, name):
-        from facesynth.runtime.video import open_writer
+    real = VideoOut.write
 
-        self.real, self.n = open_writer(tmp, fps, size, name), 0
+    def write(self, rgb):
+        if self.frames == 0:
+            real(self, rgb)
+        else:
+            self.frames += 1
 
-    def write(self, bgr):
-        self.n += 1
-        if self.n == 1:
-            self.real.write(bgr)
-
-    def release(self):
-        self.real.release()
+    monkeypatch.setattr(VideoOut, "write", write)
 
 
 @pytest.mark.parametrize("disk_full", [False, True])
 def test_a_video_that_does_not_reopen_whole_is_not_kept(model_path, tmp_path, capsys, monkeypatch, disk_full):
-    import facesynth.runtime.app as app
-    import facesynth.runtime.video as video
+    import facesynth.videofile as videofile
 
     np.save(tmp_path / "lm.npy", driving_landmarks(seed=6, n=5))
     out = tmp_path / "out"
     out.mkdir()
-    monkeypatch.setattr(app, "open_writer", _DroppingWriter)
+    _dropping_writes(monkeypatch)
     if disk_full:
-        monkeypatch.setattr(video, "free_bytes", lambda path: 0)
+        monkeypatch.setattr(videofile, "free_bytes", lambda path: 0)
     assert main(["app", "--model", str(model_path), "--landmarks", str(tmp_path / "lm.npy"), "--no-progress",
-                 "--out", str(out / "o.mp4"), "--save-landmarks", str(out / "l.npy")]) == 2
+                 "--out", str(out / "o.mp4"), "--save-landmarks", str(out / "l.npy"), "--contact-sheet",
+                 str(out / "s.png")]) == 2
     if disk_full:
         _one_error_line(capsys, "no space left on device", str(out / "o.mp4"))
     else:
         _one_error_line(capsys, str(out / "o.mp4"), "does not reopen as 5 frames", "found 1 frames")
-    assert _listing(out) == []  # no video, no landmarks, no temporary file
+    assert _listing(out) == []  # no video, no landmarks, no sheet, no temporary file
+
+
+def test_every_video_writer_checks_what_it_wrote(tmp_path, monkeypatch):
+    # transfer-expression's and transfer3d's videos go through the same check as the app's
+    import facesynth.videofile as videofile
+    from facesynth.eri.render import write_video
+    from facesynth.mesh.preview import PreviewWriter
+
+    frames = _driver_frames(3)
+    assert write_video(tmp_path / "whole.mp4", iter(frames), 25.0) == 3
+    assert len(_read_video(tmp_path / "whole.mp4")[0]) == 3
+    _dropping_writes(monkeypatch)
+    with pytest.raises(FacesynthError, match=r"eri.mp4: the video written does not reopen as 3 frames"):
+        write_video(tmp_path / "eri.mp4", iter(frames), 25.0)
+    monkeypatch.setattr(videofile, "free_bytes", lambda path: 0)
+    preview = PreviewWriter(tmp_path / "mesh.mp4", 25.0)
+    for f in frames:
+        preview.write(f)
+    with pytest.raises(DiskFullError, match=r"no space left on device writing .*mesh.mp4"):
+        preview.close(ok=True)
+    assert _listing(tmp_path) == ["whole.mp4"]
 
 
 def test_check_video_against_opencv(tmp_path):
-    from facesynth.runtime.video import check_video
+    from facesynth.videofile import check_video
 
     frames = _driver_frames(4)
     path = _write_video(tmp_path / "v.mp4", frames, 25.0)

@@ -10,30 +10,18 @@ import cv2
 import numpy as np
 
 from facesynth.errors import FacesynthError
-from facesynth.io import atomic_path, write_bytes
+from facesynth.io import write_bytes
+from facesynth.videofile import atomic_video
 
 
 def write_video(path: str | os.PathLike, frames: Iterable[np.ndarray], fps: float) -> int:
     """Write uint8 RGB (H, W, 3) frames to an MP4 (OpenCV ``mp4v``) atomically; returns the
-    number of frames. The file appears only once every frame is written."""
-    n = 0
-    with atomic_path(path, suffix=".mp4") as tmp:
-        writer = None
-        try:
-            for f in frames:
-                if writer is None:
-                    h, w = f.shape[:2]
-                    writer = cv2.VideoWriter(str(tmp), cv2.VideoWriter_fourcc(*"mp4v"), float(fps), (w, h))
-                    if not writer.isOpened():
-                        raise FacesynthError(f"{path}: OpenCV cannot open an mp4v video writer")
-                writer.write(cv2.cvtColor(np.ascontiguousarray(f), cv2.COLOR_RGB2BGR))
-                n += 1
-        finally:
-            if writer is not None:
-                writer.release()
-        if n == 0:
-            raise FacesynthError(f"{path}: no frames to write")
-    return n
+    number of frames. The file appears only once every frame is written and the video
+    reopens with them all (:func:`facesynth.videofile.atomic_video`)."""
+    with atomic_video(path, fps) as video:
+        for f in frames:
+            video.write(f)
+    return video.frames
 
 
 def face_box(landmarks: np.ndarray, shape: tuple[int, ...], margin: float = 0.35) -> tuple[int, int, int, int]:

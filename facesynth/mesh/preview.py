@@ -11,6 +11,7 @@ import numpy as np
 from facesynth.errors import FacesynthError
 from facesynth.io import atomic_path
 from facesynth.mesh.render import render_frontal, render_posed
+from facesynth.videofile import atomic_video
 
 
 def expression_stats(lm: np.ndarray) -> dict[str, np.ndarray]:
@@ -82,30 +83,32 @@ def panel(frame: np.ndarray | None, V: np.ndarray, F: np.ndarray, R, t, K, size:
 
 
 class PreviewWriter:
-    """Writes rows from :func:`panel` to an .mp4 (OpenCV ``mp4v``), atomically."""
+    """Writes rows from :func:`panel` to an .mp4 (OpenCV ``mp4v``), atomically; the video is
+    reopened and checked before it is kept (:func:`facesynth.videofile.atomic_video`)."""
 
     def __init__(self, path: str | os.PathLike, fps: float):
         self.path, self.fps = path, fps
         self._ctx = None
-        self._vw = None
+        self._video = None
 
     def write(self, row: np.ndarray) -> None:
-        if self._vw is None:
-            self._ctx = atomic_path(self.path)
-            tmp = self._ctx.__enter__()
-            self._vw = cv2.VideoWriter(str(tmp), cv2.VideoWriter_fourcc(*"mp4v"), self.fps, (row.shape[1], row.shape[0]))
-            if not self._vw.isOpened():
-                self._ctx.__exit__(FacesynthError, None, None)
-                raise FacesynthError(f"{self.path}: OpenCV cannot write this video (use a .mp4 or .avi name)")
-        self._vw.write(cv2.cvtColor(row, cv2.COLOR_RGB2BGR))
+        if self._video is None:
+            self._ctx = atomic_video(self.path, self.fps)
+            self._video = self._ctx.__enter__()
+        try:
+            self._video.write(row)
+        except BaseException as exc:
+            self.close(ok=False, exc=exc)
+            raise
 
-    def close(self, ok: bool = True) -> None:
-        if self._vw is not None:
-            self._vw.release()
+    def close(self, ok: bool = True, exc: BaseException | None = None) -> None:
+        if self._video is not None:
+            ctx, self._video = self._ctx, None
             if ok:
-                self._ctx.__exit__(None, None, None)
+                ctx.__exit__(None, None, None)
             else:
-                self._ctx.__exit__(RuntimeError, RuntimeError("aborted"), None)
+                exc = exc or RuntimeError("aborted")
+                ctx.__exit__(type(exc), exc, None)
 
 
 def contact_sheet(rows: list[np.ndarray], labels: list[str], path: str | os.PathLike, tile: int = 300) -> np.ndarray:

@@ -33,15 +33,14 @@ from facesynth.io import atomic_path, check_writable, refuse_overwriting_inputs
 from facesynth.progress import bar, stage
 from facesynth.runtime.checks import check_coordinate_range, check_frame_size, check_in_frame
 from facesynth.runtime.video import (
-    check_video,
     contact_sheet,
     detect_video_landmarks,
     draw_landmarks,
     fit_into,
-    open_writer,
     read_video,
     write_image,
 )
+from facesynth.videofile import atomic_video
 
 log = logging.getLogger(__name__)
 GREY = 128
@@ -270,31 +269,27 @@ def run(args: argparse.Namespace) -> int:
     out = Path(args.out)
     t_start = time.perf_counter()
     with contextlib.ExitStack() as written:  # every output is renamed into place only once all are written
-        tmp = written.enter_context(atomic_path(out))
-        writer = open_writer(tmp, fps, (out_w, h), out)
-        try:
-            progress = bar(total=n, unit="frame", desc="app", enabled=not args.no_progress)
-            reenactor.background = background
-            if args.motion == "relative" or full_frame:
-                frames = reenact_frames(reenactor, landmarks, rendered, latencies)
-            else:  # the driver's landmarks as they are, composited as before retargeting existed
-                rendered[:] = landmarks
-                frames = render_frames(renderer, landmarks, background, 2.0 if args.feather is None else args.feather, latencies)
-            for i, frame in enumerate(frames):
-                if driver_frames is not None:
-                    left = fit_into(driver_frames[i], (h, w))
-                else:
-                    left = fit_into(draw_landmarks(dots_on, landmarks[i]), (h, w))
-                shown = np.concatenate([left, frame], 1) if args.side_by_side else frame
-                writer.write(cv2.cvtColor(shown, cv2.COLOR_RGB2BGR))
-                if i in sheet_idx:
-                    sheet_top.append(left)
-                    sheet_bottom.append(frame)
-                progress.update(1)
-            progress.close()
-        finally:
-            writer.release()
-        check_video(tmp, n, (out_w, h), out)  # the writer reports no errors: a full disk shows here
+        video = written.enter_context(atomic_video(out, fps, (out_w, h)))
+        progress = bar(total=n, unit="frame", desc="app", enabled=not args.no_progress)
+        reenactor.background = background
+        if args.motion == "relative" or full_frame:
+            frames = reenact_frames(reenactor, landmarks, rendered, latencies)
+        else:  # the driver's landmarks as they are, composited as before retargeting existed
+            rendered[:] = landmarks
+            frames = render_frames(renderer, landmarks, background, 2.0 if args.feather is None else args.feather, latencies)
+        for i, frame in enumerate(frames):
+            if driver_frames is not None:
+                left = fit_into(driver_frames[i], (h, w))
+            else:
+                left = fit_into(draw_landmarks(dots_on, landmarks[i]), (h, w))
+            shown = np.concatenate([left, frame], 1) if args.side_by_side else frame
+            video.write(shown)
+            if i in sheet_idx:
+                sheet_top.append(left)
+                sheet_bottom.append(frame)
+            progress.update(1)
+        progress.close()
+        video.finish()  # reopened and checked (a full disk shows here) before any other output is written
         if args.save_landmarks:
             with open(written.enter_context(atomic_path(args.save_landmarks)), "wb") as fh:
                 np.save(fh, rendered, allow_pickle=False)

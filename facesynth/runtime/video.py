@@ -1,39 +1,20 @@
-"""Video input and output of ``facesynth app``: the driver's frames and landmarks, the
-side-by-side and contact-sheet pictures, and the check that a written video reopens whole.
+"""Video input and pictures of ``facesynth app``: the driver's frames and landmarks, the
+side-by-side and contact-sheet pictures (the output video is :mod:`facesynth.videofile`'s).
 
 Frames are uint8 RGB (H, W, 3) here; OpenCV's BGR stays inside these functions.
 """
 
 from __future__ import annotations
 
-import contextlib
 import os
-import sys
 from pathlib import Path
 from typing import Callable
 
 import cv2
 import numpy as np
 
-from facesynth.errors import DiskFullError, FacesynthError, MissingExtraError
-
-LOW_SPACE = 1 << 20  # bytes free below which a video that does not reopen is put down to a full disk
-
-
-@contextlib.contextmanager
-def ffmpeg_silenced():
-    """Silence file descriptor 2 while OpenCV opens a file: FFmpeg prints its own complaints
-    about a broken one (e.g. ``moov atom not found``) there, and the caller reports the
-    problem in one line instead."""
-    sys.stderr.flush()
-    saved = os.dup(2)
-    try:
-        with open(os.devnull, "w") as null:
-            os.dup2(null.fileno(), 2)
-        yield
-    finally:
-        os.dup2(saved, 2)
-        os.close(saved)
+from facesynth.errors import FacesynthError, MissingExtraError
+from facesynth.videofile import ffmpeg_silenced, raise_unless_space
 
 
 def read_video(path: str | os.PathLike, max_frames: int | None = None) -> tuple[list[np.ndarray], float | None]:
@@ -131,59 +112,8 @@ def contact_sheet(top: list[np.ndarray], bottom: list[np.ndarray], width: int = 
     return np.concatenate(rows, 0)
 
 
-def open_writer(tmp: Path, fps: float, size: tuple[int, int], name: str | os.PathLike) -> cv2.VideoWriter:
-    """An mp4v ``cv2.VideoWriter`` of (W, H) ``size`` on ``tmp``; FacesynthError naming ``name``."""
-    writer = cv2.VideoWriter(str(tmp), cv2.VideoWriter_fourcc(*"mp4v"), fps, size)
-    if not writer.isOpened():
-        raise FacesynthError(f"{name}: OpenCV cannot write an mp4v video here")
-    return writer
-
-
 def write_image(tmp: Path, rgb: np.ndarray, name: str | os.PathLike) -> None:
     """uint8 RGB ``rgb`` to ``tmp`` (format by extension), checked by reading it back."""
     if not cv2.imwrite(str(tmp), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR)) or cv2.imread(str(tmp)) is None:
-        free = free_bytes(tmp.parent)
-        if free is not None and free < LOW_SPACE:
-            raise DiskFullError(name)
+        raise_unless_space(tmp, name)
         raise FacesynthError(f"{name}: could not write the image")
-
-
-def free_bytes(path: str | os.PathLike) -> int | None:
-    """Bytes free to an unprivileged user on the file system holding ``path`` (None if unknown)."""
-    try:
-        st = os.statvfs(path)
-    except OSError:
-        return None
-    return st.f_bavail * st.f_frsize
-
-
-def check_video(path: str | os.PathLike, n_frames: int, size: tuple[int, int], name: str | os.PathLike) -> None:
-    """Reopen the video just written at ``path`` and check it holds ``n_frames`` frames of
-    (W, H) ``size`` and that its last frame decodes: ``cv2.VideoWriter`` reports no write
-    errors, so a full disk would otherwise leave a file without its index that plays nothing.
-
-    Raises :class:`DiskFullError` (naming ``name``) when the file system is (nearly) full,
-    FacesynthError naming ``name`` and what was found otherwise.
-    """
-    with ffmpeg_silenced():
-        cap = cv2.VideoCapture(str(path))
-    try:
-        opened = cap.isOpened()
-        found = int(cap.get(cv2.CAP_PROP_FRAME_COUNT)) if opened else 0
-        got = (int(cap.get(cv2.CAP_PROP_FRAME_WIDTH)), int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT))) if opened else (0, 0)
-        last = False
-        if found == n_frames and n_frames > 0:
-            cap.set(cv2.CAP_PROP_POS_FRAMES, n_frames - 1)
-            last = cap.read()[0]
-    finally:
-        cap.release()
-    if found == n_frames and got == tuple(size) and last:
-        return
-    free = free_bytes(Path(path).parent)
-    if free is not None and free < LOW_SPACE:
-        raise DiskFullError(name)
-    what = f"{found} frames of {got[0]}x{got[1]}" if opened else "nothing readable"
-    if opened and found == n_frames and got == tuple(size):
-        what += " whose last frame does not decode"
-    raise FacesynthError(f"{name}: the video written does not reopen as {n_frames} frames of {size[0]}x{size[1]} "
-                         f"(found {what}); it was not kept")
