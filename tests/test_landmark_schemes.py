@@ -255,7 +255,7 @@ def test_scheme_mismatch_errors(tmp_path, rng):
     lm = rng.normal(200, 30, (5, 478, 2)).astype(np.float32)
     with pytest.raises(FacesynthError, match=r"landmarks\.npy: landmarks must have shape \(\.\.\., 68, 2\) .* got \(5, 478, 2\)"):
         load_sequence(_folder(tmp_path, lm, "ibug68", "recorded_68"))  # meta.json and the array disagree
-    with pytest.raises(FacesynthError, match="unknown landmark scheme 'dlib5'"):
+    with pytest.raises(FacesynthError, match=r"unknown/meta\.json: landmarks\.scheme must be one of .*, got 'dlib5'"):
         load_sequence(_folder(tmp_path, lm, "dlib5", "unknown"))
     expected = r"\(N, 68, 2\) \(ibug68\) or \(N, 478, 2\) \(mediapipe478\) or \(N, 78, 2\) \(ibug68\+iris\), got \(5, 100, 2\)"
     with pytest.raises(FacesynthError, match=expected):

@@ -26,10 +26,11 @@ from typing import Callable
 import numpy as np
 
 from facesynth.data.frames import ArrayFrames, ImageFiles, VideoFrames
+from facesynth.data.meta import read_ingest_meta
 from facesynth.data.pts import read_pts, write_pts
 from facesynth.data.sequence import FaceSequence, validate_landmarks
 from facesynth.errors import FacesynthError
-from facesynth.io import atomic_path, read_json_object
+from facesynth.io import atomic_path
 from facesynth.landmarks import SCHEMES, get_scheme, scheme_for_points
 
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
@@ -88,7 +89,7 @@ def load_landmarks(path: str | os.PathLike, scheme: str | None = None) -> np.nda
     if path.suffix.lower() != ".npy":
         return load_sequence(path, scheme).landmarks
     arr = _np_load(path)
-    stored = stored_scheme(read_json_object(meta_file) if meta_file is not None and meta_file.is_file() else {}, arr, str(path))
+    stored = stored_scheme(read_ingest_meta(meta_file.parent) if meta_file is not None else {}, arr, str(path))
     lm = validate_landmarks(arr, str(path), allow_nan_rows=True, scheme=stored)
     if scheme is None or scheme == stored:
         return lm
@@ -178,29 +179,30 @@ def ingest_video(path: str | os.PathLike, meta: dict | None = None) -> tuple[Pat
     """An ingest folder's video and frame rate, each None when absent: the video is
     ``meta.json``'s ``video.file`` (in the folder), else its ``video.path``, else
     ``video.mp4``; the rate is ``video.fps`` (0: unknown, as ingest records a video without
-    one; FacesynthError naming the file and field when it is not a number >= 0).
-    ``meta``: the folder's meta.json, if already read."""
+    one). ``meta``: the folder's meta.json, if already read (by :func:`read_ingest_meta`,
+    which checks its fields: FacesynthError naming the file and field)."""
     path = Path(path)
     if meta is None:
-        meta = read_json_object(path / "meta.json") if (path / "meta.json").is_file() else {}
+        meta = read_ingest_meta(path)
     video = meta.get("video", {}) if isinstance(meta.get("video"), dict) else {}
     candidates = [path / str(video["file"])] if video.get("file") else []
     if video.get("path"):
         candidates.append(Path(str(video["path"])))
     candidates.append(path / "video.mp4")
-    fps = video.get("fps")
-    if fps is not None and (isinstance(fps, bool) or not isinstance(fps, (int, float)) or not 0 <= fps < float("inf")):
-        raise FacesynthError(f"{path / 'meta.json'}: video.fps must be a positive number, got {fps!r}")
+    fps = video.get("fps")  # checked by read_ingest_meta: a number >= 0 or None
     return next((c for c in candidates if c.is_file()), None), float(fps) if fps else None
 
 
 def _read_ingest_folder(path: Path) -> FaceSequence:
-    meta = read_json_object(path / "meta.json") if (path / "meta.json").is_file() else {}
+    meta = read_ingest_meta(path)
     video_path, video_fps = ingest_video(path, meta)
     video = meta.get("video", {}) if isinstance(meta.get("video"), dict) else {}
     frames = VideoFrames(video_path) if video_path is not None else None
     fps = float(video_fps or (frames.fps if frames else 30.0) or 30.0)
     meta = {**meta, "source": str(path)}
+    if video_path is None:  # landmarks only; the video it should have, for the stages that need frames
+        meta["missing_video"] = str(path / str(video["file"]) if video.get("file") else
+                                    video.get("path") or path / "video.mp4")
     if video.get("sha256"):
         meta["source_sha256"] = video["sha256"]
     lm, where = _np_load(path / "landmarks.npy"), str(path / "landmarks.npy")

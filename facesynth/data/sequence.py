@@ -75,6 +75,23 @@ def check_landmarks_in_frame(landmarks: np.ndarray, size: tuple[int, int], where
             f"{w}x{h} frame by more than {margin:.0%} of its size (wrong units or offset, or another video's landmarks?)")
 
 
+MIN_FACE_PX = 8.0  # a face whose landmarks span less than this (wider side of their box) is no face
+
+
+def check_face_size(landmarks: np.ndarray, where: str, min_px: float = MIN_FACE_PX) -> None:
+    """FacesynthError naming the rows of (N, P, 2) landmarks (NaN rows skipped) whose box is
+    smaller than ``min_px`` on its wider side: landmarks in 0-1 units instead of pixels, or
+    collapsed to one point, caught before any model is fitted on them."""
+    with np.errstate(invalid="ignore"):
+        span = np.nanmax(np.ptp(landmarks, axis=1), axis=1) if len(landmarks) else np.zeros(0)
+    small = np.flatnonzero(span < min_px)
+    if len(small):
+        raise FacesynthError(
+            f"{where}: landmarks of {len(small)} of {len(landmarks)} rows (first {small[:10].tolist()}) span "
+            f"{float(span[small[0]]):.3g} px, a face needs at least {min_px:g} px (landmarks in 0-1 units instead "
+            "of pixels, or collapsed to one point?)")
+
+
 @dataclass
 class FaceSequence:
     """One subject's frames and landmarks.

@@ -33,8 +33,21 @@ PLOTS = "plots"
 ERI_DIR = "eri"
 
 
+def check_data_config(data_cfg) -> None:
+    """FacesynthError naming the ``data.*`` setting that cannot work, before anything is loaded."""
+    if data_cfg.max_frames is not None and data_cfg.max_frames < 1:
+        raise FacesynthError(f"data.max_frames must be >= 1 (or null: every frame), got {data_cfg.max_frames}")
+    if not 0 < data_cfg.train_fraction < 1:
+        raise FacesynthError(f"data.train_fraction must be in (0, 1), got {data_cfg.train_fraction}")
+    if data_cfg.gap < 0:
+        raise FacesynthError(f"data.gap must be >= 0, got {data_cfg.gap}")
+    if data_cfg.kind == "synthetic" and data_cfg.n_frames < 2:
+        raise FacesynthError(f"data.n_frames must be >= 2 (a training and a test frame), got {data_cfg.n_frames}")
+
+
 def load_data(data_cfg, seed: int) -> FaceSequence:
     """The sequence a ``data`` config names (synthetic subject or a real folder/file)."""
+    check_data_config(data_cfg)
     if data_cfg.kind == "synthetic":
         seq = make_synthetic_sequence(n_frames=data_cfg.n_frames, size=data_cfg.size, seed=seed)
     elif data_cfg.kind == "video":

@@ -17,7 +17,8 @@ import torch
 from omegaconf import OmegaConf
 
 from facesynth import __version__, progress
-from facesynth.data import temporal_split
+from facesynth.data import FaceSequence, temporal_split
+from facesynth.data.sequence import check_face_size
 from facesynth.eri.train import train_eri
 from facesynth.errors import FacesynthError
 from facesynth.eval.common_region import common_landmarks
@@ -43,6 +44,19 @@ def seed_everything(seed: int) -> None:
     torch.manual_seed(seed)
 
 
+def check_training_data(seq: FaceSequence, data_cfg) -> None:
+    """FacesynthError naming the file when the data cannot train a model: no frames (the
+    video it names is missing) or faces too small to be faces (landmarks not in pixels)."""
+    src = Path(str(data_cfg.path)) if data_cfg.kind == "video" and data_cfg.path else None
+    lm_file = src / "landmarks.npy" if src is not None and src.is_dir() else src
+    if not seq.has_frames:
+        missing = seq.meta.get("missing_video")
+        raise FacesynthError(f"{missing}: video not found; training needs the frames of {lm_file}" if missing else
+                             f"{lm_file or seq.name}: landmarks only, no frames to train on (give an ingest folder "
+                             "with its video, a folder of images + .pts, or an .npz with frames)")
+    check_face_size(seq.landmarks, str(lm_file or seq.name))
+
+
 def _dataclass_from(node, cls):
     d = OmegaConf.to_container(node, resolve=True) if not isinstance(node, dict) else node
     names = {f.name for f in fields(cls)}
@@ -57,6 +71,7 @@ def run_training(cfg, out_dir: str | Path) -> dict:
     progress.set_quiet(bool(cfg.get("quiet", False)))
     t0 = time.perf_counter()
     seq = load_data(cfg.data, cfg.seed)
+    check_training_data(seq, cfg.data)
     tr, te = temporal_split(len(seq), cfg.data.train_fraction, cfg.data.gap)
     if len(tr) < MIN_TRAIN_FRAMES or len(te) < MIN_TEST_FRAMES:
         log.warning("%s: only %d training and %d test frames (fewer than %d / %d): the evaluation's figures will "
