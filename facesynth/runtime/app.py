@@ -9,8 +9,13 @@ the driver's expression and head motion relative to its neutral, on the avatar's
 :class:`facesynth.runtime.reenact.Reenactor`) and drive the model (batch 1, as a live app
 would); the face is composited into the avatar's own frame (the model's metadata) with a
 feathered, colour-matched seam (:func:`facesynth.runtime.blend.blend_face`), and the video is
-written atomically (mp4v). A progress bar shows frames/s; the summary gives latency
-percentiles of the model call and of the whole frame. Torch is never imported.
+written atomically (mp4v) at the driver's own frame rate. A progress bar shows frames/s; the
+summary gives latency percentiles of the model call and of the whole frame. Torch is never
+imported.
+
+Every output path is checked, and refused when it is one of the inputs, before the model is
+loaded; the video is reopened and checked before it is kept
+(:func:`facesynth.videofile.atomic_video`), and all outputs are renamed into place together.
 """
 
 from __future__ import annotations
@@ -54,7 +59,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                                          "for a 68-point model): .npy, a clip folder, or any readable sequence")
     src.add_argument("--video", help="driving video; landmarks are detected in the model's scheme: dlib (the 'ingest' extra), "
                                      "MediaPipe (the 'mediapipe' extra) or both (ibug68+iris)")
-    p.add_argument("--driver-video", help="with --landmarks: the video they came from, shown left in --side-by-side")
+    p.add_argument("--driver-video", help="with --landmarks: the video they came from, shown left in --side-by-side "
+                                             "(default for an ingest folder: the video its meta.json names)")
     p.add_argument("--out", required=True, help="output video (.mp4, mp4v codec)")
     p.add_argument("--background", help="background image (default: the avatar's own frame from the model, else grey)")
     p.add_argument("--motion", choices=("relative", "absolute"),
@@ -67,11 +73,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--smooth", action="store_true", help="One Euro filter on the landmarks (Casiez et al. 2012)")
     p.add_argument("--min-cutoff", type=float, default=1.0, help="One Euro min cutoff, Hz (default 1.0)")
     p.add_argument("--beta", type=float, default=0.05, help="One Euro speed coefficient (default 0.05)")
-    p.add_argument("--fps", type=float, help="output frame rate (default: the driver video's, else 30)")
+    p.add_argument("--fps", type=float, help="output frame rate (default: the driver's own: an ingest folder's meta.json, "
+                                         "else the driver video's; 30 when neither records one)")
     p.add_argument("--threads", type=int, default=1, help="ONNX Runtime intra-op threads (default 1)")
     p.add_argument("--feather", type=float, help="soft edge of the pasted face, pixels (default: 4%% of the face)")
     p.add_argument("--no-colour-match", action="store_true", help="do not match the face's colour to the frame at the seam")
-    p.add_argument("--max-frames", type=int, help="render only the first N frames")
+    p.add_argument("--max-frames", type=int, help="render only the first N frames (N >= 1)")
     p.add_argument("--contact-sheet", help=f"also write a PNG contact sheet (driver above rendering), e.g. {SHEET_DIR}/sheet.png")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
 
