@@ -117,3 +117,23 @@ def test_bad_inputs(scene):
         FrameWarp(frame.astype(np.float32), face)
     with pytest.raises(FacesynthError, match="not finite"):
         FrameWarp(frame, np.full((68, 2), np.nan))
+
+
+def test_ssim_matches_kornia(rng):
+    """facesynth.metrics.ssim against kornia's (same window; the interior, where the border
+    padding plays no part), and its bounds."""
+    import torch
+    from kornia.metrics import ssim as kornia_ssim
+
+    from facesynth.metrics import ssim
+
+    a = (smooth_image(64, 80, seed=1) * 255).astype(np.float64)
+    b = np.clip(a + rng.normal(0, 12, a.shape), 0, 255)
+    ref = kornia_ssim(*(torch.from_numpy(x.transpose(2, 0, 1)[None] / 255.0) for x in (a, b)), 11)[0].mean(0).numpy()
+    inner = np.zeros((64, 80), bool)
+    inner[6:-6, 6:-6] = True
+    assert ssim(a, b, inner) == pytest.approx(float(ref[inner].mean()), abs=1e-4)
+    assert ssim(a, a) == pytest.approx(1.0)
+    assert ssim(a, b) < 0.9
+    with pytest.raises(FacesynthError, match="ssim"):
+        ssim(a, b[:10])
