@@ -112,7 +112,7 @@ def test_app_writes_the_drivers_frame_rate(model_path, tmp_path, capsys, monkeyp
     # --video's landmarker (dlib, an extra) replaced by the driver's known landmarks
     import facesynth.runtime.app as app
 
-    monkeypatch.setattr(app, "detect_video_landmarks", lambda frames, scheme, on_frame=None: lm[: len(frames)])
+    monkeypatch.setattr(app, "detect_video_landmarks", lambda frames, scheme, on_frame=None: lm[: len(list(frames()))])
     for name, (extra, fps) in cases.items():
         assert main([*base, *extra, "--out", str(tmp_path / name)]) == 0, capsys.readouterr().err
         frames, got = _read_video(tmp_path / name)
@@ -148,6 +148,7 @@ def test_video_landmark_detection_shows_progress_and_respects_quiet(model_path, 
     calls = []
 
     def fake_detect(frames, detector=None, on_frame=None):  # dlib (an extra) replaced; the app's bar is real
+        frames = list(frames)
         for i, _ in enumerate(frames):
             on_frame(i, "hog_up0")
         return detect.Detections(lm[: len(frames)], np.zeros((len(frames), 4), np.float32), ["hog_up0"] * len(frames),

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import itertools
 import json
 import logging
 import os
@@ -42,7 +43,6 @@ from facesynth.runtime.video import (
     detect_video_landmarks,
     draw_landmarks,
     fit_into,
-    read_video,
     write_image,
 )
 from facesynth.videofile import atomic_video
@@ -182,22 +182,29 @@ def check_faces(landmarks: np.ndarray, where: str, max_frames: int | None) -> No
         raise FacesynthError(f"{where}: no frame has a face ({rows} are NaN), nothing to render")
 
 
-def detect_with_progress(frames: list[np.ndarray], scheme: str, where: str, enabled: bool) -> np.ndarray:
-    """:func:`facesynth.runtime.video.detect_video_landmarks` with a progress bar and a stage
-    line (both off under --quiet); FacesynthError naming ``where`` when no frame has a face."""
+def detect_with_progress(driver, max_frames: int | None, scheme: str, enabled: bool) -> np.ndarray:
+    """:func:`facesynth.runtime.video.detect_video_landmarks` on the first ``max_frames``
+    frames of ``driver`` (:class:`facesynth.data.frames.VideoFrames`, decoded as they are
+    needed) with a progress bar and a stage line (both off under --quiet); FacesynthError
+    naming the video when it has no frame, or no frame with a face."""
     passes = 2 if scheme == "ibug68+iris" else 1
-    with stage("landmark detection") as st, bar(total=passes * len(frames), unit="frame", desc="landmarks",
+    total = min(len(driver), max_frames or len(driver)) or None
+    with stage("landmark detection") as st, bar(total=total and passes * total, unit="frame", desc="landmarks",
                                                   enabled=enabled) as b:
-        landmarks = detect_video_landmarks(frames, scheme, on_frame=lambda i, source: b.update(1))
+        landmarks = detect_video_landmarks(lambda: itertools.islice(driver.iter_all(), max_frames), scheme,
+                                           on_frame=lambda i, source: b.update(1))
         found = int(np.isfinite(landmarks).all(axis=(1, 2)).sum())
-        st.set(f"{found} of {len(frames)} frames of {where} with a face")
+        st.set(f"{found} of {len(landmarks)} frames of {driver.path} with a face")
+    if not len(landmarks):
+        raise FacesynthError(f"{driver.path}: no frames decoded, nothing to render")
     if not found:
-        raise FacesynthError(f"{where}: no face found in any of its {len(frames)} frames, nothing to render")
+        raise FacesynthError(f"{driver.path}: no face found in any of its {len(landmarks)} frames, nothing to render")
     return landmarks
 
 
 # ------------------------------------------------------------------ command
 def run(args: argparse.Namespace) -> int:
+    from facesynth.data.frames import VideoFrames
     from facesynth.data.readers import ingest_video, load_landmarks
     from facesynth.retarget import RETARGET_SCHEMES
     from facesynth.runtime.filters import smooth_landmarks
@@ -210,8 +217,9 @@ def run(args: argparse.Namespace) -> int:
     if args.landmarks and Path(args.landmarks).is_dir():  # an ingest folder: its meta.json names the video and rate
         folder_video, meta_fps = ingest_video(args.landmarks)
         inputs += [Path(args.landmarks, "landmarks.npy"), Path(args.landmarks, "meta.json"), folder_video]
-        driver_video = folder_video if args.side_by_side else None
-    driver_video = args.driver_video or driver_video
+        # its video is opened when its frames are shown, or for its frame rate when meta.json has none
+        driver_video = folder_video if args.side_by_side or args.contact_sheet or meta_fps is None else None
+    driver_video = args.video or args.driver_video or driver_video
     refuse_overwriting_inputs(outputs, inputs)
     renderer = Renderer(args.model, threads=args.threads)
     scheme = renderer.scheme.name
@@ -226,19 +234,18 @@ def run(args: argparse.Namespace) -> int:
                         "an older export" if scheme in RETARGET_SCHEMES else f"retargeting does not take {scheme} landmarks")
     if args.motion == "relative":
         avatar.require_neutral()
-    driver_frames = video_fps = None
+    driver = VideoFrames(driver_video) if driver_video else None  # decoded frame by frame, never held whole
+    video_fps = driver.fps if driver is not None and 0 < driver.fps < 1e4 else None
     if args.video:
-        driver_frames, video_fps = read_video(args.video, args.max_frames)
-        landmarks = detect_with_progress(driver_frames, scheme, args.video, not args.no_progress)
+        landmarks = detect_with_progress(driver, args.max_frames, scheme, not args.no_progress)
     else:
         landmarks = load_landmarks(args.landmarks, scheme=scheme)  # mediapipe478 -> ibug68 is mapped; the reverse is an error
         if args.max_frames:
             landmarks = landmarks[: args.max_frames]
         check_faces(landmarks, args.landmarks, args.max_frames)
-        if driver_video:
-            driver_frames, video_fps = read_video(driver_video, len(landmarks))
-            if len(driver_frames) < len(landmarks):
-                raise FacesynthError(f"{driver_video}: {len(driver_frames)} frames for {len(landmarks)} landmark rows")
+        if (args.side_by_side or args.contact_sheet) and driver is not None and 0 < len(driver) < len(landmarks):
+            # the header's count, before any work; reading the frames checks the rest
+            raise FacesynthError(f"{driver_video}: {len(driver)} frames for {len(landmarks)} landmark rows")
     fps = float(args.fps or meta_fps or video_fps or 30.0)
     if not (args.fps or meta_fps or video_fps):
         log.info("%s records no frame rate: %g fps (--fps sets it)", args.video or args.landmarks, fps)
@@ -255,24 +262,26 @@ def run(args: argparse.Namespace) -> int:
         background = load_background(args.background, (0, 0))
     elif full_frame:
         background = avatar.background
-    elif driver_frames is not None and not args.size:
-        h, w = driver_frames[0].shape[:2]
+    elif driver is not None and not args.size:
+        h, w = driver.size
         background = load_background(None, (w, h))
     else:
         background = load_background(None, parse_size(args.size) if args.size else default_size(landmarks))
     h, w = background.shape[:2]
     # before any rendering; the driver's points are in its own frame, when known
-    driver_size = (w, h) if driver_frames is None else driver_frames[0].shape[1::-1]
+    driver_size = (w, h) if driver is None else driver.size[::-1]
     check_in_frame(landmarks, driver_size, args.landmarks or args.video)
     # without a driver video, its dots are drawn in its own frame (not on the avatar's face)
-    dots_on = background if args.motion == "absolute" or driver_frames is not None else \
+    dots_on = background if args.motion == "absolute" or driver is not None else \
         load_background(None, default_size(landmarks))
     out_w = 2 * w if args.side_by_side else w
     n = len(landmarks)
     latencies: list = []
     rendered = np.full((n, renderer.scheme.n_points, 2), np.nan, np.float32)  # the avatar landmarks of each frame (--save-landmarks)
-    sheet_idx = set(np.linspace(0, n - 1, min(6, n)).round().astype(int).tolist())
+    sheet_idx = set(np.linspace(0, n - 1, min(6, n)).round().astype(int).tolist()) if args.contact_sheet else set()
     sheet_top, sheet_bottom = [], []
+    shown_left = set(range(n)) if args.side_by_side else sheet_idx  # the frames that need the driver's picture
+    driver_iter = driver.read(sorted(shown_left)) if driver is not None else None
     out = Path(args.out)
     t_start = time.perf_counter()
     with contextlib.ExitStack() as written:  # every output is renamed into place only once all are written
@@ -285,12 +294,10 @@ def run(args: argparse.Namespace) -> int:
             rendered[:] = landmarks
             frames = render_frames(renderer, landmarks, background, 2.0 if args.feather is None else args.feather, latencies)
         for i, frame in enumerate(frames):
-            if driver_frames is not None:
-                left = fit_into(driver_frames[i], (h, w))
-            else:
-                left = fit_into(draw_landmarks(dots_on, landmarks[i]), (h, w))
-            shown = np.concatenate([left, frame], 1) if args.side_by_side else frame
-            video.write(shown)
+            if i in shown_left:
+                left = fit_into(next(driver_iter) if driver_iter is not None else draw_landmarks(dots_on, landmarks[i]),
+                                (h, w))
+            video.write(np.concatenate([left, frame], 1) if args.side_by_side else frame)
             if i in sheet_idx:
                 sheet_top.append(left)
                 sheet_bottom.append(frame)

@@ -8,33 +8,13 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Iterable
 
 import cv2
 import numpy as np
 
 from facesynth.errors import FacesynthError, MissingExtraError
-from facesynth.videofile import ffmpeg_silenced, raise_unless_space
-
-
-def read_video(path: str | os.PathLike, max_frames: int | None = None) -> tuple[list[np.ndarray], float | None]:
-    """All frames (uint8 RGB (H, W, 3)) of a video, at most ``max_frames``, and its frame
-    rate (None when the file records none)."""
-    with ffmpeg_silenced():
-        cap = cv2.VideoCapture(str(path))
-    if not cap.isOpened():
-        raise FacesynthError(f"{path}: not a readable video")
-    fps = cap.get(cv2.CAP_PROP_FPS)
-    frames = []
-    while max_frames is None or len(frames) < max_frames:
-        ok, bgr = cap.read()
-        if not ok:
-            break
-        frames.append(cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB))
-    cap.release()
-    if not frames:
-        raise FacesynthError(f"{path}: no frames decoded")
-    return frames, float(fps) if 0 < fps < 1e4 else None
+from facesynth.videofile import raise_unless_space
 
 
 def landmarker_passes(scheme: str) -> tuple[bool, bool]:
@@ -57,21 +37,23 @@ def landmarker_passes(scheme: str) -> tuple[bool, bool]:
     return use_dlib, use_mp
 
 
-def detect_video_landmarks(frames: list[np.ndarray], scheme: str = "ibug68",
+def detect_video_landmarks(frames: Callable[[], Iterable[np.ndarray]], scheme: str = "ibug68",
                            on_frame: Callable[[int, str], None] | None = None) -> np.ndarray:
     """Landmarks (T, P, 2) of driver frames in the model's ``scheme``; NaN rows where no face
     (landmarkers: :func:`landmarker_passes`; dlib's 68 points and MediaPipe's irises for
-    ``ibug68+iris``). ``on_frame(index, source)`` is called after each frame of each pass."""
+    ``ibug68+iris``). ``frames()`` gives the uint8 RGB (H, W, 3) frames afresh for each pass
+    (decoded as they are used, so a long video never sits in memory whole);
+    ``on_frame(index, source)`` is called after each frame of each pass."""
     use_dlib, use_mp = landmarker_passes(scheme)
     dlib = mp = None
     if use_dlib:
         from facesynth.data import detect
 
-        dlib = np.asarray(detect.detect_landmarks(frames, on_frame=on_frame).landmarks, np.float32)
+        dlib = np.asarray(detect.detect_landmarks(frames(), on_frame=on_frame).landmarks, np.float32)
     if use_mp:
         from facesynth.data import detect_mediapipe
 
-        mp = np.asarray(detect_mediapipe.detect_landmarks_mediapipe(frames, on_frame=on_frame).landmarks, np.float32)
+        mp = np.asarray(detect_mediapipe.detect_landmarks_mediapipe(frames(), on_frame=on_frame).landmarks, np.float32)
     if use_dlib and use_mp:
         from facesynth.data.iris import combine_landmarks
 
