@@ -89,6 +89,18 @@ def test_head_motions_fold_nothing(scene, seed):
     assert np.isfinite(mx).all() and np.isfinite(my).all()
 
 
+def test_a_fold_inside_the_face_is_told_apart(scene):
+    """Inner lips pushed past each other fold triangles among the landmarks only: counted by
+    folds(), not by folds(outside_face=True) (the composited face covers them)."""
+    frame, face = scene
+    fw = FrameWarp(frame, face)
+    lm = face.copy()
+    lm[61:64, 1] += 12.0  # the upper inner lip below the lower one
+    lm[65:68, 1] -= 12.0
+    assert fw.folds(lm) > 0
+    assert fw.folds(lm, outside_face=True) == 0
+
+
 def test_thin_plate_interpolates_and_reproduces_affine_maps(rng):
     ctrl = rng.uniform(0, 100, (20, 2))
     m = np.array([[1.1, 0.2, 3.0], [-0.1, 0.9, -2.0]])

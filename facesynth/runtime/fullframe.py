@@ -160,10 +160,15 @@ class FrameWarp:
         moved = extra + self.weights[:, None] * (apply_affine(extra, s) - extra)
         return np.concatenate([face, moved])
 
-    def folds(self, landmarks: np.ndarray) -> int:
-        """Number of triangles whose orientation the warp turns (0: no fold)."""
+    def folds(self, landmarks: np.ndarray, outside_face: bool = False) -> int:
+        """Number of triangles whose orientation the warp turns (0: no fold); ``outside_face``:
+        only those with a vertex besides the face's landmarks (a fold among the landmarks
+        alone, e.g. of the lips, lies under the composited face)."""
         dst = self.control_points(landmarks)
-        return int((np.sign(_signed_area(self.src, self.triangles)) != np.sign(_signed_area(dst, self.triangles))).sum())
+        flip = np.sign(_signed_area(self.src, self.triangles)) != np.sign(_signed_area(dst, self.triangles))
+        if outside_face:
+            flip &= (self.triangles >= self.n_face).any(1)
+        return int(flip.sum())
 
     def maps(self, landmarks: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """float32 (H, W) x and y maps: output pixel -> neutral-frame pixel (for ``cv2.remap``)."""
