@@ -95,8 +95,8 @@ def main(argv: list[str] | None = None) -> int:
     parse = parser.parse_intermixed_args if getattr(module, "INTERMIXED_ARGS", False) else parser.parse_args
     args = parse(rest)
     install_sigterm_handler()  # SIGTERM unwinds: temporary outputs are removed
+    set_quiet(bool(getattr(args, "quiet", False)))  # every call sets it: an earlier --quiet does not carry over
     if getattr(args, "quiet", False):
-        set_quiet(True)
         logging.getLogger().setLevel(logging.WARNING)
     try:
         return int(module.run(args) or 0)

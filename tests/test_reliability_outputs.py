@@ -25,8 +25,9 @@ def _listing(d: Path) -> list[str]:
 
 
 def _one_error_line(err: str, *needles: str) -> None:
+    """One ``error: ...`` line with ``needles`` (progress lines ``[facesynth] ...`` aside)."""
     assert "Traceback" not in err
-    lines = [ln for ln in err.splitlines() if ln.strip()]
+    lines = [ln for ln in err.splitlines() if ln.strip() and not ln.startswith("[facesynth] ")]
     assert len(lines) == 1 and lines[0].startswith("error: "), err
     for n in needles:
         assert n in lines[0], (n, lines[0])
