@@ -197,3 +197,29 @@ def test_successful_export_logs_after_the_check(tmp_path, caplog, capsys):
     assert len(exported) == 1 and out.is_file()
     assert list(tmp_path.glob(".*onnx*")) == []
     capsys.readouterr()
+
+
+def test_a_rounding_tie_moves_the_texture_by_at_most_one_code_step():
+    """ORT and torch may round a coefficient on a tie differently (the regressors' float sums
+    differ in the last bits): the export check's extra tolerance, max_step, bounds that."""
+    import torch
+
+    from facesynth.sadm.quantize import Int8Basis
+
+    rng = np.random.default_rng(3)
+    comps, limit = rng.normal(size=(5, 200)), rng.uniform(0.5, 2.0, 5)
+    basis = Int8Basis.from_basis(comps, limit)
+    steps = np.abs(basis.codes.numpy().astype(np.float64)) * basis.col_scale.numpy().astype(np.float64)
+    assert basis.max_step() == pytest.approx(steps.max(), rel=1e-12)
+    tie = (np.arange(5) - 2 + 0.5) / basis.coef_scale.numpy().astype(np.float64)  # every code on a .5 tie
+    lo, hi = (torch.from_numpy(np.float32(tie * (1 + s * 1e-6))[None]) for s in (-1, 1))
+    with torch.no_grad():
+        diff = (basis(hi) - basis(lo)).abs().numpy()
+    base = tie * (1 - 1e-6)
+    for k in range(5):  # one flipped code at a time stays within one step
+        one = base.copy()
+        one[k] = tie[k] * (1 + 1e-6)
+        with torch.no_grad():
+            d = basis(torch.from_numpy(np.float32(one)[None])) - basis(torch.from_numpy(np.float32(base)[None]))
+        assert 0 < float(d.abs().max()) <= basis.max_step() * (1 + 1e-6)
+    assert float(diff.max()) > 0  # the ties did flip

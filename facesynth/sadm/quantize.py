@@ -84,6 +84,15 @@ class Int8Basis(nn.Module):
         """The largest |code| (the range the basis was quantized to is at least this)."""
         return int(self.codes.abs().max()) if self.codes.numel() else 0
 
+    def max_step(self) -> float:
+        """The largest change of one texel (texture units) when one coefficient code moves by
+        one: ``max_n max_k |q_kn| s_n``. Two correct implementations may round a coefficient
+        that falls on a tie differently (their regressors' float sums differ in the last bits),
+        so they agree to this plus their float tolerance."""
+        if not self.codes.numel():
+            return 0.0
+        return float((self.codes.abs().max(0).values.double() * self.col_scale.double()).max())
+
     @classmethod
     def from_basis(cls, components: np.ndarray, limit: np.ndarray, levels: int = CODE_LEVELS) -> "Int8Basis":
         """Quantize a (K, D) basis whose coefficients are clamped to +-``limit`` (K,) (finite,
