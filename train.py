@@ -35,6 +35,7 @@ def _run() -> None:
     from facesynth.errors import FacesynthError
     from facesynth.io import install_sigterm_handler
     from facesynth.runs.config import register_configs
+    from facesynth.runs.lock import discard_unused_run_dir
     from facesynth.runs.rundir import summary_lines
     from facesynth.runs.training import run_training
 
@@ -50,6 +51,8 @@ def _run() -> None:
             metrics = run_training(cfg, out_dir)
         except FacesynthError as exc:
             print(f"error: {exc}", file=sys.stderr)
+            # refused before anything was written: no run folder (only Hydra's own files were there)
+            discard_unused_run_dir(out_dir, {".hydra", f"{HydraConfig.get().job.name}.log"})
             sys.exit(2)
         if "psnr_ref" in metrics:
             print("\n".join(summary_lines(metrics)))

@@ -3,7 +3,8 @@ field, with what was expected, exit 2, no traceback, nothing trained, the data u
 
 meta.json is checked against its fields when read (facesynth.data.meta), the landmarks'
 size before the face model (a face spans at least data.sequence.MIN_FACE_PX pixels), the
-video an ingest folder names, and the ``data.*`` settings before anything is loaded."""
+video an ingest folder names, and the ``data.*`` settings before anything is loaded. A run
+refused so leaves no run folder (one it created; an existing folder is kept)."""
 
 from __future__ import annotations
 
@@ -96,7 +97,17 @@ def test_bad_training_data_is_one_line(clip_arrays, tmp_path, case):
     lines = [ln for ln in r.stderr.splitlines() if not ln.startswith("[facesynth]")]
     assert len(lines) == 1 and lines[0].startswith("error: " + expected.format(d=d)), lines
     assert _snapshot(d) == before  # the data untouched
-    assert sorted(p.name for p in (tmp_path / "run").iterdir()) == [".hydra", "train.log"]  # nothing trained
+    assert not (tmp_path / "run").exists()  # refused before anything was written: no run folder
+
+
+def test_a_refused_run_keeps_a_folder_it_did_not_create(clip_arrays, tmp_path):
+    d = _folder(tmp_path, *clip_arrays)
+    (d / "video.mp4").unlink()
+    (tmp_path / "run").mkdir()
+    (tmp_path / "run" / "notes.txt").write_text("mine")
+    r = _train(tmp_path, "data=video", f"data.path={d}")
+    assert r.returncode == 2 and "video.mp4: video not found" in r.stderr
+    assert (tmp_path / "run" / "notes.txt").read_text() == "mine"
 
 
 def test_the_shared_layout_and_what_ingest_writes_pass_the_meta_check(clip_arrays, tmp_path, shared_data):

@@ -69,6 +69,24 @@ def lock_run_dir(run_dir: str | os.PathLike) -> Path:
     return path
 
 
+def discard_unused_run_dir(run_dir: str | os.PathLike, keep_if_other_than: set[str]) -> bool:
+    """Remove ``run_dir`` when this process created it (its lock says so) and it holds
+    nothing but the names in ``keep_if_other_than`` (Hydra's ``.hydra/`` and log) and the
+    lock: a run refused before it wrote anything leaves no folder. Returns whether it did."""
+    import shutil
+
+    key = os.path.realpath(run_dir)
+    if key not in _HELD or not _HELD[key][2]:
+        return False
+    d = Path(run_dir)
+    if not {p.name for p in d.iterdir()} <= keep_if_other_than | {LOCK_NAME}:
+        return False
+    fd, _, _ = _HELD.pop(key)
+    shutil.rmtree(d, ignore_errors=True)
+    os.close(fd)
+    return True
+
+
 def release_run_dirs() -> None:
     """Remove this process's lock files and release the locks (a folder this process
     created and left empty is removed too)."""
