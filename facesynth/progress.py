@@ -1,6 +1,7 @@
 """Progress for every step that can take more than a couple of seconds: one place.
 
-* :func:`bar` is a tqdm bar (items/s, ETA) on stderr that disappears when done (terminals only);
+* :func:`bar` is a tqdm bar (items/s, ETA) on stderr that disappears when done; where stderr
+  is not a terminal (a log, a pipe) it is a plain ``[facesynth]`` line every few seconds;
 * :func:`stage` is a context manager that prints one line per finished stage with its time,
   e.g. ``[facesynth] evaluation: 60 test frames x 4 noise levels in 8.4 s``;
 * :func:`set_quiet` (``--quiet`` on every command, ``quiet=true`` for ``train.py``) turns
