@@ -41,7 +41,8 @@ Measures:
 
 Cross pairs (avatar <- driver): the drivers are the clips with head motion, in full.
 ``--sheets DIR``: ``talking_head_AVATAR_by_DRIVER.jpg``: per row, the driver frame with one of
-the three largest head turns (roll and yaw against the driver's neutral) | paste | warp | full.
+the three largest head turns (roll and yaw against the driver's neutral) | paste | warp | full;
+``talking_head_CLIP_self.jpg`` for a self pair: the real held-out frame | static | warp | full.
 """
 
 from __future__ import annotations
