@@ -149,3 +149,19 @@ def test_ssim_matches_kornia(rng):
     assert ssim(a, b) < 0.9
     with pytest.raises(FacesynthError, match="ssim"):
         ssim(a, b[:10])
+
+
+def test_a_478_point_avatar_warps_on_its_ibug68_view(scene, shared_mesh):
+    """A mediapipe478 neutral and frame landmarks warp as their iBUG-68 views do (the full-frame
+    warp's control points are the 68 points whatever the scheme)."""
+    from facesynth.landmarks import MEDIAPIPE478
+    from tests._dense import template478, to478
+
+    frame, face = scene
+    t = template478(shared_mesh / "mediapipe_canonical_468_arrays.npz")
+    moved = apply_affine(face, similarity(-5.0, 1.03, (-6.0, 4.0), face.mean(0)))
+    n478, m478 = to478(np.stack([face, moved]), t)
+    dense, sparse = FrameWarp(frame, n478), FrameWarp(frame, MEDIAPIPE478.to_ibug68(n478))
+    for a, b in zip(dense.maps(m478), sparse.maps(MEDIAPIPE478.to_ibug68(m478)), strict=True):
+        np.testing.assert_allclose(a, b, atol=1e-4)
+    assert np.abs(dense(n478).astype(int) - frame).max() <= 1
