@@ -31,8 +31,8 @@ from facesynth.data import load_sequence, temporal_split
 from facesynth.eval.sadm_eval import noisy_landmarks
 from facesynth.metrics import psnr
 from facesynth.model import FaceModel, FaceModelConfig
-from facesynth.sadm.ceiling import region_masks
 from facesynth.sadm.fit import SADMConfig, fit_sadm, resolve_sadm_config
+from facesynth.sadm.regions import reference_regions as region_masks
 
 VARIANTS = ("main", "gaze", "gaze_in_sample", "gaze_eyes", "gaze_eyes_in_sample", "inside", "inside_x4", "both",
             "both_eyes")

@@ -208,9 +208,9 @@ def shape_pcs(k=None, ard=False, n_out=5):
 def shrink(mode="component", nblocks=5, kernel="rbf"):
     """krr, predictions scaled toward the mean by factors fitted by blocked CV (contiguous
     blocks) inside the training rows: per b_g component, one global factor, or per
-    reference-frame region (facesynth.sadm.ceiling.region_masks; a per-pixel factor on the
+    reference-frame region (facesynth.sadm.regions.reference_regions; a per-pixel factor on the
     texture offset, which an exported model would fold into its appearance basis)."""
-    from facesynth.sadm.ceiling import region_masks
+    from facesynth.sadm.regions import reference_regions as region_masks
 
     def method(c, rows, y):
         base = krr(kernel=kernel)

@@ -29,6 +29,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from types import MappingProxyType
 
+import cv2
 import numpy as np
 
 from facesynth import landmark_tables as mp
@@ -283,6 +284,40 @@ def folded_triangles(landmarks: np.ndarray, triangles: np.ndarray, reference: np
 
     ref = 1.0 if reference is None else np.sign(signed_area(np.asarray(reference, np.float64)))
     return signed_area(np.asarray(landmarks, np.float64)) * ref <= 0
+
+
+FACE_REGIONS = ("eyes", "mouth_interior", "lips", "brows", "rest")
+"""The parts every per-region figure uses (evaluation in the frame, SADM's shrinkage and the
+ceiling study in the reference frame), drawn by :func:`face_region_masks`."""
+
+
+def face_region_masks(points68: np.ndarray, shape: tuple[int, int], within: np.ndarray | None = None) -> dict:
+    """bool (H, W) masks of :data:`FACE_REGIONS` from one face's iBUG-68 points (68, 2), in
+    pixels of an image of ``shape`` (H, W); the one definition of the face's parts.
+
+    ``eyes``: the eye polygons (36-41, 42-47); ``mouth_interior``: the inner-lip polygon
+    (60-67); ``lips``: the outer-lip polygon (48-59) without the interior; ``brows``: each
+    brow closed by its eye's upper lid (17-21 + 39-36, 22-26 + 45-42) without the eyes;
+    ``rest``: ``within`` (default: everything) without the others. All are cut to ``within``,
+    so they partition it. Polygons are filled at pixel centres (4 fractional bits).
+    Another scheme's points go through :func:`ibug68_view` first."""
+    pts = np.asarray(points68, np.float64)
+    IBUG68.check(pts, "face_region_masks")
+    h, w = int(shape[0]), int(shape[1])
+    inside = np.ones((h, w), bool) if within is None else np.asarray(within, bool)
+
+    def fill(idx):
+        m = np.zeros((h, w), np.uint8)
+        cv2.fillPoly(m, [np.round(pts[list(idx)] * 16).astype(np.int32)], 1, cv2.LINE_8, shift=4)
+        return m > 0
+
+    eyes = (fill(RIGHT_EYE) | fill(LEFT_EYE)) & inside
+    interior = fill(INNER_LIPS) & inside & ~eyes
+    lips = fill(OUTER_LIPS) & inside & ~eyes & ~interior
+    upper_lids = (39, 38, 37, 36), (45, 44, 43, 42)
+    brows = (fill(RIGHT_BROW + upper_lids[0]) | fill(LEFT_BROW + upper_lids[1])) & inside & ~eyes & ~interior & ~lips
+    return {"eyes": eyes, "mouth_interior": interior, "lips": lips, "brows": brows,
+            "rest": inside & ~(eyes | interior | lips | brows)}
 
 
 def inter_ocular(landmarks: np.ndarray) -> np.ndarray:

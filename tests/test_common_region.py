@@ -16,6 +16,7 @@ from facesynth.data import FaceSequence
 from facesynth.errors import FacesynthError
 from facesynth.eval.common_region import common_landmarks, region_masks
 from facesynth.eval.regions_gap import PARTS, combine, needed, scheme_gap, substitute
+from facesynth.landmarks import FACE_REGIONS
 
 
 def _inside(poly: np.ndarray, shape) -> np.ndarray:
@@ -43,8 +44,15 @@ def test_region_masks_match_an_independent_construction():
     assert (masks["eyes"] != eyes).sum() <= perimeter(local[36:42]) + perimeter(local[42:48]) and eyes.sum() > 100
     assert (masks["mouth_interior"] != mouth).sum() <= perimeter(local[60:68]) and mouth.sum() > 100
     # the regions partition the common region
-    parts = masks["eyes"].astype(int) + masks["mouth_interior"] + masks["rest"]
+    parts = sum(masks[p].astype(int) for p in FACE_REGIONS)
     assert (parts[whole] == 1).all() and (parts[~whole] == 0).all()
+    # lips: the outer-lip ring around the interior; brows: the band between each brow and its upper lid
+    lips = _inside(local[48:60], shape) & whole & ~mouth & ~eyes
+    assert (masks["lips"] != lips).sum() <= perimeter(local[48:60]) + perimeter(local[60:68]) and lips.sum() > 100
+    right, left = np.r_[local[17:22], local[[39, 38, 37, 36]]], np.r_[local[22:27], local[[45, 44, 43, 42]]]
+    band = (_inside(right, shape) | _inside(left, shape)) & whole & ~eyes & ~mouth & ~lips
+    edges = perimeter(right) + perimeter(left) + perimeter(local[36:48]) + perimeter(local[48:60])
+    assert (masks["brows"] != band).sum() <= edges and band.sum() > 50
 
 
 def test_common_landmarks_sources(tmp_path):
@@ -91,7 +99,7 @@ def test_psnr_frame_common_in_an_evaluation(shared_mesh):
         metrics, _ = evaluate_sadm(sadm, seq, tr, te, cfg, 0, train_textures=tex, common=seq68.landmarks)
         json.dumps(metrics)
         regions = metrics["psnr_frame_common_regions"]
-        assert set(regions) == {"whole", "eyes", "mouth_interior", "rest"}
+        assert set(regions) == {"whole", *FACE_REGIONS}
         assert metrics["psnr_frame_common"] == regions["whole"]
         for table in regions.values():
             assert set(table) == {"sadm", "mean_texture", "oracle", "rewarp"} and all(set(v) == {"0", "1"} for v in table.values())
@@ -99,11 +107,11 @@ def test_psnr_frame_common_in_an_evaluation(shared_mesh):
         assert c["rewarp"]["0"] > c["mean_texture"]["0"]
         # the parts partition the region: their shares sum to 1 and their figures recombine into the whole's
         shares = metrics["psnr_frame_common_shares"]
-        assert shares["whole"] == 1.0 and sum(shares[p] for p in PARTS) == pytest.approx(1.0, abs=1e-12)
-        assert all(0 < shares[p] < 1 for p in PARTS)
+        assert shares["whole"] == 1.0 and sum(shares[p] for p in FACE_REGIONS) == pytest.approx(1.0, abs=1e-12)
+        assert all(0 < shares[p] < 1 for p in FACE_REGIONS)
         for row in c:
             for k in ("0", "1"):
-                assert combine(shares, {p: regions[p][row][k] for p in PARTS}) == pytest.approx(c[row][k], abs=1e-9)
+                assert combine(shares, {p: regions[p][row][k] for p in FACE_REGIONS}) == pytest.approx(c[row][k], abs=1e-9)
         out[seq.scheme] = metrics
     ib = out["ibug68"]
     assert abs(ib["psnr_frame_common"]["rewarp"]["0"] - ib["psnr_frame"]["rewarp"]["0"]) < 2.0

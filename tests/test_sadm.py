@@ -14,10 +14,12 @@ from hydra import compose, initialize_config_dir
 from facesynth.data import temporal_split
 from facesynth.data.synthetic import make_synthetic_sequence
 from facesynth.eval.sadm_eval import EvalConfig, evaluate_sadm
+from facesynth.landmarks import FACE_REGIONS
 from facesynth.model import FaceModel, FaceModelConfig
 from facesynth.regressors import REGISTRY
 from facesynth.runs.config import register_configs
 from facesynth.sadm.fit import SADMConfig, fit_sadm, load_sadm, save_sadm
+from facesynth.sadm.regions import fit_weights, reference_regions
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY = ["data.n_frames=64", "data.size=192", "eval.noise=[0,2]", "eval.max_test_frames=3"]
@@ -52,8 +54,39 @@ def test_synthesizer_texture_equals_pca_of_regressor_output(synthetic):
         tex = syn.texture(torch.from_numpy(lm)).reshape(5, -1).numpy()
     b = sadm.regressor.predict(sadm.features(lm))
     lim = 3 * np.sqrt(model.appearance_pca.eigenvalues)
-    expect = np.clip(model.texture_from_params(np.clip(b, -lim, lim)), 0, 1)
+    expect = model.texture_from_params(np.clip(b, -lim, lim))
+    # each face part's deviation from the mean, scaled by its shrinkage weight
+    w = sadm.region_shrink["weights"]
+    assert set(w) == set(FACE_REGIONS) and all(0 <= v <= 1 for v in w.values())
+    cols = np.concatenate([sum(reference_regions(model)[r] * w[r] for r in FACE_REGIONS)] * model.n_channels)
+    expect = np.clip(model.appearance_pca.mean + cols * (expect - model.appearance_pca.mean), 0, 1)
     np.testing.assert_allclose(tex, expect, atol=1e-5)
+
+
+def test_region_shrink_weights_closed_form(synthetic):
+    """The least-squares weight of a part is 1 for a perfect prediction, 0.5 for one twice as
+    far from the mean, 0 for one on the wrong side; the shrunk figure is never below the mean's."""
+    _, _, _, model, tex_tr = synthetic
+    true = np.clip(tex_tr[:6], 0, 1).astype(np.float64)
+    mean = np.clip(model.appearance_pca.mean, 0, 1)
+    parts = reference_regions(model)
+    scale = np.concatenate([np.select([parts["eyes"], parts["mouth_interior"]], [2.0, -1.0], 1.0)] * model.n_channels)
+    out = fit_weights(model, mean + scale * (true - mean), true)
+    assert out["weights"]["eyes"] == pytest.approx(0.5, abs=1e-9)
+    assert out["weights"]["mouth_interior"] == 0.0 and out["weights"]["rest"] == pytest.approx(1.0, abs=1e-9)
+    for part, row in out["psnr"].items():
+        assert row["shrunk"] >= row["mean_texture"] - 1e-9, part
+    assert out["psnr"]["eyes"]["shrunk"] > 60  # halving a doubled deviation gives the truth back
+
+
+def test_region_shrink_off_is_the_plain_prediction(synthetic):
+    seq, tr, te, model, tex_tr = synthetic
+    sadm = fit_sadm(model, seq, tr, tex_tr, "linear", {"ridge": 1.0}, SADMConfig(augment_copies=0, region_shrink=False))
+    assert sadm.region_shrink is None
+    lm = seq.landmarks[te[:3]]
+    with torch.no_grad():
+        tex = sadm.synthesizer().texture(torch.from_numpy(lm)).reshape(3, -1).numpy()
+    np.testing.assert_allclose(tex, np.clip(model.texture_from_params(sadm.predict_params(lm)), 0, 1), atol=1e-5)
 
 
 def test_save_load_round_trip(synthetic, tmp_path):

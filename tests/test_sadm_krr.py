@@ -214,7 +214,8 @@ def test_region_breakdown_closed_form():
     """Regions are disjoint and cover the mask; shares and PSNRs match a hand computation."""
     from facesynth.data.synthetic import make_synthetic_sequence
     from facesynth.model import FaceModel, FaceModelConfig
-    from facesynth.sadm.ceiling import region_breakdown, region_masks
+    from facesynth.sadm.ceiling import region_breakdown
+    from facesynth.sadm.regions import reference_regions as region_masks
 
     seq = make_synthetic_sequence(24, 128, seed=0)
     model = FaceModel.fit(seq, FaceModelConfig(reference_width=64), progress=False)

@@ -5,12 +5,10 @@ Two face models on different schemes have different reference frames and face ma
 their ``psnr_ref`` and ``psnr_frame`` are not comparable. ``psnr_frame_common`` measures
 both over the same pixels of each test frame: the convex hull of the clip's **dlib**
 landmarks 0-26 (jaw and brows; the shipped ``landmarks.npy`` of ``shared/data/faces/<clip>``)
-eroded by 3 px, with per-region figures inside it:
-
-* ``eyes``: the dlib eye polygons (36-41, 42-47);
-* ``mouth_interior``: the inner-lip polygon (60-67);
-* ``rest``: the common region minus the eyes and the mouth interior;
-* ``whole``: the common region.
+eroded by 3 px (``whole``), with per-region figures inside it: the parts of
+:func:`facesynth.landmarks.face_region_masks` (``eyes``, ``mouth_interior``, ``lips``,
+``brows``, ``rest``), the same definition SADM's per-region shrinkage and the ceiling study
+use in the reference frame, cut to the common region.
 
 Where the dlib landmarks come from (:func:`common_landmarks`): ``eval.common_landmarks``
 when set (a ``.npy`` (T, 68, 2) indexed by video frame, or a clip folder holding one);
@@ -29,11 +27,11 @@ import numpy as np
 
 from facesynth.data.readers import load_landmarks
 from facesynth.errors import FacesynthError
-from facesynth.landmarks import BROWS, INNER_LIPS, JAW, LEFT_EYE, RIGHT_EYE
+from facesynth.landmarks import BROWS, FACE_REGIONS, JAW, face_region_masks
 
 HULL_POINTS = JAW + BROWS  # dlib 0-26
 ERODE_PX = 3
-REGIONS = ("whole", "eyes", "mouth_interior", "rest")
+REGIONS = ("whole",) + FACE_REGIONS
 
 
 def common_landmarks(seq, path: str | None = None) -> np.ndarray:
@@ -72,22 +70,16 @@ def _load68(path: Path, what: str) -> np.ndarray:
 def region_masks(landmarks68: np.ndarray, box: tuple[int, int, int, int]) -> dict[str, np.ndarray]:
     """bool (y1 - y0, x1 - x0) masks of :data:`REGIONS` for one frame's (68, 2) dlib
     landmarks, in the frame box ``(y0, y1, x0, x1)``. Polygons are filled at pixel centres
-    (sub-pixel vertices, 4 fractional bits); the hull is eroded by a disc of radius 3 px."""
+    (sub-pixel vertices, 4 fractional bits); the hull is eroded by a disc of radius 3 px and
+    the parts (:func:`facesynth.landmarks.face_region_masks`) partition it."""
     y0, y1, x0, x1 = box
     shape = (y1 - y0, x1 - x0)
     pts = np.asarray(landmarks68, np.float64) - (x0, y0)
-
-    def fill(idx, hull=False):
-        m = np.zeros(shape, np.uint8)
-        poly = np.round(pts[list(idx)] * 16).astype(np.int32)
-        cv2.fillPoly(m, [cv2.convexHull(poly) if hull else poly], 1, cv2.LINE_8, shift=4)
-        return m
-
+    hull = np.zeros(shape, np.uint8)
+    cv2.fillPoly(hull, [cv2.convexHull(np.round(pts[list(HULL_POINTS)] * 16).astype(np.int32))], 1, cv2.LINE_8, shift=4)
     disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * ERODE_PX + 1, 2 * ERODE_PX + 1))
-    whole = cv2.erode(fill(HULL_POINTS, hull=True), disc) > 0
-    eyes = ((fill(RIGHT_EYE) | fill(LEFT_EYE)) > 0) & whole
-    mouth = (fill(INNER_LIPS) > 0) & whole
-    return {"whole": whole, "eyes": eyes, "mouth_interior": mouth, "rest": whole & ~eyes & ~mouth}
+    whole = cv2.erode(hull, disc) > 0
+    return {"whole": whole, **face_region_masks(pts, shape, within=whole)}
 
 
 def hull_box(landmarks68: np.ndarray, frame_hw: tuple[int, int], margin: int) -> tuple[int, int, int, int]:

@@ -1,8 +1,9 @@
 """What a whole-region PSNR target needs from each region: the arithmetic over
 ``psnr_frame_common_regions`` and ``psnr_frame_common_shares`` of ``metrics.json``.
 
-The common region's parts (``eyes``, ``mouth_interior``, ``rest``) partition it
-(:mod:`facesynth.eval.common_region`), so its mean squared error is the pixel-share weighted
+The common region's parts (``eyes``, ``mouth_interior``, ``lips``, ``brows``, ``rest``;
+runs measured before lips and brows were split off hold the first, second and last only)
+partition it (:mod:`facesynth.eval.common_region`), so its mean squared error is the pixel-share weighted
 mean of theirs. With s_r the shares and p_r the parts' PSNR (dB, peak 255)::
 
     whole = -10 log10( sum_r s_r 10^(-p_r / 10) )                       (:func:`combine`)
@@ -22,8 +23,14 @@ from __future__ import annotations
 import math
 
 from facesynth.errors import FacesynthError
+from facesynth.landmarks import FACE_REGIONS
 
-PARTS = ("eyes", "mouth_interior", "rest")
+PARTS = ("eyes", "mouth_interior", "rest")  # the parts every run has; lips and brows when measured
+
+
+def _parts(table: dict) -> list[str]:
+    """The parts of :data:`FACE_REGIONS` present in ``table`` (a run's regions or shares)."""
+    return [p for p in FACE_REGIONS if p in table]
 
 
 def _mse(db: float) -> float:
@@ -47,15 +54,15 @@ def _tables(metrics: dict, where: str) -> tuple[dict, dict]:
 
 def combine(shares: dict, parts_db: dict) -> float:
     """Whole-region PSNR (dB) of parts ``parts_db`` {part: dB} with pixel ``shares`` {part: fraction}."""
-    total = sum(shares[p] for p in PARTS)
-    return _db(sum(shares[p] * _mse(parts_db[p]) for p in PARTS) / total)
+    parts = _parts(shares)
+    return _db(sum(shares[p] * _mse(parts_db[p]) for p in parts) / sum(shares[p] for p in parts))
 
 
 def substitute(metrics: dict, rows: dict, noise: str = "0", where: str = "metrics") -> float:
     """Whole-region PSNR with the parts of ``rows`` {part: row} (e.g. ``{"eyes": "oracle"}``)
     taken from that row of the table and the others from ``sadm``, at landmark noise ``noise``."""
     regions, shares = _tables(metrics, where)
-    return combine(shares, {p: regions[p][rows.get(p, "sadm")][noise] for p in PARTS})
+    return combine(shares, {p: regions[p][rows.get(p, "sadm")][noise] for p in _parts(shares)})
 
 
 def needed(metrics: dict, part: str, target_db: float, rows: dict | None = None, noise: str = "0",
@@ -63,8 +70,9 @@ def needed(metrics: dict, part: str, target_db: float, rows: dict | None = None,
     """The PSNR (dB) that ``part`` would need for the whole region to reach ``target_db``, the other
     parts as in ``rows`` (default ``sadm``); ``inf`` if they alone already exceed the error budget."""
     regions, shares = _tables(metrics, where)
-    total = sum(shares[p] for p in PARTS)
-    others = sum(shares[p] * _mse(regions[p][(rows or {}).get(p, "sadm")][noise]) for p in PARTS if p != part)
+    parts = _parts(shares)
+    total = sum(shares[p] for p in parts)
+    others = sum(shares[p] * _mse(regions[p][(rows or {}).get(p, "sadm")][noise]) for p in parts if p != part)
     budget = _mse(target_db) * total - others
     return _db(budget / shares[part]) if budget > 0 else math.inf
 
@@ -91,5 +99,5 @@ def scheme_gap(dense: dict, base: dict, margin: float = 1.0, noise: str = "0",
         "rest_needed_eyes_mouth_at_oracle": needed(dense, "rest", target, at_oracle, noise, where[0]),
         "rest_dense": reg_d["rest"]["sadm"][noise], "rest_base": reg_b["rest"]["sadm"][noise],
         "rest_oracle": reg_d["rest"]["oracle"][noise],
-        "shares": {p: shares[p] for p in PARTS},
+        "shares": {p: shares[p] for p in _parts(shares)},
     }

@@ -16,9 +16,9 @@ a target, the target is out of reach for a landmark-driven predictor on that fac
 whatever the regressor (the appearance PCA oracle is printed as the representational
 bound).
 
-Where the error lies: :func:`region_masks` cuts the reference frame into regions drawn
-from the reference landmarks (iBUG 68: eyes 36-47 dilated 3 px, mouth interior 60-67,
-lips 48-59 without the interior, the brow-to-upper-eyelid bands, the rest), and
+Where the error lies: :func:`facesynth.sadm.regions.reference_regions` cuts the reference
+frame into the face's parts (the one definition, :func:`facesynth.landmarks.face_region_masks`:
+eyes, mouth interior, lips, the brow-to-upper-eyelid bands, the rest), and
 :func:`region_breakdown` reports each region's share of the pixels and of the squared
 error, its PSNR and the oracle's. ``regions`` in the output holds that breakdown for
 both rows, plus ``*_eyes_interior_at_oracle``: the PSNR if the eyes and the mouth
@@ -41,15 +41,14 @@ import argparse
 import json
 import sys
 
-import cv2
 import numpy as np
 
 from facesynth.data import load_sequence, temporal_split
 from facesynth.io import write_text
-from facesynth.landmarks import INNER_LIPS, LEFT_BROW, LEFT_EYE, OUTER_LIPS, RIGHT_BROW, RIGHT_EYE
 from facesynth.metrics import psnr
 from facesynth.model import FaceModel, FaceModelConfig
 from facesynth.sadm.fit import SADMConfig, fit_sadm
+from facesynth.sadm.regions import reference_regions
 
 
 def psnr_ref(model, b: np.ndarray, tex: np.ndarray) -> float:
@@ -57,32 +56,8 @@ def psnr_ref(model, b: np.ndarray, tex: np.ndarray) -> float:
     return psnr(np.clip(model.texture_from_params(b), 0, 1) * 255.0, np.clip(tex, 0, 1) * 255.0)
 
 
-def region_masks(model) -> dict[str, np.ndarray]:
-    """Boolean (M,) masks over the model's reference-frame mask pixels, one per region
-    (``eyes``, ``mouth_interior``, ``lips``, ``brows``, ``rest``; disjoint, covering all M)."""
-    ref = model.reference
-    h, w = ref.size
-    pts = ref.points
-    index = model.sampler().mask_index.numpy()
-
-    def poly(idx, dilate=0):
-        m = np.zeros((h, w), np.uint8)
-        cv2.fillPoly(m, [np.round(pts[idx]).astype(np.int32)], 1)
-        if dilate:
-            m = cv2.dilate(m, np.ones((2 * dilate + 1,) * 2, np.uint8))
-        return m.reshape(-1)[index].astype(bool)
-
-    eyes = poly(list(RIGHT_EYE), 3) | poly(list(LEFT_EYE), 3)
-    interior = poly(list(INNER_LIPS), 1) & ~eyes
-    lips = poly(list(OUTER_LIPS), 2) & ~interior & ~eyes
-    # each brow closed by its eye's upper lid
-    brows = (poly(list(RIGHT_BROW) + [39, 38, 37, 36]) | poly(list(LEFT_BROW) + [45, 44, 43, 42])) & ~eyes & ~interior & ~lips
-    rest = ~(eyes | interior | lips | brows)
-    return {"eyes": eyes, "mouth_interior": interior, "lips": lips, "brows": brows, "rest": rest}
-
-
 def region_breakdown(model, pred: np.ndarray, true: np.ndarray, oracle: np.ndarray) -> dict:
-    """Per region of :func:`region_masks`: share of the pixels, share of the squared error
+    """Per region of :func:`~facesynth.sadm.regions.reference_regions`: share of the pixels, share of the squared error
     of ``pred``, PSNR of ``pred`` and of ``oracle`` (all (N, C*M) textures in [0, 1]), and
     ``eyes_interior_at_oracle``: the overall PSNR with the eyes and mouth interior taken
     from ``oracle``."""
@@ -92,11 +67,11 @@ def region_breakdown(model, pred: np.ndarray, true: np.ndarray, oracle: np.ndarr
     err_o = ((np.clip(oracle, 0, 1) - true) * 255.0).reshape(n, c, -1) ** 2
     total = err.sum()
     out: dict = {}
-    for name, m in region_masks(model).items():
+    r = reference_regions(model)
+    for name, m in r.items():
         out[name] = {"pixel_share": float(m.mean()), "error_share": float(err[:, :, m].sum() / total),
                      "psnr": float(10 * np.log10(255.0**2 / err[:, :, m].mean())),
                      "oracle_psnr": float(10 * np.log10(255.0**2 / err_o[:, :, m].mean()))}
-    r = region_masks(model)
     swap = r["eyes"] | r["mouth_interior"]
     mixed = (total - err[:, :, swap].sum() + err_o[:, :, swap].sum()) / err.size
     out["eyes_interior_at_oracle"] = float(10 * np.log10(255.0**2 / mixed))

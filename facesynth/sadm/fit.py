@@ -34,6 +34,7 @@ from facesynth.regressors import REGISTRY, Regressor, search
 from facesynth.sadm.compress import compress_synthesizer
 from facesynth.sadm.gaze import TARGETS as GAZE_TARGETS
 from facesynth.sadm.gaze import GazeInputs, GazePath, eye_columns, fit_gaze_path, has_irises
+from facesynth.sadm.regions import check_shrink, fit_region_shrink, shrink_appearance
 from facesynth.sadm.synthesis import GlobalAppearance, ShapeEncoder, ShapeFeatures, Synthesizer
 
 log = logging.getLogger(__name__)
@@ -41,6 +42,7 @@ SADM_FORMAT, SADM_FORMAT_VERSION = "facesynth.sadm", 1
 SADM_TENSORS, SADM_MANIFEST = "regressor.safetensors", "sadm.json"
 GAZE_PREFIX = "gaze."
 GAZE_MODES = ("path", "inside", "both")
+MIN_SHRINK_FRAMES = 10  # fewer validation frames than this: no per-region shrinkage
 
 
 @dataclass
@@ -66,6 +68,9 @@ class SADMConfig:
         elsewhere) or 'params' (b_g: every pixel)
     gaze_folds : contiguous blocks of the training segment for the gaze path's cross-fitted
         residuals and its alpha (0: in-sample residuals, default alpha)
+    region_shrink : shrink the prediction towards the mean texture per face part, by weights
+        chosen on the validation slice (:mod:`facesynth.sadm.regions`); needs
+        ``val_fraction`` > 0 and at least :data:`MIN_SHRINK_FRAMES` validation frames
     """
 
     features: str = "landmarks"
@@ -79,6 +84,7 @@ class SADMConfig:
     gaze_copies: int = 4
     gaze_target: str = "eyes"
     gaze_folds: int = 5
+    region_shrink: bool = True
 
 
 @dataclass
@@ -93,10 +99,12 @@ class SADM:
     search_table: list = field(default_factory=list)
     scheme: str = "ibug68"
     gaze: GazePath | None = None
+    region_shrink: dict | None = None  # {"weights": {part: w}, "psnr": ..., "val_frames": n}; None: no shrinkage
 
     def appearance(self) -> GlobalAppearance:
-        return GlobalAppearance(self.model, self.regressor, self.config.features, gaze=self.gaze,
-                                gaze_inputs=gaze_inputs(self.config, get_scheme(self.scheme)))
+        app = GlobalAppearance(self.model, self.regressor, self.config.features, gaze=self.gaze,
+                               gaze_inputs=gaze_inputs(self.config, get_scheme(self.scheme)))
+        return app if self.region_shrink is None else shrink_appearance(app, self.model, self.region_shrink["weights"])
 
     def synthesizer(self) -> Synthesizer:
         """The whole landmarks -> face graph (eval mode); it takes (B, P, 2) landmarks of ``scheme``."""
@@ -257,7 +265,13 @@ def fit_sadm(
     if use_gaze and cfg.gaze_mode in ("path", "both"):
         gaze = _fit_gaze(model, cfg, scheme, name, params, reg.eval(), x, yy, model_input(model, lm_all), pos, len(rows), seed)
         log.info("gaze path: alpha %g", gaze.alpha)
-    return SADM(model, reg.eval(), name, cfg, reg.config_dict(), table, scheme.name, gaze)
+    shrink = None
+    if cfg.region_shrink and n_val >= MIN_SHRINK_FRAMES:
+        probe_cfg = replace(cfg, region_shrink=False, search=False)
+        shrink = fit_region_shrink(lambda r, t: fit_sadm(model, seq, r, t, name, params, probe_cfg, seed).synthesizer(),
+                                   model, seq.landmarks[rows], rows, textures, n_val)
+        log.info("region shrinkage: %s", shrink["weights"])
+    return SADM(model, reg.eval(), name, cfg, reg.config_dict(), table, scheme.name, gaze, shrink)
 
 
 def _predict(reg, x: np.ndarray, batch: int = 4096) -> np.ndarray:
@@ -305,6 +319,7 @@ def save_sadm(sadm: SADM, run_dir: str | os.PathLike, extra: dict | None = None)
         "regressor_summary": sadm.regressor.summary(),
         "sadm": asdict(sadm.config),
         "search_table": sadm.search_table,
+        "region_shrink": sadm.region_shrink,  # per-part weights towards the mean texture (None: none)
         "data_fingerprint": sadm.model.fingerprint,
         "face_model_sha256": face_model_manifest(d / "face_model")["tensors_sha256"],
         **(extra or {}),
@@ -355,7 +370,8 @@ def load_sadm(run_dir: str | os.PathLike) -> SADM:
             gaze = GazePath.from_state(scheme, state, float(dict(gaze_meta).get("alpha", "nan")),
                                        str(dict(gaze_meta).get("target", "params"))).eval()
         cfg = SADMConfig(**{k: v for k, v in dict(sadm_conf).items() if k in SADMConfig.__dataclass_fields__})
-        sadm = SADM(model, reg.eval(), name, cfg, conf, meta.get("search_table", []), scheme.name, gaze)
+        sadm = SADM(model, reg.eval(), name, cfg, conf, meta.get("search_table", []), scheme.name, gaze,
+                    check_shrink(meta.get("region_shrink"), where))
         _smoke_test(sadm)
         return sadm
 

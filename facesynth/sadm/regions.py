@@ -1,0 +1,123 @@
+"""The face's parts in a face model's reference frame, and SADM's per-region shrinkage
+towards the mean texture ("never worse than the mean").
+
+The parts are those of :func:`facesynth.landmarks.face_region_masks` (eyes, mouth interior,
+lips, brows, rest), drawn from the iBUG-68 view of the reference points, so that evaluation
+in the frame, this shrinkage and the ceiling study cut the face the same way.
+
+Shrinkage: where the landmarks say little about a part (gaze in the eyes, tongue and teeth
+in the mouth interior), a regressor's prediction there can be further from the held-out
+texture than the mean texture is. Per part r, the prediction's deviation from the mean is
+scaled by w_r in [0, 1]::
+
+    texture'[r] = mean[r] + w_r (texture[r] - mean[r])
+
+with w_r the least-squares blend on a validation slice (the last ``sadm.val_fraction`` of
+the training segment), predicted by a SADM fitted on the frames before it::
+
+    w_r = clip( sum (p - m)(t - m) / sum (p - m)^2 , 0, 1 )      over the slice's pixels of r
+
+(p: prediction, t: true texture, m: mean). w_r = 1 leaves the part as predicted; w_r = 0
+renders the mean there. Since the scaling is per texture column it folds into the
+appearance basis (its columns scaled) and the gaze path's texture correction, so the
+synthesis graph, its ONNX export, compression and the int8 basis are unchanged.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from facesynth.errors import FacesynthError
+from facesynth.landmarks import FACE_REGIONS, face_region_masks, get_scheme, ibug68_view
+
+
+def reference_regions(model) -> dict[str, np.ndarray]:
+    """bool (M,) masks over ``model``'s reference-frame mask pixels, one per part of
+    :data:`FACE_REGIONS` (disjoint, covering all M)."""
+    h, w = model.reference.size
+    index = model.sampler().mask_index.numpy()
+    inside = np.zeros(h * w, bool)
+    inside[index] = True
+    pts = ibug68_view(np.asarray(model.reference.points, np.float64))
+    masks = face_region_masks(pts, (h, w), within=inside.reshape(h, w))
+    return {name: m.reshape(-1)[index] for name, m in masks.items()}
+
+
+def column_weights(model, weights: dict[str, float]) -> np.ndarray:
+    """float32 (C M,) per texture column (channel-major): the weight of its part (1 for parts
+    not in ``weights``)."""
+    per_pixel = np.ones(model.n_pixels, np.float32)
+    for name, m in reference_regions(model).items():
+        per_pixel[m] = float(weights.get(name, 1.0))
+    return np.tile(per_pixel, model.n_channels)
+
+
+def shrink_appearance(app, model, weights: dict[str, float]):
+    """``app`` (a freshly built :class:`~facesynth.sadm.synthesis.GlobalAppearance` of
+    ``model``) with each part's deviation from the mean scaled by its weight: the basis's
+    columns scaled (mean + w (b_g P) = mean + b_g (P w)), and a gaze path that corrects the
+    texture replaced by a scaled copy (the shared one is left untouched). Returns ``app``."""
+    cols = torch.from_numpy(column_weights(model, weights))
+    gaze = app.gaze
+    if gaze is not None and gaze.target != "params":
+        app.gaze = type(gaze)(get_scheme(gaze.features.scheme), gaze.mu, gaze.sd, gaze.weight * cols, gaze.bias * cols,
+                              gaze.alpha, gaze.target).eval()
+    app.components = app.components * cols
+    return app
+
+
+def fit_weights(model, predicted: np.ndarray, true: np.ndarray) -> dict:
+    """Per part, the least-squares shrinkage weight in [0, 1] (module docstring) of the
+    ``predicted`` (N, C M) textures towards the mean given the ``true`` ones, and the slice's
+    PSNR (dB, peak 255) of the prediction, of the mean and of the shrunk prediction.
+
+    Returns {"weights": {part: w}, "psnr": {part: {"sadm", "mean_texture", "shrunk"}}}."""
+    mean = np.clip(model.appearance_pca.mean, 0, 1).astype(np.float64)
+    n, c = len(true), model.n_channels
+    d = (np.clip(predicted, 0, 1) - mean).reshape(n, c, -1)
+    t = (np.clip(true, 0, 1) - mean).reshape(n, c, -1)
+    weights, table = {}, {}
+    for name, m in reference_regions(model).items():
+        dm, tm = d[:, :, m], t[:, :, m]
+        den = float((dm * dm).sum())
+        w = float(np.clip((dm * tm).sum() / den, 0.0, 1.0)) if den > 0 else 1.0
+        weights[name] = w
+
+        def db(e):
+            return float(10 * np.log10(1.0 / max(float((e * e).mean()), 1e-20)))
+
+        table[name] = {"sadm": db(dm - tm), "mean_texture": db(tm), "shrunk": db(w * dm - tm)}
+    return {"weights": weights, "psnr": table}
+
+
+def fit_region_shrink(fit, model, landmarks: np.ndarray, rows: np.ndarray, textures: np.ndarray, n_val: int) -> dict:
+    """Per-part shrinkage weights (:func:`fit_weights`) of a synthesizer ``fit(rows, textures)``
+    (a callable fitting the SADM's settings, shrinkage off, on training rows and textures)
+    fitted on the training frames before the last ``n_val`` and scored on those. ``landmarks``
+    (len(rows), P, 2) and ``textures`` (len(rows), C M) are the training frames'. The weights
+    are then applied to the SADM fitted on all of them. Adds ``val_frames`` to the result."""
+    syn = fit(rows[:-n_val], textures[:-n_val])
+    with torch.no_grad():
+        pred = syn.texture(torch.from_numpy(np.ascontiguousarray(landmarks[-n_val:], np.float32)))
+    out = fit_weights(model, pred.reshape(n_val, -1).numpy(), textures[-n_val:])
+    out["val_frames"] = int(n_val)
+    return out
+
+
+def check_shrink(value, where) -> dict | None:
+    """A manifest's ``region_shrink`` (None: runs saved before it or without it), checked:
+    FacesynthError naming ``where`` unless its weights map parts to numbers in [0, 1]."""
+    if value is None:
+        return None
+    weights = value.get("weights") if isinstance(value, dict) else None
+    ok = isinstance(weights, dict) and all(
+        k in FACE_REGIONS and isinstance(w, (int, float)) and 0 <= w <= 1 for k, w in weights.items())
+    if not ok:
+        raise FacesynthError(f"{where}: region_shrink.weights must map face parts ({', '.join(FACE_REGIONS)}) "
+                             "to numbers in [0, 1]")
+    return dict(value)
+
+
+__all__ = ["FACE_REGIONS", "reference_regions", "column_weights", "fit_weights", "fit_region_shrink", "check_shrink",
+           "shrink_appearance"]
