@@ -19,7 +19,7 @@ Measures:
 * self-reenactment, each clip's held-out last 25 % driven by its own landmarks (relative
   motion, the driver's neutral = the avatar's): PSNR and SSIM against the real frame over the
   head region (:func:`head_region` of the real landmarks: hull grown to hair and neck) and
-  over the whole frame;
+  over the whole frame, and PSNR over the real landmarks' hull (the face alone);
 * identity: Euclidean distance between dlib's face descriptor
   (``dlib_face_recognition_resnet_model_v1.dat``) of each output frame and the mean
   descriptor of 20 of the avatar's training frames; the reference is the same distance of
@@ -198,7 +198,7 @@ class Track:
         self.dl, self.ref, self.eyes, self.double = dl, ref, eyes, []
         self.one, self.ident, self.akd, self.missing = [], [], [], 0
         self.flick_bg, self.flick_face, self.prev = [], [], None
-        self.psnr_head, self.psnr_frame, self.ssim_head, self.ssim_frame = [], [], [], []
+        self.psnr_head, self.psnr_frame, self.ssim_head, self.ssim_frame, self.psnr_face = [], [], [], [], []
 
     def add(self, img: np.ndarray, lm: np.ndarray, real: np.ndarray | None = None, real_lm=None):
         size = img.shape[1::-1]
@@ -212,6 +212,7 @@ class Track:
         if real is not None:
             m = head_region(real_lm, size)
             self.psnr_head.append(psnr(img, real, m))
+            self.psnr_face.append(psnr(img, real, hull_mask(real_lm, img.shape[:2], erode=0)))
             self.psnr_frame.append(psnr(img, real))
             self.ssim_head.append(ssim(img, real, m))
             self.ssim_frame.append(ssim(img, real))
@@ -233,7 +234,8 @@ class Track:
         out = {}
         if self.psnr_head:
             out.update(psnr_head_db=r(np.mean(self.psnr_head), 2), ssim_head=r(np.mean(self.ssim_head), 4),
-                       psnr_frame_db=r(np.mean(self.psnr_frame), 2), ssim_frame=r(np.mean(self.ssim_frame), 4))
+                       psnr_frame_db=r(np.mean(self.psnr_frame), 2), ssim_frame=r(np.mean(self.ssim_frame), 4),
+                       psnr_face_db=r(np.mean(self.psnr_face), 2))
         if self.dl is not None:
             out.update(frames=len(self.one), one_face_rate=r(np.mean(self.one), 4), no_face_or_elsewhere=self.missing)
             if self.ident:

@@ -67,6 +67,14 @@ def test_the_border_stays_still_away_from_the_head(scene):
     mx, my = fw.maps(moved)
     for y, x in ((0, 0), (0, SIZE - 1), (SIZE - 1, 0), (SIZE - 1, SIZE - 1)):
         assert (mx[y, x], my[y, x]) == pytest.approx((x, y), abs=1e-3)
+    # a big motion: anchors near the head slide along the sides and bottom, never off them
+    far = fw.control_points(apply_affine(face, similarity(15.0, 1.1, (40.0, 60.0), face.mean(0))))[fw.n_face:]
+    src = fw.src[fw.n_face:]
+    for axis, edge in ((0, 0.0), (0, SIZE - 1.0), (1, SIZE - 1.0)):
+        on = src[:, axis] == edge
+        np.testing.assert_array_equal(far[on, axis], edge)
+    anchors = ((src == 0) | (src == SIZE - 1)).any(1)
+    assert anchors.sum() == 32 and (far[anchors] >= 0).all() and (far[anchors] <= SIZE - 1).all()
     # the weights fall off: 1 on the head's ring, less on the outer ring, 0 at the corners
     _, w = head_points(face, (SIZE, SIZE))
     assert w.max() == 1.0 and w.min() == 0.0

@@ -13,11 +13,15 @@ Each point but the landmarks follows a share ``w`` of the head's motion ``S`` (i
 ``p + w (S(p) - p)``): ``S`` is the similarity fitted from the neutral's eye corners, top of
 the nose bridge and top jaw points (by the ears) to the frame's, and ``w`` is 1 on the
 head's ring, falls off linearly outside it, more so below the chin, and is 0 at the
-shoulders and on the frame's border away from the head (:func:`motion_weight`): the border
-stays still, but where the head reaches it (hair cut by the frame's top) it moves with the
-head, and what comes in from outside the frame is its edge, replicated. Ring points well
-outside the frame, or on its border band, are dropped, on the neutral: the triangulation
-is fixed per avatar.
+shoulders and on the frame's border away from the head (:func:`motion_weight`). Anchors
+on the left, right and bottom sides only slide along them (the bottom corners stay): where a
+chin or shoulder reaches the bottom, the edge follows the head along it, never across it, as
+an edge replicated inward shows as streaks over a body. Anchors on the top side also move
+down with the head: hair cut by the frame's top then continues above it as the top row
+replicated (held on the top edge instead, the hair was pulled into a peak there), and the
+ring's points above the frame are kept, so that the hair there moves with the head. Ring
+points on the border band or outside the frame elsewhere are dropped, on the neutral: the
+triangulation is fixed per avatar.
 
 Two interpolants of the control points' motion (``method``):
 
@@ -56,8 +60,8 @@ FALLOFF = 2.2  # the head's motion falls off linearly from its ellipse (1) to 2.
 CHIN, SHOULDERS = 1.5, 3.0  # below the chin it falls off further, to nothing at the shoulders
 NECK = ((-0.6, 1.6), (0.6, 1.6), (0.0, 2.05))
 BORDER_STEPS = 8  # anchors per frame side (corners included)
-OUTSIDE = 0.25  # ring points further outside the frame than this share of its size are dropped
-INSIDE = 0.02  # and so are those closer to the border than this, inside (border anchors are there)
+INSIDE = 0.02  # ring points closer to the frame's border than this share of its size are dropped,
+OUTSIDE = 0.25  # and so are those outside it, but for those above it by less than this share
 # the head's motion: the similarity fitted on the eye corners, the top of the nose bridge and
 # the jaw's top points by the ears (the nose tip and the lower jaw turn ahead of the skull)
 HEAD_POINTS = [0, 1, 15, 16, 27, 36, 39, 42, 45]
@@ -97,9 +101,9 @@ def head_points(neutral68: np.ndarray, size: tuple[int, int]) -> tuple[np.ndarra
     out, near = OUTSIDE * max(w, h), INSIDE * max(w, h)
     top = np.array([w - 1, h - 1])
     inner = np.all((pts > near) & (pts < top - near), 1)
-    beyond = np.any((pts < -near) | (pts > top + near), 1) & np.all((pts > -out) & (pts < top + out), 1)
-    keep = inner | beyond  # not on the border band, where the anchors are
-    pts = pts[keep]
+    # above the frame (hair the top edge cuts): kept, the top anchors move down with the head
+    above = (pts[:, 1] < -near) & (pts[:, 1] > -out) & (pts[:, 0] > near) & (pts[:, 0] < w - 1 - near)
+    pts = pts[inner | above]
     bx = np.linspace(0, w - 1, BORDER_STEPS + 1)
     by = np.linspace(0, h - 1, BORDER_STEPS + 1)
     border = np.concatenate([np.stack([bx, np.zeros_like(bx)], 1), np.stack([bx, np.full_like(bx, h - 1)], 1),
@@ -146,6 +150,11 @@ class FrameWarp:
         extra, self.weights = head_points(self.neutral68, self.size)
         self.src = np.concatenate([self.neutral68, extra])  # (K, 2) control points in the neutral frame
         self.n_face = len(self.neutral68)
+        # (K - 68, 2) share of the head's motion per point and axis: an anchor on the left, right
+        # or bottom side keeps the coordinate that puts it there (module docstring)
+        held = np.stack([(extra[:, 0] == 0.0) | (extra[:, 0] == w - 1.0), extra[:, 1] == h - 1.0], 1)
+        self._share = self.weights[:, None] * ~held
+        self._on_border = held.any(1) | (extra[:, 1] == 0.0)
         tri = Delaunay(self.src).simplices.astype(np.int64)
         # drawing order: still triangles first, the face's last (folds: the face's side wins)
         wk = np.concatenate([np.full(self.n_face, 2.0), self.weights])
@@ -158,7 +167,9 @@ class FrameWarp:
         face = ibug68_view(landmarks)
         s = similarity_fit(self.neutral68[HEAD_POINTS], face[HEAD_POINTS])
         extra = self.src[self.n_face:]
-        moved = extra + self.weights[:, None] * (apply_affine(extra, s) - extra)
+        moved = extra + self._share * (apply_affine(extra, s) - extra)
+        # anchors slide along their side of the frame, never off it
+        moved[self._on_border] = np.clip(moved[self._on_border], 0, np.asarray(self.size) - 1)
         return np.concatenate([face, moved])
 
     def folds(self, landmarks: np.ndarray, outside_face: bool = False) -> int:
