@@ -154,7 +154,6 @@ class FrameWarp:
         # or bottom side keeps the coordinate that puts it there (module docstring)
         held = np.stack([(extra[:, 0] == 0.0) | (extra[:, 0] == w - 1.0), extra[:, 1] == h - 1.0], 1)
         self._share = self.weights[:, None] * ~held
-        self._on_border = held.any(1) | (extra[:, 1] == 0.0)
         tri = Delaunay(self.src).simplices.astype(np.int64)
         # drawing order: still triangles first, the face's last (folds: the face's side wins)
         wk = np.concatenate([np.full(self.n_face, 2.0), self.weights])
@@ -168,8 +167,6 @@ class FrameWarp:
         s = similarity_fit(self.neutral68[HEAD_POINTS], face[HEAD_POINTS])
         extra = self.src[self.n_face:]
         moved = extra + self._share * (apply_affine(extra, s) - extra)
-        # anchors slide along their side of the frame, never off it
-        moved[self._on_border] = np.clip(moved[self._on_border], 0, np.asarray(self.size) - 1)
         return np.concatenate([face, moved])
 
     def folds(self, landmarks: np.ndarray, outside_face: bool = False) -> int:
