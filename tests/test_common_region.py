@@ -100,6 +100,9 @@ def test_psnr_frame_common_in_an_evaluation(shared_mesh):
         json.dumps(metrics)
         regions = metrics["psnr_frame_common_regions"]
         assert set(regions) == {"whole", *FACE_REGIONS}
+        sharp = metrics["sharpness_frame_common"]  # the rendered face's detail against the real frame's
+        assert set(sharp) == {"whole", *FACE_REGIONS} and set(sharp["whole"]) == {"sadm", "mean_texture", "oracle", "rewarp"}
+        assert 0 < sharp["whole"]["mean_texture"] < sharp["whole"]["rewarp"] < 1.5
         assert metrics["psnr_frame_common"] == regions["whole"]
         for table in regions.values():
             assert set(table) == {"sadm", "mean_texture", "oracle", "rewarp"} and all(set(v) == {"0", "1"} for v in table.values())

@@ -18,7 +18,9 @@ import numpy as np
 
 from facesynth import progress
 from facesynth.eval.common_region import REGIONS, hull_box, region_masks
+from facesynth.eval.sharpness import median_table, sharpness
 from facesynth.imaging import composite
+from facesynth.runtime.blend import blend_face
 
 MARGIN = 8  # px around the crops' footprint: > feather erosion + Gaussian support + bilinear reach
 
@@ -78,7 +80,9 @@ def frame_level(model, predict, seq, rows, tex_te, oracle, cfg, seed, keys, nois
     psnr : {row: {noise key: dB}}; with ``common``, also ``psnr["common"]``:
         {region: {row: {noise key: dB}}} for the regions of :data:`REGIONS`, and
         ``psnr["common_shares"]``: {region: its pixels / the whole region's, over the frames
-        evaluated} (the caller pops both)
+        evaluated}, and ``psnr["sharpness"]``: {region: {row: median over frames of the
+        rendered face's Sobel energy over the real frame's}} at sigma 0, pasted with
+        ``blend_face`` (:mod:`facesynth.eval.sharpness`) (the caller pops all three)
     per_frame : {"index": (n,) test-row positions evaluated, "psnr": {row: (n,) dB at sigma 0}}
     grid : list of dicts (real, synth uint8 crops, frame row, psnr)
     """
@@ -95,6 +99,7 @@ def frame_level(model, predict, seq, rows, tex_te, oracle, cfg, seed, keys, nois
                "rewarp": tex_te[pick]}
     sq = {name: {k: np.zeros((n, 2)) for k in keys} for name in sources}
     sq_common = {reg: {name: {k: np.zeros((n, 2)) for k in keys} for name in sources} for reg in REGIONS}
+    sharp = {name: {reg: [] for reg in REGIONS} for name in sources}  # per frame, sigma 0 (common region only)
     show = set(subset(n, n_grid).tolist())
     k0 = keys[[float(s) for s in cfg.noise].index(0.0)] if 0.0 in [float(s) for s in cfg.noise] else keys[0]
     grid = []
@@ -135,6 +140,10 @@ def frame_level(model, predict, seq, rows, tex_te, oracle, cfg, seed, keys, nois
                     sq[name][k][j] = (float(d2[region].sum()), 3 * int(region.sum()))
                     for reg, m in regions.items():
                         sq_common[reg][name][k][j] = (float(d2[m].sum()), 3 * int(m.sum()))
+                    if regions and k == k0:
+                        shown = blend_face(img[r], msk[r], _shift(plc[r], y0, x0), sub)
+                        for reg, v in sharpness(shown, sub, regions).items():
+                            sharp[name][reg].append(v)
                     if name == "sadm" and k == k0 and j in show:
                         ys, xs = np.nonzero(region)
                         crop_box = (slice(ys.min(), ys.max() + 1), slice(xs.min(), xs.max() + 1))
@@ -148,6 +157,7 @@ def frame_level(model, predict, seq, rows, tex_te, oracle, cfg, seed, keys, nois
                             for reg, per in sq_common.items()}
         counts = {reg: float(per["sadm"][k0][:, 1].sum()) for reg, per in sq_common.items()}
         pooled["common_shares"] = {reg: c / max(counts["whole"], 1.0) for reg, c in counts.items()}
+        pooled["sharpness"] = median_table(sharp)
     per_frame = {"index": pick, "psnr": {name: np.array([_db(*r) for r in d_[k0]]) for name, d_ in sq.items()}}
     return pooled, per_frame, grid
 

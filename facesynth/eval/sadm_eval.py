@@ -16,6 +16,14 @@
   rest, whole}: {row: {noise: dB}} inside it; ``psnr_frame_common_shares``: each region's
   share of the whole region's pixels (the frames evaluated), so that region figures combine
   into whole-region ones (:mod:`facesynth.eval.regions_gap`).
+* ``sharpness_frame_common``: {region: {row: S}}: the rendered face's Sobel gradient energy
+  over the real frame's in each common region, pasted with ``blend_face``, median over the
+  frames evaluated, sigma 0 (:mod:`facesynth.eval.sharpness`; 1 = as detailed as the real
+  frame).
+* ``psnr_ref_regions``: {part: {row: {noise: dB}}}: ``psnr_ref`` per face part of the
+  reference frame (:func:`facesynth.sadm.regions.reference_regions`), rows ``sadm`` and
+  ``mean_texture``; ``region_shrink``: the SADM's per-part weights towards the mean texture
+  and their validation-slice figures (None: no shrinkage).
 * ``ncc``: per-component normalised cross-correlation of predicted vs true b_g on the
   test frames at sigma 0 (the paper's Table 1).
 """
@@ -35,6 +43,7 @@ from facesynth.eval.frame_level import frame_level
 from facesynth.landmarks import get_scheme
 from facesynth.metrics import ncc, psnr
 from facesynth.sadm.fit import SADM
+from facesynth.sadm.regions import reference_regions
 
 
 @dataclass
@@ -135,10 +144,16 @@ def evaluate_sadm(
     psnr_ref = {"sadm": {}, "mean_texture": {}, "oracle": {}}
     pred0 = None
     mean_db, oracle_db = _psnr01(mean_tex, tex_te), _psnr01(oracle, tex_te)  # landmark noise does not change them
+    parts = reference_regions(model)
+    cols = {name: np.tile(m, model.n_channels) for name, m in parts.items()}
+    ref_regions = {name: {"sadm": {}, "mean_texture": dict.fromkeys(keys, _psnr01(mean_tex[:, c], tex_te[:, c]))}
+                   for name, c in cols.items()}
     for s, k in zip(cfg.noise, keys, strict=True):
         pred = _predict(syn, noisy(lm_te, s, seed), cfg.batch_size)
         pred0 = pred if s == 0 else pred0
         psnr_ref["sadm"][k] = _psnr01(pred, tex_te)
+        for name, c in cols.items():
+            ref_regions[name]["sadm"][k] = _psnr01(pred[:, c], tex_te[:, c])
         psnr_ref["mean_texture"][k] = mean_db
         psnr_ref["oracle"][k] = oracle_db
     if pred0 is None:
@@ -153,6 +168,8 @@ def evaluate_sadm(
         "landmark_scheme": sadm.scheme,
         "gaze": sadm.gaze_summary(),
         "psnr_ref": psnr_ref,
+        "psnr_ref_regions": ref_regions,
+        "region_shrink": sadm.region_shrink,
         "ncc": [float(v) for v in ncc(sadm.predict_params(lm_te), b_true)],
     }
     err = ((np.clip(pred0, 0, 1) - tex_te) ** 2).reshape(len(tex_te), model.n_channels, -1).mean((0, 1))
@@ -180,11 +197,13 @@ def evaluate_sadm(
             st.set(f"{n} of {len(test_rows)} test frames x {len(keys)} noise levels")
         common_pooled = pooled.pop("common", None)
         shares = pooled.pop("common_shares", None)
+        sharp = pooled.pop("sharpness", None)
         metrics["psnr_frame"] = pooled
         if common_pooled is not None:
             metrics["psnr_frame_common"] = common_pooled["whole"]
             metrics["psnr_frame_common_regions"] = common_pooled
             metrics["psnr_frame_common_shares"] = shares
+            metrics["sharpness_frame_common"] = sharp
         metrics["frame_level_frames"] = {"evaluated": n, "test_frames": int(len(test_rows)),
                                          "max_test_frames": cfg.max_test_frames, "spacing": "evenly spaced"}
         extras["per_frame"].update(frame_index=per_frame["index"], psnr_frame=per_frame["psnr"])
