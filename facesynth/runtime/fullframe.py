@@ -154,6 +154,7 @@ class FrameWarp:
         # or bottom side keeps the coordinate that puts it there (module docstring)
         held = np.stack([(extra[:, 0] == 0.0) | (extra[:, 0] == w - 1.0), extra[:, 1] == h - 1.0], 1)
         self._share = self.weights[:, None] * ~held
+        self._ring = ~(held.any(1) | (extra[:, 1] == 0.0))
         tri = Delaunay(self.src).simplices.astype(np.int64)
         # drawing order: still triangles first, the face's last (folds: the face's side wins)
         wk = np.concatenate([np.full(self.n_face, 2.0), self.weights])
@@ -167,6 +168,10 @@ class FrameWarp:
         s = similarity_fit(self.neutral68[HEAD_POINTS], face[HEAD_POINTS])
         extra = self.src[self.n_face:]
         moved = extra + self._share * (apply_affine(extra, s) - extra)
+        # ring points stay strictly inside the held sides (past them they would fold over the anchors)
+        r = self._ring
+        moved[r, 0] = np.clip(moved[r, 0], 1.0, self.size[0] - 2.0)
+        moved[r, 1] = np.minimum(moved[r, 1], self.size[1] - 2.0)
         return np.concatenate([face, moved])
 
     def folds(self, landmarks: np.ndarray, outside_face: bool = False) -> int:
