@@ -19,7 +19,7 @@ from facesynth.model import FaceModel, FaceModelConfig
 from facesynth.regressors import REGISTRY
 from facesynth.runs.config import register_configs
 from facesynth.sadm.fit import SADMConfig, fit_sadm, load_sadm, save_sadm
-from facesynth.sadm.regions import fit_weights, reference_regions
+from facesynth.sadm.regions import fit_region_shrink, fit_weights, reference_regions
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY = ["data.n_frames=64", "data.size=192", "eval.noise=[0,2]", "eval.max_test_frames=3"]
@@ -77,6 +77,32 @@ def test_region_shrink_weights_closed_form(synthetic):
     for part, row in out["psnr"].items():
         assert row["shrunk"] >= row["mean_texture"] - 1e-9, part
     assert out["psnr"]["eyes"]["shrunk"] > 60  # halving a doubled deviation gives the truth back
+
+
+def test_region_shrink_blocked_cv_scores_every_frame_once_by_a_fit_without_it(synthetic):
+    _, _, _, model, tex_tr = synthetic
+    n = 23
+    mean = np.clip(model.appearance_pca.mean, 0, 1)
+    tex = mean + 0.1 * (np.clip(tex_tr[:n], 0, 1) - mean)  # doubled, still a convex mix: inside [0, 1]
+    lm = np.arange(n, dtype=np.float32)[:, None, None] + np.zeros((n, 2, 2), np.float32)  # frame i's "landmarks" = i
+    seen = []
+
+    class Doubling:  # predicts each frame twice as far from the mean as it is: every weight is 0.5
+        def __init__(self, idx):
+            self.idx = set(idx.tolist())
+
+        def texture(self, lm_t):
+            rows = lm_t[:, 0, 0].long().numpy()
+            assert not self.idx & set(rows.tolist())  # never scored by a fit that saw it
+            seen.extend(rows.tolist())
+            return torch.from_numpy((mean + 2 * (tex[rows] - mean)).astype(np.float32))
+
+    out = fit_region_shrink(Doubling, model, lm, tex, 5, 0)
+    assert sorted(seen) == list(range(n)) and out["folds"] == 5 and out["val_frames"] == n
+    assert all(w == pytest.approx(0.5, abs=1e-6) for w in out["weights"].values())
+    seen.clear()
+    out = fit_region_shrink(Doubling, model, lm, tex, 0, 6)  # the validation slice: the last 6 frames
+    assert sorted(seen) == list(range(n - 6, n)) and out["folds"] == 0 and out["val_frames"] == 6
 
 
 def test_region_shrink_off_is_the_plain_prediction(synthetic):

@@ -90,7 +90,9 @@ def face_detail_sections(doc: Document, metrics: dict) -> None:
                   [[p] + [f"{v[r][k]:.2f}" for r in ("sadm", "mean_texture") for k in keys] for p, v in rows.items()])
     shrink = metrics.get("region_shrink")
     if shrink:
-        doc.heading(f"Shrinkage towards the mean texture per face part (chosen on {shrink['val_frames']} validation frames)")
+        how = f"{shrink['folds']}-fold blocked cross-validation" if shrink.get("folds") else "the validation slice"
+        doc.heading(f"Shrinkage towards the mean texture per face part ({how}, {shrink['val_frames']} training frames "
+                    "scored held out; val = those frames)")
         doc.table(["part", "weight", "val sadm dB", "val mean texture dB", "val shrunk dB"],
                   [[p, f"{w:.2f}"] + [f"{shrink['psnr'][p][r]:.2f}" for r in ("sadm", "mean_texture", "shrunk")]
                    for p, w in shrink["weights"].items()])

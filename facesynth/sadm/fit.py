@@ -69,8 +69,9 @@ class SADMConfig:
     gaze_folds : contiguous blocks of the training segment for the gaze path's cross-fitted
         residuals and its alpha (0: in-sample residuals, default alpha)
     region_shrink : shrink the prediction towards the mean texture per face part, by weights
-        chosen on the validation slice (:mod:`facesynth.sadm.regions`); needs
-        ``val_fraction`` > 0 and at least :data:`MIN_SHRINK_FRAMES` validation frames
+        chosen on held-out training frames (:mod:`facesynth.sadm.regions`)
+    shrink_folds : blocked cross-validation over this many contiguous blocks of the training
+        segment, or (< 2) the validation slice (at least :data:`MIN_SHRINK_FRAMES` frames)
     """
 
     features: str = "landmarks"
@@ -85,6 +86,7 @@ class SADMConfig:
     gaze_target: str = "eyes"
     gaze_folds: int = 5
     region_shrink: bool = True
+    shrink_folds: int = 5
 
 
 @dataclass
@@ -266,10 +268,11 @@ def fit_sadm(
         gaze = _fit_gaze(model, cfg, scheme, name, params, reg.eval(), x, yy, model_input(model, lm_all), pos, len(rows), seed)
         log.info("gaze path: alpha %g", gaze.alpha)
     shrink = None
-    if cfg.region_shrink and n_val >= MIN_SHRINK_FRAMES:
-        probe_cfg = replace(cfg, region_shrink=False, search=False)
-        shrink = fit_region_shrink(lambda r, t: fit_sadm(model, seq, r, t, name, params, probe_cfg, seed).synthesizer(),
-                                   model, seq.landmarks[rows], rows, textures, n_val)
+    if cfg.region_shrink and (cfg.shrink_folds >= 2 or n_val >= MIN_SHRINK_FRAMES):
+        probe = replace(cfg, region_shrink=False, search=False, gaze_folds=0)  # in-sample gaze residuals: one fit
+        shrink = fit_region_shrink(
+            lambda i: fit_sadm(model, seq, rows[i], textures[i], name, params, probe, seed).synthesizer(),
+            model, lm, textures, cfg.shrink_folds, n_val)
         log.info("region shrinkage: %s", shrink["weights"])
     return SADM(model, reg.eval(), name, cfg, reg.config_dict(), table, scheme.name, gaze, shrink)
 

@@ -12,12 +12,16 @@ scaled by w_r in [0, 1]::
 
     texture'[r] = mean[r] + w_r (texture[r] - mean[r])
 
-with w_r the least-squares blend on a validation slice (the last ``sadm.val_fraction`` of
-the training segment), predicted by a SADM fitted on the frames before it::
+chosen on held-out training frames: by default the training segment is cut into 5
+contiguous blocks, each predicted by a SADM fitted on the others, and per block b the
+least-squares blend
 
-    w_r = clip( sum (p - m)(t - m) / sum (p - m)^2 , 0, 1 )      over the slice's pixels of r
+    w_rb = clip( sum (p - m)(t - m) / sum (p - m)^2 , 0, 1 )      over block b's pixels of r
 
-(p: prediction, t: true texture, m: mean). w_r = 1 leaves the part as predicted; w_r = 0
+(p: prediction, t: true texture, m: mean); w_r = max_b w_rb, so a part is shrunk only as
+far as every block agrees (``sadm.shrink_folds=0``: one least-squares weight on the
+validation slice instead). Why the maximum: docs/sadm.md measures the pooled weight
+and the validation slice's, both of which shrank parts that the test segment needed. w_r = 1 leaves the part as predicted; w_r = 0
 renders the mean there. Since the scaling is per texture column it folds into the
 appearance basis (its columns scaled) and the gaze path's texture correction, so the
 synthesis graph, its ONNX export, compression and the int8 basis are unchanged.
@@ -67,42 +71,72 @@ def shrink_appearance(app, model, weights: dict[str, float]):
     return app
 
 
-def fit_weights(model, predicted: np.ndarray, true: np.ndarray) -> dict:
-    """Per part, the least-squares shrinkage weight in [0, 1] (module docstring) of the
-    ``predicted`` (N, C M) textures towards the mean given the ``true`` ones, and the slice's
-    PSNR (dB, peak 255) of the prediction, of the mean and of the shrunk prediction.
+def _ls_weight(d: np.ndarray, t: np.ndarray) -> float:
+    den = float((d * d).sum())
+    return float(np.clip((d * t).sum() / den, 0.0, 1.0)) if den > 0 else 1.0
 
-    Returns {"weights": {part: w}, "psnr": {part: {"sadm", "mean_texture", "shrunk"}}}."""
+
+def fit_weights(model, predicted: np.ndarray, true: np.ndarray, groups: np.ndarray | None = None) -> dict:
+    """Per part, the least-squares shrinkage weight in [0, 1] (module docstring) of the
+    ``predicted`` (N, C M) textures towards the mean given the ``true`` ones, and the PSNR
+    (dB, peak 255) over those frames of the prediction, of the mean and of the shrunk prediction.
+
+    ``groups`` (N,) int: the held-out block of each frame; then a part's weight is the largest
+    of the blocks' own least-squares weights (``fold_weights``): a part is shrunk only as far
+    as every block agrees, so one block unlike the others (e.g. the only closed-mouth one)
+    cannot shrink a part that the rest predict well.
+
+    Returns {"weights": {part: w}, "psnr": {part: {"sadm", "mean_texture", "shrunk"}}[,
+    "fold_weights": {part: [w per block]}]}."""
     mean = np.clip(model.appearance_pca.mean, 0, 1).astype(np.float64)
     n, c = len(true), model.n_channels
     d = (np.clip(predicted, 0, 1) - mean).reshape(n, c, -1)
     t = (np.clip(true, 0, 1) - mean).reshape(n, c, -1)
-    weights, table = {}, {}
+    weights, table, per_fold = {}, {}, {}
+
+    def db(e):
+        return float(10 * np.log10(1.0 / max(float((e * e).mean()), 1e-20)))
+
     for name, m in reference_regions(model).items():
         dm, tm = d[:, :, m], t[:, :, m]
-        den = float((dm * dm).sum())
-        w = float(np.clip((dm * tm).sum() / den, 0.0, 1.0)) if den > 0 else 1.0
+        if groups is None:
+            w = _ls_weight(dm, tm)
+        else:
+            per_fold[name] = [_ls_weight(dm[groups == g], tm[groups == g]) for g in np.unique(groups)]
+            w = max(per_fold[name])
         weights[name] = w
-
-        def db(e):
-            return float(10 * np.log10(1.0 / max(float((e * e).mean()), 1e-20)))
-
         table[name] = {"sadm": db(dm - tm), "mean_texture": db(tm), "shrunk": db(w * dm - tm)}
-    return {"weights": weights, "psnr": table}
-
-
-def fit_region_shrink(fit, model, landmarks: np.ndarray, rows: np.ndarray, textures: np.ndarray, n_val: int) -> dict:
-    """Per-part shrinkage weights (:func:`fit_weights`) of a synthesizer ``fit(rows, textures)``
-    (a callable fitting the SADM's settings, shrinkage off, on training rows and textures)
-    fitted on the training frames before the last ``n_val`` and scored on those. ``landmarks``
-    (len(rows), P, 2) and ``textures`` (len(rows), C M) are the training frames'. The weights
-    are then applied to the SADM fitted on all of them. Adds ``val_frames`` to the result."""
-    syn = fit(rows[:-n_val], textures[:-n_val])
-    with torch.no_grad():
-        pred = syn.texture(torch.from_numpy(np.ascontiguousarray(landmarks[-n_val:], np.float32)))
-    out = fit_weights(model, pred.reshape(n_val, -1).numpy(), textures[-n_val:])
-    out["val_frames"] = int(n_val)
+    out = {"weights": weights, "psnr": table}
+    if groups is not None:
+        out["fold_weights"] = per_fold
     return out
+
+
+def fit_region_shrink(fit, model, landmarks: np.ndarray, textures: np.ndarray, folds: int, n_val: int) -> dict:
+    """Per-part shrinkage weights (:func:`fit_weights`) from held-out predictions of the
+    training frames. ``fit(idx)`` fits the SADM's settings (shrinkage off) on the training
+    frames ``idx`` and returns its synthesizer; ``landmarks`` (N, P, 2) and ``textures``
+    (N, C M) are the N training frames'.
+
+    ``folds`` >= 2: blocked cross-validation, the frames cut into that many contiguous blocks
+    in time, each predicted by a fit on the others (every training frame is scored once);
+    otherwise the last ``n_val`` frames (the validation slice), predicted by a fit on those
+    before. With blocks, a part's weight is the largest of the blocks' (:func:`fit_weights`).
+    The weights are then applied to the SADM fitted on all frames. Adds ``folds`` and
+    ``val_frames`` (the frames scored) to the result."""
+    n = len(textures)
+    blocks = np.minimum(np.arange(n) * folds // n, folds - 1) if folds >= 2 else (np.arange(n) >= n - n_val).astype(int)
+    scored = np.arange(n) if folds >= 2 else np.flatnonzero(blocks == 1)
+    pred = np.empty((len(scored), textures.shape[1]), np.float32)
+    for b in (range(folds) if folds >= 2 else (1,)):
+        out = blocks == b
+        syn = fit(np.flatnonzero(~out))
+        with torch.no_grad():
+            t = syn.texture(torch.from_numpy(np.ascontiguousarray(landmarks[out], np.float32)))
+        pred[np.searchsorted(scored, np.flatnonzero(out))] = t.reshape(int(out.sum()), -1).numpy()
+    result = fit_weights(model, pred, textures[scored], blocks if folds >= 2 else None)
+    result.update(folds=int(folds) if folds >= 2 else 0, val_frames=int(len(scored)))
+    return result
 
 
 def check_shrink(value, where) -> dict | None:
