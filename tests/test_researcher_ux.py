@@ -14,7 +14,7 @@ from facesynth.cli import SUBCOMMANDS, _add_quiet, main
 from facesynth.data import temporal_split
 from facesynth.data.synthetic import make_synthetic_sequence
 from facesynth.eval.frame_level import frame_level, subset
-from facesynth.eval.report import write_plots, write_report
+from facesynth.eval.report import below_mean, write_plots, write_report
 from facesynth.eval.sadm_eval import EvalConfig, _key, _predict, evaluate_sadm, noisy_landmarks
 from facesynth.imaging import composite
 from facesynth.model import FaceModel, FaceModelConfig
@@ -60,7 +60,11 @@ def test_report_writes_every_plot_and_a_self_contained_html(run, tmp_path):
     assert metrics["frame_level_frames"] == {"evaluated": 5, "test_frames": len(te), "max_test_frames": 5,
                                              "spacing": "evenly spaced"}
     plots = write_plots(metrics, extras, tmp_path / "plots")
-    assert set(plots) == {"psnr_vs_noise.png", "psnr_over_time.png", "test_grid.png", "error_map.png", "ncc.png"}
+    assert set(plots) == {"psnr_vs_noise.png", "psnr_over_time.png", "test_grid.png", "error_map.png", "ncc.png",
+                          "motion_strip.png"}
+    strip = extras["strip"]  # consecutive held-out frames, one frame box: every tile the same size
+    assert len(strip) == min(8, len(te)) and len({t["real"].shape for t in strip} | {t["synth"].shape for t in strip}) == 1
+    assert np.diff([t["frame"] for t in strip]).min() >= 1 and all(t["frame"] in te for t in strip)
     doc = write_report(metrics, tmp_path, plots, worst_frames=extras["worst_frames"])
     html = (tmp_path / "report.html").read_text()
     md = (tmp_path / "report.md").read_text()
@@ -73,6 +77,7 @@ def test_report_writes_every_plot_and_a_self_contained_html(run, tmp_path):
     for row in ("sadm", "mean_texture", "oracle", "rewarp", "s0..s3", "ncc"):
         assert row in html and row in md  # the legend
     assert "src='plots/" not in html
+    assert "Face parts below the mean texture" in md and ("WARNING" in md) == bool(below_mean(metrics))
 
 
 def test_frame_level_equals_pasting_into_the_whole_frame(run):
@@ -156,3 +161,11 @@ def test_eri_artifact_round_trip_with_compact_svr_banks(tmp_path):
 def test_quiet_silences_progress(tmp_path, capsys):
     assert main(["codec", "geometry", str(tmp_path / "x.npy"), "--frames", "1", "--size", "16", "--quiet"]) in (0, 2)
     assert "[facesynth]" not in capsys.readouterr().err
+
+
+def test_below_mean_flags_exactly_the_parts_under_the_mean_texture():
+    rows = {"eyes": (18.0, 17.0), "mouth_interior": (19.36, 21.14), "rest": (30.0, 30.0)}
+    m = {"psnr_frame_common_regions": {p: {"sadm": {"0": s, "2": 0.0}, "mean_texture": {"0": t, "2": 99.0}}
+                                       for p, (s, t) in rows.items()}}
+    assert below_mean(m) == ["mouth_interior (frame, common region): sadm 19.36 dB < mean texture 21.14 dB"]
+    assert len(below_mean(m, "2")) == 3 and below_mean({}) == []

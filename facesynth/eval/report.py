@@ -10,6 +10,7 @@ import numpy as np
 
 from facesynth.eval import plots as P
 from facesynth.eval.document import Document
+from facesynth.eval.strip import write_strip
 
 # What each row and column of the tables (and of the console summary) means.
 ROWS = {
@@ -30,6 +31,8 @@ PLOTS = {
     "psnr_over_time.png": "Per-frame test PSNR across the test segment (sigma 0); red circles mark the worst frames.",
     "test_grid.png": "Evenly spaced test frames: real, synthesized from the landmarks, and their amplified difference; "
                      "titles give the frame number and its PSNR over the face region.",
+    "motion_strip.png": "The face moving: consecutive held-out frames (sigma 0), real (top) and synthesized from the "
+                        "landmarks, pasted into the real frame with blend_face (bottom); one frame box for all.",
     "error_map.png": "Mean squared error of the synthesized test textures per reference pixel (sigma 0).",
     "ncc.png": "Per-component NCC of predicted vs true appearance parameters; red bars are negative.",
 }
@@ -48,6 +51,9 @@ def write_plots(metrics: dict, extras: dict, out_dir: str | os.PathLike) -> list
     if extras.get("grid"):
         P.test_grid(extras["grid"], d / "test_grid.png")
         written.append("test_grid.png")
+    if extras.get("strip"):
+        write_strip(extras["strip"], d / "motion_strip.png")
+        written.append("motion_strip.png")
     if extras.get("err_map") is not None:
         P.error_map(extras["err_map"], d / "error_map.png")
         written.append("error_map.png")

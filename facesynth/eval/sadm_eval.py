@@ -40,6 +40,7 @@ import torch
 from facesynth import progress
 from facesynth.data.sequence import FaceSequence
 from facesynth.eval.frame_level import frame_level
+from facesynth.eval.strip import strip_rows, strip_tiles
 from facesynth.landmarks import get_scheme
 from facesynth.metrics import ncc, psnr
 from facesynth.sadm.fit import SADM
@@ -126,7 +127,8 @@ def evaluate_sadm(
         sigma 0; ``per_frame``: ``frame`` (N_test,) frame rows, ``psnr_ref`` (N_test,) dB
         at sigma 0, and for the frame level ``frame_index`` (n,) positions evaluated and
         ``psnr_frame`` {row: (n,) dB}; ``grid`` list of dicts (``real``, ``synth`` uint8
-        crops, ``frame`` row, ``psnr`` dB) for evenly spaced frame-level test frames.
+        crops, ``frame`` row, ``psnr`` dB) for evenly spaced frame-level test frames; ``strip``:
+        consecutive held-out frames, real and rendered (:mod:`facesynth.eval.strip`).
     """
     cfg = config or EvalConfig()
     model = sadm.model
@@ -207,5 +209,6 @@ def evaluate_sadm(
         metrics["frame_level_frames"] = {"evaluated": n, "test_frames": int(len(test_rows)),
                                          "max_test_frames": cfg.max_test_frames, "spacing": "evenly spaced"}
         extras["per_frame"].update(frame_index=per_frame["index"], psnr_frame=per_frame["psnr"])
+        extras["strip"] = strip_tiles(syn, seq, test_rows[strip_rows(len(test_rows))])
     return metrics, extras
 
