@@ -16,8 +16,9 @@ from facesynth.errors import DiskFullError, FacesynthError
 from facesynth.io import Terminated, install_sigterm_handler, is_disk_full
 from facesynth.progress import set_quiet
 
-# name -> (module, one-line help). Keep in pipeline order.
+# name -> (module, one-line help). Training first, then the rest in pipeline order.
 SUBCOMMANDS: dict[str, tuple[str, str]] = {
+    "train": ("facesynth.runs.train_cli", "train + evaluate a model: Hydra overrides (data=video data.path=DIR ...)"),
     "ingest": ("facesynth.data.ingest_cli", "detect faces and fit 68 landmarks in a video -> training folder"),
     "fit-model": ("facesynth.model.cli", "fit the shape/appearance face model on a sequence and print its figures"),
     "evaluate": ("facesynth.eval.cli", "re-evaluate a saved training run (PSNR under landmark noise, NCC)"),
@@ -31,10 +32,11 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
 
 
 TRAINING_HELP = """\
-training (a Hydra script in the source checkout, not a subcommand):
-  python train.py                                   train + evaluate on the built-in synthetic subject
-  python train.py data=video data.path=DIR          train on an ingest folder (facesynth ingest VIDEO --out DIR)
-  python train.py --help                            every setting (regressor=krr|linear|poly2|mlp|svr, model=eri, ...)
+training (python train.py in a source checkout is the same app):
+  facesynth train                                   train + evaluate on the built-in synthetic subject
+  facesynth train data=video data.path=DIR          train on an ingest folder (facesynth ingest VIDEO --out DIR)
+  facesynth train experiment=NAME ...               a named study (its overrides: facesynth/conf/experiment/)
+  facesynth train --help                            every setting (regressor=krr|linear|poly2|mlp|svr, model=eri, ...)
   the run folder (runs/DATE_REGRESSOR) is what 'facesynth evaluate' and 'facesynth export' read"""
 
 
@@ -44,7 +46,7 @@ def _top_parser() -> argparse.ArgumentParser:
         prog="facesynth",
         description="facesynth: learning-based facial expression synthesis.\n\n"
                     "Typical use: facesynth ingest VIDEO --out DIR\n"
-                    "             python train.py data=video data.path=DIR      (training: see below)\n"
+                    "             facesynth train data=video data.path=DIR      (training: see below)\n"
                     "             facesynth export RUN --out m.onnx\n"
                     "             facesynth app --model m.onnx --landmarks DIR --out o.mp4",
         epilog=f"{TRAINING_HELP}\n\nsubcommands:\n{lines}\n\nRun 'facesynth SUBCOMMAND --help' for each one's options.",
@@ -80,6 +82,10 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     name, rest = argv[0], argv[1:]
     module_name, help_ = SUBCOMMANDS[name]
+    if name == "train":  # Hydra parses its own arguments (overrides, --help, -m)
+        from facesynth.runs.train_cli import main as train_main
+
+        return train_main(rest)
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     try:
         module = importlib.import_module(module_name)

@@ -138,11 +138,11 @@ def test_config_errors():
 
 
 def test_hydra_group_matches_defaults():
-    from pathlib import Path
-
     from omegaconf import OmegaConf
 
-    node = OmegaConf.load(Path(__file__).parents[1] / "conf" / "eri" / "default.yaml")
+    from facesynth.runs.config import CONF_DIR
+
+    node = OmegaConf.load(CONF_DIR / "eri" / "default.yaml")
     assert EriConfig.from_dict(node) == EriConfig()
 
 

@@ -19,8 +19,10 @@ def test_top_level_help_says_how_to_train():
         out = subprocess.run([sys.executable, "-m", "facesynth", *argv], capture_output=True, text=True)
         assert out.returncode == 0 and out.stderr == ""
         text = out.stdout
-        assert "python train.py" in text and "python train.py data=video data.path=DIR" in text
-        assert text.index("python train.py") < text.index("subcommands:")  # training before the subcommands
+        assert "facesynth train" in text and "facesynth train data=video data.path=DIR" in text
+        assert text.index("facesynth train") < text.index("subcommands:")  # training before the subcommands
+        subcommands = text[text.index("subcommands:"):].splitlines()[1:]
+        assert subcommands[0].split()[0] == "train"  # listed first
 
 
 @pytest.mark.parametrize("quiet", [False, True])

@@ -17,7 +17,7 @@ from facesynth.eval.sadm_eval import EvalConfig, evaluate_sadm
 from facesynth.landmarks import FACE_REGIONS
 from facesynth.model import FaceModel, FaceModelConfig
 from facesynth.regressors import REGISTRY
-from facesynth.runs.config import register_configs
+from facesynth.runs.config import CONF_DIR, register_configs
 from facesynth.sadm.fit import SADMConfig, fit_sadm, load_sadm, save_sadm
 from facesynth.sadm.regions import fit_region_shrink, fit_weights, reference_regions
 
@@ -129,7 +129,7 @@ def test_save_load_round_trip(synthetic, tmp_path):
 
 def _compose(overrides):
     register_configs()
-    with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
         return compose(config_name="config", overrides=overrides)
 
 

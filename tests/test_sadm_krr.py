@@ -172,15 +172,12 @@ def test_synthetic_subject_held_out_beats_mean_texture():
 
 
 def test_hydra_regressor_krr_composes():
-    from pathlib import Path
-
     from hydra import compose, initialize_config_dir
 
-    from facesynth.runs.config import register_configs, regressor_params
+    from facesynth.runs.config import CONF_DIR, register_configs, regressor_params
 
     register_configs()
-    root = Path(__file__).resolve().parents[1]
-    with initialize_config_dir(str(root / "conf"), version_base=None):
+    with initialize_config_dir(str(CONF_DIR), version_base=None):
         cfg = compose(config_name="config", overrides=["regressor=krr", "regressor.blend=0.25"])
         default = compose(config_name="config", overrides=[])
         linear = compose(config_name="config", overrides=["regressor=linear"])

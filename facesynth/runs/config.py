@@ -1,11 +1,12 @@
-"""Structured configs for ``train.py`` (Hydra + OmegaConf): typos fail at start-up.
+"""Structured configs for ``facesynth train`` / ``train.py`` (Hydra + OmegaConf): typos fail at start-up.
 
 Groups: ``data`` (DataConf), ``model`` (ModelConf: the face model, and ``kind`` aam|eri),
 ``regressor`` (one schema per registered regressor, built from its config dataclass),
 ``sadm`` (SADMConfig), ``eval`` (EvalConfig), ``eri`` (EriConfig).
 
 Every default lives in a dataclass (here or in the stage that uses it); the yaml files
-under ``conf/`` only select a group option or override a value. A regressor's SADM
+under ``facesynth/conf/`` (package data: an installed wheel trains too) only select a group
+option or override a value (``experiment/``: a named study's overrides). A regressor's SADM
 settings (e.g. krr's 1 px augmentation) come from its class (``sadm_defaults``) through
 the ``sadm_default`` resolver, so that the composed config shows them.
 """
@@ -32,7 +33,7 @@ from facesynth.model.face_model import FaceModelConfig
 from facesynth.regressors import REGISTRY
 from facesynth.sadm.fit import SADMConfig, make_config, resolve_sadm_config
 
-CONF_DIR = Path(__file__).resolve().parents[2] / "conf"  # the repository's Hydra configs (source checkout)
+CONF_DIR = Path(__file__).resolve().parents[1] / "conf"  # the Hydra configs, shipped inside the package
 
 
 @dataclass
@@ -134,11 +135,11 @@ def regressor_params(node) -> tuple[str, dict]:
 
 
 def compose_config(overrides: list[str]):
-    """The training config ``python train.py OVERRIDES`` runs with, composed by Hydra from
-    the repository's ``conf/`` (without the ``hydra`` node). Bad overrides raise
+    """The training config ``facesynth train OVERRIDES`` runs with, composed by Hydra from
+    the package's ``conf/`` (without the ``hydra`` node). Bad overrides raise
     FacesynthError naming them."""
     if not (CONF_DIR / "config.yaml").is_file():
-        raise FacesynthError(f"{CONF_DIR}: Hydra configs not found (composing a training config needs a source checkout)")
+        raise FacesynthError(f"{CONF_DIR}: Hydra configs not found (a broken installation: reinstall facesynth)")
     register_configs()
     try:
         with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
@@ -151,7 +152,7 @@ def compose_config(overrides: list[str]):
 def train_defaults(regressor: str) -> tuple[str, dict, SADMConfig]:
     """What ``python train.py regressor=NAME`` trains with: the regressor's name and
     hyper-parameters and the SADM settings (a regressor's config may set some, e.g. krr's
-    augmentation), composed by Hydra from the repository's ``conf/`` (for benchmarks and
+    augmentation), composed by Hydra from the package's ``conf/`` (for benchmarks and
     scripts that call :func:`facesynth.sadm.fit.fit_sadm` directly)."""
     cfg = compose_config([f"regressor={regressor}"])
     name, params = regressor_params(cfg.regressor)
