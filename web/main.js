@@ -1,0 +1,243 @@
+// facesynth live: the webcam drives an avatar, on the CPU (WebAssembly), offline.
+// The tracker runs in a worker (tracker.js); this page runs the avatar graph and draws it.
+import * as ort from './ort/ort.wasm.min.mjs';
+import { onnxMetadata } from './onnxmeta.js';
+
+const SYNTHESIS_FORMAT = 'facesynth.synthesis.onnx/1';
+const NEUTRAL_MS = 1000, NO_FACE_FRAMES = 15;
+const base = new URL('.', location.href).href;
+const $ = (id) => document.getElementById(id);
+const state = { frames: 0, trackerMs: [], avatarMs: [], compositeMs: [], latencyMs: [], messages: [], firstFrameMs: null,
+  avatar: null, neutral: null, neutralSamples: [], neutralStart: null, noFace: 0, busy: false, ready: false };
+window.facesynth = { state };
+
+function message(text, error = false) {
+  const el = $('message');
+  el.textContent = text;
+  el.className = error ? 'error' : '';
+  state.messages.push({ text, error });
+}
+
+// Driver points (478, MediaPipe's order) -> the avatar's scheme, with the landmark tables of the project.
+function toScheme(points, scheme, schemes) {
+  if (scheme === 'mediapipe478') return points;
+  const rows = schemes[scheme].to_ibug68, out = new Float32Array(rows.length * 2);
+  rows.forEach((row, i) => { for (const [j, w] of row) { out[2 * i] += w * points[2 * j]; out[2 * i + 1] += w * points[2 * j + 1]; } });
+  return out;
+}
+const EYE_CORNERS = { ibug68: [36, 45], mediapipe478: [33, 263] };
+const dist = (p, a, b) => Math.hypot(p[2 * a] - p[2 * b], p[2 * a + 1] - p[2 * b + 1]);
+
+// The avatar graph: driver landmarks (P, 2) + driver neutral (P, 2) -> the avatar's frame.
+// INTERIM: until the exported full-frame talking-head graph exists, this class stands in for it
+// with the face-only synthesis graph (landmarks -> crop, mask, placement), a relative-motion
+// retarget (avatar neutral + scale x (driver - driver neutral)) and a canvas composite of the
+// crop into the avatar's neutral frame. Swapping in the full graph replaces run() with one
+// session.run on (driver, neutral) and drawing its frame output.
+class InterimAvatarGraph {
+  static async create(buffer, name, schemes) {
+    let meta;
+    try { meta = onnxMetadata(buffer); } catch (e) { throw new Error(`${name} is not an ONNX file (${e.message})`); }
+    if (meta.format !== SYNTHESIS_FORMAT) throw new Error(`${name} is not a facesynth avatar (format ${JSON.stringify(meta.format ?? null)}, expected ${SYNTHESIS_FORMAT})`);
+    const scheme = meta.landmark_scheme;
+    if (!(scheme in EYE_CORNERS) || !(scheme in schemes)) throw new Error(`${name}: its landmark scheme ${scheme} cannot be driven by the page's tracker (MediaPipe 478 points; it drives mediapipe478 and ibug68 avatars)`);
+    if (!Array.isArray(meta.avatar_neutral) || !Array.isArray(meta.frame_size) || !meta.background_jpeg) throw new Error(`${name}: a facesynth model without the avatar's neutral and frame (export it from a run with 'facesynth export')`);
+    let session;
+    try { session = await ort.InferenceSession.create(buffer, { executionProviders: ['wasm'] }); }
+    catch (e) { throw new Error(`${name} is corrupt: ONNX Runtime cannot load it (${e.message || e})`); }
+    const bg = new Image();
+    bg.src = 'data:image/jpeg;base64,' + meta.background_jpeg;
+    await bg.decode();
+    const g = new InterimAvatarGraph();
+    Object.assign(g, { name, meta, scheme, session, schemes, bg, neutral: Float32Array.from(meta.avatar_neutral.flat()) });
+    [g.width, g.height] = meta.frame_size;
+    return g;
+  }
+
+  // landmarks in the avatar's scheme -> {crop, mask, placement} (the synthesis graph's outputs)
+  async synthesize(landmarks) {
+    const n = landmarks.length / 2;
+    const out = await this.session.run({ [this.session.inputNames[0]]: new ort.Tensor('float32', landmarks, [1, n, 2]) });
+    return out;
+  }
+
+  retarget(driver, driverNeutral) {
+    const d = toScheme(driver, this.scheme, this.schemes), dn = toScheme(driverNeutral, this.scheme, this.schemes);
+    const [a, b] = EYE_CORNERS[this.scheme], s = dist(this.neutral, a, b) / dist(dn, a, b);
+    return this.neutral.map((v, i) => v + s * (d[i] - dn[i]));
+  }
+
+  async run(driver, driverNeutral, ctx) {
+    const t0 = performance.now();
+    const out = await this.synthesize(this.retarget(driver, driverNeutral));
+    const t1 = performance.now();
+    this.composite(out, ctx);
+    return { avatarMs: t1 - t0, compositeMs: performance.now() - t1 };
+  }
+
+  composite(out, ctx) {  // INTERIM composite: the crop (alpha = mask) drawn through its placement
+    const crop = out.crop, [, C, H, W] = crop.dims, c = crop.data, m = out.mask.data, p = out.placement.data;
+    if (!this.face || this.face.width !== W || this.face.height !== H) { this.face = new OffscreenCanvas(W, H); this.fctx = this.face.getContext('2d'); this.rgba = new ImageData(W, H); }
+    const px = this.rgba.data, hw = H * W;
+    for (let i = 0; i < hw; i++) {
+      for (let k = 0; k < 3; k++) px[4 * i + k] = c[(C === 3 ? k : 0) * hw + i] * 255 + 0.5;
+      px[4 * i + 3] = m[i] > 0.5 ? 255 : 0;
+    }
+    this.fctx.putImageData(this.rgba, 0, 0);
+    ctx.setTransform(1, 0, 0, 1, 0, 0);
+    ctx.drawImage(this.bg, 0, 0);
+    ctx.setTransform(p[0], p[3], p[1], p[4], p[2], p[5]);
+    ctx.drawImage(this.face, 0, 0);
+    ctx.setTransform(1, 0, 0, 1, 0, 0);
+  }
+}
+
+async function loadAvatar(buffer, name) {
+  const g = await InterimAvatarGraph.create(buffer, name, state.schemes);
+  state.avatar = g;
+  const cv = $('avatar');
+  cv.width = g.width; cv.height = g.height;
+  state.ctx = cv.getContext('2d');
+  state.ctx.drawImage(g.bg, 0, 0);
+  $('avatarname').textContent = `avatar: ${name} (${g.scheme})`;
+}
+
+// replay hook for tests and tools: landmarks (P, 2) flat in the avatar's scheme -> its synthesis outputs
+window.facesynth.synthesize = async (flat) => {
+  const out = await state.avatar.synthesize(Float32Array.from(flat));
+  return Object.fromEntries(Object.entries(out).map(([k, t]) => [k, { dims: t.dims, data: Array.from(t.data) }]));
+};
+
+function captureNeutral() {
+  state.neutral = null; state.neutralSamples = []; state.neutralStart = null;
+  message('Look at the camera with a neutral face...');
+}
+
+function median(rows) {
+  const out = new Float32Array(rows[0].length);
+  for (let i = 0; i < out.length; i++) { const v = rows.map((r) => r[i]).sort((a, b) => a - b); out[i] = v[v.length >> 1]; }
+  return out;
+}
+
+const recent = (arr, v) => { arr.push(v); if (arr.length > 300) arr.shift(); };
+
+async function onPoints(msg) {
+  state.busy = false;
+  recent(state.trackerMs, msg.ms);
+  if (!msg.points) {
+    if (++state.noFace === NO_FACE_FRAMES) message('No face in view: face the camera, in good light.', true);
+    return;
+  }
+  if (state.noFace >= NO_FACE_FRAMES) message(state.neutral ? 'Live.' : 'Look at the camera with a neutral face...');
+  state.noFace = 0;
+  if (!state.neutral) {
+    state.neutralStart ??= performance.now();
+    state.neutralSamples.push(msg.points);
+    if (performance.now() - state.neutralStart >= NEUTRAL_MS && state.neutralSamples.length >= 3) {
+      state.neutral = median(state.neutralSamples);
+      message('Live.');
+      $('neutral').disabled = false; $('record').disabled = false;
+    }
+    return;
+  }
+  if (!state.avatar) return;
+  const r = await state.avatar.run(msg.points, state.neutral, state.ctx);
+  recent(state.avatarMs, r.avatarMs); recent(state.compositeMs, r.compositeMs);
+  const now = performance.now();
+  recent(state.latencyMs, now - msg.t);
+  state.frames++;
+  state.firstFrameMs ??= now;
+  state.frameTimes = (state.frameTimes || []).filter((t) => t > now - 1000).concat(now);
+  const avg = (a) => (a.slice(-30).reduce((x, y) => x + y, 0) / Math.min(a.length, 30)).toFixed(1);
+  $('stats').textContent = `${state.frameTimes.length} frames/s, latency ${avg(state.latencyMs)} ms ` +
+    `(tracker ${avg(state.trackerMs)}, avatar ${avg(state.avatarMs)}, composite ${avg(state.compositeMs)} ms)`;
+}
+
+function pump() {
+  const v = $('camera');
+  if (state.ready && !state.busy && v.readyState >= 2 && v.currentTime !== state.lastTime) {
+    state.lastTime = v.currentTime;
+    state.busy = true;
+    const t = performance.now();
+    createImageBitmap(v).then((bitmap) => state.worker.postMessage({ type: 'frame', bitmap, t }, [bitmap]))
+      .catch(() => { state.busy = false; });
+  }
+  requestAnimationFrame(pump);
+}
+
+async function startCamera() {
+  if (!navigator.mediaDevices?.getUserMedia) throw new Error('No camera access in this browser (it needs a secure page: http://127.0.0.1 or https).');
+  let stream;
+  try { stream = await navigator.mediaDevices.getUserMedia({ video: { width: 640, height: 480 }, audio: false }); }
+  catch (e) {
+    if (e.name === 'NotAllowedError') throw new Error('Camera permission denied: allow the camera for this page and reload.');
+    if (e.name === 'NotFoundError' || e.name === 'OverconstrainedError') throw new Error('No camera found: connect one and reload.');
+    throw new Error(`The camera could not start (${e.name}: ${e.message}).`);
+  }
+  const v = $('camera');
+  v.srcObject = stream;
+  await v.play();
+}
+
+function setupRecording() {
+  let rec = null, chunks = [];
+  $('record').onclick = () => {
+    if (rec) { rec.stop(); return; }
+    rec = new MediaRecorder($('avatar').captureStream(30), { mimeType: 'video/webm' });
+    chunks = [];
+    rec.ondataavailable = (e) => chunks.push(e.data);
+    rec.onstop = () => {
+      const a = document.createElement('a');
+      a.href = URL.createObjectURL(new Blob(chunks, { type: 'video/webm' }));
+      a.download = 'facesynth-live.webm';
+      a.click();
+      rec = null; $('record').textContent = 'Record';
+    };
+    rec.start(); $('record').textContent = 'Stop and download';
+  };
+}
+
+function setupDrop() {
+  document.addEventListener('dragover', (e) => { e.preventDefault(); document.body.classList.add('dragging'); });
+  document.addEventListener('dragleave', () => document.body.classList.remove('dragging'));
+  document.addEventListener('drop', async (e) => {
+    e.preventDefault(); document.body.classList.remove('dragging');
+    const f = e.dataTransfer.files[0];
+    if (f) await window.facesynth.loadFile(f);
+  });
+  window.facesynth.loadFile = async (file) => {
+    try { await loadAvatar(await file.arrayBuffer(), file.name); message(`Loaded ${file.name}.`); }
+    catch (err) { message(`${err.message} The current avatar is kept.`, true); }
+  };
+}
+
+async function main() {
+  if (typeof WebAssembly !== 'object') { message('WebAssembly is unavailable in this browser: the page needs it to run the models.', true); return; }
+  ort.env.wasm.wasmPaths = base + 'ort/';
+  ort.env.wasm.numThreads = 1;
+  setupDrop(); setupRecording();
+  $('neutral').onclick = captureNeutral;
+  $('showcam').onchange = (e) => { $('camera').style.display = e.target.checked ? '' : 'none'; };
+  const site = await (await fetch('site.json')).json();
+  state.schemes = await (await fetch('schemes.json')).json();
+  try { await loadAvatar(await (await fetch(site.avatar)).arrayBuffer(), site.avatar_name); }
+  catch (e) { message(e.message, true); }
+  state.worker = new Worker('tracker.js', { type: 'module' });
+  const workerReady = new Promise((resolve, reject) => {
+    state.worker.onmessage = (ev) => {
+      const m = ev.data;
+      if (m.type === 'ready') resolve();
+      else if (m.type === 'points') onPoints(m).catch((e) => message(`Avatar error: ${e.message}`, true));
+      else if (m.type === 'error') { state.busy = false; message(`Tracker error: ${m.message}`, true); reject(new Error(m.message)); }
+    };
+  });
+  state.worker.postMessage({ type: 'init', base });
+  try { await startCamera(); } catch (e) { message(e.message, true); window.facesynth.cameraError = e.message; return; }
+  await workerReady;
+  state.ready = true;
+  if (!state.avatar) return;
+  captureNeutral();
+  pump();
+}
+
+main().catch((e) => message(`Unexpected error: ${e.message || e}`, true));

@@ -1,0 +1,133 @@
+// The face tracker, in a Web Worker: MediaPipe's detector, 468-point mesh and iris models
+// (converted to ONNX at build time) with MediaPipe's crop-and-track steps. Mirrors
+// facesynth/web/track.py step for step (its Python reference, tested against MediaPipe).
+// Messages in: {type:'init', base}, {type:'frame', bitmap, t}, {type:'reset'}.
+// Out: {type:'ready'}, {type:'points', points: Float32Array(478*2) | null, t, ms}, {type:'error', message}.
+import * as ort from './ort/ort.wasm.min.mjs';
+
+const MESH = 192, IRIS = 64, DET = 128, FACE_SCALE = 1.5, EYE_SCALE = 2.3;
+const EYES = [[33, 133], [362, 263]];
+let det, mesh, iris, anchors, prev = null, canvas, ctx;
+
+function makeAnchors() {
+  const out = [];
+  for (const [stride, n] of [[8, 2], [16, 6]]) {
+    const g = DET / stride;
+    for (let y = 0; y < g; y++) for (let x = 0; x < g; x++) for (let k = 0; k < n; k++) out.push((x + 0.5) / g, (y + 0.5) / g);
+  }
+  return Float32Array.from(out);
+}
+
+// (2, 3) map from crop coordinates to frame pixels, row-major [a, b, tx, d, e, ty] (track.crop_matrix)
+export function cropMatrix(cx, cy, ang, size, out) {
+  const c = Math.cos(ang), s = Math.sin(ang), k = size / out, h = out / 2;
+  const a = c * k, b = -s * k, d = s * k, e = c * k;
+  return [a, b, cx - (a * h + b * h), d, e, cy - (d * h + e * h)];
+}
+const mirror = (m, w) => [-m[0], m[1], m[0] * w + m[2], -m[3], m[4], m[3] * w + m[5]];
+const apply = (m, x, y) => [m[0] * x + m[1] * y + m[2], m[3] * x + m[4] * y + m[5]];
+
+// bilinear sampling of an RGBA frame at M(u, v) (cv2.warpAffine, WARP_INVERSE_MAP, zeros outside)
+function crop(img, m, out, lo, hi) {
+  const { data, width: W, height: H } = img, t = new Float32Array(out * out * 3), sc = (hi - lo) / 255;
+  for (let v = 0; v < out; v++) {
+    for (let u = 0; u < out; u++) {
+      const x = m[0] * u + m[1] * v + m[2], y = m[3] * u + m[4] * v + m[5];
+      const x0 = Math.floor(x), y0 = Math.floor(y), fx = x - x0, fy = y - y0, o = (v * out + u) * 3;
+      for (let c = 0; c < 3; c++) {
+        let acc = 0;
+        for (let j = 0; j < 2; j++) for (let i = 0; i < 2; i++) {
+          const xx = x0 + i, yy = y0 + j;
+          if (xx < 0 || yy < 0 || xx >= W || yy >= H) continue;
+          acc += (i ? fx : 1 - fx) * (j ? fy : 1 - fy) * data[(yy * W + xx) * 4 + c];
+        }
+        t[o + c] = acc * sc + lo;
+      }
+    }
+  }
+  return new ort.Tensor('float32', t, [1, out, out, 3]);
+}
+
+function roi(pts, a, b, scale, idx) {
+  let x0 = Infinity, y0 = Infinity, x1 = -Infinity, y1 = -Infinity;
+  for (const i of idx) { const x = pts[2 * i], y = pts[2 * i + 1]; x0 = Math.min(x0, x); y0 = Math.min(y0, y); x1 = Math.max(x1, x); y1 = Math.max(y1, y); }
+  const ang = Math.atan2(pts[2 * b + 1] - pts[2 * a + 1], pts[2 * b] - pts[2 * a]);
+  return [(x0 + x1) / 2, (y0 + y1) / 2, ang, Math.max(x1 - x0, y1 - y0) * scale];
+}
+const sigmoid = (x) => 1 / (1 + Math.exp(-Math.max(-100, Math.min(100, x))));
+const ALL = Array.from({ length: 468 }, (_, i) => i);
+
+async function detect(img) {
+  const side = Math.max(img.width, img.height);
+  const m = cropMatrix((img.width - 1) / 2, (img.height - 1) / 2, 0, side, DET);
+  const r = await det.run({ input: crop(img, m, DET, -1, 1) });
+  const raw = r.regressors.data, logit = r.classificators.data;
+  let k = 0;
+  for (let i = 1; i < 896; i++) if (logit[i] > logit[k]) k = i;
+  if (sigmoid(logit[k]) < 0.5) return null;
+  const q = (j) => raw[k * 16 + j] / DET;
+  const px = (x, y) => apply(m, x * DET, y * DET);
+  const [cx, cy] = px(anchors[2 * k] + q(0), anchors[2 * k + 1] + q(1));
+  const [ax, ay] = px(anchors[2 * k] + q(4), anchors[2 * k + 1] + q(5));
+  const [bx, by] = px(anchors[2 * k] + q(6), anchors[2 * k + 1] + q(7));
+  return [cx, cy, Math.atan2(by - ay, bx - ax), Math.max(q(2), q(3)) * side * FACE_SCALE];
+}
+
+async function track(img) {
+  const r = prev ? roi(prev, 33, 263, FACE_SCALE, ALL) : await detect(img);
+  if (!r) return null;
+  const m = cropMatrix(...r, MESH);
+  const out = await mesh.run({ input: crop(img, m, MESH, 0, 1) });
+  const names = mesh.outputNames;
+  const lm = out[names[0]].data, presence = out[names[1]].data[0];
+  if (sigmoid(presence) < 0.5) { prev = null; return null; }
+  const pts = new Float32Array(478 * 2);
+  for (let i = 0; i < 468; i++) { const [x, y] = apply(m, lm[3 * i], lm[3 * i + 1]); pts[2 * i] = x; pts[2 * i + 1] = y; }
+  prev = pts.slice(0, 468 * 2);
+  for (let e = 0; e < 2; e++) {
+    const [a, b] = EYES[e];
+    const [cx, cy, ang, size] = roi(pts, a, b, EYE_SCALE, [a, b]);
+    let mm = cropMatrix(cx, cy, ang, size, IRIS);
+    const sample = e === 1 ? mirror(mm, IRIS - 1) : mm;
+    if (e === 1) mm = mirror(mm, IRIS);
+    const o = await iris.run({ input: crop(img, sample, IRIS, 0, 1) });
+    const ir = o[iris.outputNames[1]].data;
+    for (let i = 0; i < 5; i++) {
+      const [x, y] = apply(mm, ir[3 * i], ir[3 * i + 1]);
+      pts[2 * (468 + 5 * e + i)] = x; pts[2 * (468 + 5 * e + i) + 1] = y;
+    }
+  }
+  return pts;
+}
+
+self.onmessage = async (ev) => {
+  const msg = ev.data;
+  try {
+    if (msg.type === 'init') {
+      ort.env.wasm.wasmPaths = msg.base + 'ort/';
+      ort.env.wasm.numThreads = 1;
+      const opts = { executionProviders: ['wasm'] };
+      [det, mesh, iris] = await Promise.all(['face_detection', 'face_landmark', 'iris_landmark']
+        .map((n) => ort.InferenceSession.create(msg.base + `models/${n}.onnx`, opts)));
+      anchors = makeAnchors();
+      self.postMessage({ type: 'ready' });
+    } else if (msg.type === 'reset') {
+      prev = null;
+    } else if (msg.type === 'frame') {
+      const t0 = performance.now();
+      const bm = msg.bitmap;
+      if (!canvas || canvas.width !== bm.width || canvas.height !== bm.height) {
+        canvas = new OffscreenCanvas(bm.width, bm.height);
+        ctx = canvas.getContext('2d', { willReadFrequently: true });
+      }
+      ctx.drawImage(bm, 0, 0);
+      bm.close();
+      const img = ctx.getImageData(0, 0, canvas.width, canvas.height);
+      const points = await track(img);
+      self.postMessage({ type: 'points', points, t: msg.t, ms: performance.now() - t0, width: img.width, height: img.height },
+        points ? [points.buffer] : []);
+    }
+  } catch (e) {
+    self.postMessage({ type: 'error', message: String(e && e.message || e) });
+  }
+};
