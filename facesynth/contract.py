@@ -39,7 +39,7 @@ ERI_METADATA_KEYS = (
     "output_layout", "opset",
 )
 
-# optional keys of a synthesis file that can be driven by another face (issue 13; written by
+# optional keys of a synthesis file that can be driven by another face (written by
 # facesynth.onnx.avatar, read by facesynth.runtime.reenact): the avatar's neutral landmarks
 # (68, 2) frame px, their clip row, the shape PCA {mean, components, limit}, the avatar's
 # own frame (base64 JPEG) and its size [W, H]

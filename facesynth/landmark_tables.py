@@ -198,7 +198,7 @@ as scipy's Delaunay triangles of the ibug68 reference frame. The 898 canonical f
 (852 surface + 46 closing the eyes and the mouth, so that the warp covers the eyes and
 the mouth interior) minus :data:`MP_TRIANGLES_DROPPED`. The iris points 468-477 are not
 vertices (they move inside the eye). Fold check in docs/landmarks.md: this set is a disc
-(one boundary loop) and fold-free on the mean shape of lp_d6 and lp_d10."""
+(one boundary loop) and fold-free on the mean shapes of the real clips."""
 
 MP_TRIANGLES_DROPPED = (
     (323, 454, 366), (93, 137, 234), (447, 366, 454), (227, 234, 137), (454, 356, 447), (234, 227, 127), (366, 401, 323),
@@ -207,5 +207,5 @@ MP_TRIANGLES_DROPPED = (
 """Canonical faces left out: the cheek-silhouette strip beside the face oval (points 93, 132,
 234 and 323, 361, 454 and their neighbours), where the 3D surface turns away from the
 camera and the 2D projection folds over itself: these triangles are inverted on the mean
-2D shape of lp_d6, lp_d10 or lp_d3 (MediaPipe landmarks), closed under left-right mirroring
+2D shape of a real clip (MediaPipe landmarks), closed under left-right mirroring
 so that what remains stays a disc."""

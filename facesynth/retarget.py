@@ -30,7 +30,7 @@ P = 478; the FAP units and face axes are measured on their iBUG-68 view,
    the model was trained on. The eyelids are then put back as they were relative to their
    eye corners (the corners stay clamped): a clip's shape PCA spends its few components on
    head turns and the mouth, so the clamp would otherwise cut a driver's blinks and wide
-   eyes (docs/reenact.md: eye-opening r 0.68 -> 0.997 on lp_d3 driven by lp_d6). Eyelid
+   eyes (docs/reenact.md measures the eye-opening correlation with and without). Eyelid
    motion changes no proportion of the face, and the fold-free warp renders any of it.
 
 ``motion="absolute"`` returns the driver's landmarks unchanged (the behaviour before

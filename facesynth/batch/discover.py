@@ -45,8 +45,8 @@ def subject_names(videos: list[Path]) -> list[str]:
     """One folder name per video, unique and filesystem-safe.
 
     Per video, the first of these that no other video shares: the file stem
-    (``clips/anna.mp4`` -> ``anna``), the parent folder's name (``faces/lp_d6/video.mp4``
-    -> ``lp_d6``), both (``lp_d6_video``), the path below the videos' common folder joined
+    (``clips/anna.mp4`` -> ``anna``), the parent folder's name (``faces/bob/video.mp4``
+    -> ``bob``), both (``bob_video``), the path below the videos' common folder joined
     with ``_``; a numbered suffix settles what is still equal.
     """
     paths = [Path(os.path.abspath(v)) for v in videos]

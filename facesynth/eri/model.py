@@ -101,8 +101,8 @@ class EriModel:
         values = model.ratios_of(seq, rows, progress)
         t1 = time.perf_counter()
         pca = PCAModel.fit(values.reshape(len(rows), -1), cfg.n_components, cfg.variance)
-        # the eigenERI basis is stored in half precision (86676 x 122 values on lp_d6: 42 MB in
-        # float32); rounding it here keeps the fitted and the reloaded model identical
+        # the eigenERI basis is stored in half precision (docs/eri.md: tens of MB in float32 on a
+        # real clip); rounding it here keeps the fitted and the reloaded model identical
         model.pca = PCAModel(pca.mean, pca.components.astype(np.float16).astype(np.float32), pca.eigenvalues,
                              pca.total_variance)
         coeffs = model.pca.project(values.reshape(len(rows), -1))
@@ -260,7 +260,7 @@ def _compact_bank_state(bank: SVRBank) -> dict[str, np.ndarray]:
     """What reloading an SVR bank needs, without repeats: the K machines' support vectors are
     rows of the same training FAPs, so the distinct rows are stored once (``sv_unique``) with
     an index per support vector; the dense (n_sv, K) ``weights`` are rebuilt from ``dual`` and
-    ``owner`` on load. (Storing every buffer took ~45 MB per variant on lp_d6.)"""
+    ``owner`` on load (docs/eri.md: storing every buffer took tens of MB per variant)."""
     state = {k: v.numpy() for k, v in bank.state_dict().items() if k not in ("weights", "sv")}
     uniq, index = np.unique(bank.sv.numpy(), axis=0, return_inverse=True)
     state.update(sv_unique=uniq, sv_index=index.reshape(-1).astype(np.int32), owner=state["owner"].astype(np.int32))

@@ -14,7 +14,7 @@ From it: the whole figure if some parts were predicted as well as another row of
 reach a target (:func:`needed`; ``inf`` when the others alone already miss it).
 
 :func:`scheme_gap` applies them to a pair of runs of one clip on two landmark schemes
-(issue 14: the dense scheme must beat ``ibug68`` by ``margin`` dB over the common region).
+(does the dense scheme beat ``ibug68`` by ``margin`` dB over the common region?).
 ``bench/scheme_gap.py`` prints it for run folders.
 """
 

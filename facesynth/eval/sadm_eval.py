@@ -51,7 +51,7 @@ from facesynth.sadm.regions import reference_regions
 class EvalConfig:
     """noise: landmark noise levels (frame px). max_test_frames: the frame-level PSNR is
     measured on this many evenly spaced test frames (None or 0: every test frame); 100 keeps
-    every row within 0.1 dB of the all-frames figures on lp_d6 (60 did not: docs/eval.md).
+    every row within 0.1 dB of the all-frames figures on a real clip (60 did not: docs/eval.md).
     feather: paste edge width; batch_size: frames per batched prediction/render.
     common_region: also measure ``psnr_frame_common`` (needs the clip's dlib landmarks);
     common_landmarks: where they are (a (T, 68, 2) .npy or clip folder indexed by video

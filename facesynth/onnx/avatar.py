@@ -1,4 +1,4 @@
-"""What a landmark-driven model needs to be driven by *another* face (issue 13), written
+"""What a landmark-driven model needs to be driven by *another* face, written
 into its ONNX metadata at export time (torch-side; the runtime reads it with
 :func:`facesynth.runtime.reenact.avatar_from_metadata`):
 

@@ -16,16 +16,16 @@ variables"; Hastie, Tibshirani & Friedman, ESL 2nd ed. Sec. 5.8 / 12.3.7)::
 With ``clip_inputs`` (default) every input is first clamped to its range over the training
 rows, x <- min(max(x, x_lo), x_hi): a shape outside the training box is mapped to the
 nearest point of the box, so the linear part cannot extrapolate further than the data
-reach (it helps where a test segment holds expressions the training segment never shows,
-as on lp_d3; docs/sadm.md).
+reach (it helps where a test segment holds expressions the training segment never shows;
+docs/sadm.md).
 
 The kernel part is scikit-learn's ``KernelRidge(alpha, kernel="rbf", gamma)`` (or
 ``kernel=Matern(length_scale=1/sqrt(gamma), nu=1.5)``) fitted on (z, Y - mean_y); the linear
 part is :class:`LinearRegressor`. Blending the two is a
 two-member ensemble of a smooth nonlinear interpolator (good inside the training
 distribution) and a linear map (extrapolates gracefully to shapes the training segment
-never shows); on the held-out segments of lp_d6, lp_d10 and lp_d3 the blend beats either
-member (docs/sadm.md).
+never shows); on the held-out segments of the real clips the blend beats either member
+(docs/sadm.md).
 
 Inference is tensor ops only (one (B, N) kernel matrix and two matmuls), so the regressor
 traces to ONNX: ``||s - c||^2 = ||s||^2 + ||c||^2 - 2 s c^T`` clamped >= 0, with
@@ -57,7 +57,7 @@ class KRRConfig:
     """Matern 3/2 kernel ridge on standardised inputs (gamma = gamma_mult / D, length scale
     1/sqrt(gamma)) blended 50/50 with the linear ridge map; alpha 0.5 with 4 noisy copies
     (= 0.1 per clean row); inputs clamped to the training box. Best held-out figures on
-    lp_d6 / lp_d10 / lp_d3; rbf gives about the same sigma-0 accuracy on validation with a
+    the real clips; rbf gives about the same sigma-0 accuracy on validation with a
     larger sigma-2 loss (docs/sadm.md)."""
 
     alpha: float = 0.5  # kernel ridge penalty (KernelRidge's alpha; targets in raw units)
@@ -67,8 +67,7 @@ class KRRConfig:
     clip_inputs: bool = True  # clamp each input to its [min, max] over the training rows
     kernel: str = "matern32"  # "matern32" | "rbf" (runs saved before this field read as "rbf")
     # "feature": each input z-scored; "global": one scale for all, their RMS std (the kernel then
-    # weighs coordinates by how much they move: the same on lp_d6 and lp_d10, +0.2-0.3 dB on
-    # lp_d3 with either scheme; docs/sadm.md)
+    # weighs coordinates by how much they move; docs/sadm.md compares the two)
     scale: str = "feature"
 
 

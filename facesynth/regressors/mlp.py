@@ -32,7 +32,7 @@ ACTIVATIONS = {"relu": nn.ReLU, "gelu": nn.GELU, "tanh": nn.Tanh, "silu": nn.SiL
 class MLPConfig:
     hidden: list[int] = field(default_factory=lambda: [128, 128])  # hidden layer widths
     activation: str = "gelu"  # one of ACTIVATIONS
-    weight_decay: float = 1.0  # AdamW decoupled weight decay (1 and dropout 0.2: best on the lp_d6 validation slice)
+    weight_decay: float = 1.0  # AdamW decoupled weight decay (1 and dropout 0.2: best on a validation slice)
     lr: float = 1e-3
     max_epochs: int = 300  # caps the training time
     patience: int = 30  # epochs without validation improvement before stopping
@@ -74,7 +74,7 @@ class MLPRegressor(Regressor):
     """Forward: (B, D_in) raw inputs -> (B, D_out) raw outputs."""
 
     config_class = MLPConfig
-    # on lp_d6 dropout 0.2 and weight decay 1 helped most; the width hardly mattered
+    # dropout 0.2 and weight decay 1 helped most; the width hardly mattered (docs/regressors.md)
     search_grid = {"weight_decay": [1e-2, 1e-1, 1.0], "dropout": [0.0, 0.2], "hidden": [[128, 128], [256, 256]]}
 
     def __init__(self, d_in: int, d_out: int, config: MLPConfig, info: dict | None = None):

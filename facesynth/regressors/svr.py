@@ -39,7 +39,7 @@ class SVRConfig:
     epsilon: float = 0.1  # epsilon-SVR tube width (standardised target units)
     nu: float = 0.5  # nu-SVR
     gamma: Any = "scale"  # "scale" (1 / (D var(z))), "auto" (1 / D) or a float
-    gamma_mult: float = 0.25  # multiplies gamma (0.25: best on the lp_d6 validation slice, see docs)
+    gamma_mult: float = 0.25  # multiplies gamma (0.25: best on a validation slice, docs/regressors.md)
     standardise: bool = True  # z-score inputs and targets (per output)
     tol: float = 1e-3
     cache_size: float = 200.0
@@ -74,7 +74,7 @@ class SVRRegressor(Regressor):
     """Forward: (B, D_in) raw inputs -> (B, D_out) raw outputs (exact SVM decision function)."""
 
     config_class = SVRConfig
-    # gamma_mult reaches below 0.25: on lp_d6 the best value was 0.25, the low edge of {0.25..2}
+    # gamma_mult reaches below 0.25, the best value of an earlier grid's low edge (docs/regressors.md)
     search_grid = {"C": [0.01, 0.03, 0.1, 0.3, 1.0, 3.0, 10.0], "gamma_mult": [0.0625, 0.125, 0.25, 0.5, 1.0, 2.0]}
 
     def __init__(self, config: SVRConfig, tensors: dict[str, torch.Tensor], info: dict):

@@ -7,7 +7,7 @@ Imports only numpy, onnxruntime and OpenCV (a test checks that torch stays unimp
     crops, masks, placements = r.render(landmarks)      # (B, 68, 2) frame pixels
     frame = r.render_frame(landmarks[0], background)     # uint8 (H, W, 3)
 
-    re = Reenactor("avatar.onnx")                        # another face drives the avatar (issue 13)
+    re = Reenactor("avatar.onnx")                        # another face drives the avatar
     frame, avatar_lm = re.step(driver_lm)                # (68, 2) -> uint8 frame in the avatar's own frame
 
     e = EriRenderer("eri.onnx")                          # an ERI model (one target face)

@@ -28,7 +28,7 @@ information is gaze and tongue/teeth state, which the 68 landmarks do not carry.
 
 Run::
 
-    PYTHONPATH=. python -m facesynth.sadm.ceiling --clip /work/shared/data/faces/lp_d6 \
+    python -m facesynth.sadm.ceiling --clip ../shared/data/faces/CLIP \
         [--regressor krr] [--augment-sigma 1] [--json OUT]
 
 prints one JSON line: clip, regressor, frames, and PSNR (dB) of the mean texture, the

@@ -15,13 +15,13 @@ Two ways to use them (``SADMConfig.gaze_mode``), both by default (``both``):
 * **gaze inputs** (``inside``, :class:`GazeInputs`): the 4 features (in pixels of a
   100-px face, :data:`INPUT_SCALE`) appended ``gaze_copies`` times (default 4) to the main
   regressor's inputs, so that its kernel sees gaze jointly with the eye-lid points;
-* **the gaze path** (``path``, :class:`GazePath`): issue 14's "a few strong inputs drown in a
-  kernel over many: give gaze its own path": a ridge regression from the features, their
+* **the gaze path** (``path``, :class:`GazePath`): a few strong inputs drown in a kernel
+  over many, so gaze gets its own path: a ridge regression from the features, their
   squares and pairwise products (4 + 10 = 14 inputs, z-scored) to the residual of the main
   regressor's prediction, added to it. ``gaze_target="eyes"`` (default): the residual
   *texture* of the eye region (iBUG eye polygons dilated 3 px; the correction is zero
   elsewhere); ``"params"``: the residual b_g (every pixel; it learned correlations outside
-  the eyes that cost lp_d10 0.2 dB, docs/sadm.md "Gaze").
+  the eyes that cost 0.2 dB on a real clip, docs/sadm.md "Gaze").
 
 The path's details:
 
