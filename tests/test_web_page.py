@@ -1,0 +1,134 @@
+"""The live page in headless system Chromium (Playwright for Python): a shared clip as the fake
+camera drives the avatar, nothing leaves 127.0.0.1, the avatar graph's output equals Python's
+runtime on the same landmarks, and each error path shows its message. Skips without chromium,
+playwright or web/node_modules (``npm ci`` in web/)."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+pytest.importorskip("playwright")
+pytest.importorskip("tflite")
+pytest.importorskip("mediapipe")
+
+from facesynth.web import browser, site  # noqa: E402
+
+if browser.chromium_path() is None:
+    pytest.skip("chromium is absent (apt-get install chromium)", allow_module_level=True)
+if not (site.WEB / "node_modules" / "onnxruntime-web").is_dir():
+    pytest.skip("web/node_modules is absent (npm ci in web/)", allow_module_level=True)
+
+SHOTS = Path(os.environ.get("FACESYNTH_WEB_SHOTS", "/tmp"))
+
+
+@pytest.fixture(scope="module")
+def avatar(shared_clip_dir, tmp_path_factory):
+    """A small linear model of lp_d10 exported with its avatar metadata (68 points)."""
+    from facesynth.data import load_sequence, temporal_split
+    from facesynth.model import FaceModel
+    from facesynth.onnx.avatar import avatar_metadata
+    from facesynth.onnx.synthesis import export_synthesizer
+    from facesynth.regressors import REGISTRY
+    from facesynth.sadm.synthesis import GlobalAppearance, Synthesizer
+
+    seq = load_sequence(shared_clip_dir("lp_d10"))
+    train, _ = temporal_split(len(seq))
+    rows = train[::3]
+    model = FaceModel.fit(seq, rows=rows, progress=False)
+    x = model.shape_params(seq.landmarks[rows], clamp=True)
+    y = model.appearance_params(model.sample_textures(seq, rows), clamp=True)
+    syn = Synthesizer(model, GlobalAppearance(model, REGISTRY["linear"].fit(x, y, seed=0))).eval()
+    path = tmp_path_factory.mktemp("web") / "lp_d10.onnx"
+    export_synthesizer(syn, path, avatar_metadata(syn, seq.landmarks[train], train, seq))
+    return path, seq
+
+
+@pytest.fixture(scope="module")
+def page_site(avatar, tmp_path_factory):
+    return site.build_site(avatar[0], tmp_path_factory.mktemp("site") / "site")
+
+
+@pytest.fixture(scope="module")
+def camera(shared_clip_dir, tmp_path_factory):
+    y4m = tmp_path_factory.mktemp("cam") / "cam.y4m"
+    browser.write_y4m(shared_clip_dir("lp_d6") / "video.mp4", y4m, 90, (640, 480))
+    return y4m
+
+
+def _wait(page, expr: str, timeout_s: float = 60.0):
+    page.wait_for_function(expr, timeout=timeout_s * 1000)
+    return page.evaluate(expr)
+
+
+def test_camera_drives_the_avatar_offline_and_matches_python(page_site, camera, avatar):
+    from facesynth.runtime.renderer import Renderer
+
+    path, seq = avatar
+    with browser.served(page_site) as url, browser.browser_page(camera) as (page, blocked):
+        page.goto(url)
+        frames = _wait(page, "window.facesynth && window.facesynth.state.frames >= 100 && window.facesynth.state.frames")
+        assert frames >= 100
+        stats = page.inner_text("#stats")
+        assert "frames/s" in stats
+        page.screenshot(path=str(SHOTS / "facesynth_web_live.png"))
+        assert not [m for m in page.evaluate("window.facesynth.state.messages") if m["error"]]
+
+        # replay hook: the same landmarks through the page's avatar graph and Python's runtime
+        renderer = Renderer(path)
+        lm = seq.landmarks[[0, len(seq) // 2]].astype(np.float32)
+        for x in lm:
+            out = page.evaluate("(a) => window.facesynth.synthesize(a)", x.ravel().tolist())
+            crops, masks, placements = renderer.render(x[None], copy=True)
+            crop = np.array(out["crop"]["data"], np.float32).reshape(out["crop"]["dims"])
+            mask = np.array(out["mask"]["data"], np.float32).reshape(out["mask"]["dims"])
+            assert np.abs(crop - crops).max() <= 2 / 255
+            assert np.array_equal(mask, masks)
+            np.testing.assert_allclose(np.array(out["placement"]["data"]).reshape(1, 2, 3), placements, atol=1e-3)
+    assert blocked == []
+
+
+def _messages(page):
+    return " | ".join(m["text"] for m in page.evaluate("window.facesynth ? window.facesynth.state.messages : []"))
+
+
+def _error_shown(page, needle: str, timeout_s: float = 60.0) -> str:
+    page.wait_for_function(f"document.getElementById('message').className === 'error' && "
+                           f"document.getElementById('message').textContent.includes({needle!r})",
+                           timeout=timeout_s * 1000)
+    return page.inner_text("#message")
+
+
+def test_error_messages(page_site, camera, tmp_path):
+    blank = tmp_path / "blank.y4m"
+    with open(blank, "wb") as f:  # a grey wall: no face
+        f.write(b"YUV4MPEG2 W320 H240 F30:1 Ip A1:1 C420jpeg\n")
+        for _ in range(10):
+            f.write(b"FRAME\n" + bytes([128]) * (320 * 240 * 3 // 2))
+    with browser.served(page_site) as url:
+        with browser.browser_page(blank) as (page, blocked):
+            page.goto(url)
+            assert "No face in view" in _error_shown(page, "No face in view")
+        with browser.browser_page(camera, deny_camera=True) as (page, blocked):
+            page.goto(url)
+            assert "Camera permission denied" in _error_shown(page, "Camera permission denied")
+        with browser.browser_page(camera) as (page, blocked):
+            page.add_init_script("delete globalThis.WebAssembly")
+            page.goto(url)
+            assert "WebAssembly is unavailable" in _error_shown(page, "WebAssembly is unavailable")
+        with browser.browser_page(camera) as (page, blocked):
+            page.goto(url)
+            _wait(page, "window.facesynth && window.facesynth.state.frames >= 1")
+            drop = ("async ([name, bytes]) => window.facesynth.loadFile(new File([new Uint8Array(bytes)], name))")
+            page.evaluate(drop, ["junk.onnx", list(b"\x00\x01not onnx at all" * 10)])
+            assert "junk.onnx is not an ONNX file" in _error_shown(page, "junk.onnx")
+            tracker = (Path(page_site) / "models" / "iris_landmark.onnx").read_bytes()
+            page.evaluate(drop, ["iris.onnx", list(tracker)])
+            assert "iris.onnx is not a facesynth avatar" in _error_shown(page, "iris.onnx")
+            frames = page.evaluate("window.facesynth.state.frames")
+            page.wait_for_function(f"window.facesynth.state.frames > {frames}", timeout=30000)  # still running
+            assert "current avatar is kept" in _messages(page)
+        assert blocked == []
