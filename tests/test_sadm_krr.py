@@ -69,15 +69,6 @@ def test_global_scale_equals_sklearn_on_inputs_divided_by_their_rms_std():
     assert reg.config_dict()["scale"] == "global"
 
 
-def test_runs_saved_without_a_kernel_field_load_as_rbf():
-    x, y = _data()
-    rbf = KRRRegressor.fit(x, y, {"kernel": "rbf"})
-    cfg = {k: v for k, v in rbf.config_dict().items() if k != "kernel"}  # as written before the field existed
-    old = REGISTRY["krr"].from_state(cfg, {k: v.clone() for k, v in rbf.state_dict().items()})
-    assert old.config.kernel == "rbf"
-    np.testing.assert_array_equal(old.predict(x), rbf.predict(x))
-
-
 def test_blend_end_points():
     from sklearn.kernel_ridge import KernelRidge
 

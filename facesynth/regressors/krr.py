@@ -65,7 +65,7 @@ class KRRConfig:
     ridge: float = 10.0  # ridge of the linear part (as the ``linear`` regressor)
     blend: float = 0.5  # weight of the kernel part; 1 = pure KRR, 0 = pure linear ridge
     clip_inputs: bool = True  # clamp each input to its [min, max] over the training rows
-    kernel: str = "matern32"  # "matern32" | "rbf" (runs saved before this field read as "rbf")
+    kernel: str = "matern32"  # "matern32" | "rbf"
     # "feature": each input z-scored; "global": one scale for all, their RMS std (the kernel then
     # weighs coordinates by how much they move; docs/sadm.md compares the two)
     scale: str = "feature"
@@ -182,7 +182,6 @@ class KRRRegressor(Regressor):
     def from_state(cls, config, tensors):
         config = dict(config)
         info = config.pop("info", {})
-        config.setdefault("kernel", "rbf")  # runs saved before the kernel choice existed were RBF
         cfg = as_config(KRRConfig, config, "regressor krr")
         check_config(cfg)
         return cls(cfg, dict(tensors), info)

@@ -351,8 +351,8 @@ def load_sadm(run_dir: str | os.PathLike) -> SADM:
     if paired is not None and paired != face_model_manifest(d / "face_model").get("tensors_sha256"):
         raise FacesynthError(f"{d / 'face_model'}: not the face model this SADM was saved with "
                              f"(its SHA-256 differs from {where}'s 'face_model_sha256')")
-    try:  # runs saved before schemes were recorded are 68-point
-        scheme = get_scheme(meta.get("landmark_scheme", "ibug68"))
+    try:
+        scheme = get_scheme(manifest_field(meta, "landmark_scheme", where))
     except FacesynthError as exc:
         raise FacesynthError(f"{where}: {exc}") from None
     if scheme.base_scheme().name != model.scheme:
@@ -362,7 +362,7 @@ def load_sadm(run_dir: str | os.PathLike) -> SADM:
     conf = manifest_field(meta, "regressor_config", where)
     sadm_conf = manifest_field(meta, "sadm", where)
 
-    gaze_meta = meta.get("gaze")
+    gaze_meta = manifest_field(meta, "gaze", where)  # None: no gaze path
 
     def build() -> SADM:
         reg = REGISTRY[name].from_state(conf, {k: torch.from_numpy(v) for k, v in tensors.items()
@@ -370,8 +370,8 @@ def load_sadm(run_dir: str | os.PathLike) -> SADM:
         gaze = None
         if gaze_meta is not None:
             state = {k[len(GAZE_PREFIX):]: torch.from_numpy(v) for k, v in tensors.items() if k.startswith(GAZE_PREFIX)}
-            gaze = GazePath.from_state(scheme, state, float(dict(gaze_meta).get("alpha", "nan")),
-                                       str(dict(gaze_meta).get("target", "params"))).eval()
+            gaze = GazePath.from_state(scheme, state, float(manifest_field(gaze_meta, "alpha", where)),
+                                       str(manifest_field(gaze_meta, "target", where))).eval()
         cfg = SADMConfig(**{k: v for k, v in dict(sadm_conf).items() if k in SADMConfig.__dataclass_fields__})
         sadm = SADM(model, reg.eval(), name, cfg, conf, meta.get("search_table", []), scheme.name, gaze,
                     check_shrink(meta.get("region_shrink"), where))
