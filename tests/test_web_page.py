@@ -15,6 +15,7 @@ pytest.importorskip("playwright")
 pytest.importorskip("tflite")
 pytest.importorskip("mediapipe")
 
+from facesynth.contract import SYNTHESIS_FORMAT  # noqa: E402
 from facesynth.web import browser, site  # noqa: E402
 
 if browser.chromium_path() is None:
@@ -91,6 +92,19 @@ def test_camera_drives_the_avatar_offline_and_matches_python(page_site, camera, 
     assert blocked == []
 
 
+def _tiny_onnx(metadata: dict, op: str = "Identity") -> bytes:
+    """A one-node ONNX file carrying ``metadata`` (values JSON-encoded, as facesynth writes them)."""
+    import json
+
+    from onnx import TensorProto, helper
+
+    g = helper.make_graph([helper.make_node(op, ["x"], ["y"])], "g", [helper.make_tensor_value_info(
+        "x", TensorProto.FLOAT, [1])], [helper.make_tensor_value_info("y", TensorProto.FLOAT, [1])])
+    m = helper.make_model(g, opset_imports=[helper.make_opsetid("", 18)])
+    helper.set_model_props(m, {k: json.dumps(v) for k, v in metadata.items()})
+    return m.SerializeToString()
+
+
 def _messages(page):
     return " | ".join(m["text"] for m in page.evaluate("window.facesynth ? window.facesynth.state.messages : []"))
 
@@ -115,6 +129,9 @@ def test_error_messages(page_site, camera, tmp_path):
         with browser.browser_page(camera, deny_camera=True) as (page, blocked):
             page.goto(url)
             assert "Camera permission denied" in _error_shown(page, "Camera permission denied")
+        with browser.browser_page(camera=False) as (page, blocked):
+            page.goto(url)
+            assert "No camera found" in _error_shown(page, "No camera found")
         with browser.browser_page(camera) as (page, blocked):
             page.add_init_script("delete globalThis.WebAssembly")
             page.goto(url)
@@ -125,9 +142,15 @@ def test_error_messages(page_site, camera, tmp_path):
             drop = ("async ([name, bytes]) => window.facesynth.loadFile(new File([new Uint8Array(bytes)], name))")
             page.evaluate(drop, ["junk.onnx", list(b"\x00\x01not onnx at all" * 10)])
             assert "junk.onnx is not an ONNX file" in _error_shown(page, "junk.onnx")
-            tracker = (Path(page_site) / "models" / "iris_landmark.onnx").read_bytes()
-            page.evaluate(drop, ["iris.onnx", list(tracker)])
-            assert "iris.onnx is not a facesynth avatar" in _error_shown(page, "iris.onnx")
+            page.evaluate(drop, ["other.onnx", list(_tiny_onnx({"producer": "other"}))])
+            assert "other.onnx is not a facesynth avatar" in _error_shown(page, "other.onnx")
+            syn = {"format": SYNTHESIS_FORMAT, "landmark_scheme": "dlib5"}
+            page.evaluate(drop, ["five.onnx", list(_tiny_onnx(syn))])
+            assert "cannot be driven by the page's tracker" in _error_shown(page, "five.onnx")
+            syn = {"format": SYNTHESIS_FORMAT, "landmark_scheme": "ibug68", "avatar_neutral": [[0, 0]] * 68,
+                   "frame_size": [8, 8], "background_jpeg": "AA=="}
+            page.evaluate(drop, ["broken.onnx", list(_tiny_onnx(syn, op="NoSuchOp"))])
+            assert "broken.onnx is corrupt" in _error_shown(page, "broken.onnx")
             frames = page.evaluate("window.facesynth.state.frames")
             page.wait_for_function(f"window.facesynth.state.frames > {frames}", timeout=30000)  # still running
             assert "current avatar is kept" in _messages(page)
