@@ -43,7 +43,7 @@ def main() -> None:
     frames = seq.load_frames(np.arange(min(args.batch, len(seq))))
     lm = torch.from_numpy(seq.landmarks[: len(frames)])
     x = torch.from_numpy(frames).permute(0, 3, 1, 2).float() / 255
-    sampler, renderer = model.sampler(), model.renderer()
+    sampler, target_warp = model.sampler(), model.target_warp()
     canvas = torch.from_numpy(model.to_canvas(seq.landmarks[: len(frames)])[0])
 
     def rate(fn, n):
@@ -73,8 +73,8 @@ def main() -> None:
         "threads": args.threads,
         "batch": len(frames),
         "warp_to_reference_fps": round(rate(lambda: sampler(x, lm), len(frames)), 1),
-        "warp_to_target_fps": round(rate(lambda: renderer(tex, canvas), len(frames)), 1),
-        "warp_to_target_fps_batch1": round(rate(lambda: renderer(tex[:1], canvas[:1]), 1), 1),
+        "warp_to_target_fps": round(rate(lambda: target_warp(tex, canvas), len(frames)), 1),
+        "warp_to_target_fps_batch1": round(rate(lambda: target_warp(tex[:1], canvas[:1]), 1), 1),
         "torch": torch.__version__,
         "python": sys.version.split()[0],
     }

@@ -285,13 +285,13 @@ class FaceModel:
             self.__dict__["_sampler"] = ToReference(self.reference)
         return self.__dict__["_sampler"]
 
-    def renderer(self) -> ToTarget:
+    def target_warp(self) -> ToTarget:
         """The reference -> target warp module (built once per span, cached)."""
         key = self.span.tobytes()
-        if self.__dict__.get("_renderer_key") != key:
-            self.__dict__["_renderer"] = ToTarget(self.reference, self.span)
-            self.__dict__["_renderer_key"] = key
-        return self.__dict__["_renderer"]
+        if self.__dict__.get("_target_warp_key") != key:
+            self.__dict__["_target_warp"] = ToTarget(self.reference, self.span)
+            self.__dict__["_target_warp_key"] = key
+        return self.__dict__["_target_warp"]
 
     def sample_textures(self, seq: FaceSequence, rows=None, progress: bool = False) -> np.ndarray:
         """Textures of sequence rows in the reference frame: (N, C * M) float32 in [0, 1]."""
@@ -370,7 +370,7 @@ class FaceModel:
         """
         canvas, m = self.to_canvas(self.denoise(landmarks))
         with torch.no_grad():
-            img, mask = self.renderer()(
+            img, mask = self.target_warp()(
                 torch.from_numpy(np.asarray(textures, np.float32)).reshape(len(textures), self.n_channels, -1).clamp(0, 1),
                 torch.from_numpy(canvas),
             )

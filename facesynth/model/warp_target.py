@@ -80,13 +80,19 @@ class ToTarget(nn.Module):
         self.ref_size = tuple(int(s) for s in ref.size)
         tri = np.asarray(ref.triangles, np.int64)
         span = np.asarray(span, np.int64).reshape(-1, 2)
-        n_tri = len(tri)
-        h, w = self.canvas
-        self.n_tri = n_tri
+        self.n_tri = n_tri = len(tri)
         self.code_base = float(2 ** int(np.ceil(np.log2(n_tri + 2))))
-        c = self.code_base
         self.register_buffer("tri", torch.from_numpy(tri))
         self.register_buffer("span", torch.from_numpy(span.astype(np.float32)))
+        edge_coords = self._init_edges(tri, span)
+        self._init_affine(tri, edge_coords)
+        c0, r0, rw = self._init_raster(ref, tri)
+        self._init_pixels(c0, r0, rw)
+
+    def _init_edges(self, tri: np.ndarray, span: np.ndarray) -> np.ndarray:
+        """The edges' triangle codes and the scanline events (edge x column crossings); the
+        flat landmark index of each edge's end points, (4 E,)."""
+        n_tri, c, w = self.n_tri, self.code_base, self.canvas[1]
         # undirected edges (lo, hi) (vertex indices lo < hi); half-edge (t, k) runs from
         # tri[t, k] to tri[t, k + 1] and is +1 when it runs from lo to hi
         he_from, he_to = tri, tri[:, [1, 2, 0]]
@@ -119,11 +125,16 @@ class ToTarget(nn.Module):
         ev_edge = np.repeat(np.arange(n_edge), width)
         ev_k = np.arange(len(ev_edge)) - np.repeat(np.cumsum(width) - width, width)
         self.n_edges = n_edge
-        self.n_edge_events = int(len(ev_edge))
+        self.n_scanline_events = int(len(ev_edge))  # the ONNX metadata key of the same name
         # per-event parameter gather: 5 per-edge fields [x0, columns, y at x0, slope, delta]
         ev_index = (np.arange(5)[:, None] * n_edge + ev_edge[None, :]).reshape(1, -1)
         self.register_buffer("ev_index", torch.from_numpy(ev_index))
         self.register_buffer("ev_k", torch.from_numpy(ev_k.astype(np.float32)))
+        return edge_coords
+
+    def _init_affine(self, tri: np.ndarray, edge_coords: np.ndarray) -> None:
+        """The landmark gather and the linear maps of the per-triangle affine maps."""
+        n_tri = self.n_tri
         # affine maps: vertices [x0 y0 x1 y1 x2 y2] -> edge vectors etc. (linear maps)
         vert = np.stack([2 * tri, 2 * tri + 1], -1).reshape(n_tri, 6)
         # one element gather of the flat landmarks: triangle vertices field-major (6 T), then edge end
@@ -141,6 +152,9 @@ class ToTarget(nn.Module):
         self.register_buffer("p_swap", torch.from_numpy(p_swap))
         self.register_buffer("p_det", torch.tensor([[1.0, -1.0]]))
         self.register_buffer("p_ab", torch.from_numpy(p_ab))
+
+    def _init_raster(self, ref: ReferenceFrame, tri: np.ndarray) -> tuple[int, int, int]:
+        """The texture raster and the reference triangles in its coordinates; (c0, r0, raster width)."""
         # the texture raster: the reference mask's bounding box plus 2 px, reference pixels
         # outside the mask filled with their nearest mask pixel's value, so that bilinear
         # reads at the face boundary never mix in black
@@ -169,6 +183,11 @@ class ToTarget(nn.Module):
         # overlap pixels (covered twice or more, by a fold) read the raster at their own canvas
         # position: u = x - c0, v = y - r0 (table column T + 1, origin (0, 0)); (6, 1)
         self.register_buffer("overlap_map", torch.tensor([[1.0], [0.0], [-float(c0)], [0.0], [1.0], [-float(r0)]]))
+        return c0, r0, rw
+
+    def _init_pixels(self, c0: int, r0: int, rw: int) -> None:
+        """Per-pixel constants of the canvas."""
+        (h, w), c = self.canvas, self.code_base
         # per-pixel constants: column x, row y, table offset x - C W (tables are (T + 2, W))
         ys, xs = np.mgrid[0:h, 0:w].astype(np.float32)
         self.register_buffer("col_x", torch.arange(w, dtype=torch.float32))
@@ -179,11 +198,6 @@ class ToTarget(nn.Module):
         self.register_buffer("ones4", torch.ones(1, 4))
         self.register_buffer("canvas_max", torch.tensor([float(w), float(h)]))  # (x, y) limits
         self.register_buffer("zero2", torch.zeros(2))
-
-    @property
-    def n_candidates(self) -> int:
-        """Number of scanline events evaluated per image (edge x column crossings)."""
-        return self.n_edge_events
 
     def _fill_tables(self, c: int) -> list[torch.Tensor]:
         """Raster fill index of each of ``c`` channels into (C * M): (1, n_raster) each,
@@ -242,7 +256,7 @@ class ToTarget(nn.Module):
         y0 = (x0 - xa) * slope + ya - y_lo  # box rows
         fields = torch.cat([x0 - x_lo, n_cols, y0, slope, delta], 1).flatten(1)  # (B, 5 E)
         index = torch.zeros_like(fields[:, :1], dtype=torch.int64) + self.ev_index
-        ev = torch.gather(fields, 1, index).reshape(-1, 5, self.n_edge_events)
+        ev = torch.gather(fields, 1, index).reshape(-1, 5, self.n_scanline_events)
         k = self.ev_k
         row = torch.clamp(torch.ceil(ev[:, 2] + k * ev[:, 3]), min=0.0)
         row = torch.minimum(row, hb)

@@ -184,7 +184,7 @@ def export_eri(
         "target_fingerprint": array_fingerprint(syn.image, syn.neutral), "feather": float(m.config.feather),
         "eigeneri_components": int(m.pca.n_components), "support_vectors": graph.n_support_vectors,
         "distinct_support_vectors": graph.n_distinct,
-        "output_layout": ERI_OUTPUT_LAYOUT, "opset": opset, "n_scanline_events": graph.warp.n_candidates,
+        "output_layout": ERI_OUTPUT_LAYOUT, "opset": opset, "n_scanline_events": graph.warp.n_scanline_events,
     }
     meta.update(metadata or {})
     example = torch.zeros(2, N_FAPS)

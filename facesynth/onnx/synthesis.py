@@ -147,7 +147,7 @@ def export_synthesizer(syn: Synthesizer, path: str | os.PathLike, metadata: dict
         "data_fingerprint": "",
         "output_layout": SYNTHESIS_OUTPUT_LAYOUT,
         "opset": opset,
-        "n_scanline_events": syn.warp.n_candidates,
+        "n_scanline_events": syn.warp.n_scanline_events,
     }
     if isinstance(syn.appearance, GlobalAppearance):
         meta["appearance_basis"] = "float32" if syn.appearance.basis is None else "int8"
