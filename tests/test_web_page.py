@@ -20,8 +20,10 @@ from facesynth.web import browser, site  # noqa: E402
 
 if browser.chromium_path() is None:
     pytest.skip("chromium is absent (apt-get install chromium)", allow_module_level=True)
-if not (site.WEB / "node_modules" / "onnxruntime-web").is_dir():
-    pytest.skip("web/node_modules is absent (npm ci in web/)", allow_module_level=True)
+try:
+    site.ort_dist()
+except Exception as exc:  # FacesynthError naming the missing file
+    pytest.skip(str(exc), allow_module_level=True)
 
 SHOTS = Path(os.environ.get("FACESYNTH_WEB_SHOTS", "/tmp"))
 

@@ -50,8 +50,13 @@ def test_converted_graphs_shapes(models):
             "iris_landmark": [(1, 213), (1, 15)]}
     for name, path in models.items():
         s = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
-        x = np.zeros(s.get_inputs()[0].shape, np.float32)
-        assert [o.shape for o in s.run(None, {"input": x})] == want[name]
+        h = {"face_detection": 128, "face_landmark": 192, "iris_landmark": 64}[name]
+        x = np.random.default_rng(0).random((2, h, h, 3), dtype=np.float32)
+        one = s.run(None, {"input": x[:1]})
+        assert [o.shape for o in one] == want[name]
+        two = s.run(None, {"input": x})  # any batch: row 0 of a batch of 2 is the batch of 1
+        for a, b in zip(one, two, strict=True):
+            np.testing.assert_allclose(b[:1], a, rtol=1e-4, atol=1e-4)
 
 
 def test_mesh_matches_mediapipe_same_model(models, frames):

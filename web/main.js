@@ -124,6 +124,7 @@ const recent = (arr, v) => { arr.push(v); if (arr.length > 300) arr.shift(); };
 async function onPoints(msg) {
   state.busy = false;
   recent(state.trackerMs, msg.ms);
+  window.facesynth.lastStage = msg.stage;
   if (!msg.points) {
     if (++state.noFace === NO_FACE_FRAMES) message('No face in view: face the camera, in good light.', true);
     return;

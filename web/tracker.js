@@ -8,6 +8,7 @@ import * as ort from './ort/ort.wasm.min.mjs';
 const MESH = 192, IRIS = 64, DET = 128, FACE_SCALE = 1.5, EYE_SCALE = 2.3;
 const EYES = [[33, 133], [362, 263]];
 let det, mesh, iris, anchors, prev = null, canvas, ctx;
+const stage = {};
 
 function makeAnchors() {
   const out = [];
@@ -27,21 +28,29 @@ export function cropMatrix(cx, cy, ang, size, out) {
 const mirror = (m, w) => [-m[0], m[1], m[0] * w + m[2], -m[3], m[4], m[3] * w + m[5]];
 const apply = (m, x, y) => [m[0] * x + m[1] * y + m[2], m[3] * x + m[4] * y + m[5]];
 
-// bilinear sampling of an RGBA frame at M(u, v) (cv2.warpAffine, WARP_INVERSE_MAP, zeros outside)
+// bilinear sampling of an RGBA frame at M(u, v) (cv2.warpAffine, WARP_INVERSE_MAP, zeros outside),
+// scaled from [0, 255] to [lo, hi]; (1, out, out, 3) float32
 function crop(img, m, out, lo, hi) {
   const { data, width: W, height: H } = img, t = new Float32Array(out * out * 3), sc = (hi - lo) / 255;
+  const px = (xx, yy) => (xx < 0 || yy < 0 || xx >= W || yy >= H ? -1 : (yy * W + xx) * 4);
+  let o = 0;
   for (let v = 0; v < out; v++) {
-    for (let u = 0; u < out; u++) {
-      const x = m[0] * u + m[1] * v + m[2], y = m[3] * u + m[4] * v + m[5];
-      const x0 = Math.floor(x), y0 = Math.floor(y), fx = x - x0, fy = y - y0, o = (v * out + u) * 3;
-      for (let c = 0; c < 3; c++) {
-        let acc = 0;
-        for (let j = 0; j < 2; j++) for (let i = 0; i < 2; i++) {
-          const xx = x0 + i, yy = y0 + j;
-          if (xx < 0 || yy < 0 || xx >= W || yy >= H) continue;
-          acc += (i ? fx : 1 - fx) * (j ? fy : 1 - fy) * data[(yy * W + xx) * 4 + c];
+    let x = m[1] * v + m[2], y = m[4] * v + m[5];
+    for (let u = 0; u < out; u++, x += m[0], y += m[3], o += 3) {
+      const x0 = Math.floor(x), y0 = Math.floor(y), fx = x - x0, fy = y - y0;
+      const w00 = (1 - fx) * (1 - fy), w10 = fx * (1 - fy), w01 = (1 - fx) * fy, w11 = fx * fy;
+      if (x0 >= 0 && y0 >= 0 && x0 + 1 < W && y0 + 1 < H) {
+        const i00 = (y0 * W + x0) * 4, i10 = i00 + 4, i01 = i00 + W * 4, i11 = i01 + 4;
+        for (let c = 0; c < 3; c++) {
+          t[o + c] = (w00 * data[i00 + c] + w10 * data[i10 + c] + w01 * data[i01 + c] + w11 * data[i11 + c]) * sc + lo;
         }
-        t[o + c] = acc * sc + lo;
+      } else {
+        const idx = [px(x0, y0), px(x0 + 1, y0), px(x0, y0 + 1), px(x0 + 1, y0 + 1)], w = [w00, w10, w01, w11];
+        for (let c = 0; c < 3; c++) {
+          let acc = 0;
+          for (let k = 0; k < 4; k++) if (idx[k] >= 0) acc += w[k] * data[idx[k] + c];
+          t[o + c] = acc * sc + lo;
+        }
       }
     }
   }
@@ -77,26 +86,34 @@ async function track(img) {
   const r = prev ? roi(prev, 33, 263, FACE_SCALE, ALL) : await detect(img);
   if (!r) return null;
   const m = cropMatrix(...r, MESH);
-  const out = await mesh.run({ input: crop(img, m, MESH, 0, 1) });
+  const tc = performance.now(), x = crop(img, m, MESH, 0, 1);
+  stage.crop = performance.now() - tc;
+  const tm = performance.now(), out = await mesh.run({ input: x });
+  stage.mesh = performance.now() - tm;
   const names = mesh.outputNames;
   const lm = out[names[0]].data, presence = out[names[1]].data[0];
   if (sigmoid(presence) < 0.5) { prev = null; return null; }
   const pts = new Float32Array(478 * 2);
   for (let i = 0; i < 468; i++) { const [x, y] = apply(m, lm[3 * i], lm[3 * i + 1]); pts[2 * i] = x; pts[2 * i + 1] = y; }
   prev = pts.slice(0, 468 * 2);
-  for (let e = 0; e < 2; e++) {
+  const ti = performance.now();
+  const maps = [], both = new Float32Array(2 * IRIS * IRIS * 3);
+  for (let e = 0; e < 2; e++) {  // both eyes in one batch; the image-right eye mirrored
     const [a, b] = EYES[e];
     const [cx, cy, ang, size] = roi(pts, a, b, EYE_SCALE, [a, b]);
-    let mm = cropMatrix(cx, cy, ang, size, IRIS);
-    const sample = e === 1 ? mirror(mm, IRIS - 1) : mm;
-    if (e === 1) mm = mirror(mm, IRIS);
-    const o = await iris.run({ input: crop(img, sample, IRIS, 0, 1) });
-    const ir = o[iris.outputNames[1]].data;
+    const mm = cropMatrix(cx, cy, ang, size, IRIS);
+    both.set(crop(img, e === 1 ? mirror(mm, IRIS - 1) : mm, IRIS, 0, 1).data, e * IRIS * IRIS * 3);
+    maps.push(e === 1 ? mirror(mm, IRIS) : mm);
+  }
+  const o = await iris.run({ input: new ort.Tensor('float32', both, [2, IRIS, IRIS, 3]) });
+  const ir = o[iris.outputNames[1]].data;
+  for (let e = 0; e < 2; e++) {
     for (let i = 0; i < 5; i++) {
-      const [x, y] = apply(mm, ir[3 * i], ir[3 * i + 1]);
+      const [x, y] = apply(maps[e], ir[15 * e + 3 * i], ir[15 * e + 3 * i + 1]);
       pts[2 * (468 + 5 * e + i)] = x; pts[2 * (468 + 5 * e + i) + 1] = y;
     }
   }
+  stage.iris = performance.now() - ti;
   return pts;
 }
 
@@ -123,8 +140,9 @@ self.onmessage = async (ev) => {
       ctx.drawImage(bm, 0, 0);
       bm.close();
       const img = ctx.getImageData(0, 0, canvas.width, canvas.height);
+      stage.read = performance.now() - t0;
       const points = await track(img);
-      self.postMessage({ type: 'points', points, t: msg.t, ms: performance.now() - t0, width: img.width, height: img.height },
+      self.postMessage({ type: 'points', points, t: msg.t, ms: performance.now() - t0, stage: { ...stage }, width: img.width, height: img.height },
         points ? [points.buffer] : []);
     }
   } catch (e) {

@@ -26,7 +26,7 @@ MODELS = {
     "face_landmark": "face_landmark/face_landmark.tflite",
     "iris_landmark": "iris_landmark/iris_landmark.tflite",
 }
-CONVERTER_VERSION = 1  # part of the cache key: bump when the converted graphs change
+CONVERTER_VERSION = 2  # part of the cache key: bump when the converted graphs change
 OPSET = 13
 
 
@@ -199,7 +199,7 @@ class _Converter:
             self.node("Pad", [self.tname(ins[0]), self.init(self.tname(y) + "_pads", pads)], [self.tname(y)])
             self.nchw.add(y)
         elif code == "RESHAPE":
-            shape = np.array(self.shape(y), dtype=np.int64)
+            shape = np.array([-1] + self.shape(y)[1:], dtype=np.int64)  # any batch
             self.node("Reshape", [self.nhwc(ins[0]), self.init(self.tname(y) + "_shape", shape)], [self.tname(y)])
         elif code == "CONCATENATION":
             opts = _options(op, "ConcatenationOptions")
@@ -230,9 +230,9 @@ class _Converter:
             i = g.Outputs(k)
             name = g.Tensors(i).Name().decode()
             self.node("Identity", [self.nhwc(i)], [name])
-            outputs.append(helper.make_tensor_value_info(name, TensorProto.FLOAT, self.shape(i)))
+            outputs.append(helper.make_tensor_value_info(name, TensorProto.FLOAT, ["N"] + self.shape(i)[1:]))
         graph = helper.make_graph(self.nodes, self.name, [helper.make_tensor_value_info(
-            "input", TensorProto.FLOAT, shape_in)], outputs, self.inits)
+            "input", TensorProto.FLOAT, ["N"] + shape_in[1:])], outputs, self.inits)
         model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", OPSET)],
                                   producer_name="facesynth.web.convert")
         model.ir_version = 8
@@ -240,7 +240,8 @@ class _Converter:
 
 
 def convert_tflite(path: str | Path):
-    """One ``.tflite`` file -> an ``onnx.ModelProto`` (input ``input`` float32 NHWC, outputs named as in TFLite)."""
+    """One ``.tflite`` file -> an ``onnx.ModelProto`` (input ``input`` float32 (N, H, W, 3), any batch N;
+    outputs named as in TFLite)."""
     path = Path(path)
     try:
         data = path.read_bytes()

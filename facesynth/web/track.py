@@ -108,13 +108,15 @@ class OnnxFaceTracker:
         return _apply(m, pts.reshape(468, 3)[:, :2])
 
     def iris_points(self, rgb: np.ndarray, mesh: np.ndarray) -> np.ndarray:
-        out = []
+        """(10, 2): both eyes' 5 iris points, the two crops in one batch."""
+        crops, maps = [], []
         for k, (a, b) in enumerate(EYES):
             c, ang, size = roi_from_points(mesh[[a, b]], 0, 1, EYE_SCALE)
             x, m = _crop(rgb, crop_matrix(c, ang, size, IRIS_SIZE), IRIS_SIZE, flip=k == 1)
-            _, iris = self.iris.run(None, {"input": x})
-            out.append(_apply(m, iris.reshape(5, 3)[:, :2]))
-        return np.concatenate(out)
+            crops.append(x)
+            maps.append(m)
+        _, iris = self.iris.run(None, {"input": np.concatenate(crops)})
+        return np.concatenate([_apply(m, iris[k].reshape(5, 3)[:, :2]) for k, m in enumerate(maps)])
 
     def track(self, rgb: np.ndarray) -> np.ndarray | None:
         roi = roi_from_points(self.prev, 33, 263, FACE_SCALE) if self.prev is not None else self.detect(rgb)
