@@ -58,18 +58,38 @@ _LIGHT = np.array([-0.35, -0.45, 0.82], np.float32) / np.linalg.norm([-0.35, -0.
 def _render_one(L: np.ndarray, c: np.ndarray, f: DrawFrame, background: np.ndarray) -> np.ndarray:
     """Draw one face. L: (68, 2) landmarks in face units; c: (K,) controls in [0, 1]."""
     jaw_open, smile, brow, eye_close = c
-    U, V, h = f.U, f.V, f.head
     img = background.copy()
-    # shading of a head-sized ellipsoid under a fixed light (normal rotated with the head roll)
+    lam = _lighting(f)
+    shade = (0.5 + 0.55 * lam)[..., None]
+    face_a, fringe = _draw_head(img, L, f, lam, shade)
+    _draw_creases(img, L, f, smile, brow, face_a, fringe)
+    _draw_nose(img, L, f, face_a)
+    _draw_eyes(img, L, f, shade)
+    _draw_brows(img, L, f)
+    _draw_mouth(img, L, f, shade, jaw_open)
+    return img
+
+
+def _lighting(f: DrawFrame) -> np.ndarray:
+    """(H, W) Lambertian term of a head-sized ellipsoid under a fixed light (normal rotated
+    with the head roll); 0.5 outside the head."""
+    U, V, h = f.U, f.V, f.head
     Uh, Vh = U[h], V[h]
     nx, ny = Uh / 0.52, (Vh - 0.42) / 0.78
     nz = np.sqrt(np.clip(1.0 - nx**2 - ny**2, 0.02, 1.0))
     ca, sa = np.cos(f.angle), np.sin(f.angle)
     lam = np.full(U.shape, 0.5, np.float32)
     lam[h] = np.clip((ca * nx - sa * ny) * _LIGHT[0] + (sa * nx + ca * ny) * _LIGHT[1] + nz * _LIGHT[2], 0, 1)
-    shade = (0.5 + 0.55 * lam)[..., None]
-    skin = Shaded(_SKIN, shade)
 
+    return lam
+
+
+def _draw_head(img: np.ndarray, L: np.ndarray, f: DrawFrame, lam: np.ndarray, shade: np.ndarray):
+    """Hair, ears, neck, the face (jaw contour closed by a forehead arc) and the fringe;
+    (face alpha, fringe alpha), (H, W) each."""
+    U, V, h = f.U, f.V, f.head
+    Uh, Vh = U[h], V[h]
+    skin = Shaded(_SKIN, shade)
     # hair behind the head, ears, neck
     r_hair = np.sqrt((Uh / 0.6) ** 2 + ((Vh - 0.3) / 0.62) ** 2)
     hair_a = np.zeros_like(U)
@@ -94,6 +114,12 @@ def _render_one(L: np.ndarray, c: np.ndarray, f: DrawFrame, background: np.ndarr
     fringe[h] = np.clip((-0.06 - Vh - 0.05 * np.cos(Uh * 9.0) + 0.35 * Uh**2) * f.ppu * 0.5, 0, 1) * face_a[h]
     blend(img, Alpha(fringe, face.s), hair_col)
 
+    return face_a, fringe
+
+
+def _draw_creases(img: np.ndarray, L: np.ndarray, f: DrawFrame, smile, brow, face_a: np.ndarray, fringe: np.ndarray) -> None:
+    """Cheeks, forehead wrinkles and nasolabial folds, growing with the smile and the brow raise."""
+    U, V = f.U, f.V
     # cheeks: raised, brighter apples and a shadow below them with smiles
     for sgn in (-1, 1):
         f.shade_blob(img, -(0.03 + 0.10 * smile), sgn * 0.21, 0.57 - 0.035 * smile, 0.07, mask=face_a)
@@ -120,6 +146,9 @@ def _render_one(L: np.ndarray, c: np.ndarray, f: DrawFrame, background: np.ndarr
         fold = f.line(bezier(p0, p1, p2), 0.010, blur=0.006)
         img[fold.s] *= 1.0 - ((0.04 + 0.30 * smile) * fold.a[fold.s])[..., None]
 
+
+
+def _draw_nose(img: np.ndarray, L: np.ndarray, f: DrawFrame, face_a: np.ndarray) -> None:
     # nose: side shadows, tip highlight, nostrils, shadow below
     for sgn in (-1, 1):
         f.shade_blob(img, 0.08, sgn * 0.045, 0.42, 0.02, 0.09, mask=face_a)
@@ -133,6 +162,10 @@ def _render_one(L: np.ndarray, c: np.ndarray, f: DrawFrame, background: np.ndarr
     ala = bezier(L[31] + [-0.02, -0.035], L[33] + [0.0, 0.02], L[35] + [0.02, -0.035])
     blend(img, f.line(ala, 0.008, blur=0.004), _SKIN * 0.5, 0.25)
 
+
+
+def _draw_eyes(img: np.ndarray, L: np.ndarray, f: DrawFrame, shade: np.ndarray) -> None:
+    U, V = f.U, f.V
     # eyes: sclera, iris clipped by the lids, upper-lid skin, lashes, crease
     for idx in (np.array(RIGHT_EYE), np.array(LEFT_EYE)):
         e = L[idx]
@@ -159,6 +192,9 @@ def _render_one(L: np.ndarray, c: np.ndarray, f: DrawFrame, background: np.ndarr
         blend(img, f.line(e[:4], 0.014), np.array([0.12, 0.08, 0.07], np.float32), 0.95)
         blend(img, f.line(e[[3, 4, 5, 0]], 0.006), np.array([0.45, 0.3, 0.28], np.float32), 0.35)
 
+
+
+def _draw_brows(img: np.ndarray, L: np.ndarray, f: DrawFrame) -> None:
     # brows: tapered filled bands around the brow points
     for idx in (np.array(RIGHT_BROW), np.array(LEFT_BROW)):
         b = L[idx]
@@ -166,6 +202,10 @@ def _render_one(L: np.ndarray, c: np.ndarray, f: DrawFrame, background: np.ndarr
         off = np.stack([0 * thick, thick], 1)
         blend(img, f.poly(np.concatenate([b - off, (b + off)[::-1]])), _BROW, 0.92)
 
+
+
+def _draw_mouth(img: np.ndarray, L: np.ndarray, f: DrawFrame, shade: np.ndarray, jaw_open) -> None:
+    U, V = f.U, f.V
     # mouth: lips, dark interior, upper and lower teeth, lip line
     blend(img, f.poly(L[list(OUTER_LIPS)]), Shaded(_LIP, shade))
     upper = np.concatenate([L[48:55], L[[64, 63, 62, 61, 60]]])
@@ -186,7 +226,6 @@ def _render_one(L: np.ndarray, c: np.ndarray, f: DrawFrame, background: np.ndarr
         t_lo = np.clip((np.minimum(0.016, 0.15 * gap) - (y_lo - Vs)) * f.ppu, 0, 1) * np.clip((0.5 - du) * 6.0, 0, 1) * ia * (1 - t_up)
         sub += t_lo[..., None] * (_TEETH * 0.8 * tone - sub)
     blend(img, f.line(L[60:65], 0.009), np.array([0.33, 0.12, 0.12], np.float32), 0.6)
-    return img
 
 
 def render_faces(landmarks: np.ndarray, size: int = 256, seed: int = 0, noise_sigma: float = 2.0) -> np.ndarray:
