@@ -160,13 +160,7 @@ def _refuse_overwriting_inputs(args: argparse.Namespace) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from facesynth import progress
-    from facesynth.codec.bitstream import decode_video, encode_video
-    from facesynth.codec.frame import CodecConfig
-    from facesynth.codec.geometry import Quantiser, build_layout, geometry_video
-    from facesynth.codec.rd import CONFIGS, bd_between, modes_config, plot_rd, rd_sweep
-    from facesynth.io import atomic_path, check_writable, save_npy, write_bytes, write_json
-    from facesynth.metrics import psnr
+    from facesynth.io import check_writable
 
     _refuse_overwriting_inputs(args)  # before any work, for every action
     if args.action == "scan":
@@ -175,89 +169,123 @@ def run(args: argparse.Namespace) -> int:
         return scan_cli.run(args)
     if args.action in ("geometry", "encode", "decode"):
         check_writable(args.output)  # before the work
-    if args.action == "geometry":
-        vid, mask, q = _ict_video(args.frames, args.size, args.seed)
-        save_npy(args.output, vid)
-        save_npy(args.output.with_suffix(".mask.npy"), mask)
-        print(json.dumps({"output": str(args.output), "shape": list(vid.shape), "mask_share": float(mask.mean()),
-                          "bbox_lo": q.lo.tolist(), "bbox_hi": q.hi.tolist(), "diag": q.diag}))
-        return 0
-    if args.action == "encode":
+    action = {"geometry": _geometry, "encode": _encode, "decode": _decode, "rd": _rd}[args.action]
+    print(json.dumps(action(args)))
+    return 0
+
+
+def _geometry(args: argparse.Namespace) -> dict:
+    """The ICT face's geometry video (.npy) and its mask."""
+    from facesynth.io import save_npy
+
+    vid, mask, q = _ict_video(args.frames, args.size, args.seed)
+    save_npy(args.output, vid)
+    save_npy(args.output.with_suffix(".mask.npy"), mask)
+    return {"output": str(args.output), "shape": list(vid.shape), "mask_share": float(mask.mean()),
+            "bbox_lo": q.lo.tolist(), "bbox_hi": q.hi.tolist(), "diag": q.diag}
+
+
+def _encode(args: argparse.Namespace) -> dict:
+    """A geometry video (.npy) or mesh sequence (.npz) -> one bitstream; its figures."""
+    from facesynth import progress
+    from facesynth.codec import meshvideo
+    from facesynth.codec.bitstream import encode_video
+    from facesynth.codec.frame import CodecConfig
+    from facesynth.codec.rd import modes_config
+    from facesynth.io import write_bytes
+    from facesynth.metrics import psnr
+
+    bbox, seq = None, None
+    if meshvideo.is_mesh_sequence(args.input):
+        seq = meshvideo.load_mesh_sequence(args.input)
+        with progress.stage("geometry video") as st:
+            video, mask, qz = meshvideo.mesh_to_video(seq, args.size)
+            st.set(f"{len(video)} meshes -> {args.size}x{args.size} images")
+        bbox = np.stack([qz.lo, qz.hi])
+        mask = _load_mask(args.mask, args.input, video.shape[1:3]) if args.mask else mask
+    else:
+        video = _load_video(args.input)
+        mask = _load_mask(args.mask, args.input, video.shape[1:3])
+    if args.gop < 1:
+        raise FacesynthError(f"--gop: expected >= 1, got {args.gop}")
+    cfg = CodecConfig(qp=None if args.lossless else args.qp, block_sizes=_sizes(args.block_sizes),
+                      mv_range=args.mv_range, transform8=not args.no_transform8,
+                      **modes_config(args.modes, args.gop, not args.no_inter))
+    with progress.stage("encode") as st:
+        data, rec, st_ = encode_video(video, cfg, mask, bbox)
+        st.set(f"{len(video)} frames, {len(data)} bytes")
+    write_bytes(args.output, data)
+    out = {"output": str(args.output)}
+    if seq is not None:
+        out["layout"] = str(meshvideo.write_layout(args.output, seq, args.size))
+    st_["psnr_db"] = psnr(video, rec, mask, peak=65535)
+    st_["psnr_db"] = None if not np.isfinite(st_["psnr_db"]) else st_["psnr_db"]
+    st_["encode_fps"] = len(video) / st_.pop("encode_s")
+    if args.preview:
+        from facesynth.codec.preview import write_preview
+
+        out["preview"] = {"path": str(args.preview), **write_preview(video, rec, mask, args.preview,
+                                                                       title=f"{args.input.name}, {args.modes}")}
+    return {**out, **st_}
+
+
+def _decode(args: argparse.Namespace) -> dict:
+    """A bitstream -> the video (.npy) or the meshes (.npz); its figures."""
+    from facesynth import progress
+    from facesynth.codec.bitstream import decode_video
+    from facesynth.io import atomic_path, save_npy
+
+    if not args.input.is_file():
+        raise FacesynthError(f"{args.input}: file not found")
+    if args.preview and args.reference is None:
+        raise FacesynthError("--preview needs --reference (the original .npy video or .npz mesh sequence)")
+    with progress.stage("decode"):
+        frames, info, st = decode_video(args.input.read_bytes())
+    out = {"output": str(args.output), "shape": list(frames.shape), "qp": info.qp,
+           "decode_fps": len(frames) / max(st["decode_s"], 1e-9)}
+    if args.mesh:
         from facesynth.codec import meshvideo
 
-        bbox, seq = None, None
-        if meshvideo.is_mesh_sequence(args.input):
-            seq = meshvideo.load_mesh_sequence(args.input)
-            with progress.stage("geometry video") as st:
-                video, mask, qz = meshvideo.mesh_to_video(seq, args.size)
-                st.set(f"{len(video)} meshes -> {args.size}x{args.size} images")
-            bbox = np.stack([qz.lo, qz.hi])
-            mask = _load_mask(args.mask, args.input, video.shape[1:3]) if args.mask else mask
-        else:
-            video = _load_video(args.input)
-            mask = _load_mask(args.mask, args.input, video.shape[1:3])
-        if args.gop < 1:
-            raise FacesynthError(f"--gop: expected >= 1, got {args.gop}")
-        cfg = CodecConfig(qp=None if args.lossless else args.qp, block_sizes=_sizes(args.block_sizes),
-                          mv_range=args.mv_range, transform8=not args.no_transform8,
-                          **modes_config(args.modes, args.gop, not args.no_inter))
-        with progress.stage("encode") as st:
-            data, rec, st_ = encode_video(video, cfg, mask, bbox)
-            st.set(f"{len(video)} frames, {len(data)} bytes")
-        write_bytes(args.output, data)
-        out = {"output": str(args.output)}
-        if seq is not None:
-            out["layout"] = str(meshvideo.write_layout(args.output, seq, args.size))
-        st_["psnr_db"] = psnr(video, rec, mask, peak=65535)
-        st_["psnr_db"] = None if not np.isfinite(st_["psnr_db"]) else st_["psnr_db"]
-        st_["encode_fps"] = len(video) / st_.pop("encode_s")
-        if args.preview:
-            from facesynth.codec.preview import write_preview
+        lay = meshvideo.read_layout(args.layout or Path(str(args.input) + meshvideo.LAYOUT_SUFFIX))
+        with progress.stage("mesh from geometry video"):
+            verts = meshvideo.video_to_mesh(frames, lay, info.bbox)
+        with atomic_path(args.output) as tmp, open(tmp, "wb") as fh:
+            np.savez(fh, vertices=verts.astype(np.float32), faces=lay["faces"].astype(np.int32),
+                     uvs=lay["uvs"].astype(np.float32))
+        out["vertices_shape"] = list(verts.shape)
+    else:
+        save_npy(args.output, frames)
+    if args.preview:
+        out["preview"] = _decode_preview(args, frames, info)
+    return out
 
-            out["preview"] = {"path": str(args.preview), **write_preview(video, rec, mask, args.preview,
-                                                                           title=f"{args.input.name}, {args.modes}")}
-        print(json.dumps({**out, **st_}))
-        return 0
-    if args.action == "decode":
-        if not args.input.is_file():
-            raise FacesynthError(f"{args.input}: file not found")
-        if args.preview and args.reference is None:
-            raise FacesynthError("--preview needs --reference (the original .npy video or .npz mesh sequence)")
-        with progress.stage("decode"):
-            frames, info, st = decode_video(args.input.read_bytes())
-        out = {"output": str(args.output), "shape": list(frames.shape), "qp": info.qp,
-               "decode_fps": len(frames) / max(st["decode_s"], 1e-9)}
-        if args.mesh:
-            from facesynth.codec import meshvideo
 
-            lay = meshvideo.read_layout(args.layout or Path(str(args.input) + meshvideo.LAYOUT_SUFFIX))
-            with progress.stage("mesh from geometry video"):
-                verts = meshvideo.video_to_mesh(frames, lay, info.bbox)
-            with atomic_path(args.output) as tmp, open(tmp, "wb") as fh:
-                np.savez(fh, vertices=verts.astype(np.float32), faces=lay["faces"].astype(np.int32),
-                         uvs=lay["uvs"].astype(np.float32))
-            out["vertices_shape"] = list(verts.shape)
-        else:
-            save_npy(args.output, frames)
-        if args.preview:
-            from facesynth.codec import meshvideo
-            from facesynth.codec.preview import write_preview
+def _decode_preview(args: argparse.Namespace, frames: np.ndarray, info) -> dict:
+    """The preview of decoded ``frames`` against ``--reference`` (a video or a mesh sequence)."""
+    from facesynth.codec import meshvideo
+    from facesynth.codec.geometry import Quantiser, build_layout, geometry_video
+    from facesynth.codec.preview import write_preview
 
-            if meshvideo.is_mesh_sequence(args.reference):
-                ref_seq = meshvideo.load_mesh_sequence(args.reference)
-                if info.bbox is None or not np.isfinite(info.bbox).all():
-                    raise FacesynthError(f"{args.input}: the stream has no quantiser box to rasterise --reference with")
-                lay = build_layout(ref_seq["faces"], ref_seq["uvs"], (info.height, info.width))
-                ref, _ = geometry_video(lay, ref_seq["vertices"], Quantiser(info.bbox[0], info.bbox[1]))
-                mask = lay.mask
-            else:
-                ref, mask = _load_video(args.reference), None
-            if ref.shape != frames.shape:
-                raise FacesynthError(f"--reference {args.reference}: shape {ref.shape} differs from the decoded {frames.shape}")
-            out["preview"] = {"path": str(args.preview), **write_preview(ref, frames, mask, args.preview)}
-        print(json.dumps(out))
-        return 0
-    # rd
+    if meshvideo.is_mesh_sequence(args.reference):
+        ref_seq = meshvideo.load_mesh_sequence(args.reference)
+        if info.bbox is None or not np.isfinite(info.bbox).all():
+            raise FacesynthError(f"{args.input}: the stream has no quantiser box to rasterise --reference with")
+        lay = build_layout(ref_seq["faces"], ref_seq["uvs"], (info.height, info.width))
+        ref, _ = geometry_video(lay, ref_seq["vertices"], Quantiser(info.bbox[0], info.bbox[1]))
+        mask = lay.mask
+    else:
+        ref, mask = _load_video(args.reference), None
+    if ref.shape != frames.shape:
+        raise FacesynthError(f"--reference {args.reference}: shape {ref.shape} differs from the decoded {frames.shape}")
+    return {"path": str(args.preview), **write_preview(ref, frames, mask, args.preview)}
+
+
+def _rd(args: argparse.Namespace) -> dict:
+    """Rate-distortion sweep of the configurations over the QPs, with a plot (and --json)."""
+    from facesynth.codec.frame import CodecConfig
+    from facesynth.codec.rd import CONFIGS, bd_between, plot_rd, rd_sweep
+    from facesynth.io import write_json
+
     if args.input is not None:
         video = _load_video(args.input)
         mask = _load_mask(None, args.input, video.shape[1:3])
@@ -276,5 +304,4 @@ def run(args: argparse.Namespace) -> int:
     result["plot"] = str(args.plot)
     if args.json:
         write_json(args.json, result)
-    print(json.dumps(result))
-    return 0
+    return result
