@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
 import torch
@@ -22,7 +22,7 @@ from facesynth.geometry import apply_affine, invert_affine, similarity_fit
 from facesynth.landmarks import DEFAULT_SCHEME, folded_triangles, get_scheme
 from facesynth.model.pca import PCAModel
 from facesynth.model.procrustes import generalised_procrustes
-from facesynth.model.reference import ReferenceFrame, open_mouth, subset_triangulation
+from facesynth.model.reference import ReferenceFrame, open_mouth, reference_width, subset_triangulation
 from facesynth.model.warp import ToReference, ToTarget, apply_affine_t, candidate_spans, invert_affine_t, similarity_to
 from facesynth.progress import bar as progress_bar
 
@@ -40,7 +40,7 @@ class FaceModelConfig:
     shape_variance: float = 0.98
     n_appearance: int | None = None
     appearance_variance: float = 0.98
-    reference_width: int = 128
+    reference_width: int | str = 128  # px, or "auto": the training faces' width in the video (reference.py)
     margin: float = 0.1
     grey: bool = False
     antialias: bool = True  # Gaussian prefilter sigma = scale / 2 when the face is larger than the reference
@@ -166,6 +166,7 @@ class FaceModel:
             raise FacesynthError(f"{seq.name}: need at least 3 frames to fit a face model, got {len(rows)}")
         t0 = time.perf_counter()
         lm = seq.landmarks[rows].astype(np.float64)
+        cfg = replace(cfg, reference_width=reference_width(cfg.reference_width, lm))  # "auto" resolved: the model records px
         denoise_variance = float(resolved(cfg, scheme.name, "denoise_variance"))
         mouth_q = float(resolved(cfg, scheme.name, "reference_mouth_quantile"))
         free = resolved(cfg, scheme.name, "denoise_free")

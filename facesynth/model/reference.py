@@ -91,6 +91,27 @@ class ReferenceFrame:
         return self.rasterise()[0] >= 0
 
 
+AUTO_WIDTH = (128, 256, 16)
+"""``reference_width=auto``: the range (lowest, highest) and the step (px) of the width. 128 is
+the fixed default; above 256 the exported model's batch-1 speed falls below 150 frames/s
+(docs/sadm.md, issue 28 section)."""
+
+
+def reference_width(setting, landmarks: np.ndarray) -> int:
+    """The reference frame's width (px) for the ``model.reference_width`` setting: an int as
+    given, or ``"auto"``: the training faces' width in the video, the median over frames of
+    the width of the landmarks' bounding box ((N, P, 2) frame pixels), rounded up to a
+    multiple of 16 and kept within :data:`AUTO_WIDTH`'s range, so that the reference frame
+    samples the face at about the video's own resolution rather than upscaling it."""
+    if isinstance(setting, str):
+        if setting != "auto":
+            raise FacesynthError(f"model.reference_width must be a number of pixels or 'auto', got {setting!r}")
+        lo, hi, step = AUTO_WIDTH
+        width = float(np.median(np.ptp(np.asarray(landmarks, np.float64)[..., 0], axis=-1)))
+        return int(min(max(int(np.ceil(width / step)) * step, lo), hi))
+    return int(setting)
+
+
 def lip_gap(shapes: np.ndarray, ring: np.ndarray) -> np.ndarray:
     """Mouth opening of (..., P, 2) shapes: the mean distance between facing inner-lip points
     over the distance between the inner mouth corners -> (...,). ``ring``: the scheme's
