@@ -67,9 +67,11 @@ def served(folder: str | Path):
 
 
 @contextlib.contextmanager
-def browser_page(camera_y4m: str | Path | None = None, camera: bool = True, deny_camera: bool = False):
+def browser_page(camera_y4m: str | Path | None = None, camera: bool = True, deny_camera: bool = False,
+                 extra_args: list[str] | None = None):
     """A Playwright page in headless system Chromium; yields (page, blocked), ``blocked`` the list of
-    URLs off 127.0.0.1 that the page asked for (each aborted). ``camera`` False: no camera device."""
+    URLs off 127.0.0.1 that the page asked for (each aborted). ``camera`` False: no camera device;
+    ``extra_args``: more Chromium switches."""
     from playwright.sync_api import sync_playwright
 
     exe = chromium_path()
@@ -80,6 +82,7 @@ def browser_page(camera_y4m: str | Path | None = None, camera: bool = True, deny
         args.append("--use-fake-device-for-media-stream")
         if camera_y4m is not None:
             args.append(f"--use-file-for-fake-video-capture={camera_y4m}")
+    args += list(extra_args or [])
     blocked: list[str] = []
     with sync_playwright() as pw:
         browser = pw.chromium.launch(executable_path=exe, headless=True, args=args)

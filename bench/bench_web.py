@@ -1,0 +1,186 @@
+"""The live page's speed, load time, memory and offline state, with a clip as the camera.
+
+Builds the page for ``--model`` (``facesynth web build``), serves it on 127.0.0.1, opens it in
+headless system Chromium with the clip's first ``--frames`` frames (looped) as the fake camera,
+blocks every request off 127.0.0.1, waits for the first avatar frame, then measures for
+``--seconds``:
+
+* ``tracker_ms`` / ``avatar_ms`` / ``composite_ms``: per frame, ``wall`` (the page's own
+  ``performance.now()`` timings, median) and ``cpu``: CPU time of the renderer's threads per
+  rendered frame from /proc (the tracker's worker thread; the page's main thread, which runs
+  both the avatar graph and the composite, so its figure is under ``avatar_ms`` and
+  ``composite_ms.cpu`` is null); ``renderer_cpu_ms`` all renderer threads, ``chromium_cpu_ms``
+  every Chromium process;
+* ``e2e_fps``: rendered avatar frames per second of wall time; ``frames``: frames rendered;
+* ``load_s``: page open -> first avatar frame (includes the ~1 s neutral capture, ``neutral_s``);
+* ``page_mb``: the renderer process's resident memory (VmRSS) at the end, ``page_anon_mb`` its
+  own (RssAnon: without shared libraries and files);
+* ``offline``: no request left 127.0.0.1; ``python_avatar_ms``: Python ONNX Runtime, one
+  thread, the same model on the avatar's neutral landmarks, median of 200 runs in this process.
+
+    PYTHONPATH=. python bench/bench_web.py --model M.onnx --video CLIP.mp4 [--seconds 10]
+
+Prints ONE JSON line.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import tempfile
+import time
+import uuid
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from facesynth.runtime.cpu import cpu_flags  # noqa: E402
+from facesynth.web import browser, site  # noqa: E402
+
+TICK = os.sysconf("SC_CLK_TCK")
+
+
+def _procs():
+    out = {}
+    for p in Path("/proc").iterdir():
+        if not p.name.isdigit():
+            continue
+        try:
+            stat = (p / "stat").read_text()
+            cmd = (p / "cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
+        except OSError:
+            continue
+        out[int(p.name)] = (int(stat[stat.rindex(")") + 2:].split()[1]), cmd)
+    return out
+
+
+def chromium_tree(marker: str) -> tuple[list[int], list[int]]:
+    """(pids of the Chromium launched with ``marker`` and its descendants, its renderers' pids)."""
+    procs = _procs()
+    roots = [pid for pid, (_, cmd) in procs.items() if marker in cmd and "--type=" not in cmd]
+    tree = set(roots)
+    grew = True
+    while grew:
+        grew = False
+        for pid, (ppid, _) in procs.items():
+            if ppid in tree and pid not in tree:
+                tree.add(pid)
+                grew = True
+    return sorted(tree), [p for p in tree if "--type=renderer" in procs[p][1]]
+
+
+def thread_cpu(pid: int) -> dict[str, float]:
+    """Thread name -> CPU seconds (summed over threads of that name) of process ``pid``."""
+    out: dict[str, float] = {}
+    for t in Path(f"/proc/{pid}/task").iterdir():
+        try:
+            name = "main" if t.name == str(pid) else (t / "comm").read_text().strip()
+            f = (t / "stat").read_text()
+        except OSError:
+            continue
+        v = f[f.rindex(")") + 2:].split()
+        out[name] = out.get(name, 0.0) + (int(v[11]) + int(v[12])) / TICK
+    return out
+
+
+def process_cpu(pids) -> float:
+    total = 0.0
+    for pid in pids:
+        try:
+            f = Path(f"/proc/{pid}/stat").read_text()
+        except OSError:
+            continue
+        v = f[f.rindex(")") + 2:].split()
+        total += (int(v[11]) + int(v[12])) / TICK
+    return total
+
+
+def memory_mb(pid: int) -> dict[str, float]:
+    """The process's resident memory: VmRSS (shared libraries included) and RssAnon (its own)."""
+    out = {}
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        key = line.split(":")[0]
+        if key in ("VmRSS", "RssAnon"):
+            out[key] = round(int(line.split()[1]) / 1024, 1)
+    return out
+
+
+def python_avatar_ms(model: Path, n: int = 200) -> float:
+    from facesynth.runtime.renderer import Renderer, read_metadata
+
+    lm = np.asarray(read_metadata(model)["avatar_neutral"], np.float32)[None]
+    r = Renderer(model, threads=1)
+    for _ in range(10):
+        r.render(lm)
+    t = []
+    for _ in range(n):
+        a = time.perf_counter()
+        r.render(lm)
+        t.append(time.perf_counter() - a)
+    return float(np.median(t) * 1e3)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--model", required=True, type=Path)
+    ap.add_argument("--video", required=True, type=Path)
+    ap.add_argument("--seconds", type=float, default=10.0)
+    ap.add_argument("--frames", type=int, default=150, help="camera clip length (looped by Chromium)")
+    ap.add_argument("--size", default="640x480", help="camera frame size WxH")
+    args = ap.parse_args()
+    size = tuple(int(v) for v in args.size.split("x"))
+    marker = f"--facesynth-bench={uuid.uuid4().hex}"
+    with tempfile.TemporaryDirectory(prefix="bench_web_") as tmp:
+        tmp = Path(tmp)
+        folder = site.build_site(args.model, tmp / "site")
+        page_bytes = sum(p.stat().st_size for p in folder.rglob("*") if p.is_file())
+        y4m = tmp / "cam.y4m"
+        browser.write_y4m(args.video, y4m, args.frames, size)
+        with browser.served(folder) as url, browser.browser_page(y4m, extra_args=[marker]) as (page, blocked):
+            t0 = time.perf_counter()
+            page.goto(url)
+            page.wait_for_function("window.facesynth && window.facesynth.state.frames >= 1", timeout=120_000)
+            st = page.evaluate("window.facesynth.state")
+            pids, renderers = chromium_tree(marker)
+            f0, p0, w0 = st["frames"], process_cpu(pids), time.perf_counter()
+            c0 = {r: thread_cpu(r) for r in renderers}
+            time.sleep(args.seconds)
+            st = page.evaluate("window.facesynth.state")
+            f1, p1, w1 = st["frames"], process_cpu(pids), time.perf_counter()
+            c1 = {r: thread_cpu(r) for r in renderers}
+            renderer = max(renderers, key=lambda r: sum(c1[r].values()) - sum(c0[r].values()))  # the page's
+            c0, c1 = c0[renderer], c1[renderer]
+            mem = memory_mb(renderer)
+            errors = [m["text"] for m in st["messages"] if m["error"]]
+    n = max(f1 - f0, 1)
+    d = {k: (c1.get(k, 0.0) - c0.get(k, 0.0)) * 1e3 / n for k in c1}
+    worker = sum(v for k, v in d.items() if "Worker" in k)
+    main_thread = d.get("main", float("nan"))
+    med = lambda k: round(float(np.median(st[k][-n:])), 2) if st[k] else None  # noqa: E731
+    out = {
+        "bench": "web", "model": str(args.model), "video": str(args.video), "size": list(size),
+        "tracker_ms": {"wall": med("trackerMs"), "cpu": round(worker, 2)},
+        "avatar_ms": {"wall": med("avatarMs"), "cpu": round(main_thread, 2), "cpu_is": "page main thread: avatar + composite"},
+        "composite_ms": {"wall": med("compositeMs"), "cpu": None},
+        "latency_ms": med("latencyMs"),
+        "renderer_cpu_ms": round(sum(d.values()), 2),
+        "chromium_cpu_ms": round((p1 - p0) * 1e3 / n, 2),
+        "e2e_fps": round((f1 - f0) / (w1 - w0), 2), "frames": f1,
+        "load_s": round(st["firstFrameMs"] / 1e3, 2), "neutral_s": 1.0, "open_s": round(w0 - t0, 2),
+        "page_mb": mem.get("VmRSS"), "page_anon_mb": mem.get("RssAnon"), "site_mb": round(page_bytes / 2**20, 1),
+        "offline": not blocked, "blocked": blocked[:5], "errors": errors,
+        "python_avatar_ms": round(python_avatar_ms(args.model), 3),
+        "busiest_threads_ms": dict(sorted(((k, round(v, 2)) for k, v in d.items()), key=lambda kv: -kv[1])[:6]),
+        "cpu_flags": sorted(cpu_flags(Path("/proc/cpuinfo").read_text()) & {"avx2", "avx512_vnni", "avx_vnni"}),
+        "load_avg": os.getloadavg()[0],
+    }
+    out["avatar_vs_python"] = round(out["avatar_ms"]["wall"] / out["python_avatar_ms"], 2) if out["avatar_ms"]["wall"] else None
+    print(json.dumps(out))
+
+
+if __name__ == "__main__":
+    main()
