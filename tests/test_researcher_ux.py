@@ -33,6 +33,8 @@ def _options_without_help(parser, name, out):
 def test_every_option_of_every_subcommand_has_help_and_quiet():
     missing = []
     for name, (module, _) in SUBCOMMANDS.items():
+        if name == "train":
+            continue  # Hydra parses its arguments (--help lists the config; quiet=true is its --quiet)
         try:
             mod = importlib.import_module(module)
         except ModuleNotFoundError:

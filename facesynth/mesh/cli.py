@@ -92,24 +92,12 @@ def _image_size(args, frames, lm) -> tuple[int, int]:
     return int(np.ceil(finite[..., 0].max() * 1.2)), int(np.ceil(finite[..., 1].max() * 1.2))
 
 
-def run(args: argparse.Namespace) -> int:
+def _rows_and_neutral(args, lm: np.ndarray) -> tuple[np.ndarray, list[int], int, str]:
+    """The rows to transfer (--stride, --max-frames, finite landmarks only), the skipped rows
+    with NaN landmarks, and the neutral frame with the rule that chose it."""
     from facesynth import progress
-    from facesynth.data import load_landmarks
-    from facesynth.io import atomic_path
-    from facesynth.mesh.io import load_landmark_map, load_mesh
-    from facesynth.mesh.preview import PreviewWriter, contact_sheet, panel, pick_sheet_frames
-    from facesynth.mesh.smoothing import PoseFilter
-    from facesynth.mesh.transfer import Transfer, TransferConfig
     from facesynth.neutral import select_neutral
-    from facesynth.provenance import array_fingerprint, file_sha256, package_versions
 
-    if not str(args.out).endswith(".npz"):
-        raise FacesynthError(f"--out {args.out}: the mesh sequence is written as .npz")
-    if args.stride < 1:
-        raise FacesynthError("--stride must be >= 1")
-    mesh = load_mesh(args.mesh)
-    lmap = load_landmark_map(args.landmark_map, len(mesh.vertices))
-    lm = load_landmarks(args.landmarks, scheme="ibug68")
     rows = np.arange(0, len(lm), args.stride)
     if args.max_frames is not None:
         rows = rows[: args.max_frames]
@@ -129,19 +117,15 @@ def run(args: argparse.Namespace) -> int:
     if not 0 <= neutral < len(lm) or not finite[neutral]:
         raise FacesynthError(f"--neutral-frame {neutral}: not a frame with finite landmarks (0..{len(lm) - 1})")
     progress.note(f"neutral frame: {neutral} ({neutral_rule})")
+    return rows, skipped, neutral, neutral_rule
 
-    frames, fps = _frames_and_fps(args)
-    size = _image_size(args, frames, lm)
-    if not (args.render or args.contact_sheet):
-        frames = None
-    cfg = TransferConfig(method=args.method, constraints=args.constraints, weight=args.weight, pose_method=args.pose_method,
-                         fov_deg=args.fov, movement=args.movement, tol=args.tol, max_iter=args.max_iter,
-                         anchors=args.anchors)
-    pf = PoseFilter(args.smooth_min_cutoff, beta_r=args.smooth_beta) if args.smooth else None
-    t0 = time.perf_counter()
-    tr = Transfer(mesh, lmap, size, cfg, pose_filter=pf)
-    t_factor = time.perf_counter() - t0
-    tr.set_reference(lm[neutral])
+
+def _transfer_rows(args, tr, mesh, lmap, lm: np.ndarray, rows: np.ndarray, neutral: int, frames, fps: float,
+                   size: tuple[int, int]) -> tuple[dict, float]:
+    """Transfer every row (rendering the preview video and the contact sheet on the way);
+    the per-frame arrays of the output file and the seconds spent in the solves."""
+    from facesynth import progress
+    from facesynth.mesh.preview import PreviewWriter, contact_sheet, panel, pick_sheet_frames
 
     T, n = len(rows), len(mesh.vertices)
     verts = np.empty((T, n, 3), np.float32)
@@ -181,12 +165,47 @@ def run(args: argparse.Namespace) -> int:
     if args.contact_sheet:
         keys = [k for k in sheet if k in sheet_rows]
         contact_sheet([sheet_rows[k] for k in keys], [sheet_labels[k] for k in keys], args.contact_sheet)
+    return {"vertices": verts, "R": Rs, "t": ts, "K": Ks, "iterations": iters, "converged": conv,
+            "pose_reprojection_px": reproj}, t_solve
 
+
+def run(args: argparse.Namespace) -> int:
+    from facesynth.data import load_landmarks
+    from facesynth.io import atomic_path
+    from facesynth.mesh.io import load_landmark_map, load_mesh
+    from facesynth.mesh.smoothing import PoseFilter
+    from facesynth.mesh.transfer import Transfer, TransferConfig
+    from facesynth.provenance import array_fingerprint, file_sha256, package_versions
+
+    if not str(args.out).endswith(".npz"):
+        raise FacesynthError(f"--out {args.out}: the mesh sequence is written as .npz")
+    if args.stride < 1:
+        raise FacesynthError("--stride must be >= 1")
+    mesh = load_mesh(args.mesh)
+    lmap = load_landmark_map(args.landmark_map, len(mesh.vertices))
+    lm = load_landmarks(args.landmarks, scheme="ibug68")
+    rows, skipped, neutral, neutral_rule = _rows_and_neutral(args, lm)
+
+    frames, fps = _frames_and_fps(args)
+    size = _image_size(args, frames, lm)
+    if not (args.render or args.contact_sheet):
+        frames = None
+    cfg = TransferConfig(method=args.method, constraints=args.constraints, weight=args.weight, pose_method=args.pose_method,
+                         fov_deg=args.fov, movement=args.movement, tol=args.tol, max_iter=args.max_iter,
+                         anchors=args.anchors)
+    pf = PoseFilter(args.smooth_min_cutoff, beta_r=args.smooth_beta) if args.smooth else None
+    t0 = time.perf_counter()
+    tr = Transfer(mesh, lmap, size, cfg, pose_filter=pf)
+    t_factor = time.perf_counter() - t0
+    tr.set_reference(lm[neutral])
+    out, t_solve = _transfer_rows(args, tr, mesh, lmap, lm, rows, neutral, frames, fps, size)
+
+    T = len(rows)
     summary = {
         "frames": T, "skipped_nan_frames": len(skipped), "neutral_frame": neutral, "neutral_rule": neutral_rule, "method": args.method,
         "factorisation_s": round(t_factor, 4), "ms_per_frame_transfer": round(1e3 * t_solve / T, 3),
-        "iterations_mean": float(iters.mean()), "converged_fraction": float(conv.mean()),
-        "pose_reprojection_px_mean": float(reproj.mean()),
+        "iterations_mean": float(out["iterations"].mean()), "converged_fraction": float(out["converged"].mean()),
+        "pose_reprojection_px_mean": float(out["pose_reprojection_px"].mean()),
     }
     meta = {
         "config": {k: v for k, v in vars(args).items() if k != "func"}, "summary": summary,
@@ -196,10 +215,11 @@ def run(args: argparse.Namespace) -> int:
     }
     with atomic_path(args.out) as tmp, open(tmp, "wb") as f:
         np.savez(
-            f, vertices=verts, faces=mesh.faces.astype(np.int32),
+            f, vertices=out["vertices"], faces=mesh.faces.astype(np.int32),
             uvs=mesh.uvs if mesh.uvs is not None else np.zeros((0, 2), np.float32),
-            R=Rs, t=ts, K=Ks, frame_index=rows, handles=tr.handles, iterations=iters, converged=conv,
-            pose_reprojection_px=reproj, skipped_frames=np.array(skipped, np.int64), meta=json.dumps(meta, default=str),
+            R=out["R"], t=out["t"], K=out["K"], frame_index=rows, handles=tr.handles, iterations=out["iterations"],
+            converged=out["converged"], pose_reprojection_px=out["pose_reprojection_px"],
+            skipped_frames=np.array(skipped, np.int64), meta=json.dumps(meta, default=str),
         )
     print(json.dumps(summary))
     return 0
