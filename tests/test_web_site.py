@@ -1,0 +1,86 @@
+"""The live page's Python side without a browser: ``facesynth web build`` / ``serve`` refuse what
+is not an avatar in one line, the built folder holds what the page loads, the server sends the
+headers WebAssembly threads need, and the landmark tables equal the project's own."""
+
+from __future__ import annotations
+
+import json
+import urllib.request
+
+import numpy as np
+import pytest
+
+from facesynth.cli import main
+from facesynth.contract import SYNTHESIS_FORMAT
+from facesynth.web import site
+
+
+def _tiny_onnx(path, metadata: dict) -> None:
+    import onnx
+    from onnx import TensorProto, helper
+
+    g = helper.make_graph([helper.make_node("Identity", ["x"], ["y"])], "g", [helper.make_tensor_value_info(
+        "x", TensorProto.FLOAT, [1])], [helper.make_tensor_value_info("y", TensorProto.FLOAT, [1])])
+    m = helper.make_model(g, opset_imports=[helper.make_opsetid("", 18)])
+    helper.set_model_props(m, {k: json.dumps(v) for k, v in metadata.items()})
+    onnx.save(m, str(path))
+
+
+@pytest.mark.parametrize("command", [["web", "build"], ["serve"]])
+def test_not_an_avatar_is_one_line(tmp_path, capsys, command):
+    model = tmp_path / "other.onnx"
+    _tiny_onnx(model, {"producer": "someone else"})
+    out = [str(tmp_path / "site")] if command[0] == "web" else ["--port", "0"]
+    assert main([*command, str(model), *out]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "not a facesynth avatar" in err[0] and "other.onnx" in err[0]
+    assert not (tmp_path / "site").exists()
+    assert main([*command, str(tmp_path / "missing.onnx"), *out]) == 2
+    assert "no such model file" in capsys.readouterr().err
+
+
+def test_schemes_json_equals_the_landmark_tables():
+    from facesynth.landmarks import get_scheme
+
+    tables = site.schemes_json()
+    rng = np.random.default_rng(0)
+    for name, t in tables.items():
+        s = get_scheme(name)
+        pts = rng.random((s.n_points, 2)).astype(np.float32) * 100
+        mapped = np.array([sum(w * pts[j] for j, w in row) for row in t["to_ibug68"]])
+        np.testing.assert_allclose(mapped, s.to_ibug68(pts), atol=1e-3)
+        assert t["n_points"] == s.n_points
+
+
+def test_server_headers_and_types(tmp_path):
+    (tmp_path / "a.wasm").write_bytes(b"\0asm")
+    (tmp_path / "b.mjs").write_text("export {}")
+    from facesynth.web.browser import served
+
+    with served(tmp_path) as url:
+        assert url.startswith("http://127.0.0.1:")
+        for name, mime in (("a.wasm", "application/wasm"), ("b.mjs", "text/javascript")):
+            with urllib.request.urlopen(url + name) as r:
+                assert r.headers["Content-Type"] == mime
+                assert r.headers["Cross-Origin-Opener-Policy"] == "same-origin"
+                assert r.headers["Cross-Origin-Embedder-Policy"] == "require-corp"
+
+
+def test_build_writes_the_page(tmp_path, monkeypatch):
+    """From an empty cache: the tracker is converted from the installed wheel."""
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    pytest.importorskip("tflite")
+    pytest.importorskip("mediapipe")
+    try:
+        site.ort_dist()
+    except Exception as exc:
+        pytest.skip(str(exc))
+    model = tmp_path / "avatar.onnx"
+    _tiny_onnx(model, {"format": SYNTHESIS_FORMAT, "landmark_scheme": "ibug68"})
+    assert main(["web", "build", str(model), str(tmp_path / "site")]) == 0
+    out = tmp_path / "site"
+    for f in (*site.PAGE_FILES, *(f"ort/{f}" for f in site.ORT_FILES), "avatar.onnx", "schemes.json", "site.json",
+              "models/face_detection.onnx", "models/face_landmark.onnx", "models/iris_landmark.onnx"):
+        assert (out / f).is_file(), f
+    assert json.loads((out / "site.json").read_text())["avatar"] == "avatar.onnx"
+    assert (out / "avatar.onnx").read_bytes() == model.read_bytes()
