@@ -209,6 +209,23 @@ def ingest_video(
     if detector is None:  # a missing extra is reported before anything else
         (check_extra if landmarker == "dlib" else detect_mediapipe.check_extra)()
     video = _Video(video_path)
+    det, detect, versions = _landmarker(landmarker, detector, max_side, reuse_limit)
+    result, wall = _detect_all(video, det, detect, every, max_frames, progress, landmarker)
+    stats = _stats(result, video, wall, scheme)
+    meta = {**_meta(video, result, det, scheme, landmarker, stats, out_dir, every=every, max_frames=max_frames,
+                    copy=copy, export_pts=export_pts),
+            "detector_versions": versions(), "versions": package_versions(), "facesynth_version": __version__,
+            "created_by": "facesynth ingest"}
+    _write_folder(out_dir, video_path, result.landmarks, meta, copy, export_pts)
+    log.debug(  # debug: the command prints the summary itself (once)
+        "%s: %d frames processed in %.1f s (%.1f frames/s), detection rate %.3f -> %s",
+        video_path, result.n_processed, wall, stats["frames_per_s"] or 0.0, stats["detection_rate"], out_dir,
+    )
+    return load_sequence(out_dir)
+
+
+def _landmarker(landmarker: str, detector, max_side: int, reuse_limit: int):
+    """(landmarker reset for a new video, its detect function, its versions function)."""
     if landmarker == "dlib":
         det = detector or LandmarkDetector(max_side=max_side, reuse_limit=reuse_limit)
         detect, versions = detect_landmarks, detector_versions
@@ -216,12 +233,18 @@ def ingest_video(
         det = detector or detect_mediapipe.MediaPipeLandmarker()
         detect, versions = detect_mediapipe.detect_landmarks_mediapipe, detect_mediapipe.mediapipe_versions
     det.reset()
+    return det, detect, versions
+
+
+def _detect_all(video: _Video, det, detect, every: int, max_frames: int | None, progress: bool,
+                landmarker: str) -> tuple[Detections, float]:
+    """Landmarks of every processed frame with a progress bar; (detections, wall seconds).
+    No face in any frame is a FacesynthError."""
     total = video.header_frames or None
     if max_frames is not None:
         total = min(total, max_frames) if total else max_frames
-
     if progress:
-        note(f"ingest: {video_path} ({video.width}x{video.height}, {total or '?'} frames) with {landmarker}")
+        note(f"ingest: {video.path} ({video.width}x{video.height}, {total or '?'} frames) with {landmarker}")
     t0 = time.perf_counter()
     with _progress(total, progress) as bar:
         def on_frame(i: int, source: str) -> None:
@@ -232,9 +255,14 @@ def ingest_video(
     wall = time.perf_counter() - t0
     n_found = int(np.isfinite(result.landmarks[:, 0, 0]).sum())
     if n_found == 0:
-        raise FacesynthError(f"{video_path}: no face found in any of the {result.n_processed} frames processed")
+        raise FacesynthError(f"{video.path}: no face found in any of the {result.n_processed} frames processed")
+    return result, wall
 
-    stats = _stats(result, video, wall, scheme)
+
+def _meta(video: _Video, result: Detections, det, scheme: LandmarkScheme, landmarker: str, stats: dict, out_dir: Path,
+          *, every: int, max_frames: int | None, copy: bool, export_pts: bool) -> dict:
+    """meta.json of an ingest folder (without the package versions), the landmarks' SHA-256 included."""
+    video_path = video.path
     n_video = video.decoded if video.reached_end else max(video.header_frames, video.decoded)
     vmeta = {
         "width": video.width, "height": video.height, "fps": video.fps, "frames": n_video,
@@ -268,28 +296,22 @@ def ingest_video(
                 [i for i, s in enumerate(result.sources) if s not in (result.source_names[0], "skipped")],
         },
         "stats": stats,
-        "detector_versions": versions(),
-        "versions": package_versions(),
-        "facesynth_version": __version__,
-        "created_by": "facesynth ingest",
     }
-
-    # All work is done: write the folder into a temporary sibling, which then replaces
-    # out_dir as a whole (io.atomic_dir): the folder is complete or absent, never a mix.
     meta["landmarks"]["sha256"] = array_sha256(result.landmarks)
+    return meta
+
+
+def _write_folder(out_dir: Path, video_path: Path, landmarks: np.ndarray, meta: dict, copy: bool, export_pts: bool) -> None:
+    """Write the folder into a temporary sibling, which then replaces ``out_dir`` as a whole
+    (io.atomic_dir): the folder is complete or absent, never a mix."""
     with atomic_dir(out_dir) as tmp_dir:
         if copy:
-            shutil.copyfile(video_path, tmp_dir / vmeta["file"])
+            shutil.copyfile(video_path, tmp_dir / meta["video"]["file"])
         with open(tmp_dir / "landmarks.npy", "wb") as f:
-            np.save(f, result.landmarks)
+            np.save(f, landmarks)
         if export_pts:
-            width = max(6, len(str(len(result.landmarks))))
-            for i, frame in enumerate(result.landmarks):
+            width = max(6, len(str(len(landmarks))))
+            for i, frame in enumerate(landmarks):
                 if np.isfinite(frame).all():
                     write_pts(tmp_dir / "pts" / f"{i:0{width}d}.pts", frame)
         write_json(tmp_dir / "meta.json", meta)
-    log.debug(  # debug: the command prints the summary itself (once)
-        "%s: %d frames processed in %.1f s (%.1f frames/s), detection rate %.3f -> %s",
-        video_path, result.n_processed, wall, stats["frames_per_s"] or 0.0, stats["detection_rate"], out_dir,
-    )
-    return load_sequence(out_dir)
