@@ -28,7 +28,7 @@ from torch import nn
 from torch.nn import functional as F
 
 from facesynth.model.reference import ReferenceFrame
-from facesynth.model.warp_target import ToTarget, candidate_spans  # noqa: F401  (re-exported)
+from facesynth.model.warp_target import ToTarget  # noqa: F401  (re-exported)
 
 
 def to_grid(xy: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
@@ -111,3 +111,26 @@ def invert_affine_t(m: torch.Tensor) -> torch.Tensor:
     inv = torch.stack([torch.stack([d, -b], -1), torch.stack([-c, a], -1)], 1) / det[:, None, None]
     t = -torch.matmul(inv, m[:, :, 2:])
     return torch.cat([inv, t], 2)
+
+
+def candidate_spans(ref: ReferenceFrame, shapes: np.ndarray, safety: float = 1.3) -> np.ndarray:
+    """Candidate block size of each triangle for :class:`ToTarget`.
+
+    Parameters
+    ----------
+    ref : ReferenceFrame
+    shapes : np.ndarray
+        (N, 68, 2) example target shapes in canvas coordinates (e.g. the training shapes
+        aligned to the reference frame, and their +-3 sigma extremes).
+    safety : float
+        Factor on the largest observed bounding box of each triangle.
+
+    Returns
+    -------
+    np.ndarray
+        int64 (T, 2): (width, height) in pixels.
+    """
+    pts = np.concatenate([np.asarray(shapes, np.float64).reshape(-1, len(ref.points), 2), ref.points[None]], 0)
+    corners = pts[:, ref.triangles]  # (N, T, 3, 2)
+    span = np.floor(corners.max(2) - corners.min(2)).max(0) + 2  # largest bbox + rounding
+    return np.ceil(span * safety).astype(np.int64)

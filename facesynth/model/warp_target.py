@@ -62,7 +62,7 @@ class ToTarget(nn.Module):
     ref : ReferenceFrame
     span : np.ndarray
         int (T, 2): largest width and height (pixels) each triangle takes in the targets,
-        from :func:`candidate_spans`; each edge visits as many columns as the narrower of
+        from :func:`facesynth.model.warp.candidate_spans`; each edge visits as many columns as the narrower of
         its triangles (:meth:`clipped_triangles` reports targets that exceed the span).
     canvas : (H, W), optional
         Output size; defaults to the reference frame size.
@@ -375,29 +375,6 @@ class ToTarget(nn.Module):
         v = target[:, self.tri]
         ext = torch.floor(torch.amax(v, 2)) - torch.floor(torch.amin(v, 2)) + 1
         return ext[..., 0] > self.span[:, 0]
-
-
-def candidate_spans(ref: ReferenceFrame, shapes: np.ndarray, safety: float = 1.3) -> np.ndarray:
-    """Candidate block size of each triangle for :class:`ToTarget`.
-
-    Parameters
-    ----------
-    ref : ReferenceFrame
-    shapes : np.ndarray
-        (N, 68, 2) example target shapes in canvas coordinates (e.g. the training shapes
-        aligned to the reference frame, and their +-3 sigma extremes).
-    safety : float
-        Factor on the largest observed bounding box of each triangle.
-
-    Returns
-    -------
-    np.ndarray
-        int64 (T, 2): (width, height) in pixels.
-    """
-    pts = np.concatenate([np.asarray(shapes, np.float64).reshape(-1, len(ref.points), 2), ref.points[None]], 0)
-    corners = pts[:, ref.triangles]  # (N, T, 3, 2)
-    span = np.floor(corners.max(2) - corners.min(2)).max(0) + 2  # largest bbox + rounding
-    return np.ceil(span * safety).astype(np.int64)
 
 
 def _nearest_inside(mask: np.ndarray) -> np.ndarray:
