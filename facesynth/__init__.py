@@ -3,14 +3,15 @@
 The package layout follows the pipeline (docs/architecture.md draws it; the imports obey
 it, checked by tests/test_layers.py)::
 
-    top      cli (facesynth.cli, every */cli.py)  runs (train.py)  eval  onnx (export)
+    top      cli (facesynth.cli, every */cli.py)  runs (facesynth train = train.py; configs in conf/)
+             eval  onnx (export)  batch
     stages   data -> model -> sadm <- regressors      (2D: shape -> appearance)
                           -> eri  <- regressors      (2D: expression ratio images)
              data -> mesh                            (3D wing: pose, Laplacian transfer)
              data -> codec                           (geometry-video wing)
     runtime  torch-free: exported ONNX models, the talking-head app (reads data, ground)
-    ground   errors, io, metrics, landmarks, geometry, imaging, provenance, contract,
-             artifact, ops
+    ground   errors, io, metrics, landmarks, landmark_tables, geometry, imaging, provenance,
+             contract, artifact, ops, progress, neutral, faps, retarget, videofile
 
 Conventions used everywhere:
 

@@ -2,11 +2,12 @@
 module, those inside functions included, must go down or sideways within its own part.
 
 ground   errors, io, metrics, landmarks, landmark_tables, geometry, imaging, provenance, contract, artifact, ops,
-         videofile
+         progress, neutral, faps, retarget, videofile
 stages   data; model (data); regressors; sadm (model, regressors); eri (model, regressors);
          mesh (data); codec (data): siblings never import each other
 runtime  torch-free: the runtime, the data layer and the ground only
-top      eval, runs, onnx, batch, the CLIs (facesynth.cli and every ``cli`` / ``*_cli`` module)
+top      eval, runs (runs/train_cli: facesynth train), onnx, batch, the CLIs (facesynth.cli and every ``cli`` /
+         ``*_cli`` module); facesynth/conf holds the Hydra yaml, no module
 """
 
 from __future__ import annotations
