@@ -157,3 +157,39 @@ def test_error_messages(page_site, camera, tmp_path):
             page.wait_for_function(f"window.facesynth.state.frames > {frames}", timeout=30000)  # still running
             assert "current avatar is kept" in _messages(page)
         assert blocked == []
+
+
+def test_page_tracker_matches_its_reference_and_mediapipe(page_site, shared_clip_dir, tmp_path):
+    """The worker's tracker (tracker.js) on lp_d3's first frames, fed as pixels through its replay
+    hook, against its numpy reference (facesynth.web.track) and against ``facesynth ingest
+    --landmarker mediapipe``'s settings (MediaPipe, refine_landmarks=True)."""
+    import base64
+
+    import cv2
+
+    from facesynth.data.detect_mediapipe import MediaPipeLandmarker
+    from facesynth.web.track import OnnxFaceTracker
+
+    cap = cv2.VideoCapture(str(shared_clip_dir("lp_d3") / "video.mp4"))
+    frames = []
+    for _ in range(12):
+        ok, bgr = cap.read()
+        assert ok
+        frames.append(cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB))
+    h, w = frames[0].shape[:2]
+    rgba = [base64.b64encode(np.dstack([f, np.full((h, w), 255, np.uint8)]).tobytes()).decode() for f in frames]
+    with browser.served(page_site) as url, browser.browser_page(camera=False) as (page, blocked):
+        page.goto(url)
+        page.wait_for_function("window.facesynth && typeof window.facesynth.track === 'function'")
+        got = page.evaluate("([w, h, f]) => window.facesynth.track(w, h, f)", [w, h, rgba])
+    assert blocked == []
+    assert all(g is not None for g in got)
+    js = np.array(got, np.float32).reshape(len(frames), 478, 2)
+    ref = OnnxFaceTracker(Path(page_site) / "models")
+    py = np.array([ref.track(f) for f in frames])
+    assert np.median(np.linalg.norm(js - py, axis=2)) < 0.25
+    mp = MediaPipeLandmarker()
+    want = np.array([mp.landmarks(f) for f in frames])
+    err = np.linalg.norm(js - want, axis=2)
+    assert np.median(err[:, 468:]) < 2.5, np.median(err[:, 468:])
+    assert np.median(err) < 3.5, np.median(err)

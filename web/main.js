@@ -108,6 +108,28 @@ window.facesynth.synthesize = async (flat) => {
   return Object.fromEntries(Object.entries(out).map(([k, t]) => [k, { dims: t.dims, data: Array.from(t.data) }]));
 };
 
+// replay hook for tests and tools: frames of RGBA pixels (base64) through a tracker worker of its own
+// (its tracking state apart from the camera's) -> each frame's points (478 x 2 flat) or null
+window.facesynth.track = async (width, height, frames) => {
+  const w = new Worker('tracker.js', { type: 'module' });
+  const reply = () => new Promise((resolve, reject) => {
+    w.onmessage = (ev) => (ev.data.type === 'error' ? reject(new Error(ev.data.message)) : resolve(ev.data));
+  });
+  let r = reply();
+  w.postMessage({ type: 'init', base });
+  await r;
+  const out = [];
+  for (const b64 of frames) {
+    const data = Uint8Array.from(atob(b64), (c) => c.charCodeAt(0)).buffer;
+    r = reply();
+    w.postMessage({ type: 'pixels', data, width, height }, [data]);
+    const m = await r;
+    out.push(m.points ? Array.from(m.points) : null);
+  }
+  w.terminate();
+  return out;
+};
+
 function captureNeutral() {
   state.neutral = null; state.neutralSamples = []; state.neutralStart = null;
   message('Look at the camera with a neutral face...');

@@ -1,8 +1,9 @@
 // The face tracker, in a Web Worker: MediaPipe's detector, 468-point mesh and iris models
 // (converted to ONNX at build time) with MediaPipe's crop-and-track steps. Mirrors
 // facesynth/web/track.py step for step (its Python reference, tested against MediaPipe).
-// Messages in: {type:'init', base}, {type:'frame', bitmap, t}, {type:'reset'}.
-// Out: {type:'ready'}, {type:'points', points: Float32Array(478*2) | null, t, ms}, {type:'error', message}.
+// Messages in: {type:'init', base}, {type:'frame', bitmap, t}, {type:'pixels', data, width, height}, {type:'reset'}.
+// Out: {type:'ready'}, {type:'points', points: Float32Array(478*2) | null, t, ms} ('tracked' for 'pixels'),
+// {type:'error', message}.
 import * as ort from './ort/ort.wasm.min.mjs';
 
 const MESH = 192, IRIS = 64, DET = 128, FACE_SCALE = 1.5, EYE_SCALE = 2.3;
@@ -130,6 +131,10 @@ self.onmessage = async (ev) => {
       self.postMessage({ type: 'ready' });
     } else if (msg.type === 'reset') {
       prev = null;
+    } else if (msg.type === 'pixels') {  // replay: RGBA pixels in, points out (the tests' hook)
+      const img = { data: new Uint8ClampedArray(msg.data), width: msg.width, height: msg.height };
+      const points = await track(img);
+      self.postMessage({ type: 'tracked', points }, points ? [points.buffer] : []);
     } else if (msg.type === 'frame') {
       const t0 = performance.now();
       const bm = msg.bitmap;

@@ -111,11 +111,21 @@ class _Handler(http.server.SimpleHTTPRequestHandler):
         pass
 
 
+class _Server(http.server.ThreadingHTTPServer):
+    daemon_threads = True
+
+    def handle_error(self, request, client_address):
+        import sys
+
+        if not isinstance(sys.exc_info()[1], ConnectionError):  # a closed tab is no error
+            super().handle_error(request, client_address)
+
+
 def make_server(folder: str | Path, port: int = 0) -> http.server.ThreadingHTTPServer:
     """An HTTP server on 127.0.0.1 (``port`` 0: a free one) serving ``folder``."""
     handler = functools.partial(_Handler, directory=str(folder))
     try:
-        return http.server.ThreadingHTTPServer(("127.0.0.1", port), handler)
+        return _Server(("127.0.0.1", port), handler)
     except OSError as exc:
         raise FacesynthError(f"cannot listen on 127.0.0.1:{port} ({exc.strerror})") from None
 
