@@ -101,7 +101,8 @@ def study(clip: str, regressor: str = "krr", params: dict | None = None, train_f
     oracle_b = model.texture_from_params(model.appearance_params(tex_b))
     regions = {}
     for key, rows, tex in (("train_to_B", tr, tex_tr), ("train_plus_A_to_B", np.r_[tr, rows_a], np.concatenate([tex_tr, tex_a]))):
-        sadm = fit_sadm(model, seq, rows, tex, regressor, params, SADMConfig(**(sadm_params or {})))
+        # the regressor's own b_g is scored (texture_from_params), so the per-part shrinkage is not fitted
+        sadm = fit_sadm(model, seq, rows, tex, regressor, params, SADMConfig(**{"region_shrink": False, **(sadm_params or {})}))
         b = sadm.predict_params(lm_b)
         out[key] = psnr_ref(model, b, tex_b)
         regions[key] = region_breakdown(model, model.texture_from_params(b), tex_b, oracle_b)
