@@ -61,7 +61,7 @@ def study(path: str, only=VARIANTS, seed: int = 0) -> dict:
             out["eyes"].append(round(float(10 * np.log10(255.0**2 / (e**2).mean())), 3))
         return out
 
-    base = resolve_sadm_config("krr", SADMConfig())
+    base = resolve_sadm_config("krr", SADMConfig(region_shrink=False))  # the gaze study predates the per-part shrinkage
     configs = {"main": replace(base, gaze=False), "gaze": replace(base, gaze_mode="path", gaze_target="params"),
                "gaze_in_sample": replace(base, gaze_mode="path", gaze_target="params", gaze_folds=0),
                "gaze_eyes": replace(base, gaze_mode="path", gaze_target="eyes"),
