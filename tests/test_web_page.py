@@ -80,6 +80,23 @@ def test_camera_drives_the_avatar_offline_and_matches_python(page_site, camera, 
         page.screenshot(path=str(SHOTS / "facesynth_web_live.png"))
         assert not [m for m in page.evaluate("window.facesynth.state.messages") if m["error"]]
 
+        # record a few frames to WebM and download them
+        page.click("#record")
+        n = page.evaluate("window.facesynth.state.frames")
+        page.wait_for_function(f"window.facesynth.state.frames >= {n + 15}")
+        with page.expect_download() as dl:
+            page.click("#record")
+        webm = Path(dl.value.path()).read_bytes()
+        assert dl.value.suggested_filename.endswith(".webm")
+        assert webm[:4] == bytes.fromhex("1a45dfa3") and len(webm) > 1000  # EBML (WebM) header
+
+        # capture the neutral again: the page asks for it, then goes live again
+        n_msgs = len(page.evaluate("window.facesynth.state.messages"))
+        page.click("#neutral")
+        page.wait_for_function(f"window.facesynth.state.messages.length >= {n_msgs + 2}")
+        texts = [m["text"] for m in page.evaluate("window.facesynth.state.messages")[n_msgs:]]
+        assert texts[0].startswith("Look at the camera") and texts[1] == "Live."
+
         # replay hook: the same landmarks through the page's avatar graph and Python's runtime
         renderer = Renderer(path)
         lm = seq.landmarks[[0, len(seq) // 2]].astype(np.float32)
