@@ -27,6 +27,7 @@ Speed (the arithmetic is the decoder's, the layout is not):
 from __future__ import annotations
 
 from functools import lru_cache
+from types import SimpleNamespace
 
 import numpy as np
 
@@ -195,7 +196,46 @@ def encode_n(x: np.ndarray, prev: np.ndarray | None, cfg, weight: np.ndarray | N
              channels: int | None = None):
     """Encode (C, H, W) int64 with N x N blocks -> (modes, levels, mvs, reconstruction, cost (C,))."""
     c, h, w = x.shape
-    channels = channels or c  # channels per frame (x may stack several frames)
+    f = _setup(x, prev, cfg, weight, n)
+    inter = _inter_candidates(f, x, prev, cfg, sads) if f.ms.inter else None
+    modes, zlev, cost, buf = _code_waves(f, channels or c, inter)
+    if n == 16:
+        zlev = zlev[:, :, np.argsort(sub_order(n))]  # sub-blocks back in raster order
+    levels = zlev.astype(np.int64)
+    mvs = np.zeros((c, f.g.n_blocks, 2), np.int64)
+    if inter is not None:
+        is_inter = modes[:, :-1] == f.mp
+        mvs[is_inter] = inter.mvs[is_inter]
+    o = f.o
+    inv = np.empty_like(o)
+    inv[o] = np.arange(len(o))  # back from wavefront order to raster block order
+    rec = unpadded(buf, h, w).astype(np.int64)
+    return modes[:, :-1][:, inv], levels[:, inv], mvs[:, inv], rec, cost
+
+
+def _transforms(t8: bool, qp, s_sub: int, nn: int):
+    """(forward, inverse): samples (..., NN) -> coefficients (..., S, 16) and signed levels
+    (..., S, 16) -> residual (..., NN), in the encoder's sub-block-major sample order."""
+    if t8:
+        def fwd(v):  # 8x8 blocks, 4 slots each
+            return (v.reshape(-1, 64) @ t8m.FWD64).reshape(*v.shape[:-1], s_sub, 16)
+
+        def inv(zc):
+            return t8m.inverse_slots_float(zc.reshape(*zc.shape[:-2], -1, 64), qp).reshape(*zc.shape[:-2], nn)
+    else:
+        def fwd(v):
+            return (v.reshape(-1, 16) @ FWD16).reshape(*v.shape[:-1], s_sub, 16)
+
+        def inv(zc):
+            return inverse_sub(zc, qp).reshape(*zc.shape[:-2], nn)
+    return fwd, inv
+
+
+def _setup(x: np.ndarray, prev: np.ndarray | None, cfg, weight: np.ndarray | None, n: int) -> SimpleNamespace:
+    """What every wavefront of one block size reads: block layout (wavefront order), mode
+    set, lambda, prediction weights, the source's samples and coefficients, the transforms,
+    the quantiser and the pixel-varying maps."""
+    c, h, w = x.shape
     g = grid(n, h, w)
     p_frame = prev is not None
     ms = ModeSet(n, cfg.pdp, cfg.pvm and p_frame, cfg.inter and p_frame)
@@ -210,133 +250,132 @@ def encode_n(x: np.ndarray, prev: np.ndarray | None, cfg, weight: np.ndarray | N
     xpad = padded(x)
     xs = xpad[:, pix].astype(np.float64)  # (C, nblk, NN)
     wt = np.ones((h, w)) if weight is None else np.where(weight, 1.0, cfg.outside_weight)
-    wpad = np.pad(wt, ((1, 0), (1, 0))).ravel()
-    wm = wpad[pix_r].mean(-1)
-    ones = np.ones(nn)
-    wmat = encoder_weights(n, ms.pdp, ms.pvm)
-    f8 = intra.filter8_matrix() * 0.25 if n == 8 else None
+    wm = np.pad(wt, ((1, 0), (1, 0))).ravel()[pix_r].mean(-1)
     mp = ms.n_predictive
-    kk = mp if not cfg.rd_candidates else min(cfg.rd_candidates, mp)
-    lossless = qp is None
     t8 = uses_t8(cfg, n)
-    if t8:
-        def fwd(v):  # samples (..., NN) -> coefficients (..., S, 16): 8x8 blocks, 4 slots each
-            return (v.reshape(-1, 64) @ t8m.FWD64).reshape(*v.shape[:-1], s_sub, 16)
-
-        def inv(zc):  # signed levels (..., S, 16) -> residual (..., NN) in the encoder's sample order
-            return t8m.inverse_slots_float(zc.reshape(*zc.shape[:-2], -1, 64), qp).reshape(*zc.shape[:-2], nn)
-    else:
-        def fwd(v):
-            return (v.reshape(-1, 16) @ FWD16).reshape(*v.shape[:-1], s_sub, 16)
-
-        def inv(zc):
-            return inverse_sub(zc, qp).reshape(*zc.shape[:-2], nn)
-    if not lossless:
-        fx = fwd(xs)  # source coefficients (C, nblk, S, 16)
-        quant = _Quant(qp, lam, inter=False, t8=t8)
+    fwd, inv = _transforms(t8, qp, s_sub, nn)
+    lossless = qp is None
     maps = None
     if ms.pvm:  # the previous frame's pixel-varying maps prev - PDP_d(prev neighbours): (C, nblk, 4, NN)
         pp = padded(prev).astype(np.float64)
         nbp = pp[:, nbo]
         maps = np.floor((nbp.reshape(-1, nbp.shape[-1]) @ encoder_weights(n, True, False)[:, -4 * nn:]) + 0.5)
         maps = pp[:, pix][:, :, None, :] - maps.reshape(c, -1, 4, nn)
-    if ms.inter:  # motion-compensated candidates of all blocks at once
-        mvs_r = motion_search(x, prev, n, cfg.mv_range, sads)
-        mvs_all = mvs_r[:, o]
-        pi = motion_compensate(prev, mvs_r, n, cfg.mv_range)[:, o][..., perm].astype(np.float64)
-        mvbits = 2.0 * (np.abs(mvs_all) > 0).sum(-1) + 1.0
-        if lossless:
-            zc_i = (xs - pi).reshape(c, -1, s_sub, 16)[..., ZIGZAG]
-            j_i = lam * (est_bits(np.abs(zc_i)) + mvbits)
-            rec_i = xs
-        else:
-            coef_i = fx - fwd(pi)
-            z_i, j_i = _Quant(qp, lam, inter=True, t8=t8)(coef_i, wm[None])
-            j_i += lam * mvbits
-            zc_i = np.copysign(z_i, coef_i)
-            rec_i = np.clip(pi + inv(zc_i), 0, 65535)
-    nm = ms.n_modes
+    return SimpleNamespace(
+        n=n, c=c, g=g, ms=ms, qp=qp, lam=lam, perm=perm, nn=nn, s_sub=s_sub, o=o, pix=pix, nbo=nbo, xpad=xpad,
+        xs=xs, wm=wm, wmat=encoder_weights(n, ms.pdp, ms.pvm), f8=intra.filter8_matrix() * 0.25 if n == 8 else None,
+        mp=mp, kk=mp if not cfg.rd_candidates else min(cfg.rd_candidates, mp), lossless=lossless, t8=t8,
+        fwd=fwd, inv=inv, fx=None if lossless else fwd(xs), quant=None if lossless else _Quant(qp, lam, inter=False, t8=t8),
+        maps=maps)
+
+
+def _inter_candidates(f: SimpleNamespace, x: np.ndarray, prev: np.ndarray, cfg, sads) -> SimpleNamespace:
+    """The motion-compensated candidate of every block at once (wavefront order): motion
+    vectors, RD cost, signed levels and reconstruction."""
+    mvs_r = motion_search(x, prev, f.n, cfg.mv_range, sads)
+    mvs = mvs_r[:, f.o]
+    pi = motion_compensate(prev, mvs_r, f.n, cfg.mv_range)[:, f.o][..., f.perm].astype(np.float64)
+    mvbits = 2.0 * (np.abs(mvs) > 0).sum(-1) + 1.0
+    if f.lossless:
+        zc = (f.xs - pi).reshape(f.c, -1, f.s_sub, 16)[..., ZIGZAG]
+        j = f.lam * (est_bits(np.abs(zc)) + mvbits)
+        rec = f.xs
+    else:
+        coef = f.fx - f.fwd(pi)
+        z, j = _Quant(f.qp, f.lam, inter=True, t8=f.t8)(coef, f.wm[None])
+        j += f.lam * mvbits
+        zc = np.copysign(z, coef)
+        rec = np.clip(pi + f.inv(zc), 0, 65535)
+    return SimpleNamespace(mvs=mvs, j=j, zc=zc, rec=rec)
+
+
+def _predict(f: SimpleNamespace, nb: np.ndarray, s: int, e: int) -> np.ndarray:
+    """Every predictive mode's (scaled, unrounded) prediction of the blocks s:e from their
+    neighbour samples nb (C, b, K): (C, b, modes, NN)."""
+    c, b, n, nn, mp = f.c, e - s, f.n, f.nn, f.mp
+    if n == 8:  # HIP 8x8 modes predict from the filtered samples (exact: floor of quarters)
+        nbf = np.floor(nb.reshape(-1, nb.shape[-1]) @ f.f8 + 0.5)
+        pred = np.concatenate([nbf @ f.wmat[:, :9 * nn], nb.reshape(-1, nb.shape[-1]) @ f.wmat[:, 9 * nn:]], 1)
+        pred = pred.reshape(c, b, mp, nn)
+    else:
+        pred = (nb.reshape(-1, nb.shape[-1]) @ f.wmat).reshape(c, b, mp, nn)
+    if n == 16:
+        pred[:, :, 3] = intra.plane16(nb.astype(np.int64))[..., f.perm]
+    if f.ms.pvm:
+        pred[:, :, f.ms.n_spatial:] += f.maps[:, s:e]
+    return pred
+
+
+def _prune(f: SimpleNamespace, pred: np.ndarray, xw: np.ndarray, mbits: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The kk modes of least SAD + sqrt(lambda) mode bits (the H.264 reference encoder's
+    pre-selection) before the full RD test: (their predictions (C, b, kk, NN), their modes)."""
+    c, b, kk, mp, nn = pred.shape[0], pred.shape[1], f.kk, f.mp, f.nn
+    if kk >= mp:
+        return pred, np.broadcast_to(np.arange(mp), (c, b, mp))
+    d = pred - xw[:, :, None]
+    np.abs(d, out=d)
+    sad = (d.reshape(-1, nn) @ np.ones(nn)).reshape(c, b, mp)
+    sad += np.sqrt(f.lam) * mbits[..., :mp]
+    cand = np.argpartition(sad, kk - 1, axis=-1)[..., :kk]
+    rows = (np.arange(c * b).reshape(c, b, 1) * mp + cand).ravel()
+    return pred.reshape(-1, nn)[rows].reshape(c, b, kk, nn), cand
+
+
+def _code_waves(f: SimpleNamespace, channels: int, inter: SimpleNamespace | None):
+    """Code the blocks wave by wave, each block and channel with its mode of least RD cost:
+    (modes (C, nblk + 1) in wave order, zigzag levels (C, nblk, S, 16), cost (C,), the
+    padded reconstruction)."""
+    c, g, nm, mp, kk, lam = f.c, f.g, f.ms.n_modes, f.mp, f.kk, f.lam
     modes = np.full((c, g.n_blocks + 1), nm, np.int64)  # wave order; the last column: "no block above"
-    pos = np.empty_like(o)
-    pos[o] = np.arange(len(o))
+    pos = np.empty_like(f.o)
+    pos[f.o] = np.arange(len(f.o))
     nbx = g.shape[1]
-    above = np.where(o >= nbx, pos[np.maximum(o - nbx, 0)], g.n_blocks)  # wave position of the block above
+    above = np.where(f.o >= nbx, pos[np.maximum(f.o - nbx, 0)], g.n_blocks)  # wave position of the block above
     chan = (np.arange(c) % channels)[:, None]
     mcnt = np.ones((c, entropy.n_mode_contexts(channels, nm), nm))  # running mode statistics per context
-    sad_lam = np.sqrt(lam)  # SAD + sqrt(lambda) R for the pre-selection (H.264 reference encoder)
-    zlev = np.zeros((c, g.n_blocks, s_sub, 16))  # levels, zigzag order
-    mvs = np.zeros((c, g.n_blocks, 2), np.int64)
+    zlev = np.zeros((c, g.n_blocks, f.s_sub, 16))  # levels, zigzag order
     cost = np.zeros(c)
-    buf = np.full(xpad.shape, float(MID))
+    buf = np.full(f.xpad.shape, float(MID))
     cidx = np.arange(c)[:, None]
     for s, e in g.bounds:
         b = e - s
-        nb = buf[:, nbo[s:e]]  # (C, b, K)
-        if n == 8:  # HIP 8x8 modes predict from the filtered samples (exact: floor of quarters)
-            nbf = np.floor(nb.reshape(-1, nb.shape[-1]) @ f8 + 0.5)
-            pred = np.concatenate([nbf @ wmat[:, :9 * nn], nb.reshape(-1, nb.shape[-1]) @ wmat[:, 9 * nn:]], 1)
-            pred = pred.reshape(c, b, mp, nn)
-        else:
-            pred = (nb.reshape(-1, nb.shape[-1]) @ wmat).reshape(c, b, mp, nn)  # scaled, unrounded
-        if n == 16:
-            pred[:, :, 3] = intra.plane16(nb.astype(np.int64))[..., perm]
-        if ms.pvm:
-            pred[:, :, ms.n_spatial:] += maps[:, s:e]
-        xw = xs[:, s:e]
+        xw = f.xs[:, s:e]
         bidx = np.arange(b)[None, :]
         ctx = entropy.mode_ctx(modes[:, above[s:e]], chan, nm)
         cnt = mcnt[cidx, ctx]  # (C, b, nm)
         mbits = np.log2(cnt.sum(-1, keepdims=True)) - np.log2(cnt)  # adaptive mode cost estimate
-        if kk < mp:  # prune to the kk modes of least SAD (+ mode cost) before the full RD test
-            d = pred - xw[:, :, None]
-            np.abs(d, out=d)
-            sad = (d.reshape(-1, nn) @ ones).reshape(c, b, mp)
-            sad += sad_lam * mbits[..., :mp]
-            cand = np.argpartition(sad, kk - 1, axis=-1)[..., :kk]
-            rows = (np.arange(c * b).reshape(c, b, 1) * mp + cand).ravel()
-            pred = pred.reshape(-1, nn)[rows].reshape(c, b, kk, nn)
-        else:
-            cand = np.broadcast_to(np.arange(mp), (c, b, mp))
+        pred, cand = _prune(f, _predict(f, buf[:, f.nbo[s:e]], s, e), xw, mbits)
         # the decoder's rounding and clipping, for the candidates only (Plane is integer already)
         pred += 0.5
         np.floor(pred, out=pred)
         np.clip(pred, 0, 65535, out=pred)
-        if lossless:
-            coef = (xw[:, :, None] - pred).reshape(c, b, kk, s_sub, 16)[..., ZIGZAG]
+        if f.lossless:
+            coef = (xw[:, :, None] - pred).reshape(c, b, kk, f.s_sub, 16)[..., ZIGZAG]
             z = np.abs(coef)
             j = lam * est_bits(z)
         else:
-            coef = fx[:, s:e, None] - fwd(pred)
-            z, j = quant(coef, wm[None, s:e, None])
+            coef = f.fx[:, s:e, None] - f.fwd(pred)
+            z, j = f.quant(coef, f.wm[None, s:e, None])
         j += lam * mbits.reshape(-1)[(np.arange(c * b).reshape(c, b, 1) * nm + cand)]
-        if ms.inter:
-            j = np.concatenate([j, (j_i[:, s:e] + lam * mbits[..., mp])[..., None]], -1)
+        if inter is not None:
+            j = np.concatenate([j, (inter.j[:, s:e] + lam * mbits[..., mp])[..., None]], -1)
         bl = np.argmin(j, -1)
         bi = np.minimum(bl, kk - 1)
         zc = np.copysign(z[cidx, bidx, bi], coef[cidx, bidx, bi])  # (C, b, S, 16) signed levels
-        if lossless:
-            r = x_rec = xw  # the residual is coded as is
+        if f.lossless:
+            r = xw  # the residual is coded as is
         else:
-            x_rec = pred[cidx, bidx, bi] + inv(zc)
+            x_rec = pred[cidx, bidx, bi] + f.inv(zc)
             r = np.clip(x_rec, 0, 65535, out=x_rec)
-        if ms.inter:
+        if inter is not None:
             is_i = bl == kk
-            r = np.where(is_i[..., None], rec_i[:, s:e], r)
-            zc = np.where(is_i[..., None, None], zc_i[:, s:e], zc)
+            r = np.where(is_i[..., None], inter.rec[:, s:e], r)
+            zc = np.where(is_i[..., None, None], inter.zc[:, s:e], zc)
             modes[:, s:e] = np.where(is_i, mp, cand[cidx, bidx, bi])
         else:
             modes[:, s:e] = cand[cidx, bidx, bi]
         np.add.at(mcnt, (np.broadcast_to(cidx, (c, b)), ctx, modes[:, s:e]), 4.0)
-        buf[:, pix[s:e]] = r
+        buf[:, f.pix[s:e]] = r
         zlev[:, s:e] = zc
         cost += j[cidx, bidx, bl].sum(1)
-    if n == 16:
-        zlev = zlev[:, :, np.argsort(sub_order(n))]  # sub-blocks back in raster order
-    levels = zlev.astype(np.int64)
-    if ms.inter:
-        is_inter = modes[:, :-1] == mp
-        mvs[is_inter] = mvs_all[is_inter]
-    inv = np.empty_like(o)
-    inv[o] = np.arange(len(o))  # back from wavefront order to raster block order
-    rec = unpadded(buf, h, w).astype(np.int64)
-    return modes[:, :-1][:, inv], levels[:, inv], mvs[:, inv], rec, cost
+    return modes, zlev, cost, buf
