@@ -108,6 +108,17 @@ def test_camera_drives_the_avatar_offline_and_matches_python(page_site, camera, 
             assert np.abs(crop - crops).max() <= 2 / 255
             assert np.array_equal(mask, masks)
             np.testing.assert_allclose(np.array(out["placement"]["data"]).reshape(1, 2, 3), placements, atol=1e-3)
+        # the interim retarget's shape clamp against Python's ShapeSpace.project (keep_eyes=False)
+        from facesynth.retarget import ShapeSpace
+        from facesynth.runtime.renderer import read_metadata
+
+        space = ShapeSpace.from_dict(read_metadata(path)["shape_pca"])
+        space.keep_eyes = False
+        far = lm[0] + 4 * (lm[1] - lm[0])  # an expression four times as strong: clamped by up to ~44 px
+        assert np.abs(space.project(far) - far).max() > 10
+        for x in (lm[0], far):
+            got = np.array(page.evaluate("(a) => window.facesynth.projectShape(a)", x.ravel().tolist())).reshape(-1, 2)
+            np.testing.assert_allclose(got, space.project(x), atol=2e-3)
     assert blocked == []
 
 

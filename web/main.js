@@ -28,10 +28,45 @@ function toScheme(points, scheme, schemes) {
 const EYE_CORNERS = { ibug68: [36, 45], mediapipe478: [33, 263] };
 const dist = (p, a, b) => Math.hypot(p[2 * a] - p[2 * b], p[2 * a + 1] - p[2 * b + 1]);
 
+// The avatar's shape PCA ({mean (2P), components (K, 2P), limit (K)}, metadata shape_pca): the
+// nearest model shape with parameters clamped to +-limit, in the shape's own frame. Python's
+// retarget.ShapeSpace.project with keep_eyes=False (the eyes are clamped with the rest).
+function projectShape(x, pca) {
+  const n = x.length / 2, mean = pca.mean, comps = pca.components, lim = pca.limit;
+  let mx = 0, my = 0, ux = 0, uy = 0;
+  for (let i = 0; i < n; i++) { mx += x[2 * i] / n; my += x[2 * i + 1] / n; ux += mean[2 * i] / n; uy += mean[2 * i + 1] / n; }
+  let var_ = 0, ca = 0, sa = 0;
+  for (let i = 0; i < n; i++) {
+    const xc = x[2 * i] - mx, yc = x[2 * i + 1] - my, mcx = mean[2 * i] - ux, mcy = mean[2 * i + 1] - uy;
+    var_ += xc * xc + yc * yc; ca += xc * mcx + yc * mcy; sa += xc * mcy - yc * mcx;
+  }
+  var_ = var_ || 1; ca /= var_; sa /= var_;
+  const al = new Float64Array(2 * n);
+  for (let i = 0; i < n; i++) {
+    const xc = x[2 * i] - mx, yc = x[2 * i + 1] - my;
+    al[2 * i] = ca * xc - sa * yc + ux; al[2 * i + 1] = sa * xc + ca * yc + uy;
+  }
+  const rec = Float64Array.from(al);
+  for (let k = 0; k < lim.length; k++) {
+    const c = comps[k];
+    let b = 0;
+    for (let j = 0; j < 2 * n; j++) b += (al[j] - mean[j]) * c[j];
+    const ex = Math.max(b - lim[k], 0) + Math.min(b + lim[k], 0);
+    if (ex) for (let j = 0; j < 2 * n; j++) rec[j] -= ex * c[j];
+  }
+  const nn = ca * ca + sa * sa, out = new Float32Array(2 * n);
+  for (let i = 0; i < n; i++) {
+    const rx = rec[2 * i] - ux, ry = rec[2 * i + 1] - uy;
+    out[2 * i] = (ca * rx + sa * ry) / nn + mx; out[2 * i + 1] = (-sa * rx + ca * ry) / nn + my;
+  }
+  return out;
+}
+
 // The avatar graph: driver landmarks (P, 2) + driver neutral (P, 2) -> the avatar's frame.
 // INTERIM: until the exported full-frame talking-head graph exists, this class stands in for it
 // with the face-only synthesis graph (landmarks -> crop, mask, placement), a relative-motion
-// retarget (avatar neutral + scale x (driver - driver neutral)) and a canvas composite of the
+// retarget (avatar neutral + scale x (driver - driver neutral), projected on the avatar's shape PCA
+// with clamped parameters) and a canvas composite of the
 // crop into the avatar's neutral frame. Swapping in the full graph replaces run() with one
 // session.run on (driver, neutral) and drawing its frame output.
 class InterimAvatarGraph {
@@ -64,7 +99,8 @@ class InterimAvatarGraph {
   retarget(driver, driverNeutral) {
     const d = toScheme(driver, this.scheme, this.schemes), dn = toScheme(driverNeutral, this.scheme, this.schemes);
     const [a, b] = EYE_CORNERS[this.scheme], s = dist(this.neutral, a, b) / dist(dn, a, b);
-    return this.neutral.map((v, i) => v + s * (d[i] - dn[i]));
+    const x = this.neutral.map((v, i) => v + s * (d[i] - dn[i]));
+    return this.meta.shape_pca ? projectShape(x, this.meta.shape_pca) : x;
   }
 
   async run(driver, driverNeutral, ctx) {
@@ -129,6 +165,8 @@ window.facesynth.track = async (width, height, frames) => {
   w.terminate();
   return out;
 };
+
+window.facesynth.projectShape = (flat) => Array.from(projectShape(Float32Array.from(flat), state.avatar.meta.shape_pca));
 
 function captureNeutral() {
   state.neutral = null; state.neutralSamples = []; state.neutralStart = null;
