@@ -96,3 +96,15 @@ def test_wheel_installed_outside_the_checkout_trains_exports_renders_and_batches
     figures = json.loads(out.stdout.strip().splitlines()[-1])
     assert (figures["ok"], figures["failed"]) == (1, 0)
     assert (work / "b" / "synth" / "model.onnx").is_file()
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("entry", [["-m", "facesynth", "train"], [str(ROOT / "train.py")]])
+def test_train_entry_points_are_one_app(entry, tmp_path):
+    """``facesynth train`` and ``python train.py``: the same help, and a bad option is exit 2."""
+    out = subprocess.run([sys.executable, *entry, "--help"], cwd=tmp_path, capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0 and out.stdout.startswith("facesynth train [OVERRIDE ...]")
+    assert "experiment: " in out.stdout and "regressor: krr, linear, mlp, poly2, svr" in out.stdout
+    bad = subprocess.run([sys.executable, *entry, "regressor=nope"], cwd=tmp_path, capture_output=True, text=True, timeout=120)
+    assert bad.returncode == 2 and "Could not find 'regressor/nope'" in bad.stderr
+    assert not (tmp_path / "runs").exists()
