@@ -186,7 +186,7 @@ def test_app_writes_video_matching_torch(model_path, tmp_path):
     frames = _read_video(out)
     assert len(frames) == 8 and frames[0].shape == (220, 480, 3)
     assert cv2.imread(str(sheet)) is not None
-    # the frames the app encodes equal the torch renderer + composite (before lossy encoding)
+    # the frames the app encodes equal the torch synthesizer + composite (before lossy encoding)
     bg = np.full((220, 240, 3), 128, np.uint8)
     ours = list(render_frames(Renderer(model_path), lm, bg))
     np.testing.assert_array_equal(ours[3], bg)

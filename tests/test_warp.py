@@ -71,7 +71,7 @@ def test_to_target_matches_opencv_and_covers_the_face(ref, rng):
     with torch.no_grad():
         img, mask = render(tex, torch.from_numpy(target)[None])
     ours = img[0].permute(1, 2, 0).numpy()
-    # the renderer extends the texture beyond the mask with nearest-pixel values; give OpenCV the same
+    # the target warp extends the texture beyond the mask with nearest-pixel values; give OpenCV the same
     filled = tex[0].T.numpy()[render.fill_index.numpy()].reshape(*ref.size, 3)
     cv, ids = _opencv_piecewise(filled, ref.points, target, ref.triangles, ref.size)
     inside = ids >= 0
