@@ -54,6 +54,14 @@ def _wheel_venv(tmp: Path) -> Path:
 
 @pytest.mark.slow
 def test_wheel_installed_outside_the_checkout_trains_exports_renders_and_batches(tmp_path):
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        backend = int(version("setuptools").split(".")[0])
+    except PackageNotFoundError:
+        backend = 0
+    if backend < 77:
+        pytest.skip("building the wheel without isolation needs setuptools >= 77 (the 'test' extra installs it)")
     bin_dir = _wheel_venv(tmp_path)
     work = tmp_path / "work"
     work.mkdir()
