@@ -84,3 +84,38 @@ def test_build_writes_the_page(tmp_path, monkeypatch):
         assert (out / f).is_file(), f
     assert json.loads((out / "site.json").read_text())["avatar"] == "avatar.onnx"
     assert (out / "avatar.onnx").read_bytes() == model.read_bytes()
+
+
+def test_serve_prints_the_url_and_serves_the_page(tmp_path):
+    """``facesynth serve`` in a subprocess: one line with the 127.0.0.1 URL, the page and its
+    headers there; SIGTERM stops it and removes the page's temporary folder."""
+    import os
+    import signal
+    import subprocess
+    import sys
+
+    pytest.importorskip("tflite")
+    pytest.importorskip("mediapipe")
+    try:
+        site.ort_dist()
+    except Exception as exc:
+        pytest.skip(str(exc))
+    model = tmp_path / "avatar.onnx"
+    _tiny_onnx(model, {"format": SYNTHESIS_FORMAT, "landmark_scheme": "ibug68"})
+    (tmp_path / "tmp").mkdir()
+    env = {**os.environ, "XDG_CACHE_HOME": str(tmp_path / "cache"), "TMPDIR": str(tmp_path / "tmp")}
+    proc = subprocess.Popen([sys.executable, "-m", "facesynth", "serve", str(model), "--port", "0"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    try:
+        line = proc.stdout.readline()
+        assert line.startswith("open http://127.0.0.1:"), line + proc.stderr.read()
+        url = line.split()[1]
+        with urllib.request.urlopen(url) as r:
+            assert b"facesynth live" in r.read()
+            assert r.headers["Cross-Origin-Embedder-Policy"] == "require-corp"
+        with urllib.request.urlopen(url + "avatar.onnx") as r:
+            assert r.read() == model.read_bytes()
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        proc.wait(timeout=30)
+    assert list((tmp_path / "tmp").glob("facesynth-web-*")) == []
