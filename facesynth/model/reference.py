@@ -94,7 +94,7 @@ class ReferenceFrame:
 AUTO_WIDTH = (128, 256, 16)
 """``reference_width=auto``: the range (lowest, highest) and the step (px) of the width. 128 is
 the fixed default; above 256 the exported model's batch-1 speed falls below 150 frames/s
-(docs/sadm.md, issue 28 section)."""
+(docs/sadm.md, "Reference frame size")."""
 
 
 def reference_width(setting, landmarks: np.ndarray) -> int:
