@@ -16,7 +16,10 @@ blocks every request off 127.0.0.1, waits for the first avatar frame, then measu
 * ``page_mb``: the renderer process's resident memory (VmRSS) at the end, ``page_anon_mb`` its
   own (RssAnon: without shared libraries and files);
 * ``offline``: no request left 127.0.0.1; ``python_avatar_ms``: Python ONNX Runtime, one
-  thread, the same model on the avatar's neutral landmarks, median of 200 runs in this process.
+  thread, the same model on the avatar's neutral landmarks, median of 200 runs in this process;
+  ``avatar_alone_ms``: the page's synthesis graph on the same landmarks with the tracker paused
+  (median of 100, ``performance.now()``), and ``avatar_vs_python`` their ratio (the live
+  ``avatar_ms`` runs beside the tracker and includes the interim retarget).
 
     PYTHONPATH=. python bench/bench_web.py --model M.onnx --video CLIP.mp4 [--seconds 10]
 
@@ -155,6 +158,16 @@ def main() -> None:
             renderer = max(renderers, key=lambda r: sum(c1[r].values()) - sum(c0[r].values()))  # the page's
             c0, c1 = c0[renderer], c1[renderer]
             mem = memory_mb(renderer)
+            # the avatar graph alone (tracking paused), on the avatar's neutral: the ratio to Python
+            page.evaluate("window.facesynth.state.ready = false")
+            time.sleep(0.5)
+            alone = page.evaluate("""async (n) => {
+                const a = window.facesynth.state.avatar, x = a.neutral, t = [];
+                for (let i = 0; i < 10; i++) await a.synthesize(x);
+                for (let i = 0; i < n; i++) { const t0 = performance.now(); await a.synthesize(x); t.push(performance.now() - t0); }
+                t.sort((p, q) => p - q);
+                return t[n >> 1];
+            }""", 100)
             errors = [m["text"] for m in st["messages"] if m["error"]]
     n = max(f1 - f0, 1)
     d = {k: (c1.get(k, 0.0) - c0.get(k, 0.0)) * 1e3 / n for k in c1}
@@ -178,7 +191,8 @@ def main() -> None:
         "cpu_flags": sorted(cpu_flags(Path("/proc/cpuinfo").read_text()) & {"avx2", "avx512_vnni", "avx_vnni"}),
         "load_avg": os.getloadavg()[0],
     }
-    out["avatar_vs_python"] = round(out["avatar_ms"]["wall"] / out["python_avatar_ms"], 2) if out["avatar_ms"]["wall"] else None
+    out["avatar_alone_ms"] = round(alone, 3)
+    out["avatar_vs_python"] = round(alone / out["python_avatar_ms"], 2)
     print(json.dumps(out))
 
 

@@ -183,6 +183,7 @@ const recent = (arr, v) => { arr.push(v); if (arr.length > 300) arr.shift(); };
 
 async function onPoints(msg) {
   state.busy = false;
+  sendFrame();
   recent(state.trackerMs, msg.ms);
   window.facesynth.lastStage = msg.stage;
   if (!msg.points) {
@@ -202,6 +203,21 @@ async function onPoints(msg) {
     return;
   }
   if (!state.avatar) return;
+  state.latest = msg;  // one avatar run at a time, on the newest points (older ones are dropped)
+  if (state.rendering) return;
+  state.rendering = true;
+  try {
+    while (state.latest) {
+      const m = state.latest;
+      state.latest = null;
+      await renderAvatar(m);
+    }
+  } finally {
+    state.rendering = false;
+  }
+}
+
+async function renderAvatar(msg) {
   const r = await state.avatar.run(msg.points, state.neutral, state.ctx);
   recent(state.avatarMs, r.avatarMs); recent(state.compositeMs, r.compositeMs);
   const now = performance.now();
@@ -214,16 +230,25 @@ async function onPoints(msg) {
     `(tracker ${avg(state.trackerMs)}, avatar ${avg(state.avatarMs)}, composite ${avg(state.compositeMs)} ms)`;
 }
 
+// Send the camera's newest frame to the tracker when it is idle and the frame is new. Called when
+// the camera has a frame (requestVideoFrameCallback, or each animation frame where that is
+// missing) and as soon as the tracker answers, before the avatar renders the answer: the tracker
+// works on frame n + 1 while the page renders frame n.
+function sendFrame() {
+  const v = $('camera');
+  if (!state.ready || state.busy || v.readyState < 2 || v.currentTime === state.lastTime) return;
+  state.lastTime = v.currentTime;
+  state.busy = true;
+  const t = performance.now();
+  createImageBitmap(v).then((bitmap) => state.worker.postMessage({ type: 'frame', bitmap, t }, [bitmap]))
+    .catch(() => { state.busy = false; });
+}
+
 function pump() {
   const v = $('camera');
-  if (state.ready && !state.busy && v.readyState >= 2 && v.currentTime !== state.lastTime) {
-    state.lastTime = v.currentTime;
-    state.busy = true;
-    const t = performance.now();
-    createImageBitmap(v).then((bitmap) => state.worker.postMessage({ type: 'frame', bitmap, t }, [bitmap]))
-      .catch(() => { state.busy = false; });
-  }
-  requestAnimationFrame(pump);
+  sendFrame();
+  if (v.requestVideoFrameCallback) v.requestVideoFrameCallback(pump);
+  else requestAnimationFrame(pump);
 }
 
 async function startCamera() {
