@@ -14,7 +14,9 @@ blocks every request off 127.0.0.1, waits for the first avatar frame, then measu
 * ``e2e_fps``: rendered avatar frames per second of wall time; ``frames``: frames rendered;
 * ``load_s``: page open -> first avatar frame (includes the ~1 s neutral capture, ``neutral_s``);
 * ``page_mb``: the renderer process's resident memory (VmRSS) at the end, ``page_anon_mb`` its
-  own (RssAnon: without shared libraries and files);
+  own (RssAnon: without shared libraries and files), ``page_js_mb`` the page's and its worker's
+  JavaScript and WebAssembly memory (``performance.measureUserAgentSpecificMemory``, which the
+  page's cross-origin isolation allows; Chromium may delay its answer by up to ~20 s);
 * ``offline``: no request left 127.0.0.1; ``python_avatar_ms``: Python ONNX Runtime, one
   thread, the same model on the avatar's neutral landmarks, median of 200 runs in this process;
   ``avatar_alone_ms``: the page's synthesis graph on the same landmarks with the tracker paused
@@ -143,7 +145,8 @@ def main() -> None:
         page_bytes = sum(p.stat().st_size for p in folder.rglob("*") if p.is_file())
         y4m = tmp / "cam.y4m"
         browser.write_y4m(args.video, y4m, args.frames, size)
-        with browser.served(folder) as url, browser.browser_page(y4m, extra_args=[marker]) as (page, blocked):
+        with browser.served(folder) as url, browser.browser_page(
+                y4m, extra_args=[marker, "--enable-blink-features=ForceEagerMeasureMemory"]) as (page, blocked):
             t0 = time.perf_counter()
             page.goto(url)
             page.wait_for_function("window.facesynth && window.facesynth.state.frames >= 1", timeout=120_000)
@@ -158,6 +161,8 @@ def main() -> None:
             renderer = max(renderers, key=lambda r: sum(c1[r].values()) - sum(c0[r].values()))  # the page's
             c0, c1 = c0[renderer], c1[renderer]
             mem = memory_mb(renderer)
+            js_mb = page.evaluate("""async () => crossOriginIsolated && performance.measureUserAgentSpecificMemory
+                ? (await performance.measureUserAgentSpecificMemory()).bytes / 2 ** 20 : null""")
             # the avatar graph alone (tracking paused), on the avatar's neutral: the ratio to Python
             page.evaluate("window.facesynth.state.ready = false")
             time.sleep(0.5)
@@ -184,7 +189,8 @@ def main() -> None:
         "chromium_cpu_ms": round((p1 - p0) * 1e3 / n, 2),
         "e2e_fps": round((f1 - f0) / (w1 - w0), 2), "frames": f1,
         "load_s": round(st["firstFrameMs"] / 1e3, 2), "neutral_s": 1.0, "open_s": round(w0 - t0, 2),
-        "page_mb": mem.get("VmRSS"), "page_anon_mb": mem.get("RssAnon"), "site_mb": round(page_bytes / 2**20, 1),
+        "page_mb": mem.get("VmRSS"), "page_anon_mb": mem.get("RssAnon"),
+        "page_js_mb": round(js_mb, 1) if js_mb is not None else None, "site_mb": round(page_bytes / 2**20, 1),
         "offline": not blocked, "blocked": blocked[:5], "errors": errors,
         "python_avatar_ms": round(python_avatar_ms(args.model), 3),
         "busiest_threads_ms": dict(sorted(((k, round(v, 2)) for k, v in d.items()), key=lambda kv: -kv[1])[:6]),
