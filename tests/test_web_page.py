@@ -108,9 +108,13 @@ def test_camera_drives_the_avatar_offline_and_matches_python(page_site, camera, 
             assert np.abs(crop - crops).max() <= 2 / 255
             assert np.array_equal(mask, masks)
             np.testing.assert_allclose(np.array(out["placement"]["data"]).reshape(1, 2, 3), placements, atol=1e-3)
-        # the interim retarget's shape clamp against Python's ShapeSpace.project (keep_eyes=False)
+        # the page reads the .onnx metadata itself (onnxmeta.js): the same as ONNX Runtime's in Python
         from facesynth.retarget import ShapeSpace
         from facesynth.runtime.renderer import read_metadata
+
+        assert page.evaluate("window.facesynth.state.avatar.meta") == read_metadata(path)
+
+        # the interim retarget's shape clamp against Python's ShapeSpace.project (keep_eyes=False)
 
         space = ShapeSpace.from_dict(read_metadata(path)["shape_pca"])
         space.keep_eyes = False
