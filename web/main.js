@@ -111,13 +111,14 @@ class InterimAvatarGraph {
     return { avatarMs: t1 - t0, compositeMs: performance.now() - t1 };
   }
 
-  composite(out, ctx) {  // INTERIM composite: the crop (alpha = mask) drawn through its placement
-    const crop = out.crop, [, C, H, W] = crop.dims, c = crop.data, m = out.mask.data, p = out.placement.data;
+  composite(out, ctx) {  // INTERIM composite: the crop drawn through its placement, feathered mask
+    const crop = out.crop, [, C, H, W] = crop.dims, c = crop.data, p = out.placement.data;
     if (!this.face || this.face.width !== W || this.face.height !== H) { this.face = new OffscreenCanvas(W, H); this.fctx = this.face.getContext('2d'); this.rgba = new ImageData(W, H); }
+    const alpha = featherMask(out.mask.data, W, H, Math.sqrt(Math.abs(p[0] * p[4] - p[1] * p[3])));
     const px = this.rgba.data, hw = H * W;
     for (let i = 0; i < hw; i++) {
       for (let k = 0; k < 3; k++) px[4 * i + k] = c[(C === 3 ? k : 0) * hw + i] * 255 + 0.5;
-      px[4 * i + 3] = m[i] > 0.5 ? 255 : 0;
+      px[4 * i + 3] = alpha[i] * 255 + 0.5;
     }
     this.fctx.putImageData(this.rgba, 0, 0);
     ctx.setTransform(1, 0, 0, 1, 0, 0);
@@ -126,6 +127,51 @@ class InterimAvatarGraph {
     ctx.drawImage(this.face, 0, 0);
     ctx.setTransform(1, 0, 0, 1, 0, 0);
   }
+}
+
+// 1-D min (erosion; the outside does not erode, as OpenCV's default) or box mean (zeros outside,
+// a running sum) over a window of radius r, along rows (stride 1) or columns (stride W)
+function filter1d(src, W, H, r, horizontal, op) {
+  const out = new Float32Array(src.length);
+  const n = horizontal ? W : H, lines = horizontal ? H : W, step = horizontal ? 1 : W, lineStep = horizontal ? W : 1;
+  for (let l = 0; l < lines; l++) {
+    const o = l * lineStep;
+    if (op === 'mean') {
+      let acc = 0;
+      for (let j = 0; j < Math.min(r, n); j++) acc += src[o + j * step];
+      for (let i = 0; i < n; i++) {
+        if (i + r < n) acc += src[o + (i + r) * step];
+        if (i - r - 1 >= 0) acc -= src[o + (i - r - 1) * step];
+        out[o + i * step] = acc / (2 * r + 1);
+      }
+    } else {
+      for (let i = 0; i < n; i++) {
+        let acc = 1;
+        const j1 = Math.min(n - 1, i + r);
+        for (let j = Math.max(0, i - r); j <= j1 && acc > 0; j++) acc = Math.min(acc, src[o + j * step]);
+        out[o + i * step] = acc;
+      }
+    }
+  }
+  return out;
+}
+
+// The mask's soft edge, as facesynth.runtime.blend.blend_face makes it (approximately): a seam of
+// f = max(2, 4 % of the face's size) frame pixels (crop pixels / scale), the mask eroded by f and
+// blurred (two box blurs ~ a Gaussian of sigma f / 2), kept inside the hard mask. (H*W) in [0, 1].
+function featherMask(mask, W, H, scale) {
+  const hard = new Float32Array(W * H);
+  let x0 = W, x1 = -1, y0 = H, y1 = -1;
+  for (let y = 0; y < H; y++) for (let x = 0; x < W; x++) {
+    if (mask[y * W + x] > 0.5) { hard[y * W + x] = 1; x0 = Math.min(x0, x); x1 = Math.max(x1, x); y0 = Math.min(y0, y); y1 = Math.max(y1, y); }
+  }
+  if (x1 < 0) return hard;
+  const f = Math.max(2, 0.04 * Math.max(x1 - x0, y1 - y0) * scale) / scale, r = Math.max(1, Math.ceil(f));
+  let a = filter1d(filter1d(hard, W, H, r, true, 'min'), W, H, r, false, 'min');
+  const b = Math.max(1, Math.round((f / 2) * Math.sqrt(3) / Math.SQRT2));  // two boxes: sigma^2 = 2 (b^2 + b) / 3
+  for (let k = 0; k < 2; k++) a = filter1d(filter1d(a, W, H, b, true, 'mean'), W, H, b, false, 'mean');
+  for (let i = 0; i < a.length; i++) a[i] *= hard[i];
+  return a;
 }
 
 async function loadAvatar(buffer, name) {
