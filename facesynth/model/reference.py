@@ -93,8 +93,9 @@ class ReferenceFrame:
 
 AUTO_WIDTH = (128, 256, 16)
 """``reference_width=auto``: the range (lowest, highest) and the step (px) of the width. 128 is
-the fixed default; above 256 the exported model's batch-1 speed falls below 150 frames/s
-(docs/sadm.md, "Reference frame size")."""
+the fixed default; 256 holds 4x its pixels and was the widest measured (training peak memory
+2.7-3.0 GB, the exported model 326-395 frames/s at batch 1 on one thread: docs/sadm.md,
+"Reference frame size")."""
 
 
 def reference_width(setting, landmarks: np.ndarray) -> int:
