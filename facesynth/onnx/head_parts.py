@@ -1,0 +1,321 @@
+"""The torch (exportable) forms of the talking head's numpy steps, for
+:mod:`facesynth.onnx.talking_head`:
+
+* :class:`RetargetGraph`: :class:`facesynth.retarget.Retargeter` (relative motion) and
+  :meth:`facesynth.retarget.ShapeSpace.project`, with the driver's neutral a graph input
+  (its FAP units, face axes and rigid-point fits are computed in the graph);
+* :class:`FrameWarpGraph`: :class:`facesynth.runtime.fullframe.FrameWarp` (affine), the
+  control points' motion and the piecewise-affine warp of the neutral frame by
+  :class:`facesynth.model.warp.ToTarget`'s scanline coverage counting over the whole frame;
+* :class:`SeamGraph`: :func:`facesynth.runtime.blend.blend_face` with a fixed feather.
+
+ibug68 landmarks only (the full-frame warp's control points are placed on them).
+"""
+
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+import torch
+from torch import nn
+from torch.nn import functional as F
+
+from facesynth.faps import FAPU_NAMES, FEATURE_POINTS, RIGID_POINTS, face_axes, fapu
+from facesynth.landmarks import IBUG68
+from facesynth.model.warp import invert_affine_t, similarity_to, to_grid
+from facesynth.model.warp_target import ToTarget
+from facesynth.ops import pad_by_tensor
+from facesynth.retarget import POINT_UNITS, ShapeSpace, eye_patches, eyelid_pairs
+from facesynth.runtime.fullframe import HEAD_POINTS, FrameWarp
+
+
+def _const(x) -> torch.Tensor:
+    return torch.as_tensor(np.asarray(x, np.float32))
+
+
+def _apply(points: torch.Tensor, lin: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+    """(B, K, 2) points through (B, 2, 2) linear parts and (B, 2) translations."""
+    return torch.matmul(points, lin.transpose(1, 2)) + t.unsqueeze(1)
+
+
+def _scatter(index: list[int], n: int) -> torch.Tensor:
+    """(n, len(index)) 0/1 matrix putting rows at ``index`` (a MatMul instead of ScatterND)."""
+    m = np.zeros((n, len(index)), np.float32)
+    m[index, np.arange(len(index))] = 1.0
+    return torch.from_numpy(m)
+
+
+def _similarity(ca: torch.Tensor, sa: torch.Tensor) -> torch.Tensor:
+    """(B,) scale-cos, scale-sin -> (B, 2, 2) [[ca, -sa], [sa, ca]]."""
+    return torch.stack([torch.stack([ca, -sa], -1), torch.stack([sa, ca], -1)], 1)
+
+
+class RetargetGraph(nn.Module):
+    """Driver landmarks (B, 68, 2) and the driver's neutral (68, 2) -> avatar landmarks
+    (B, 68, 2): the steps of :class:`facesynth.retarget.Retargeter` (relative motion, head
+    motion on) and the shape clamp of ``shape_space`` (eyelids kept)."""
+
+    def __init__(self, avatar_neutral: np.ndarray, shape_space: ShapeSpace | None):
+        super().__init__()
+        an = np.asarray(avatar_neutral, np.float64)
+        ids = list(FEATURE_POINTS)
+        fp = np.zeros((len(ids), len(an)))
+        for i, k in enumerate(ids):
+            fp[i, list(FEATURE_POINTS[k])] = 1.0 / len(FEATURE_POINTS[k])
+        # the feature points fapu and face_axes read: 3.5, 3.6, 9.15, 2.2, 8.3, 8.4, 3.1, 3.3, 3.2, 3.4
+        self.register_buffer("fp", _const(fp[[ids.index(k) for k in ("3.5", "3.6", "9.15", "2.2", "8.3", "8.4", "3.1",
+                                                                            "3.3", "3.2", "3.4")]]))
+        self.register_buffer("an", _const(an))
+        self.register_buffer("fapu_a", _const(fapu(an)))
+        self.register_buffer("axes_a", _const(face_axes(an)))
+        onehot = np.zeros((2, len(FAPU_NAMES), len(an)))  # ratio (5,) -> per-point scale (P,) of each axis
+        for ax in range(2):
+            onehot[ax, POINT_UNITS[:, ax], np.arange(len(an))] = 1.0
+        self.register_buffer("units", _const(onehot))
+        self.rigid = list(RIGID_POINTS)
+        self.register_buffer("an_rigid", _const(an[self.rigid]))
+        up, lo = eyelid_pairs(IBUG68)
+        self.lid_up, self.lid_lo = [int(i) for i in up], [int(i) for i in lo]
+        self.register_buffer("put_up", _scatter(self.lid_up, len(an)))
+        self.register_buffer("put_lo", _scatter(self.lid_lo, len(an)))
+        self.space = shape_space
+        if shape_space is not None:
+            s = shape_space
+            self.register_buffer("mu", _const(s._mu))
+            self.register_buffer("w", _const(s._w))
+            self.register_buffer("ct", _const(s._ct))
+            self.register_buffer("off", _const(s._off))
+            self.register_buffer("limit", _const(s.limit))
+            self.register_buffer("comp", _const(s.components))
+            self.eyes = [([int(i) for i in idx], int(c0), int(c1)) for idx, c0, c1 in eye_patches(IBUG68)]
+            for k, (idx, _, _) in enumerate(self.eyes):
+                self.register_buffer(f"put_eye{k}", _scatter(idx, len(an)))
+            self.keep_eyes = bool(s.keep_eyes)
+
+    def forward(self, driver: torch.Tensor, neutral: torch.Tensor) -> torch.Tensor:
+        f = torch.matmul(self.fp, neutral)  # (10, 2) feature points of the driver's neutral
+        xd = f[0] - f[1]
+        es = torch.sqrt((xd * xd).sum())
+        xd = xd / es
+        down = torch.stack([-xd[1], xd[0]])
+        pupils = 0.5 * (f[0] + f[1])
+        iris = 0.5 * (torch.sqrt(((f[6] - f[7]) ** 2).sum()) + torch.sqrt(((f[8] - f[9]) ** 2).sum()))
+        fapu_d = torch.stack([es, ((f[2] - pupils) * down).sum(), ((f[3] - f[2]) * down).sum(),
+                              torch.sqrt(((f[4] - f[5]) ** 2).sum()), iris]) / 1024.0
+        ratio = self.fapu_a / fapu_d  # (5,)
+        axes_d = torch.stack([xd, down])  # (2, 2) rows x, down
+        scale = torch.matmul(ratio, self.units).t()  # (P, 2) per point and driver axis
+        # e[p, i, k] = sum_j axes_d[j, i] scale[p, j] axes_a[j, k]
+        e0 = torch.matmul(scale * axes_d[:, 0], self.axes_a)  # (P, 2)
+        e1 = torch.matmul(scale * axes_d[:, 1], self.axes_a)
+        # head pose: similarity driver neutral -> frame on the rigid points
+        dn = neutral[self.rigid]
+        dn_mu = dn.mean(0)
+        dc = dn - dn_mu
+        r = driver[:, self.rigid]
+        r_mu = r.mean(1)
+        rc = r - r_mu.unsqueeze(1)
+        var = (dc * dc).sum()
+        ca = (rc * dc).sum((1, 2)) / var
+        sa = (rc[..., 1] * dc[:, 0] - rc[..., 0] * dc[:, 1]).sum(1) / var
+        lin = _similarity(ca, sa)  # (B, 2, 2)
+        t = r_mu - torch.matmul(lin, dn_mu)  # (B, 2)
+        inv_t = lin / (ca * ca + sa * sa)[:, None, None]
+        disp = torch.matmul(driver - t.unsqueeze(1), inv_t) - neutral
+        expr = self.an + disp[..., 0:1] * e0 + disp[..., 1:2] * e1
+        expr = self._lids_apart(expr)
+        # head motion C P C^-1 around the avatar's neutral placement
+        c = similarity_to(dn.unsqueeze(0), self.an_rigid)[0]  # (2, 3) driver -> avatar
+        c_lin, c_t = c[:, :2], c[:, 2]
+        det = c_lin[0, 0] * c_lin[1, 1] - c_lin[0, 1] * c_lin[1, 0]
+        c_inv = torch.stack([torch.stack([c_lin[1, 1], -c_lin[0, 1]]), torch.stack([-c_lin[1, 0], c_lin[0, 0]])]) / det
+        m_lin = torch.matmul(torch.matmul(c_lin, lin), c_inv)
+        m_t = torch.matmul(c_lin, (t - torch.matmul(lin, torch.matmul(c_inv, c_t))).unsqueeze(-1))[..., 0] + c_t
+        out = _apply(expr, m_lin, m_t)
+        return out if self.space is None else self._project(out)
+
+    def _lids_apart(self, expr: torch.Tensor) -> torch.Tensor:
+        down = self.axes_a[1]
+        up, lo = expr[:, self.lid_up], expr[:, self.lid_lo]
+        du, dl = (up * down).sum(-1, keepdim=True), (lo * down).sum(-1, keepdim=True)
+        cross = du > dl
+        mid = 0.5 * (du + dl)
+        d_up = torch.where(cross, (mid - du) * down, up * 0.0)
+        d_lo = torch.where(cross, (mid - dl) * down, lo * 0.0)
+        return expr + torch.matmul(self.put_up, d_up) + torch.matmul(self.put_lo, d_lo)
+
+    def _project(self, x: torch.Tensor) -> torch.Tensor:
+        n = x.shape[1]
+        mo = x.mean(1, keepdim=True)
+        xc = x - mo
+        var = (xc * xc).sum((1, 2))
+        ab = torch.matmul(xc.flatten(1), self.w) / var.unsqueeze(1)
+        ca, sa = ab[:, 0], ab[:, 1]
+        aligned = _apply(xc, _similarity(ca, sa), self.mu.expand_as(ab))
+        b = torch.matmul(aligned.flatten(1), self.ct) - self.off
+        excess = torch.clamp(b - self.limit, min=0.0) + torch.clamp(b + self.limit, max=0.0)
+        rec = aligned - torch.matmul(excess, self.comp).reshape(-1, n, 2)
+        if self.keep_eyes:
+            rec = self._restore_eyes(rec, aligned)
+        k = (ca * ca + sa * sa)
+        inv = _similarity(ca / k, -sa / k)
+        return torch.matmul(rec - self.mu, inv.transpose(1, 2)) + mo
+
+    def _restore_eyes(self, rec: torch.Tensor, before: torch.Tensor) -> torch.Tensor:
+        """Each eye's contour of ``before`` onto ``rec``'s corners (retarget._restore_local)."""
+        out = rec
+        for k, (idx, c0, c1) in enumerate(self.eyes):
+            s0, s1, d0, d1 = before[:, c0], before[:, c1], rec[:, c0], rec[:, c1]
+            ds, dd = s1 - s0, d1 - d0
+            n = (ds * ds).sum(-1)
+            kr = (dd[:, 0] * ds[:, 0] + dd[:, 1] * ds[:, 1]) / n  # k = dd / ds (complex)
+            ki = (dd[:, 1] * ds[:, 0] - dd[:, 0] * ds[:, 1]) / n
+            moved = _apply(before[:, idx] - s0.unsqueeze(1), _similarity(kr, ki), d0)
+            out = out + torch.matmul(getattr(self, f"put_eye{k}"), moved - rec[:, idx])
+        return out
+
+
+class _Mesh:
+    """The control points' triangulation in the neutral frame as ToTarget's reference frame
+    (every frame pixel is texture)."""
+
+    def __init__(self, points: np.ndarray, triangles: np.ndarray, size: tuple[int, int]):
+        self.points, self.triangles, self.size = points, triangles, size
+
+    def rasterise(self):
+        return np.zeros(self.size, np.int64), None
+
+
+class FrameWarpGraph(ToTarget):
+    """:class:`FrameWarp` (affine) as tensor ops: avatar landmarks (B, 68, 2) -> the warped
+    neutral frame (B, 3, H, W), float values 0..255 rounded to integers (as ``cv2.remap`` of
+    a uint8 frame). Pixels no warped triangle covers, or two cover (a fold), read their own
+    neutral pixel (FrameWarp: the face's side wins in an overlap)."""
+
+    def __init__(self, fw: FrameWarp):
+        w, h = fw.size
+        span = np.tile(np.array([[w, h]], np.int64), (len(fw.triangles), 1))  # every column: no clipped edge
+        super().__init__(_Mesh(fw.src, fw.triangles, (h, w)), span)
+        self.n_face = fw.n_face
+        self.register_buffer("neutral68", _const(fw.neutral68[HEAD_POINTS]))
+        extra = fw.src[fw.n_face:]
+        self.register_buffer("extra", _const(extra))
+        self.register_buffer("share", _const(fw._share))
+        ring = fw._ring.astype(np.float32)[:, None]
+        big = 1e9
+        self.register_buffer("lo_clip", _const(np.where(ring > 0, [[1.0, -big]], [[-big, -big]])))
+        self.register_buffer("hi_clip", _const(np.where(ring > 0, [[w - 2.0, h - 2.0]], [[big, big]])))
+        tex = np.pad(fw.frame.astype(np.float32), ((0, 1), (0, 1), (0, 0)), mode="edge")  # (H + 1, W + 1, 3)
+        self.register_buffer("texture", torch.from_numpy(np.ascontiguousarray(tex.transpose(2, 0, 1).reshape(3, 1, -1))))
+        self.register_buffer("quad", torch.tensor([0, 1, w + 1, w + 2]).reshape(4, 1, 1))
+        self.register_buffer("box_lo", torch.zeros(2))
+        self.register_buffer("box_hi", torch.tensor([float(w), float(h)]))
+        self.register_buffer("cols_f", torch.arange(w, dtype=torch.float32))
+        self.register_buffer("rows_f", torch.arange(h + 1, dtype=torch.float32))
+        self.register_buffer("uv_max", torch.tensor([float(w - 1), float(h - 1)]).reshape(1, 2, 1, 1))
+        self.tex_w = w + 1
+        # scanline coverage is half-open (a pixel centre on the frame's right or bottom edge
+        # belongs to no triangle): the border anchors are pushed half a pixel out for locating
+        # only, the affine maps stay the true triangles'
+        src = fw.src
+        out = np.zeros_like(src)
+        out[:, 0] = np.where(src[:, 0] == w - 1, 0.5, np.where(src[:, 0] == 0, -0.5, 0.0))
+        out[:, 1] = np.where(src[:, 1] == h - 1, 0.5, np.where(src[:, 1] == 0, -0.5, 0.0))
+        out[: fw.n_face] = 0.0
+        self.register_buffer("outward", _const(out))
+
+    def control_points(self, face: torch.Tensor) -> torch.Tensor:
+        """(B, 68, 2) -> (B, K, 2) (FrameWarp.control_points)."""
+        s = similarity_to(self.neutral68.unsqueeze(0).expand(face.shape[0], -1, -1), face[:, HEAD_POINTS])
+        moved = self.extra + self.share * (_apply(self.extra.unsqueeze(0), s[:, :, :2], s[:, :, 2]) - self.extra)
+        moved = torch.minimum(torch.maximum(moved, self.lo_clip), self.hi_clip)
+        return torch.cat([face, moved], 1)
+
+    def forward(self, face: torch.Tensor) -> torch.Tensor:  # noqa: D102  (a different signature from ToTarget's)
+        target = self.control_points(face)
+        vert, e, _ = self.coordinates(target)
+        maps, det = self.affine_maps(vert, e)
+        ed = self.coordinates(target + self.outward)[2]
+        lo, hi, cols, rows = self.box_lo, self.box_hi, self.cols_f, self.rows_f
+        s = self.locate(ed, det, lo, hi, cols, rows).unsqueeze(1)  # (B, 1, H, W)
+        u, v = self.source(maps, vert[:, :2], s, lo, hi, cols, rows[:-1])
+        none = s < self.code_base * 0.5
+        u = torch.where(none, cols + u * 0.0, u)
+        v = torch.where(none, rows[:-1].unsqueeze(1) + v * 0.0, v)
+        uv = torch.minimum(torch.clamp(torch.cat([u, v], 1), min=0.0), self.uv_max)  # border replicated
+        fl = torch.floor(uv)
+        fr = uv - fl
+        base = (fl[:, 1:2] * float(self.tex_w) + fl[:, 0:1]).to(torch.int64)  # (B, 1, H, W)
+        index = (base + self.quad).flatten(1)  # (B, 4 N)
+        wy = torch.cat([1.0 - fr[:, 1:2], fr[:, 1:2]], 1)
+        wx = torch.cat([1.0 - fr[:, 0:1], fr[:, 0:1]], 1)
+        weights = (wy.unsqueeze(2) * wx.unsqueeze(1)).flatten(1, 2)  # (B, 4, H, W)
+        out = []
+        for ch in range(3):
+            taps = torch.gather(self.texture[ch].expand(index.shape[0], -1), 1, index).reshape_as(weights)
+            out.append((taps * weights).sum(1, keepdim=True))
+        return torch.floor(torch.cat(out, 1) + 0.5)
+
+
+def gaussian_size(sigma: float) -> int:
+    """OpenCV's GaussianBlur kernel size for a float32 image and ``sigma`` (ksize 0)."""
+    return int(round(sigma * 8 + 1)) | 1
+
+
+class SeamGraph(nn.Module):
+    """:func:`facesynth.runtime.blend.blend_face` (colour matching on) with feather ``feather``
+    pixels: crop (B, C, Hc, Wc) in [0, 1], mask (B, 1, Hc, Wc), placement (B, 2, 3) and the
+    warped frame (B, 3, H, W) 0..255 -> (B, 3, H, W) 0..255 integer values. Works in the
+    bounding box of the batch's placed crops, as blend_face in each frame's."""
+
+    def __init__(self, feather: float, size: tuple[int, int]):
+        super().__init__()
+        w, h = size
+        self.feather = float(feather)
+        self.r = max(1, int(math.ceil(self.feather)))
+        k = gaussian_size(self.feather / 2)
+        g = cv2.getGaussianKernel(k, self.feather / 2, cv2.CV_32F).reshape(-1)
+        self.register_buffer("gx", torch.from_numpy(g.copy()).reshape(1, 1, 1, k))
+        self.register_buffer("gy", torch.from_numpy(g.copy()).reshape(1, 1, k, 1))
+        self.k = k
+        self.register_buffer("frame_max", torch.tensor([float(w), float(h)]))
+        self.register_buffer("zero2", torch.zeros(2))
+
+    @staticmethod
+    def _erode(x: torch.Tensor, r: int) -> torch.Tensor:
+        """Square (2r + 1) erosion of a {0, 1} (B, 1, h, w) map; the border does not erode (OpenCV's default)."""
+        x = -F.max_pool2d(-x, (1, 2 * r + 1), 1, (0, r))
+        return -F.max_pool2d(-x, (2 * r + 1, 1), 1, (r, 0))
+
+    def forward(self, crop: torch.Tensor, mask: torch.Tensor, placement: torch.Tensor, frame: torch.Tensor) -> torch.Tensor:
+        hc, wc = int(crop.shape[2]), int(crop.shape[3])
+        corners = torch.tensor([[0.0, 0.0], [wc, 0.0], [0.0, hc], [wc, hc]])
+        pc = _apply(corners.unsqueeze(0), placement[:, :, :2], placement[:, :, 2]).reshape(-1, 2)
+        lo = torch.clamp(torch.floor(pc.amin(0)) - 2.0, min=0.0)
+        hi = torch.minimum(torch.ceil(pc.amax(0)) + 2.0, self.frame_max)
+        hi = torch.maximum(hi, lo + 1.0)
+        xs, ys = torch.arange(lo[0], hi[0]), torch.arange(lo[1], hi[1])
+        grid = torch.stack([xs.unsqueeze(0) + ys.unsqueeze(1) * 0.0, ys.unsqueeze(1) + xs.unsqueeze(0) * 0.0], -1)
+        inv = invert_affine_t(placement)  # frame -> crop pixels
+        src = torch.matmul(grid.reshape(1, -1, 2), inv[:, :, :2].transpose(1, 2)) + inv[:, :, 2].unsqueeze(1)
+        src = to_grid(src, (hc, wc)).reshape(-1, ys.shape[0], xs.shape[0], 2)
+        if crop.shape[1] == 1:
+            crop = torch.cat([crop, crop, crop], 1)
+        placed = F.grid_sample(torch.cat([crop, mask], 1), src, mode="bilinear", padding_mode="zeros", align_corners=True)
+        face, hard = placed[:, :3], (placed[:, 3:] > 0.5).to(crop.dtype)
+        bg255 = frame.index_select(2, ys.to(torch.int64)).index_select(3, xs.to(torch.int64))
+        bg = bg255 / 255.0
+        inner = self._erode(hard, self.r)
+        band = hard * (1.0 - self._erode(hard, 2 * self.r))
+        n = band.sum((2, 3))  # (B, 1)
+        shift = ((bg - face) * band).sum((2, 3)) / torch.clamp(n, min=1.0)
+        face = face + torch.where(n > 20.0, shift, shift * 0.0)[:, :, None, None]
+        p = self.k // 2
+        a = F.conv2d(F.pad(inner, (p, p, 0, 0), mode="reflect"), self.gx)
+        alpha = F.conv2d(F.pad(a, (0, 0, p, p), mode="reflect"), self.gy) * hard
+        blended = alpha * torch.clamp(face, 0.0, 1.0) + (1.0 - alpha) * bg
+        box = torch.clamp(torch.floor(blended * 255.0 + 0.5), 0.0, 255.0)
+        pads = torch.cat([self.zero2, lo.flip(0), self.zero2, (self.frame_max - hi).flip(0)]).to(torch.int64)
+        return frame + pad_by_tensor(box - bg255, pads)

@@ -1,0 +1,121 @@
+"""The whole talking head as one ONNX graph (torch side; the runtime side is
+:class:`facesynth.runtime.talking_head.TalkingHead`, torch-free):
+
+    driver (B, 68, 2) frame px, driver_neutral (68, 2) -> frame (B, H, W, 3) uint8,
+                                                          avatar_landmarks (B, 68, 2)
+
+In between, the steps of the numpy reference pipeline (:class:`facesynth.runtime.Reenactor`
+with ``full_frame``, relative motion), each as tensor ops (:mod:`facesynth.onnx.head_parts`):
+the retargeting and shape clamp, the synthesis (:class:`SynthesisGraph`), the full-frame
+warp of the avatar's neutral frame (its control points and Delaunay triangles, taken from
+:class:`facesynth.runtime.fullframe.FrameWarp`) and the feathered, colour-matched seam.
+The feather is fixed at export (``feather`` metadata, pixels; by default
+:func:`facesynth.runtime.blend.seam_width` of the face's mask rendered at the avatar's
+neutral), where ``blend_face`` measures it per frame.
+
+Standard ONNX operators only (opset 18: Gather, GatherElements, ScatterElements, CumSum,
+MaxPool, Conv, Pad, GridSample, Range, ...), none outside ONNX Runtime Web's.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import warnings
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+from torch import nn
+
+from facesynth import __version__
+from facesynth.contract import OPSET
+from facesynth.errors import FacesynthError
+from facesynth.io import atomic_path
+from facesynth.onnx.head_parts import FrameWarpGraph, RetargetGraph, SeamGraph
+from facesynth.onnx.passes import int32_indices
+from facesynth.onnx.synthesis import SynthesisGraph
+from facesynth.runtime.blend import seam_width
+from facesynth.runtime.fullframe import FrameWarp
+from facesynth.runtime.reenact import Avatar
+from facesynth.runtime.talking_head import TALKING_HEAD_FORMAT
+
+INPUTS = ("driver", "driver_neutral")
+OUTPUTS = ("frame", "avatar_landmarks")
+
+
+class TalkingHeadGraph(nn.Module):
+    """Driver landmarks and the driver's neutral -> the composited avatar frame.
+
+    syn : Synthesizer (ibug68, 68 points); avatar : :class:`facesynth.runtime.reenact.Avatar`
+    (its neutral, shape PCA and neutral frame, from the model's metadata); feather : seam
+    width in pixels (default: :func:`default_feather`).
+
+    Forward: driver (B, 68, 2), neutral (68, 2) float32 -> frame (B, H, W, 3) uint8,
+    avatar landmarks (B, 68, 2) float32.
+    """
+
+    def __init__(self, syn, avatar: Avatar, feather: float | None = None):
+        super().__init__()
+        if getattr(syn, "scheme", "ibug68") != "ibug68" or syn.n_points != 68:
+            raise FacesynthError(f"talking-head graph: takes ibug68 models (68 points), not {syn.scheme} ({syn.n_points})")
+        frame = avatar.background
+        if avatar.neutral is None or frame is None:
+            raise FacesynthError(f"{avatar.where}: the talking-head graph needs the avatar's neutral and frame in the "
+                                 "metadata (re-export the model)")
+        self.synthesis = SynthesisGraph(syn.eval()).eval()
+        self.retarget = RetargetGraph(avatar.neutral, avatar.shape_space)
+        self.frame_warp = FrameWarpGraph(FrameWarp(frame, avatar.neutral))
+        self.feather = float(default_feather(self.synthesis, avatar.neutral, frame.shape[:2]) if feather is None else feather)
+        self.seam = SeamGraph(self.feather, (frame.shape[1], frame.shape[0]))
+
+    def forward(self, driver: torch.Tensor, neutral: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        face = self.retarget(driver, neutral)
+        crop, mask, placement = self.synthesis(face)
+        bg = self.frame_warp(face)
+        out = self.seam(crop, mask, placement, bg)
+        return out.permute(0, 2, 3, 1).to(torch.uint8), face
+
+
+def default_feather(synthesis: SynthesisGraph, neutral: np.ndarray, size: tuple[int, int]) -> float:
+    """:func:`seam_width` of the face's mask rendered at ``neutral`` (68, 2) and placed in a
+    frame of ``size`` (H, W)."""
+    with torch.no_grad():
+        _, mask, placement = synthesis(torch.from_numpy(np.asarray(neutral, np.float32)[None]))
+    h, w = size
+    placed = cv2.warpAffine(mask[0, 0].numpy(), placement[0].numpy().astype(np.float64), (w, h), flags=cv2.INTER_LINEAR)
+    return float(seam_width(placed > 0.5))
+
+
+def export_talking_head(syn, metadata: dict, path: str | os.PathLike, feather: float | None = None,
+                        opset: int = OPSET) -> Path:
+    """Export the talking head of ``syn`` with its avatar ``metadata`` (the synthesis file's:
+    ``avatar_neutral``, ``shape_pca``, ``background_jpeg``; :mod:`facesynth.onnx.avatar`) to
+    one ONNX file, written atomically. Returns the path."""
+    import onnx  # heavy: imported when a graph is written
+
+    path = Path(path)
+    graph = TalkingHeadGraph(syn, Avatar(metadata, str(path)), feather).eval()
+    n = np.asarray(metadata["avatar_neutral"], np.float32)
+    example = (torch.from_numpy(np.stack([n + 1.5, n * 1.01 - 2.0])), torch.from_numpy(n + 0.5))
+    h, w = graph.frame_warp.canvas
+    meta = {k: metadata[k] for k in ("avatar_neutral", "shape_pca", "background_jpeg", "landmark_scheme") if k in metadata}
+    meta.update({"facesynth_version": __version__, "format": TALKING_HEAD_FORMAT, "frame_size": [w, h],
+                 "feather": graph.feather, "opset": opset, "n_landmarks": 68})
+    with atomic_path(path) as tmp, warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the TorchScript exporter's deprecation and tracer warnings
+        with torch.no_grad():
+            torch.onnx.export(graph, example, str(tmp), input_names=list(INPUTS), output_names=list(OUTPUTS),
+                              dynamic_axes={"driver": {0: "batch"}, **{k: {0: "batch"} for k in OUTPUTS}},
+                              opset_version=opset, dynamo=False, do_constant_folding=True)
+        model = onnx.load(str(tmp))
+        meta["int32_index_gathers"] = int32_indices(model)
+        model.producer_name, model.producer_version = "facesynth", __version__
+        model.doc_string = "facesynth talking head: driver landmarks, driver neutral -> avatar frame"
+        for k, v in meta.items():
+            entry = model.metadata_props.add()
+            entry.key, entry.value = k, v if isinstance(v, str) else json.dumps(v)
+        onnx.checker.check_model(model)
+        onnx.save(model, str(tmp))
+    return path

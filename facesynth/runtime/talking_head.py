@@ -1,0 +1,78 @@
+"""The whole talking head in one ONNX graph, run torch-free
+(:mod:`facesynth.onnx.talking_head` writes the file)::
+
+    from facesynth.runtime.talking_head import TalkingHead
+    th = TalkingHead("head.onnx", driver_neutral=lm0)   # or None: chosen from the first frames
+    for lm in driver_landmarks:                         # (68, 2) driver frame pixels
+        frame, avatar_lm = th.step(lm)                  # uint8 (H, W, 3), float32 (68, 2)
+
+The graph computes what :class:`facesynth.runtime.Reenactor` computes with the full-frame
+warp and relative motion (retargeting, shape clamp, synthesis, warp of the avatar's neutral
+frame, feathered colour-matched seam with the file's fixed ``feather``); the driver's neutral
+is chosen as there when none is given.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+
+from facesynth.errors import FacesynthError
+from facesynth.neutral import select_neutral
+from facesynth.runtime.reenact import NEUTRAL_FRAMES
+from facesynth.runtime.renderer import _session, check_batch, read_metadata
+
+TALKING_HEAD_FORMAT = "facesynth-talking-head-1"
+
+
+class TalkingHead:
+    """Driver landmarks -> composited avatar frames, one ONNX Runtime call per batch.
+
+    path : the talking-head ONNX file; driver_neutral : (68, 2), optional; threads : ONNX
+    Runtime's intra-op threads; neutral_frames : frames collected to choose the driver's
+    neutral when none is given.
+    """
+
+    def __init__(self, path: str | os.PathLike, driver_neutral=None, threads: int = 1,
+                 neutral_frames: int = NEUTRAL_FRAMES):
+        self.path = Path(path)
+        self.session = _session(self.path, threads, False)
+        self.metadata = read_metadata(self.path)
+        if self.metadata.get("format") != TALKING_HEAD_FORMAT:
+            raise FacesynthError(f"{self.path}: not a talking-head graph (format {self.metadata.get('format')!r}, "
+                                 f"expected {TALKING_HEAD_FORMAT!r})")
+        self.n_points = int(self.metadata.get("n_landmarks", 68))
+        self.feather = float(self.metadata["feather"])
+        self.frame_size = tuple(int(v) for v in self.metadata["frame_size"])  # (W, H)
+        self.neutral_frames = int(neutral_frames)
+        self._seen: list[np.ndarray] = []  # driver frames collected while choosing its neutral
+        self._collecting = driver_neutral is None
+        self.driver_neutral = None
+        if driver_neutral is not None:
+            self.driver_neutral = self._points(np.asarray(driver_neutral)[None], "driver_neutral")[0]
+
+    def _points(self, values, field: str) -> np.ndarray:
+        return check_batch(values, field, (self.n_points, 2), "frame pixels", f"(B, {self.n_points}, 2)",
+                           " (a frame without a face)")
+
+    def run(self, driver) -> tuple[np.ndarray, np.ndarray]:
+        """(B, 68, 2) driver landmarks -> uint8 (B, H, W, 3) frames, float32 (B, 68, 2)
+        avatar landmarks; needs the driver's neutral (given, or chosen by :meth:`step`)."""
+        if self.driver_neutral is None:
+            raise FacesynthError(f"{self.path}: no driver neutral yet (give driver_neutral, or call step)")
+        d = self._points(driver, "driver landmarks")
+        frames, avatar = self.session.run(None, {"driver": d, "driver_neutral": self.driver_neutral})
+        return frames, avatar
+
+    def step(self, landmarks) -> tuple[np.ndarray, np.ndarray]:
+        """One (68, 2) driver frame -> (uint8 (H, W, 3) frame, float32 (68, 2) avatar landmarks)."""
+        lm = self._points(np.asarray(landmarks)[None], "driver landmarks")
+        if self._collecting:  # no neutral given: choose among the frames seen so far
+            self._seen.append(lm[0])
+            self.driver_neutral = self._seen[select_neutral(np.stack(self._seen))[0]]
+            if len(self._seen) >= self.neutral_frames:
+                self._collecting, self._seen = False, []
+        frames, avatar = self.run(lm)
+        return frames[0], avatar[0]
