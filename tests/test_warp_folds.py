@@ -12,7 +12,7 @@ from _onnx_models import exported, synthetic_synthesizer
 from facesynth.geometry import apply_affine, similarity_fit
 from facesynth.landmarks import folded_triangles
 from facesynth.model.reference import ReferenceFrame, barycentric
-from facesynth.model.warp_target import ToTarget, candidate_spans
+from facesynth.model.warp import ToTarget, candidate_spans
 from facesynth.runtime import Renderer
 
 
