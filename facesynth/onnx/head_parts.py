@@ -24,9 +24,9 @@ from torch.nn import functional as F
 
 from facesynth.faps import FAPU_NAMES, FEATURE_POINTS, RIGID_POINTS, face_axes, fapu
 from facesynth.landmarks import IBUG68
-from facesynth.model.warp import invert_affine_t, similarity_to, to_grid
+from facesynth.model.warp import invert_affine_t, similarity_to
 from facesynth.model.warp_target import ToTarget
-from facesynth.ops import pad_by_tensor
+from facesynth.ops import pad_by_tensor, sum4
 from facesynth.retarget import POINT_UNITS, ShapeSpace, eye_patches, eyelid_pairs
 from facesynth.runtime.fullframe import HEAD_POINTS, FrameWarp
 
@@ -251,12 +251,12 @@ class FrameWarpGraph(ToTarget):
         index = (base + self.quad).flatten(1)  # (B, 4 N)
         wy = torch.cat([1.0 - fr[:, 1:2], fr[:, 1:2]], 1)
         wx = torch.cat([1.0 - fr[:, 0:1], fr[:, 0:1]], 1)
-        weights = (wy.unsqueeze(2) * wx.unsqueeze(1)).flatten(1, 2)  # (B, 4, H, W)
+        weights = (wy.unsqueeze(2) * wx.unsqueeze(1)).flatten(1, 2).flatten(2)  # (B, 4, N)
         out = []
         for ch in range(3):
             taps = torch.gather(self.texture[ch].expand(index.shape[0], -1), 1, index).reshape_as(weights)
-            out.append((taps * weights).sum(1, keepdim=True))
-        return torch.floor(torch.cat(out, 1) + 0.5)
+            out.append(sum4(self.ones4, taps * weights))
+        return torch.floor(torch.cat(out, 1) + 0.5).reshape(-1, 3, self.canvas[0], self.canvas[1])
 
 
 def gaussian_size(sigma: float) -> int:
@@ -270,9 +270,14 @@ class SeamGraph(nn.Module):
     warped frame (B, 3, H, W) 0..255 -> (B, 3, H, W) 0..255 integer values. Works in the
     bounding box of the batch's placed crops, as blend_face in each frame's."""
 
-    def __init__(self, feather: float, size: tuple[int, int]):
+    def __init__(self, feather: float, size: tuple[int, int], crop_size: tuple[int, int]):
         super().__init__()
         w, h = size
+        hc, wc = crop_size
+        r = (hc + 3) * (wc + 3)
+        quad = np.array([0, 1, wc + 3, wc + 4])
+        self.register_buffer("tap_offset", torch.from_numpy((np.arange(4)[:, None] * r + quad[None]).reshape(16, 1)))
+        self.register_buffer("ones4", torch.ones(1, 4))
         self.feather = float(feather)
         self.r = max(1, int(math.ceil(self.feather)))
         k = gaussian_size(self.feather / 2)
@@ -285,9 +290,29 @@ class SeamGraph(nn.Module):
 
     @staticmethod
     def _erode(x: torch.Tensor, r: int) -> torch.Tensor:
-        """Square (2r + 1) erosion of a {0, 1} (B, 1, h, w) map; the border does not erode (OpenCV's default)."""
-        x = -F.max_pool2d(-x, (1, 2 * r + 1), 1, (0, r))
-        return -F.max_pool2d(-x, (2 * r + 1, 1), 1, (r, 0))
+        """Square (2r + 1) erosion of a {0, 1} (B, 1, h, w) map; the border does not erode
+        (OpenCV's default): no hole (0) within r pixels, counted by running sums (CumSum),
+        whose cost does not grow with r as MaxPool's does."""
+        k = 2 * r + 1
+        c = torch.cumsum(F.pad(1.0 - x, (r + 1, r)), 3)
+        holes = c[..., k:] - c[..., :-k]
+        c = torch.cumsum(F.pad(holes, (0, 0, r + 1, r)), 2)
+        return ((c[:, :, k:] - c[:, :, :-k]) < 0.5).to(x.dtype)
+
+    def _bilinear(self, images: torch.Tensor, u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+        """(B, 4, h, w) images read at (B, N) pixel positions u, v -> (B, 4, N): bilinear, zero
+        outside (``cv2.warpAffine``'s constant border), one element gather for all taps."""
+        h, w = int(images.shape[2]), int(images.shape[3])
+        flat = F.pad(images, (1, 2, 1, 2)).flatten(1)  # (B, 4 R), one zero pixel round it (two after)
+        u = torch.clamp(u, -1.0, float(w)) + 1.0  # padded pixels
+        v = torch.clamp(v, -1.0, float(h)) + 1.0
+        fu, fv = torch.floor(u), torch.floor(v)
+        fx, fy = (u - fu).unsqueeze(1), (v - fv).unsqueeze(1)
+        base = (fv * float(w + 3) + fu).to(torch.int64).unsqueeze(1)  # (B, 1, N)
+        index = (base + self.tap_offset).flatten(1)  # (B, 16 N): 4 channels x 4 taps
+        taps = torch.gather(flat, 1, index).reshape(-1, 4, 4, base.shape[2])
+        wgt = torch.cat([(1.0 - fy) * (1.0 - fx), (1.0 - fy) * fx, fy * (1.0 - fx), fy * fx], 1).unsqueeze(1)
+        return torch.matmul(self.ones4, taps * wgt)[:, :, 0] if torch.onnx.is_in_onnx_export() else (taps * wgt).sum(2)
 
     def forward(self, crop: torch.Tensor, mask: torch.Tensor, placement: torch.Tensor, frame: torch.Tensor) -> torch.Tensor:
         hc, wc = int(crop.shape[2]), int(crop.shape[3])
@@ -297,13 +322,13 @@ class SeamGraph(nn.Module):
         hi = torch.minimum(torch.ceil(pc.amax(0)) + 2.0, self.frame_max)
         hi = torch.maximum(hi, lo + 1.0)
         xs, ys = torch.arange(lo[0], hi[0]), torch.arange(lo[1], hi[1])
-        grid = torch.stack([xs.unsqueeze(0) + ys.unsqueeze(1) * 0.0, ys.unsqueeze(1) + xs.unsqueeze(0) * 0.0], -1)
-        inv = invert_affine_t(placement)  # frame -> crop pixels
-        src = torch.matmul(grid.reshape(1, -1, 2), inv[:, :, :2].transpose(1, 2)) + inv[:, :, 2].unsqueeze(1)
-        src = to_grid(src, (hc, wc)).reshape(-1, ys.shape[0], xs.shape[0], 2)
+        inv = invert_affine_t(placement).reshape(-1, 6, 1, 1)  # frame -> crop pixels
+        xr, yr = xs.reshape(1, 1, -1), ys.reshape(1, -1, 1)
+        u = (inv[:, 0] * xr + (inv[:, 1] * yr + inv[:, 2])).flatten(1)  # (B, N) box pixels in the crop
+        v = (inv[:, 3] * xr + (inv[:, 4] * yr + inv[:, 5])).flatten(1)
         if crop.shape[1] == 1:
             crop = torch.cat([crop, crop, crop], 1)
-        placed = F.grid_sample(torch.cat([crop, mask], 1), src, mode="bilinear", padding_mode="zeros", align_corners=True)
+        placed = self._bilinear(torch.cat([crop, mask], 1), u, v).reshape(-1, 4, ys.shape[0], xs.shape[0])
         face, hard = placed[:, :3], (placed[:, 3:] > 0.5).to(crop.dtype)
         bg255 = frame.index_select(2, ys.to(torch.int64)).index_select(3, xs.to(torch.int64))
         bg = bg255 / 255.0

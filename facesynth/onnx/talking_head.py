@@ -68,7 +68,7 @@ class TalkingHeadGraph(nn.Module):
         self.retarget = RetargetGraph(avatar.neutral, avatar.shape_space)
         self.frame_warp = FrameWarpGraph(FrameWarp(frame, avatar.neutral))
         self.feather = float(default_feather(self.synthesis, avatar.neutral, frame.shape[:2]) if feather is None else feather)
-        self.seam = SeamGraph(self.feather, (frame.shape[1], frame.shape[0]))
+        self.seam = SeamGraph(self.feather, (frame.shape[1], frame.shape[0]), tuple(syn.warp.canvas))
 
     def forward(self, driver: torch.Tensor, neutral: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         face = self.retarget(driver, neutral)
