@@ -10,6 +10,9 @@ Imports only numpy, onnxruntime and OpenCV (a test checks that torch stays unimp
     re = Reenactor("avatar.onnx")                        # another face drives the avatar
     frame, avatar_lm = re.step(driver_lm)                # (68, 2) -> uint8 frame in the avatar's own frame
 
+    th = TalkingHead("head.onnx", driver_neutral=lm0)   # the whole talking head in one graph
+    frame, avatar_lm = th.step(driver_lm)
+
     e = EriRenderer("eri.onnx")                          # an ERI model (one target face)
     frames = e.render_frames(faps, target_image)         # (B, 36) MPEG-4 FAPs -> uint8 (B, H, W, 3)
 """
@@ -19,5 +22,7 @@ from facesynth.runtime.eri import EriRenderer
 from facesynth.runtime.filters import OneEuroFilter, smooth_landmarks
 from facesynth.runtime.reenact import Reenactor
 from facesynth.runtime.renderer import Renderer, read_metadata
+from facesynth.runtime.talking_head import TalkingHead
 
-__all__ = ["EriRenderer", "OneEuroFilter", "Reenactor", "Renderer", "composite", "read_metadata", "smooth_landmarks"]
+__all__ = ["EriRenderer", "OneEuroFilter", "Reenactor", "Renderer", "TalkingHead", "composite", "read_metadata",
+           "smooth_landmarks"]
