@@ -221,8 +221,8 @@ class FrameWarpGraph(ToTarget):
         # only, the affine maps stay the true triangles'
         src = fw.src
         out = np.zeros_like(src)
-        out[:, 0] = np.where(src[:, 0] == w - 1, 0.5, np.where(src[:, 0] == 0, -0.5, 0.0))
-        out[:, 1] = np.where(src[:, 1] == h - 1, 0.5, np.where(src[:, 1] == 0, -0.5, 0.0))
+        out[:, 0] = np.where(src[:, 0] == w - 1, 0.5, 0.0)  # these hold the coordinate that puts them there
+        out[:, 1] = np.where(src[:, 1] == h - 1, 0.5, 0.0)
         out[: fw.n_face] = 0.0
         self.register_buffer("outward", _const(out))
 
