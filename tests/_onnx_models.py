@@ -77,6 +77,19 @@ def real_linear_synthesizer(seq, rows: np.ndarray) -> Synthesizer:
 
 
 
+def linear_avatar(seq, train: np.ndarray, step: int = 3) -> tuple[Synthesizer, dict]:
+    """A small linear model of a real clip (every ``step``-th of its ``train`` rows; default
+    face model) and its avatar metadata (neutral, shape PCA, frame), for reenactment tests."""
+    from facesynth.onnx.avatar import avatar_metadata
+
+    rows = train[::step]
+    model = FaceModel.fit(seq, rows=rows, progress=False)
+    x = model.shape_params(seq.landmarks[rows], clamp=True)
+    y = model.appearance_params(model.sample_textures(seq, rows), clamp=True)
+    syn = Synthesizer(model, GlobalAppearance(model, REGISTRY["linear"].fit(x, y, seed=0))).eval()
+    return syn, avatar_metadata(syn, seq.landmarks[train], train, seq)
+
+
 def assert_export_matches(path, syn: Synthesizer, lm: np.ndarray, tol: float = 1e-4) -> float:
     """Run the ONNX file ``path`` (one thread) and ``syn`` in torch on (B, 68, 2) ``lm``:
     crops equal within ``tol`` where both masks are set, masks equal but for float-rounding

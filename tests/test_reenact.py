@@ -77,22 +77,16 @@ def test_bad_inputs():
 @pytest.fixture(scope="module")
 def avatar(shared_clip_dir, tmp_path_factory):
     """A small linear model of lp_d10 (every 3rd training frame) exported with its avatar metadata."""
+    from _onnx_models import linear_avatar
+
     from facesynth.data import load_sequence, temporal_split
-    from facesynth.model import FaceModel
-    from facesynth.onnx.avatar import avatar_metadata
     from facesynth.onnx.synthesis import export_synthesizer
-    from facesynth.regressors import REGISTRY
-    from facesynth.sadm.synthesis import GlobalAppearance, Synthesizer
 
     seq = load_sequence(shared_clip_dir("lp_d10"))
     train, test = temporal_split(len(seq))
-    rows = train[::3]
-    model = FaceModel.fit(seq, rows=rows, progress=False)
-    x = model.shape_params(seq.landmarks[rows], clamp=True)
-    y = model.appearance_params(model.sample_textures(seq, rows), clamp=True)
-    syn = Synthesizer(model, GlobalAppearance(model, REGISTRY["linear"].fit(x, y, seed=0))).eval()
+    syn, meta = linear_avatar(seq, train)
     path = tmp_path_factory.mktemp("reenact") / "lp_d10.onnx"
-    export_synthesizer(syn, path, avatar_metadata(syn, seq.landmarks[train], train, seq))
+    export_synthesizer(syn, path, meta)
     return path, seq, train, test
 
 

@@ -17,23 +17,16 @@ FRAMES = 12
 def head(shared_clip_dir, tmp_path_factory):
     """A small linear model of lp_d10 (every 3rd training frame), its synthesis file with the
     avatar metadata and its talking-head file."""
+    from _onnx_models import linear_avatar
+
     from facesynth.data import load_sequence, temporal_split
-    from facesynth.model import FaceModel
-    from facesynth.onnx.avatar import avatar_metadata
     from facesynth.onnx.synthesis import export_synthesizer
     from facesynth.onnx.talking_head import export_talking_head
-    from facesynth.regressors import REGISTRY
-    from facesynth.sadm.synthesis import GlobalAppearance, Synthesizer
 
     seq = load_sequence(shared_clip_dir("lp_d10"))
     train, _ = temporal_split(len(seq))
-    rows = train[::3]
-    model = FaceModel.fit(seq, rows=rows, progress=False)
-    x = model.shape_params(seq.landmarks[rows], clamp=True)
-    y = model.appearance_params(model.sample_textures(seq, rows), clamp=True)
-    syn = Synthesizer(model, GlobalAppearance(model, REGISTRY["linear"].fit(x, y, seed=0))).eval()
+    syn, meta = linear_avatar(seq, train)
     out = tmp_path_factory.mktemp("talking_head")
-    meta = avatar_metadata(syn, seq.landmarks[train], train, seq)
     export_synthesizer(syn, out / "face.onnx", meta)
     export_talking_head(syn, meta, out / "head.onnx")
     return out / "face.onnx", out / "head.onnx"
