@@ -58,6 +58,7 @@ FORMAT_HINTS = {
 # while 2 * 255 * |q| <= 32767. Files record their range as the metadata key "appearance_code_levels";
 # int8 files without it were written with LEGACY_CODE_LEVELS and saturate on such CPUs.
 COEF_LEVELS = 127
+ZERO_POINT = 128  # the activation zero point: uint8 a + 128
 U8_MAX, INT16_MAX = 255, 2**15 - 1
 CODE_LEVELS = INT16_MAX // (2 * U8_MAX)  # 64: 2 * 255 * 64 = 32640
 LEGACY_CODE_LEVELS = 127

@@ -26,9 +26,8 @@ from __future__ import annotations
 import torch
 from torch.nn import functional as F
 
-from facesynth.contract import COEF_LEVELS, LEGACY_CODE_LEVELS
+from facesynth.contract import COEF_LEVELS, LEGACY_CODE_LEVELS, ZERO_POINT
 
-_ZERO_POINT = 128  # MatMulInteger's u8 x s8 path: activation zero point (codes travel as uint8 a + 128)
 EXACT_FLOAT32_K = 2**24 // (COEF_LEVELS * LEGACY_CODE_LEVELS) + 1  # 1041: below it a @ q is exact in float32
 
 
@@ -72,8 +71,8 @@ class _Int8MatMul(torch.autograd.Function):
     @staticmethod
     def symbolic(g, b, coef_scale, codes_f, codes, col_scale):
         a = g.op("Round", g.op("Mul", b, coef_scale))
-        zp = g.op("Constant", value_t=torch.tensor(_ZERO_POINT, dtype=torch.uint8))
-        a_u8 = g.op("Cast", g.op("Add", a, g.op("Constant", value_t=torch.tensor(float(_ZERO_POINT)))), to_i=2)  # UINT8
+        zp = g.op("Constant", value_t=torch.tensor(ZERO_POINT, dtype=torch.uint8))
+        a_u8 = g.op("Cast", g.op("Add", a, g.op("Constant", value_t=torch.tensor(float(ZERO_POINT)))), to_i=2)  # UINT8
         acc = g.op("MatMulInteger", a_u8, codes, zp)
         return g.op("Mul", g.op("Cast", acc, to_i=1), col_scale)  # FLOAT
 

@@ -20,10 +20,8 @@ import os
 
 import numpy as np
 
-from facesynth.contract import COEF_LEVELS, U8_MAX
+from facesynth.contract import COEF_LEVELS, U8_MAX, ZERO_POINT
 from facesynth.errors import FacesynthError
-
-ZERO_POINT = 128  # the activation zero point of facesynth.ops.int8_matmul
 
 
 def matmul_integer_codes(model_path: str | os.PathLike) -> np.ndarray:
