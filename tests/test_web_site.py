@@ -26,6 +26,20 @@ def _tiny_onnx(path, metadata: dict) -> None:
     onnx.save(m, str(path))
 
 
+def _site_avatar(tmp_path):
+    """A stand-in avatar file for building the page; skips without what the page needs (the
+    tflite parser and MediaPipe for the tracker, onnxruntime-web from ``npm ci``)."""
+    pytest.importorskip("tflite")
+    pytest.importorskip("mediapipe")
+    try:
+        site.ort_dist()
+    except Exception as exc:
+        pytest.skip(str(exc))
+    model = tmp_path / "avatar.onnx"
+    _tiny_onnx(model, {"format": SYNTHESIS_FORMAT, "landmark_scheme": "ibug68"})
+    return model
+
+
 @pytest.mark.parametrize("command", [["web", "build"], ["serve"]])
 def test_not_an_avatar_is_one_line(tmp_path, capsys, command):
     model = tmp_path / "other.onnx"
@@ -69,14 +83,7 @@ def test_server_headers_and_types(tmp_path):
 def test_build_writes_the_page(tmp_path, monkeypatch):
     """From an empty cache: the tracker is converted from the installed wheel."""
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
-    pytest.importorskip("tflite")
-    pytest.importorskip("mediapipe")
-    try:
-        site.ort_dist()
-    except Exception as exc:
-        pytest.skip(str(exc))
-    model = tmp_path / "avatar.onnx"
-    _tiny_onnx(model, {"format": SYNTHESIS_FORMAT, "landmark_scheme": "ibug68"})
+    model = _site_avatar(tmp_path)
     assert main(["web", "build", str(model), str(tmp_path / "site")]) == 0
     out = tmp_path / "site"
     for f in (*site.PAGE_FILES, *(f"ort/{f}" for f in site.ORT_FILES), "avatar.onnx", "schemes.json", "site.json",
@@ -94,14 +101,7 @@ def test_serve_prints_the_url_and_serves_the_page(tmp_path):
     import subprocess
     import sys
 
-    pytest.importorskip("tflite")
-    pytest.importorskip("mediapipe")
-    try:
-        site.ort_dist()
-    except Exception as exc:
-        pytest.skip(str(exc))
-    model = tmp_path / "avatar.onnx"
-    _tiny_onnx(model, {"format": SYNTHESIS_FORMAT, "landmark_scheme": "ibug68"})
+    model = _site_avatar(tmp_path)
     (tmp_path / "tmp").mkdir()
     env = {**os.environ, "XDG_CACHE_HOME": str(tmp_path / "cache"), "TMPDIR": str(tmp_path / "tmp")}
     proc = subprocess.Popen([sys.executable, "-m", "facesynth", "serve", str(model), "--port", "0"],
