@@ -120,6 +120,8 @@ def export_model(run_dir, out, opset: int = OPSET, components: int | None = DEFA
                 summary["max_abs_diff_vs_torch"] = _checked(out, tmp, lambda p: check_export(syn, p), meta)
     log.info("exported %s (%s regressor, %.1f MB)", out, meta.get("regressor"), summary["bytes"] / 1e6)
     return summary
+
+
 def _brief(meta: dict) -> dict:
     """The metadata for the printed summary: the avatar's bulky entries (its neutral
     landmarks, shape PCA, neutral frame as base64 JPEG: tens of kB) are stored in the model
