@@ -4,7 +4,7 @@ The package layout follows the pipeline (docs/architecture.md draws it; the impo
 it, checked by tests/test_layers.py)::
 
     top      cli (facesynth.cli, every */cli.py)  runs (facesynth train = train.py; configs in conf/)
-             eval  onnx (export)  batch
+             eval  onnx (export)  batch  web (the live page's Python side)
     stages   data -> model -> sadm <- regressors      (2D: shape -> appearance)
                           -> eri  <- regressors      (2D: expression ratio images)
              data -> mesh                            (3D wing: pose, Laplacian transfer)

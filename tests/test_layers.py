@@ -3,10 +3,10 @@ module, those inside functions included, must go down or sideways within its own
 
 ground   errors, io, metrics, landmarks, landmark_tables, geometry, imaging, provenance, contract, artifact, ops,
          progress, neutral, faps, retarget, videofile
-stages   data; model (data); regressors; sadm (model, regressors); eri (model, regressors);
+stages   data; model (data); regressors; sadm (data, model, regressors); eri (data, model, regressors);
          mesh (data); codec (data): siblings never import each other
 runtime  torch-free: the runtime, the data layer and the ground only
-top      eval, runs (runs/train_cli: facesynth train), onnx, batch, the CLIs (facesynth.cli and every ``cli`` /
+top      eval, runs (runs/train_cli: facesynth train), onnx, batch, web, the CLIs (facesynth.cli and every ``cli`` /
          ``*_cli`` module); facesynth/conf holds the Hydra yaml, no module
 """
 
