@@ -81,7 +81,7 @@ def _own_actions(parser: argparse.ArgumentParser):
 
 
 def _cell(text) -> str:
-    return " ".join(str(text).split()).replace("|", "\\|")
+    return " ".join(str(text).split()).replace("|", "\\|").replace("<", "&lt;").replace(">", "&gt;")
 
 
 def _help(parser: argparse.ArgumentParser, action: argparse.Action) -> str:
