@@ -4,7 +4,6 @@ feather), on a shared clip: the retargeted landmarks, the composited frames, the
 
 from __future__ import annotations
 
-import cv2
 import numpy as np
 import pytest
 
@@ -32,15 +31,6 @@ def head(shared_clip_dir, tmp_path_factory):
     return out / "face.onnx", out / "head.onnx"
 
 
-def edge_band(fw, avatar_lm: np.ndarray) -> np.ndarray:
-    """bool (H, W): pixels within one pixel of a warped triangle's edge."""
-    w, h = fw.size
-    band = np.zeros((h, w), np.uint8)
-    tri = np.round(fw.control_points(avatar_lm)[fw.triangles] * 16).astype(np.int32)
-    cv2.polylines(band, list(tri), True, 1, 3, cv2.LINE_8, 4)
-    return band.astype(bool)
-
-
 def test_graph_matches_the_numpy_pipeline(head, shared_clip_dir):
     from facesynth.runtime import Reenactor
     from facesynth.runtime.reenact import driver_neutral_of
@@ -51,21 +41,15 @@ def test_graph_matches_the_numpy_pipeline(head, shared_clip_dir):
     neutral, _ = driver_neutral_of(lm)
     th = TalkingHead(path, driver_neutral=neutral)
     ref = Reenactor(face, driver_neutral=neutral, feather=th.feather, full_frame=True)
-    worst_lm, worst_off_edges, beyond = 0.0, 0, []
+    worst_lm, worst = 0.0, 0
     for i in np.linspace(0, len(lm) - 1, FRAMES).astype(int):
         want, want_lm = ref.step(lm[i])
         got, got_lm = th.step(lm[i])
         assert got.dtype == np.uint8 and got.shape == want.shape
         worst_lm = max(worst_lm, float(np.abs(got_lm - want_lm).max()))
-        diff = np.abs(got.astype(int) - want).max(-1)
-        # off the warped triangles' edges every pixel matches; on them the reference's
-        # cv2.fillConvexPoly covers pixels up to half a pixel outside a triangle (the later
-        # drawn wins), the graph each pixel centre's own triangle
-        worst_off_edges = max(worst_off_edges, int(diff[~edge_band(ref.frame_warp, want_lm)].max()))
-        beyond.append(int((diff > 2).sum()))
+        worst = max(worst, int(np.abs(got.astype(int) - want).max()))
     assert worst_lm <= 0.05
-    assert worst_off_edges <= 2
-    assert max(beyond) <= 0.0002 * want.shape[0] * want.shape[1], beyond
+    assert worst <= 2  # every pixel of every frame
 
 
 def test_runtime_chooses_the_drivers_neutral_and_checks_its_input(head, shared_clip_dir):

@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import math
 
-import cv2
 import numpy as np
 import torch
 from torch import nn
@@ -28,6 +27,7 @@ from facesynth.model.warp import invert_affine_t, similarity_to
 from facesynth.model.warp_target import ToTarget
 from facesynth.ops import pad_by_tensor, sum4
 from facesynth.retarget import POINT_UNITS, ShapeSpace, eye_patches, eyelid_pairs
+from facesynth.runtime.blend import MIN_BAND, gaussian_kernel
 from facesynth.runtime.fullframe import HEAD_POINTS, FrameWarp
 
 
@@ -190,15 +190,22 @@ class _Mesh:
 
 class FrameWarpGraph(ToTarget):
     """:class:`FrameWarp` (affine) as tensor ops: avatar landmarks (B, 68, 2) -> the warped
-    neutral frame (B, 3, H, W), float values 0..255 rounded to integers (as ``cv2.remap`` of
-    a uint8 frame). Pixels no warped triangle covers, or two cover (a fold), read their own
-    neutral pixel (FrameWarp: the face's side wins in an overlap)."""
+    neutral frame (B, 3, H, W), float values 0..255 rounded to integers.
+
+    The control points' triangles are located at the nodes of FrameWarp's grid by
+    :class:`ToTarget`'s scanline coverage counting on a canvas of one pixel per node (the
+    control points scaled to it); a node covered once takes its triangle's affine map
+    (output -> neutral-frame pixels), any other (a fold's gap or overlap) its own position.
+    The node maps are upsampled bilinearly to every pixel (Resize, ``align_corners``), and
+    the neutral frame is read there bilinearly, its border replicated (as ``cv2.remap``)."""
 
     def __init__(self, fw: FrameWarp):
         w, h = fw.size
-        span = np.tile(np.array([[w, h]], np.int64), (len(fw.triangles), 1))  # every column: no clipped edge
-        super().__init__(_Mesh(fw.src, fw.triangles, (h, w)), span)
-        self.n_face = fw.n_face
+        nx, ny = fw.nodes
+        wn, hn = len(nx), len(ny)
+        span = np.tile(np.array([[wn, hn]], np.int64), (len(fw.triangles), 1))  # every node column
+        super().__init__(_Mesh(fw.src, fw.triangles, (h, w)), span, canvas=(hn, wn))
+        self.frame_size = (h, w)
         self.register_buffer("neutral68", _const(fw.neutral68[HEAD_POINTS]))
         extra = fw.src[fw.n_face:]
         self.register_buffer("extra", _const(extra))
@@ -207,22 +214,26 @@ class FrameWarpGraph(ToTarget):
         big = 1e9
         self.register_buffer("lo_clip", _const(np.where(ring > 0, [[1.0, -big]], [[-big, -big]])))
         self.register_buffer("hi_clip", _const(np.where(ring > 0, [[w - 2.0, h - 2.0]], [[big, big]])))
+        self.register_buffer("to_node", _const([[(wn - 1) / (w - 1), (hn - 1) / (h - 1)]]))  # frame px -> node units
+        self.register_buffer("node_x", _const(nx))
+        self.register_buffer("node_y", _const(ny[:, None]))
         tex = np.pad(fw.frame.astype(np.float32), ((0, 1), (0, 1), (0, 0)), mode="edge")  # (H + 1, W + 1, 3)
         self.register_buffer("texture", torch.from_numpy(np.ascontiguousarray(tex.transpose(2, 0, 1).reshape(3, 1, -1))))
         self.register_buffer("quad", torch.tensor([0, 1, w + 1, w + 2]).reshape(4, 1, 1))
         self.register_buffer("box_lo", torch.zeros(2))
-        self.register_buffer("box_hi", torch.tensor([float(w), float(h)]))
-        self.register_buffer("cols_f", torch.arange(w, dtype=torch.float32))
-        self.register_buffer("rows_f", torch.arange(h + 1, dtype=torch.float32))
+        self.register_buffer("box_hi", torch.tensor([float(wn), float(hn)]))
+        self.register_buffer("cols_f", torch.arange(wn, dtype=torch.float32))
+        self.register_buffer("rows_f", torch.arange(hn + 1, dtype=torch.float32))
         self.register_buffer("uv_max", torch.tensor([float(w - 1), float(h - 1)]).reshape(1, 2, 1, 1))
         self.tex_w = w + 1
-        # scanline coverage is half-open (a pixel centre on the frame's right or bottom edge
-        # belongs to no triangle): the border anchors are pushed half a pixel out for locating
-        # only, the affine maps stay the true triangles'
+        # scanline coverage is half-open (a node on the canvas's right or bottom edge belongs
+        # to no triangle): the border anchors there are pushed a thousandth of a node out for
+        # locating only (past float32's rounding of the scaled coordinates), the affine maps
+        # stay the true triangles'
         src = fw.src
         out = np.zeros_like(src)
-        out[:, 0] = np.where(src[:, 0] == w - 1, 0.5, 0.0)  # these hold the coordinate that puts them there
-        out[:, 1] = np.where(src[:, 1] == h - 1, 0.5, 0.0)
+        out[:, 0] = np.where(src[:, 0] == w - 1, 1e-3, 0.0)  # these hold the coordinate that puts them there
+        out[:, 1] = np.where(src[:, 1] == h - 1, 1e-3, 0.0)
         out[: fw.n_face] = 0.0
         self.register_buffer("outward", _const(out))
 
@@ -233,18 +244,21 @@ class FrameWarpGraph(ToTarget):
         moved = torch.minimum(torch.maximum(moved, self.lo_clip), self.hi_clip)
         return torch.cat([face, moved], 1)
 
-    def forward(self, face: torch.Tensor) -> torch.Tensor:  # noqa: D102  (a different signature from ToTarget's)
-        target = self.control_points(face)
+    def node_maps(self, face: torch.Tensor) -> torch.Tensor:
+        """(B, 68, 2) -> (B, 2, Hn, Wn): the neutral-frame pixel (x, y) each grid node reads."""
+        target = self.control_points(face) * self.to_node
         vert, e, _ = self.coordinates(target)
         maps, det = self.affine_maps(vert, e)
         ed = self.coordinates(target + self.outward)[2]
         lo, hi, cols, rows = self.box_lo, self.box_hi, self.cols_f, self.rows_f
-        s = self.locate(ed, det, lo, hi, cols, rows).unsqueeze(1)  # (B, 1, H, W)
+        s = self.locate(ed, det, lo, hi, cols, rows).unsqueeze(1)  # (B, 1, Hn, Wn)
         u, v = self.source(maps, vert[:, :2], s, lo, hi, cols, rows[:-1])
-        none = s < self.code_base * 0.5
-        u = torch.where(none, cols + u * 0.0, u)
-        v = torch.where(none, rows[:-1].unsqueeze(1) + v * 0.0, v)
-        uv = torch.minimum(torch.clamp(torch.cat([u, v], 1), min=0.0), self.uv_max)  # border replicated
+        single = (s > self.code_base * 0.5) & (s < self.code_base * 2.0 + 1.0)  # one triangle: C + 1 .. C + T
+        return torch.cat([torch.where(single, u, self.node_x + u * 0.0), torch.where(single, v, self.node_y + v * 0.0)], 1)
+
+    def forward(self, face: torch.Tensor) -> torch.Tensor:  # noqa: D102  (a different signature from ToTarget's)
+        uv = F.interpolate(self.node_maps(face), size=self.frame_size, mode="bilinear", align_corners=True)
+        uv = torch.minimum(torch.clamp(uv, min=0.0), self.uv_max)  # border replicated
         fl = torch.floor(uv)
         fr = uv - fl
         base = (fl[:, 1:2] * float(self.tex_w) + fl[:, 0:1]).to(torch.int64)  # (B, 1, H, W)
@@ -256,19 +270,21 @@ class FrameWarpGraph(ToTarget):
         for ch in range(3):
             taps = torch.gather(self.texture[ch].expand(index.shape[0], -1), 1, index).reshape_as(weights)
             out.append(sum4(self.ones4, taps * weights))
-        return torch.floor(torch.cat(out, 1) + 0.5).reshape(-1, 3, self.canvas[0], self.canvas[1])
-
-
-def gaussian_size(sigma: float) -> int:
-    """OpenCV's GaussianBlur kernel size for a float32 image and ``sigma`` (ksize 0)."""
-    return int(round(sigma * 8 + 1)) | 1
+        return torch.floor(torch.cat(out, 1) + 0.5).reshape(-1, 3, *self.frame_size)
 
 
 class SeamGraph(nn.Module):
-    """:func:`facesynth.runtime.blend.blend_face` (colour matching on) with feather ``feather``
-    pixels: crop (B, C, Hc, Wc) in [0, 1], mask (B, 1, Hc, Wc), placement (B, 2, 3) and the
-    warped frame (B, 3, H, W) 0..255 -> (B, 3, H, W) 0..255 integer values. Works in the
-    bounding box of the batch's placed crops, as blend_face in each frame's."""
+    """:func:`facesynth.runtime.blend.blend_face` (colour matching on) with a fixed feather
+    of ``feather`` crop pixels: crop (B, C, Hc, Wc) in [0, 1], mask (B, 1, Hc, Wc), placement
+    (B, 2, 3), the warped frame (B, 3, H, W) 0..255 and the face's landmarks (B, P, 2) ->
+    (B, 3, H, W) 0..255 integer values.
+
+    The alpha and the seam band are made in the crop's pixels (:func:`seam_layers`); the
+    premultiplied face, alpha and band are placed in the frame bilinearly, inside the
+    landmarks' bounding box of the batch grown by a crop pixel's size and 2 px (the placed
+    face reaches no further)."""
+
+    CHANNELS = 5  # premultiplied face (3), alpha, band
 
     def __init__(self, feather: float, size: tuple[int, int], crop_size: tuple[int, int]):
         super().__init__()
@@ -276,15 +292,15 @@ class SeamGraph(nn.Module):
         hc, wc = crop_size
         r = (hc + 3) * (wc + 3)
         quad = np.array([0, 1, wc + 3, wc + 4])
-        self.register_buffer("tap_offset", torch.from_numpy((np.arange(4)[:, None] * r + quad[None]).reshape(16, 1)))
+        offsets = np.arange(self.CHANNELS)[:, None] * r + quad[None]
+        self.register_buffer("tap_offset", torch.from_numpy(offsets.reshape(-1, 1)))
         self.register_buffer("ones4", torch.ones(1, 4))
         self.feather = float(feather)
         self.r = max(1, int(math.ceil(self.feather)))
-        k = gaussian_size(self.feather / 2)
-        g = cv2.getGaussianKernel(k, self.feather / 2, cv2.CV_32F).reshape(-1)
+        g = gaussian_kernel(self.feather / 2)
+        self.k = k = len(g)
         self.register_buffer("gx", torch.from_numpy(g.copy()).reshape(1, 1, 1, k))
         self.register_buffer("gy", torch.from_numpy(g.copy()).reshape(1, 1, k, 1))
-        self.k = k
         self.register_buffer("frame_max", torch.tensor([float(w), float(h)]))
         self.register_buffer("zero2", torch.zeros(2))
 
@@ -299,48 +315,56 @@ class SeamGraph(nn.Module):
         c = torch.cumsum(F.pad(holes, (0, 0, r + 1, r)), 2)
         return ((c[:, :, k:] - c[:, :, :-k]) < 0.5).to(x.dtype)
 
+    def layers(self, crop: torch.Tensor, mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(B, 5, Hc, Wc) premultiplied face, alpha, band (:func:`seam_layers`) and the face's
+        mean colour in the band (B, 3)."""
+        hard = (mask > 0.5).to(crop.dtype)
+        p = self.k // 2
+        a = F.conv2d(F.pad(self._erode(hard, self.r), (p, p, 0, 0), mode="reflect"), self.gx)
+        alpha = F.conv2d(F.pad(a, (0, 0, p, p), mode="reflect"), self.gy) * hard
+        band = hard * (1.0 - self._erode(hard, 2 * self.r))
+        face_mean = (crop * band).sum((2, 3)) / torch.clamp(band.sum((2, 3)), min=1.0)
+        return torch.cat([crop * alpha, alpha, band], 1), face_mean
+
     def _bilinear(self, images: torch.Tensor, u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
-        """(B, 4, h, w) images read at (B, N) pixel positions u, v -> (B, 4, N): bilinear, zero
+        """(B, 5, h, w) images read at (B, N) pixel positions u, v -> (B, 5, N): bilinear, zero
         outside (``cv2.warpAffine``'s constant border), one element gather for all taps."""
         h, w = int(images.shape[2]), int(images.shape[3])
-        flat = F.pad(images, (1, 2, 1, 2)).flatten(1)  # (B, 4 R), one zero pixel round it (two after)
+        flat = F.pad(images, (1, 2, 1, 2)).flatten(1)  # (B, 5 R), one zero pixel round it (two after)
         u = torch.clamp(u, -1.0, float(w)) + 1.0  # padded pixels
         v = torch.clamp(v, -1.0, float(h)) + 1.0
         fu, fv = torch.floor(u), torch.floor(v)
         fx, fy = (u - fu).unsqueeze(1), (v - fv).unsqueeze(1)
         base = (fv * float(w + 3) + fu).to(torch.int64).unsqueeze(1)  # (B, 1, N)
-        index = (base + self.tap_offset).flatten(1)  # (B, 16 N): 4 channels x 4 taps
-        taps = torch.gather(flat, 1, index).reshape(-1, 4, 4, base.shape[2])
+        index = (base + self.tap_offset).flatten(1)  # (B, 20 N): 5 channels x 4 taps
+        taps = torch.gather(flat, 1, index).reshape(-1, self.CHANNELS, 4, base.shape[2])
         wgt = torch.cat([(1.0 - fy) * (1.0 - fx), (1.0 - fy) * fx, fy * (1.0 - fx), fy * fx], 1).unsqueeze(1)
         return torch.matmul(self.ones4, taps * wgt)[:, :, 0] if torch.onnx.is_in_onnx_export() else (taps * wgt).sum(2)
 
-    def forward(self, crop: torch.Tensor, mask: torch.Tensor, placement: torch.Tensor, frame: torch.Tensor) -> torch.Tensor:
-        hc, wc = int(crop.shape[2]), int(crop.shape[3])
-        corners = torch.tensor([[0.0, 0.0], [wc, 0.0], [0.0, hc], [wc, hc]])
-        pc = _apply(corners.unsqueeze(0), placement[:, :, :2], placement[:, :, 2]).reshape(-1, 2)
-        lo = torch.clamp(torch.floor(pc.amin(0)) - 2.0, min=0.0)
-        hi = torch.minimum(torch.ceil(pc.amax(0)) + 2.0, self.frame_max)
+    def forward(self, crop: torch.Tensor, mask: torch.Tensor, placement: torch.Tensor, frame: torch.Tensor,
+                face: torch.Tensor) -> torch.Tensor:
+        if crop.shape[1] == 1:
+            crop = torch.cat([crop, crop, crop], 1)
+        layers, face_mean = self.layers(crop, mask)
+        # the box: the landmarks' bounding box grown by the largest crop pixel (placed) and 2 px
+        reach = torch.ceil(torch.sqrt((placement[:, :, 0] ** 2).sum(1)).amax()) + 2.0
+        xy = face.reshape(-1, 2)
+        lo = torch.clamp(torch.floor(xy.amin(0)) - reach, min=0.0)
+        hi = torch.minimum(torch.ceil(xy.amax(0)) + reach + 1.0, self.frame_max)
         hi = torch.maximum(hi, lo + 1.0)
         xs, ys = torch.arange(lo[0], hi[0]), torch.arange(lo[1], hi[1])
         inv = invert_affine_t(placement).reshape(-1, 6, 1, 1)  # frame -> crop pixels
         xr, yr = xs.reshape(1, 1, -1), ys.reshape(1, -1, 1)
         u = (inv[:, 0] * xr + (inv[:, 1] * yr + inv[:, 2])).flatten(1)  # (B, N) box pixels in the crop
         v = (inv[:, 3] * xr + (inv[:, 4] * yr + inv[:, 5])).flatten(1)
-        if crop.shape[1] == 1:
-            crop = torch.cat([crop, crop, crop], 1)
-        placed = self._bilinear(torch.cat([crop, mask], 1), u, v).reshape(-1, 4, ys.shape[0], xs.shape[0])
-        face, hard = placed[:, :3], (placed[:, 3:] > 0.5).to(crop.dtype)
+        placed = self._bilinear(layers, u, v).reshape(-1, self.CHANNELS, ys.shape[0], xs.shape[0])
+        pre, alpha, band = placed[:, :3], placed[:, 3:4], placed[:, 4:5]
         bg255 = frame.index_select(2, ys.to(torch.int64)).index_select(3, xs.to(torch.int64))
         bg = bg255 / 255.0
-        inner = self._erode(hard, self.r)
-        band = hard * (1.0 - self._erode(hard, 2 * self.r))
         n = band.sum((2, 3))  # (B, 1)
-        shift = ((bg - face) * band).sum((2, 3)) / torch.clamp(n, min=1.0)
-        face = face + torch.where(n > 20.0, shift, shift * 0.0)[:, :, None, None]
-        p = self.k // 2
-        a = F.conv2d(F.pad(inner, (p, p, 0, 0), mode="reflect"), self.gx)
-        alpha = F.conv2d(F.pad(a, (0, 0, p, p), mode="reflect"), self.gy) * hard
-        blended = alpha * torch.clamp(face, 0.0, 1.0) + (1.0 - alpha) * bg
+        shift = (bg * band).sum((2, 3)) / torch.clamp(n, min=1.0) - face_mean
+        shift = torch.where(n > MIN_BAND, shift, shift * 0.0)[:, :, None, None]
+        blended = pre + alpha * shift + (1.0 - alpha) * bg
         box = torch.clamp(torch.floor(blended * 255.0 + 0.5), 0.0, 255.0)
         pads = torch.cat([self.zero2, lo.flip(0), self.zero2, (self.frame_max - hi).flip(0)]).to(torch.int64)
         return frame + pad_by_tensor(box - bg255, pads)

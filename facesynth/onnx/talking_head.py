@@ -9,9 +9,9 @@ with ``full_frame``, relative motion), each as tensor ops (:mod:`facesynth.onnx.
 the retargeting and shape clamp, the synthesis (:class:`SynthesisGraph`), the full-frame
 warp of the avatar's neutral frame (its control points and Delaunay triangles, taken from
 :class:`facesynth.runtime.fullframe.FrameWarp`) and the feathered, colour-matched seam.
-The feather is fixed at export (``feather`` metadata, pixels; by default
-:func:`facesynth.runtime.blend.seam_width` of the face's mask rendered at the avatar's
-neutral), where ``blend_face`` measures it per frame.
+The feather is fixed at export (``feather`` metadata, pixels of the rendered crop; by
+default :func:`facesynth.runtime.blend.seam_width` of the face's mask rendered at the
+avatar's neutral), where ``blend_face`` measures it per frame.
 
 Standard ONNX operators only (opset 18: Gather, GatherElements, ScatterElements, CumSum,
 MaxPool, Conv, Pad, GridSample, Range, ...), none outside ONNX Runtime Web's.
@@ -24,7 +24,6 @@ import os
 import warnings
 from pathlib import Path
 
-import cv2
 import numpy as np
 import torch
 from torch import nn
@@ -67,25 +66,22 @@ class TalkingHeadGraph(nn.Module):
         self.synthesis = SynthesisGraph(syn.eval()).eval()
         self.retarget = RetargetGraph(avatar.neutral, avatar.shape_space)
         self.frame_warp = FrameWarpGraph(FrameWarp(frame, avatar.neutral))
-        self.feather = float(default_feather(self.synthesis, avatar.neutral, frame.shape[:2]) if feather is None else feather)
+        self.feather = float(default_feather(self.synthesis, avatar.neutral) if feather is None else feather)
         self.seam = SeamGraph(self.feather, (frame.shape[1], frame.shape[0]), tuple(syn.warp.canvas))
 
     def forward(self, driver: torch.Tensor, neutral: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         face = self.retarget(driver, neutral)
         crop, mask, placement = self.synthesis(face)
         bg = self.frame_warp(face)
-        out = self.seam(crop, mask, placement, bg)
+        out = self.seam(crop, mask, placement, bg, face)
         return out.permute(0, 2, 3, 1).to(torch.uint8), face
 
 
-def default_feather(synthesis: SynthesisGraph, neutral: np.ndarray, size: tuple[int, int]) -> float:
-    """:func:`seam_width` of the face's mask rendered at ``neutral`` (68, 2) and placed in a
-    frame of ``size`` (H, W)."""
+def default_feather(synthesis: SynthesisGraph, neutral: np.ndarray) -> float:
+    """:func:`seam_width` (crop pixels) of the face's mask rendered at ``neutral`` (68, 2)."""
     with torch.no_grad():
-        _, mask, placement = synthesis(torch.from_numpy(np.asarray(neutral, np.float32)[None]))
-    h, w = size
-    placed = cv2.warpAffine(mask[0, 0].numpy(), placement[0].numpy().astype(np.float64), (w, h), flags=cv2.INTER_LINEAR)
-    return float(seam_width(placed > 0.5))
+        _, mask, _ = synthesis(torch.from_numpy(np.asarray(neutral, np.float32)[None]))
+    return float(seam_width(mask[0, 0].numpy()))
 
 
 def export_talking_head(syn, metadata: dict, path: str | os.PathLike, feather: float | None = None,
@@ -99,7 +95,7 @@ def export_talking_head(syn, metadata: dict, path: str | os.PathLike, feather: f
     graph = TalkingHeadGraph(syn, Avatar(metadata, str(path)), feather).eval()
     n = np.asarray(metadata["avatar_neutral"], np.float32)
     example = (torch.from_numpy(np.stack([n + 1.5, n * 1.01 - 2.0])), torch.from_numpy(n + 0.5))
-    h, w = graph.frame_warp.canvas
+    h, w = graph.frame_warp.frame_size
     meta = {k: metadata[k] for k in ("avatar_neutral", "shape_pca", "background_jpeg", "landmark_scheme") if k in metadata}
     meta.update({"facesynth_version": __version__, "format": TALKING_HEAD_FORMAT, "frame_size": [w, h],
                  "feather": graph.feather, "opset": opset, "n_landmarks": 68})

@@ -6,6 +6,11 @@ model's mean, lighting of other training frames), which shows as a seam. ``blend
 measures the mean colour difference between the frame and the face in a band just inside
 the face's outline and shifts the face by it (the first-order form of Reinhard et al.'s
 colour transfer, IEEE CG&A 2001, restricted to the seam), then feathers the edge.
+
+The alpha and the band are made in the rendered crop's own pixels (a few thousand, where
+the frame's face box holds ten to a hundred times more), then placed in the frame with
+the face, premultiplied (:func:`seam_layers`); the talking-head graph
+(:class:`facesynth.onnx.head_parts.SeamGraph`) computes the same steps as tensor ops.
 """
 
 from __future__ import annotations
@@ -13,49 +18,86 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+MIN_BAND = 20.0  # frame pixels of seam band below which the colour is not matched
+
 
 def seam_width(mask: np.ndarray) -> float:
-    """A feather width (pixels) in proportion to the face: 4% of the mask's larger side, >= 2."""
+    """A feather width (pixels of ``mask``) in proportion to the face: 4% of the mask's larger
+    side, >= 2."""
     ys, xs = np.nonzero(mask > 0.5)
     if not len(ys):
         return 2.0
     return max(2.0, 0.04 * float(max(np.ptp(ys), np.ptp(xs))))
 
 
+def gaussian_kernel(sigma: float) -> np.ndarray:
+    """float32 (k,) OpenCV's Gaussian kernel for ``sigma`` (its float32 size rule, ksize 0)."""
+    k = int(round(sigma * 8 + 1)) | 1
+    return cv2.getGaussianKernel(k, sigma, cv2.CV_32F).reshape(-1)
+
+
+def seam_layers(mask: np.ndarray, feather: float) -> tuple[np.ndarray, np.ndarray]:
+    """The seam in the crop's pixels: float32 (H_c, W_c) alpha and band.
+
+    alpha: the mask (> 0.5) eroded by ``ceil(feather)`` pixels (a square), blurred by a
+    Gaussian of sigma ``feather / 2`` and cut to the mask; band: the mask less its erosion by
+    twice that (where the colours are compared)."""
+    hard = (np.asarray(mask) > 0.5).astype(np.uint8)
+    r = max(1, int(np.ceil(feather)))
+    inner = cv2.erode(hard, np.ones((2 * r + 1, 2 * r + 1), np.uint8)).astype(np.float32)
+    g = gaussian_kernel(feather / 2.0)
+    alpha = cv2.sepFilter2D(inner, cv2.CV_32F, g, g, borderType=cv2.BORDER_REFLECT_101) * hard
+    band = hard & (cv2.erode(hard, np.ones((4 * r + 1, 4 * r + 1), np.uint8)) == 0)
+    return alpha, band.astype(np.float32)
+
+
+def face_box(landmarks: np.ndarray, size: tuple[int, int]) -> tuple[int, int, int, int]:
+    """(x0, y0, x1, y1): the frame pixels a face on (P, 2) ``landmarks`` can touch (their
+    bounding box plus 2 px, clipped to the frame of ``size`` (W, H))."""
+    w, h = size
+    lm = np.asarray(landmarks, np.float64)
+    x0, y0 = np.maximum(np.floor(lm.min(0)).astype(int) - 2, 0)
+    x1, y1 = np.minimum(np.ceil(lm.max(0)).astype(int) + 3, [w, h])
+    return int(x0), int(y0), int(max(x1, x0 + 1)), int(max(y1, y0 + 1))
+
+
 def blend_face(crop: np.ndarray, mask: np.ndarray, placement: np.ndarray, background: np.ndarray,
-               feather: float | None = None, match_colour: bool = True) -> np.ndarray:
+               feather: float | None = None, match_colour: bool = True,
+               box: tuple[int, int, int, int] | None = None) -> np.ndarray:
     """Paste a rendered crop into ``background``.
 
     crop : float32 (H_c, W_c, 3) in [0, 1]; mask : float32 (H_c, W_c); placement : (2, 3)
-    crop -> frame; background : uint8 (H, W, 3); feather : soft edge in frame pixels
-    (default :func:`seam_width` of the placed face); match_colour : shift the face's colour
-    to the frame's in the seam band. Returns uint8 (H, W, 3).
+    crop -> frame; background : uint8 (H, W, 3); feather : soft edge in the crop's pixels
+    (default :func:`seam_width` of the mask); match_colour : shift the face's colour by the
+    frame's mean less the face's in the seam band; box : (x0, y0, x1, y1) frame pixels that
+    hold the placed face (default: the placed crop's bounding box). Returns uint8 (H, W, 3):
+    ``face * alpha + shift * alpha + frame * (1 - alpha)`` with alpha and the premultiplied
+    face placed bilinearly, rounded.
     """
     h, w = background.shape[:2]
-    # work in the face's bounding box in the frame (warping the whole frame costs milliseconds)
     ch, cw = mask.shape
-    corners = np.array([[0, 0, 1], [cw, 0, 1], [0, ch, 1], [cw, ch, 1]], np.float64) @ np.asarray(placement, np.float64).T
-    x0, y0 = np.maximum(np.floor(corners.min(0)).astype(int) - 2, 0)
-    x1, y1 = np.minimum(np.ceil(corners.max(0)).astype(int) + 2, [w, h])
     out = background.copy()
+    if box is None:
+        corners = np.array([[0, 0, 1], [cw, 0, 1], [0, ch, 1], [cw, ch, 1]], np.float64) @ np.asarray(placement, np.float64).T
+        x0, y0 = np.maximum(np.floor(corners.min(0)).astype(int) - 2, 0)
+        x1, y1 = np.minimum(np.ceil(corners.max(0)).astype(int) + 2, [w, h])
+    else:
+        x0, y0, x1, y1 = box
     if x1 <= x0 or y1 <= y0:
         return out
+    f = float(feather) if feather is not None else seam_width(mask)
+    alpha, band = seam_layers(mask, f)
+    crop = np.asarray(crop, np.float32)
     m = np.asarray(placement, np.float64).copy()
     m[:, 2] -= (x0, y0)
     size = (int(x1 - x0), int(y1 - y0))
-    face = cv2.warpAffine(crop, m, size, flags=cv2.INTER_LINEAR)
-    hard = (cv2.warpAffine(mask.astype(np.float32), m, size, flags=cv2.INTER_LINEAR) > 0.5).astype(np.uint8)
-    if not hard.any():
-        return out
-    f = float(feather) if feather is not None else seam_width(hard)
-    r = max(1, int(np.ceil(f)))
-    inner = cv2.erode(hard, np.ones((2 * r + 1, 2 * r + 1), np.uint8))
+    face = cv2.warpAffine(crop * alpha[..., None], m, size, flags=cv2.INTER_LINEAR)
+    a_b = cv2.warpAffine(np.dstack([alpha, band]), m, size, flags=cv2.INTER_LINEAR)
+    a, b = a_b[..., 0:1], a_b[..., 1]
     bg = background[y0:y1, x0:x1].astype(np.float32) / 255.0
-    if match_colour:
-        band = (hard > 0) & (cv2.erode(hard, np.ones((4 * r + 1, 4 * r + 1), np.uint8)) == 0)
-        if band.sum() > 20:
-            face = face + (bg[band].mean(0) - face[band].mean(0))
-    alpha = cv2.GaussianBlur(inner.astype(np.float32), (0, 0), f / 2) * hard
-    blended = alpha[..., None] * np.clip(face, 0, 1) + (1 - alpha[..., None]) * bg
-    out[y0:y1, x0:x1] = np.clip(blended * 255.0 + 0.5, 0, 255).astype(np.uint8)
+    if match_colour and b.sum() > MIN_BAND:
+        face_mean = (crop * band[..., None]).sum((0, 1)) / band.sum()
+        face = face + a * ((bg * b[..., None]).sum((0, 1)) / b.sum() - face_mean)
+    blended = face + (1.0 - a) * bg
+    out[y0:y1, x0:x1] = np.clip(np.floor(blended * 255.0 + 0.5), 0, 255).astype(np.uint8)
     return out

@@ -26,11 +26,16 @@ triangulation is fixed per avatar.
 Two interpolants of the control points' motion (``method``):
 
 * ``"affine"``: piecewise affine on the Delaunay triangulation of the control points in
-  the neutral frame. Each output pixel takes the affine map (output -> neutral pixels) of
-  the warped triangle covering it; the triangles are drawn from the still ones (border)
-  to the face, so where warped triangles overlap (a fold) the face's side wins, and a
-  pixel no warped triangle covers (a fold's gap) keeps its own neutral pixel. Never a
-  hole: every pixel reads some map.
+  the neutral frame, evaluated exactly at the nodes of a grid of about ``GRID_STEP``
+  pixels (:func:`grid_nodes`, the frame's first and last rows and columns included) and
+  bilinear between them: each node takes the affine map (output -> neutral pixels) of the
+  warped triangle that contains it; a node that no warped triangle contains (a fold's
+  gap), or that two contain (where a fold overlaps), keeps its own position. Never a hole:
+  every pixel reads some map. The map is continuous, so between nodes the bilinear
+  interpolation departs from the exact piecewise affine map only where neighbouring
+  triangles' maps differ, by a fraction of a pixel (in the face, which the composited
+  face covers); a whole-frame per-pixel triangle search would cost the talking-head
+  graph several times its budget.
 * ``"tps"``: a thin-plate spline from the warped control points back to the neutral ones
   (so the inverse map is evaluated directly), on a grid of one node per ``TPS_STEP``
   pixels, bilinearly upsampled; smooth, but its bending can overshoot between control
@@ -66,6 +71,7 @@ OUTSIDE = 0.25  # and so are those outside it, but for those above it by less th
 # the jaw's top points by the ears (the nose tip and the lower jaw turn ahead of the skull)
 HEAD_POINTS = [0, 1, 15, 16, 27, 36, 39, 42, 45]
 TPS_STEP = 8
+GRID_STEP = 8  # the affine warp's grid: exact at its nodes, bilinear between (module docstring)
 TPS_SMOOTH = 1e-6  # relative regularisation of the spline (coincident control points)
 
 
@@ -155,12 +161,10 @@ class FrameWarp:
         held = np.stack([(extra[:, 0] == 0.0) | (extra[:, 0] == w - 1.0), extra[:, 1] == h - 1.0], 1)
         self._share = self.weights[:, None] * ~held
         self._ring = ~(held.any(1) | (extra[:, 1] == 0.0))
-        tri = Delaunay(self.src).simplices.astype(np.int64)
-        # drawing order: still triangles first, the face's last (folds: the face's side wins)
-        wk = np.concatenate([np.full(self.n_face, 2.0), self.weights])
-        self.triangles = tri[np.argsort(wk[tri].sum(1), kind="stable")]
+        self.triangles = Delaunay(self.src).simplices.astype(np.int64)
+        self.nodes = grid_nodes(w), grid_nodes(h)  # (x, y) of the affine warp's grid
+        self._up = interpolation_matrix(w, len(self.nodes[0])), interpolation_matrix(h, len(self.nodes[1]))
         self._grid = np.stack(np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32)), -1)
-        self._xs, self._ys = (np.ascontiguousarray(self._grid[..., k].reshape(-1)) for k in (0, 1))
 
     def control_points(self, landmarks: np.ndarray) -> np.ndarray:
         """float64 (K, 2): where the control points go for (P, 2) avatar landmarks."""
@@ -194,32 +198,48 @@ class FrameWarp:
         return cv2.remap(self.frame, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
 
     def _affine_maps(self, dst: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        w, h = self.size
+        maps = self.node_maps(dst)
+        rx, ry = self._up
+        return tuple(np.ascontiguousarray((ry @ maps[k] @ rx.T).astype(np.float32)) for k in (0, 1))
+
+    def node_maps(self, dst: np.ndarray) -> np.ndarray:
+        """float64 (2, Hn, Wn): the neutral-frame pixel (x, y) each grid node reads, for the
+        control points at ``dst`` (K, 2) (:meth:`control_points`)."""
         tri = self.triangles
         d = dst[tri]  # (T, 3, 2)
         a = np.concatenate([d, np.ones((len(tri), 3, 1))], 2)  # (T, 3, 3) rows [x y 1]
         det = np.linalg.det(a)
         ok = np.abs(det) > 1e-9
         m = np.zeros((len(tri), 2, 3))
-        m[:, 0, 0] = m[:, 1, 1] = 1.0  # degenerate triangles cover no pixel: identity
         # rows [x y 1] @ M^T = src: M^T = A^-1 src
         m[ok] = np.linalg.solve(a[ok], self.src[tri[ok]]).transpose(0, 2, 1)
-        ident = len(tri)
-        index = np.full((h, w), ident, np.int32)
+        nx, ny = self.nodes
+        gx, gy = np.meshgrid(nx, ny)
+        maps = np.stack([gx, gy])  # (2, Hn, Wn): own positions where no single triangle holds the node
+        count = np.zeros(gx.shape, np.int64)  # triangles holding the node strictly inside
+        # the node's map is its most inside triangle's (on a shared edge either triangle's map
+        # gives the same point; where a fold leaves a sliver, the sliver does not take it)
+        best = np.full(gx.shape, -1e-9)
+        taken = np.zeros(gx.shape, bool)
         for t in np.flatnonzero(ok):
-            cv2.fillConvexPoly(index, np.round(d[t] * 16).astype(np.int32), int(t), cv2.LINE_8, 4)
-        # (6, T + 1) coefficients, one flat gather each (faster than gathering (H, W, 2, 3) rows)
-        table = np.concatenate([m, np.array([[[1.0, 0, 0], [0, 1.0, 0]]])]).reshape(-1, 6).T.astype(np.float32)
-        flat = index.reshape(-1)
-        x, y = self._xs, self._ys
-        maps = []
-        for row in (table[:3], table[3:]):
-            out = np.take(row[0], flat)
-            out *= x
-            out += np.take(row[1], flat) * y
-            out += np.take(row[2], flat)
-            maps.append(out.reshape(h, w))
-        return maps[0], maps[1]
+            lo, hi = d[t].min(0) - 1e-6, d[t].max(0) + 1e-6
+            c0, c1 = np.searchsorted(nx, lo[0]), np.searchsorted(nx, hi[0], "right")
+            r0, r1 = np.searchsorted(ny, lo[1]), np.searchsorted(ny, hi[1], "right")
+            if c1 <= c0 or r1 <= r0:
+                continue
+            x, y = gx[r0:r1, c0:c1], gy[r0:r1, c0:c1]
+            (x0, y0), (x1, y1), (x2, y2) = d[t]
+            den = (y1 - y2) * (x0 - x2) + (x2 - x1) * (y0 - y2)
+            l0 = ((y1 - y2) * (x - x2) + (x2 - x1) * (y - y2)) / den
+            l1 = ((y2 - y0) * (x - x2) + (x0 - x2) * (y - y2)) / den
+            lam = np.stack([l0, l1, 1.0 - l0 - l1])
+            inside = lam.min(0)
+            count[r0:r1, c0:c1] += inside > 1e-9
+            new = inside > best[r0:r1, c0:c1]
+            maps[:, r0:r1, c0:c1][:, new] = (m[t] @ np.stack([x[new], y[new], np.ones(int(new.sum()))]))
+            best[r0:r1, c0:c1][new] = inside[new]
+            taken[r0:r1, c0:c1] |= new
+        return np.where(taken & (count < 2), maps, np.stack([gx, gy]))
 
     def _tps_maps(self, dst: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         w, h = self.size
@@ -231,6 +251,26 @@ class FrameWarp:
         out = cv2.remap(src.astype(np.float32), self._grid[..., 0] / TPS_STEP, self._grid[..., 1] / TPS_STEP,
                         cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
         return np.ascontiguousarray(out[..., 0]), np.ascontiguousarray(out[..., 1])
+
+
+def grid_nodes(n: int, step: int = GRID_STEP) -> np.ndarray:
+    """float64 positions of the affine warp's grid nodes along a side of ``n`` pixels:
+    ``ceil((n - 1) / step) + 1`` nodes evenly from 0 to n - 1."""
+    return np.linspace(0.0, n - 1.0, int(np.ceil((n - 1) / step)) + 1)
+
+
+def interpolation_matrix(n: int, nodes: int) -> np.ndarray:
+    """float64 (n, nodes): row x holds the linear interpolation weights of pixel x between
+    ``nodes`` evenly spaced nodes from 0 to n - 1 (node k at k (n - 1) / (nodes - 1); the
+    ``align_corners`` convention of ONNX's Resize)."""
+    pos = np.arange(n, dtype=np.float64) * (nodes - 1) / max(n - 1, 1)
+    k = np.minimum(np.floor(pos).astype(int), nodes - 2) if nodes > 1 else np.zeros(n, int)
+    f = pos - k
+    out = np.zeros((n, nodes))
+    out[np.arange(n), k] = 1.0 - f
+    if nodes > 1:
+        out[np.arange(n), k + 1] += f
+    return out
 
 
 def thin_plate(ctrl: np.ndarray, values: np.ndarray, at: np.ndarray, smooth: float = TPS_SMOOTH) -> np.ndarray:
@@ -263,4 +303,4 @@ def _signed_area(points: np.ndarray, tri: np.ndarray) -> np.ndarray:
     return e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]
 
 
-__all__ = ["METHODS", "FrameWarp", "head_points", "head_region", "thin_plate"]
+__all__ = ["METHODS", "FrameWarp", "grid_nodes", "head_points", "head_region", "interpolation_matrix", "thin_plate"]

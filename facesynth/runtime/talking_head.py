@@ -24,7 +24,7 @@ from facesynth.neutral import select_neutral
 from facesynth.runtime.reenact import NEUTRAL_FRAMES
 from facesynth.runtime.renderer import _session, check_batch, read_metadata
 
-TALKING_HEAD_FORMAT = "facesynth-talking-head-1"
+TALKING_HEAD_FORMAT = "facesynth-talking-head-2"  # 2: the feather in crop pixels, the warp on a grid
 
 
 class TalkingHead:
