@@ -4,6 +4,8 @@ the stages touch ONNX export specifics; :mod:`facesynth.onnx` traces the modules
 these ops and the parity tests hold torch eager and ONNX Runtime to the same numbers.
 
 * :func:`pad_by_tensor`: zero padding by pads computed in the graph (one ``Pad``);
+* :func:`slice_by_tensor`: a box of the last two axes cut at bounds computed in the graph
+  (one ``Slice``; tracing would freeze Python slice bounds into constants);
 * :func:`sum4`: the 4-tap sum of a bilinear interpolation (a (1, 4) ``MatMul`` in ONNX,
   whose ``ReduceSum`` over axis 1 is several times slower in ONNX Runtime; a plain sum in
   torch eager, where a BLAS matmul here stalls the thread pool on busy cores);
@@ -50,6 +52,28 @@ def pad_by_tensor(x: torch.Tensor, pads: torch.Tensor) -> torch.Tensor:
     """Zero-pad (B, C, H, W) ``x`` by int64 ``pads`` (8,) in ONNX order: begins of the four
     axes, then their ends."""
     return _Pad.apply(x, pads)
+
+
+class _Slice(torch.autograd.Function):
+    """``x[..., y0:y1, x0:x1]`` of a 4-D tensor for an int64 bounds tensor [y0, x0, y1, x1],
+    exported as one ONNX ``Slice`` on axes 2 and 3."""
+
+    @staticmethod
+    def forward(ctx, x: torch.Tensor, bounds: torch.Tensor, axes: torch.Tensor) -> torch.Tensor:
+        y0, x0, y1, x1 = (int(v) for v in bounds.tolist())
+        return x[:, :, y0:y1, x0:x1].clone()
+
+    @staticmethod
+    def symbolic(g, x, bounds, axes):
+        starts = g.op("Slice", bounds, g.op("Constant", value_t=torch.tensor([0])), g.op("Constant", value_t=torch.tensor([2])))
+        ends = g.op("Slice", bounds, g.op("Constant", value_t=torch.tensor([2])), g.op("Constant", value_t=torch.tensor([4])))
+        return g.op("Slice", x, starts, ends, axes)
+
+
+def slice_by_tensor(x: torch.Tensor, bounds: torch.Tensor, axes: torch.Tensor) -> torch.Tensor:
+    """(B, C, H, W) ``x`` cut to rows y0:y1 and columns x0:x1 of int64 ``bounds`` (4,)
+    [y0, x0, y1, x1]; ``axes`` is the int64 constant tensor [2, 3]."""
+    return _Slice.apply(x, bounds, axes)
 
 
 def sum4(ones4: torch.Tensor, prod: torch.Tensor) -> torch.Tensor:

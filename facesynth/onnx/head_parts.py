@@ -25,7 +25,7 @@ from facesynth.faps import FAPU_NAMES, FEATURE_POINTS, RIGID_POINTS, face_axes, 
 from facesynth.landmarks import IBUG68
 from facesynth.model.warp import invert_affine_t, similarity_to
 from facesynth.model.warp_target import ToTarget
-from facesynth.ops import pad_by_tensor, sum4
+from facesynth.ops import pad_by_tensor, slice_by_tensor
 from facesynth.retarget import POINT_UNITS, ShapeSpace, eye_patches, eyelid_pairs
 from facesynth.runtime.blend import MIN_BAND, gaussian_kernel
 from facesynth.runtime.fullframe import HEAD_POINTS, FrameWarp
@@ -260,17 +260,19 @@ class FrameWarpGraph(ToTarget):
         uv = F.interpolate(self.node_maps(face), size=self.frame_size, mode="bilinear", align_corners=True)
         uv = torch.minimum(torch.clamp(uv, min=0.0), self.uv_max)  # border replicated
         fl = torch.floor(uv)
-        fr = uv - fl
-        base = (fl[:, 1:2] * float(self.tex_w) + fl[:, 0:1]).to(torch.int64)  # (B, 1, H, W)
-        index = (base + self.quad).flatten(1)  # (B, 4 N)
-        wy = torch.cat([1.0 - fr[:, 1:2], fr[:, 1:2]], 1)
-        wx = torch.cat([1.0 - fr[:, 0:1], fr[:, 0:1]], 1)
-        weights = (wy.unsqueeze(2) * wx.unsqueeze(1)).flatten(1, 2).flatten(2)  # (B, 4, N)
+        fx, fy = uv[:, 0:1] - fl[:, 0:1], uv[:, 1:2] - fl[:, 1:2]  # (B, 1, H, W)
+        # the index in float (exact below 2^24), then one Cast: an index chain the export's
+        # int32 pass rewrites (facesynth.onnx.passes.int32_indices)
+        base = (fl[:, 1:2] * float(self.tex_w) + fl[:, 0:1]).to(torch.int64)
+        # one gather per tap and channel: the batch shares the texture (no copy per frame), and
+        # no split of a (B, 4, H, W) gather; bilinear as two lerps along x, one along y
+        index = [(base + k).reshape(1, -1) for k in (0, 1, self.tex_w, self.tex_w + 1)]
         out = []
         for ch in range(3):
-            taps = torch.gather(self.texture[ch].expand(index.shape[0], -1), 1, index).reshape_as(weights)
-            out.append(sum4(self.ones4, taps * weights))
-        return torch.floor(torch.cat(out, 1) + 0.5).reshape(-1, 3, *self.frame_size)
+            t = [torch.gather(self.texture[ch], 1, i).reshape_as(fx) for i in index]
+            top = t[0] + fx * (t[1] - t[0])
+            out.append(top + fy * (t[2] + fx * (t[3] - t[2]) - top))
+        return torch.floor(torch.cat(out, 1) + 0.5)
 
 
 class SeamGraph(nn.Module):
@@ -289,12 +291,6 @@ class SeamGraph(nn.Module):
     def __init__(self, feather: float, size: tuple[int, int], crop_size: tuple[int, int]):
         super().__init__()
         w, h = size
-        hc, wc = crop_size
-        r = (hc + 3) * (wc + 3)
-        quad = np.array([0, 1, wc + 3, wc + 4])
-        offsets = np.arange(self.CHANNELS)[:, None] * r + quad[None]
-        self.register_buffer("tap_offset", torch.from_numpy(offsets.reshape(-1, 1)))
-        self.register_buffer("ones4", torch.ones(1, 4))
         self.feather = float(feather)
         self.r = max(1, int(math.ceil(self.feather)))
         g = gaussian_kernel(self.feather / 2)
@@ -303,6 +299,7 @@ class SeamGraph(nn.Module):
         self.register_buffer("gy", torch.from_numpy(g.copy()).reshape(1, 1, k, 1))
         self.register_buffer("frame_max", torch.tensor([float(w), float(h)]))
         self.register_buffer("zero2", torch.zeros(2))
+        self.register_buffer("axes23", torch.tensor([2, 3]))
 
     @staticmethod
     def _erode(x: torch.Tensor, r: int) -> torch.Tensor:
@@ -327,19 +324,23 @@ class SeamGraph(nn.Module):
         return torch.cat([crop * alpha, alpha, band], 1), face_mean
 
     def _bilinear(self, images: torch.Tensor, u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
-        """(B, 5, h, w) images read at (B, N) pixel positions u, v -> (B, 5, N): bilinear, zero
-        outside (``cv2.warpAffine``'s constant border), one element gather for all taps."""
+        """(B, 5, h, w) images read at (B, 1, Hb, Wb) pixel positions u, v -> (B, 5, Hb, Wb):
+        bilinear, zero outside (``cv2.warpAffine``'s constant border); one element gather per
+        tap of all the channels."""
         h, w = int(images.shape[2]), int(images.shape[3])
-        flat = F.pad(images, (1, 2, 1, 2)).flatten(1)  # (B, 5 R), one zero pixel round it (two after)
+        flat = F.pad(images, (1, 2, 1, 2)).flatten(2)  # (B, 5, R), one zero pixel round it (two after)
         u = torch.clamp(u, -1.0, float(w)) + 1.0  # padded pixels
         v = torch.clamp(v, -1.0, float(h)) + 1.0
         fu, fv = torch.floor(u), torch.floor(v)
-        fx, fy = (u - fu).unsqueeze(1), (v - fv).unsqueeze(1)
-        base = (fv * float(w + 3) + fu).to(torch.int64).unsqueeze(1)  # (B, 1, N)
-        index = (base + self.tap_offset).flatten(1)  # (B, 20 N): 5 channels x 4 taps
-        taps = torch.gather(flat, 1, index).reshape(-1, self.CHANNELS, 4, base.shape[2])
-        wgt = torch.cat([(1.0 - fy) * (1.0 - fx), (1.0 - fy) * fx, fy * (1.0 - fx), fy * fx], 1).unsqueeze(1)
-        return torch.matmul(self.ones4, taps * wgt)[:, :, 0] if torch.onnx.is_in_onnx_export() else (taps * wgt).sum(2)
+        fx, fy = u - fu, v - fv
+        base = (fv * float(w + 3) + fu).to(torch.int64).flatten(1)  # (B, N), an int32 index chain once exported
+        index = [base + k for k in (0, 1, w + 3, w + 4)]
+        out = []
+        for ch in range(self.CHANNELS):
+            t = [torch.gather(flat[:, ch], 1, i).reshape_as(fx) for i in index]
+            top = t[0] + fx * (t[1] - t[0])
+            out.append(top + fy * (t[2] + fx * (t[3] - t[2]) - top))
+        return torch.cat(out, 1)
 
     def forward(self, crop: torch.Tensor, mask: torch.Tensor, placement: torch.Tensor, frame: torch.Tensor,
                 face: torch.Tensor) -> torch.Tensor:
@@ -354,12 +355,13 @@ class SeamGraph(nn.Module):
         hi = torch.maximum(hi, lo + 1.0)
         xs, ys = torch.arange(lo[0], hi[0]), torch.arange(lo[1], hi[1])
         inv = invert_affine_t(placement).reshape(-1, 6, 1, 1)  # frame -> crop pixels
-        xr, yr = xs.reshape(1, 1, -1), ys.reshape(1, -1, 1)
-        u = (inv[:, 0] * xr + (inv[:, 1] * yr + inv[:, 2])).flatten(1)  # (B, N) box pixels in the crop
-        v = (inv[:, 3] * xr + (inv[:, 4] * yr + inv[:, 5])).flatten(1)
-        placed = self._bilinear(layers, u, v).reshape(-1, self.CHANNELS, ys.shape[0], xs.shape[0])
+        xr, yr = xs.reshape(1, 1, 1, -1), ys.reshape(1, 1, -1, 1)
+        inv = inv.unsqueeze(2)  # (B, 6, 1, 1, 1)
+        u = inv[:, 0] * xr + (inv[:, 1] * yr + inv[:, 2])  # (B, 1, Hb, Wb) box pixels in the crop
+        v = inv[:, 3] * xr + (inv[:, 4] * yr + inv[:, 5])
+        placed = self._bilinear(layers, u, v)
         pre, alpha, band = placed[:, :3], placed[:, 3:4], placed[:, 4:5]
-        bg255 = frame.index_select(2, ys.to(torch.int64)).index_select(3, xs.to(torch.int64))
+        bg255 = slice_by_tensor(frame, torch.cat([lo.flip(0), hi.flip(0)]).to(torch.int64), self.axes23)
         bg = bg255 / 255.0
         n = band.sum((2, 3))  # (B, 1)
         shift = (bg * band).sum((2, 3)) / torch.clamp(n, min=1.0) - face_mean
