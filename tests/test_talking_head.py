@@ -1,6 +1,7 @@
 """The talking head in one ONNX graph (facesynth.onnx.talking_head) against the numpy
 reference pipeline (Reenactor with the full-frame warp, relative motion, the graph's
-feather), on a shared clip: the retargeted landmarks, the composited frames, the runtime."""
+feather), on a shared clip, for a 68-point and a 478-point avatar: the retargeted
+landmarks, every pixel of the composited frames, the runtime."""
 
 from __future__ import annotations
 
@@ -12,10 +13,26 @@ from facesynth.errors import FacesynthError
 FRAMES = 12
 
 
-@pytest.fixture(scope="module")
-def head(shared_clip_dir, tmp_path_factory):
-    """A small linear model of lp_d10 (every 3rd training frame), its synthesis file with the
-    avatar metadata and its talking-head file."""
+def _driver(scheme: str, shared_clip_dir, shared_mesh_npz) -> tuple[np.ndarray, np.ndarray]:
+    """lp_d13's neutral (P, 2) and FRAMES of its frames (FRAMES, P, 2) in ``scheme``."""
+    from facesynth.runtime.reenact import driver_neutral_of
+
+    lm = np.load(shared_clip_dir("lp_d13") / "landmarks.npy").astype(np.float32)
+    _, row = driver_neutral_of(lm)
+    rows = [row, *np.linspace(0, len(lm) - 1, FRAMES).astype(int)]
+    if scheme == "mediapipe478":
+        from _dense import template478, to478
+
+        dense = to478(lm[rows], template478(shared_mesh_npz()))
+        return dense[0], dense[1:]
+    return lm[row], lm[rows[1:]]
+
+
+@pytest.fixture(scope="module", params=["ibug68", "mediapipe478"])
+def head(request, shared_clip_dir, tmp_path_factory):
+    """A small linear model of lp_d10 (every 3rd training frame; its 478 points: MediaPipe's
+    canonical mesh bent onto its 68, tests/_dense.py), its synthesis file with the avatar
+    metadata and its talking-head file."""
     from _onnx_models import linear_avatar
 
     from facesynth.data import load_sequence, temporal_split
@@ -23,28 +40,40 @@ def head(shared_clip_dir, tmp_path_factory):
     from facesynth.onnx.talking_head import export_talking_head
 
     seq = load_sequence(shared_clip_dir("lp_d10"))
+    if request.param == "mediapipe478":
+        from _dense import dense_sequence
+
+        seq = dense_sequence(seq, _mesh_npz())
     train, _ = temporal_split(len(seq))
     syn, meta = linear_avatar(seq, train)
     out = tmp_path_factory.mktemp("talking_head")
     export_synthesizer(syn, out / "face.onnx", meta)
     export_talking_head(syn, meta, out / "head.onnx")
-    return out / "face.onnx", out / "head.onnx"
+    return request.param, out / "face.onnx", out / "head.onnx"
+
+
+def _mesh_npz():
+    from facesynth.data.shared import shared_mesh_dir
+
+    d = shared_mesh_dir()
+    if d is None:
+        pytest.skip("../shared/data/mesh is absent")
+    return d / "mediapipe_canonical_468_arrays.npz"
 
 
 def test_graph_matches_the_numpy_pipeline(head, shared_clip_dir):
     from facesynth.runtime import Reenactor
-    from facesynth.runtime.reenact import driver_neutral_of
     from facesynth.runtime.talking_head import TalkingHead
 
-    face, path = head
-    lm = np.load(shared_clip_dir("lp_d13") / "landmarks.npy").astype(np.float32)
-    neutral, _ = driver_neutral_of(lm)
+    scheme, face, path = head
+    neutral, frames = _driver(scheme, shared_clip_dir, _mesh_npz)
     th = TalkingHead(path, driver_neutral=neutral)
+    assert th.n_points == neutral.shape[0]
     ref = Reenactor(face, driver_neutral=neutral, feather=th.feather, full_frame=True)
     worst_lm, worst = 0.0, 0
-    for i in np.linspace(0, len(lm) - 1, FRAMES).astype(int):
-        want, want_lm = ref.step(lm[i])
-        got, got_lm = th.step(lm[i])
+    for lm in frames:
+        want, want_lm = ref.step(lm)
+        got, got_lm = th.step(lm)
         assert got.dtype == np.uint8 and got.shape == want.shape
         worst_lm = max(worst_lm, float(np.abs(got_lm - want_lm).max()))
         worst = max(worst, int(np.abs(got.astype(int) - want).max()))
@@ -55,17 +84,18 @@ def test_graph_matches_the_numpy_pipeline(head, shared_clip_dir):
 def test_runtime_chooses_the_drivers_neutral_and_checks_its_input(head, shared_clip_dir):
     from facesynth.runtime.talking_head import TalkingHead
 
-    face, path = head
-    lm = np.load(shared_clip_dir("lp_d13") / "landmarks.npy")[:3].astype(np.float32)
+    scheme, face, path = head
+    _, lm = _driver(scheme, shared_clip_dir, _mesh_npz)
+    lm = lm[:3]
     th = TalkingHead(path, neutral_frames=2)
     for row in lm:
         frame, avatar = th.step(row)
-    assert frame.shape == (*th.frame_size[::-1], 3) and avatar.shape == (68, 2)
+    assert frame.shape == (*th.frame_size[::-1], 3) and avatar.shape == lm.shape[1:]
     assert th.driver_neutral is not None and not th._collecting
     frames, avatars = th.run(lm)  # a batch renders as its frames one at a time
     one, _ = th.run(lm[1:2])
     assert frames.shape[0] == 3 and np.abs(frames[1].astype(int) - one[0]).max() <= 2
     with pytest.raises(FacesynthError, match="driver landmarks"):
-        th.step(np.full((68, 2), np.nan, np.float32))
+        th.step(np.full(lm.shape[1:], np.nan, np.float32))
     with pytest.raises(FacesynthError, match="not a talking-head graph"):
         TalkingHead(face)

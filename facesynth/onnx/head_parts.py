@@ -9,7 +9,8 @@
   :class:`facesynth.model.warp.ToTarget`'s scanline coverage counting over the whole frame;
 * :class:`SeamGraph`: :func:`facesynth.runtime.blend.blend_face` with a fixed feather.
 
-ibug68 landmarks only (the full-frame warp's control points are placed on them).
+Landmarks of :data:`facesynth.retarget.RETARGET_SCHEMES` (the full-frame warp's control
+points are placed on their iBUG-68 view).
 """
 
 from __future__ import annotations
@@ -21,12 +22,12 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-from facesynth.faps import FAPU_NAMES, FEATURE_POINTS, RIGID_POINTS, face_axes, fapu
-from facesynth.landmarks import IBUG68
+from facesynth.faps import FAPU_NAMES, FEATURE_POINTS, face_axes, fapu
+from facesynth.landmarks import IBUG68, LandmarkScheme, ibug68_view, scheme_for_points
 from facesynth.model.warp import invert_affine_t, similarity_to
 from facesynth.model.warp_target import ToTarget
 from facesynth.ops import pad_by_tensor, slice_by_tensor
-from facesynth.retarget import POINT_UNITS, ShapeSpace, eye_patches, eyelid_pairs
+from facesynth.retarget import POINT_UNITS, ShapeSpace, eye_patches, eyelid_pairs, iris_diameter, point_units, rigid_points
 from facesynth.runtime.blend import MIN_BAND, gaussian_kernel
 from facesynth.runtime.fullframe import HEAD_POINTS, FrameWarp
 
@@ -53,30 +54,43 @@ def _similarity(ca: torch.Tensor, sa: torch.Tensor) -> torch.Tensor:
 
 
 class RetargetGraph(nn.Module):
-    """Driver landmarks (B, 68, 2) and the driver's neutral (68, 2) -> avatar landmarks
-    (B, 68, 2): the steps of :class:`facesynth.retarget.Retargeter` (relative motion, head
-    motion on) and the shape clamp of ``shape_space`` (eyelids kept)."""
+    """Driver landmarks (B, P, 2) and the driver's neutral (P, 2) -> avatar landmarks
+    (B, P, 2): the steps of :class:`facesynth.retarget.Retargeter` (relative motion, head
+    motion on) and the shape clamp of ``shape_space`` (eyelids kept), for a scheme of
+    :data:`facesynth.retarget.RETARGET_SCHEMES` (FAP units and face axes on its iBUG-68
+    view; with irises, IRISD from the iris diameters)."""
 
-    def __init__(self, avatar_neutral: np.ndarray, shape_space: ShapeSpace | None):
+    def __init__(self, avatar_neutral: np.ndarray, shape_space: ShapeSpace | None, scheme: LandmarkScheme = IBUG68):
         super().__init__()
         an = np.asarray(avatar_neutral, np.float64)
+        view = np.eye(len(an)) if scheme is IBUG68 else scheme.ibug68_matrix()  # (68, P)
         ids = list(FEATURE_POINTS)
-        fp = np.zeros((len(ids), len(an)))
+        fp = np.zeros((len(ids), 68))
         for i, k in enumerate(ids):
             fp[i, list(FEATURE_POINTS[k])] = 1.0 / len(FEATURE_POINTS[k])
         # the feature points fapu and face_axes read: 3.5, 3.6, 9.15, 2.2, 8.3, 8.4, 3.1, 3.3, 3.2, 3.4
-        self.register_buffer("fp", _const(fp[[ids.index(k) for k in ("3.5", "3.6", "9.15", "2.2", "8.3", "8.4", "3.1",
-                                                                            "3.3", "3.2", "3.4")]]))
+        fp = fp[[ids.index(k) for k in ("3.5", "3.6", "9.15", "2.2", "8.3", "8.4", "3.1", "3.3", "3.2", "3.4")]]
+        self.register_buffer("fp", _const(fp @ view))
+        a68 = ibug68_view(an)
         self.register_buffer("an", _const(an))
-        self.register_buffer("fapu_a", _const(fapu(an)))
-        self.register_buffer("axes_a", _const(face_axes(an)))
+        ratio_a = fapu(a68)
+        self.iris = [[int(i) for i in scheme.region(side)] for side in ("right_iris", "left_iris")] \
+            if "irises" in scheme.regions else None
+        if self.iris is not None:  # IRISD: the iris diameters' ratio (retarget.iris_diameter)
+            ratio_a[FAPU_NAMES.index("IRISD")] = iris_diameter(scheme, an)
+            put = np.zeros(len(FAPU_NAMES))
+            put[FAPU_NAMES.index("IRISD")] = 1.0
+            self.register_buffer("iris_put", _const(put))
+        self.register_buffer("fapu_a", _const(ratio_a))
+        self.register_buffer("axes_a", _const(face_axes(a68)))
+        units = POINT_UNITS if scheme is IBUG68 else point_units(scheme, an)
         onehot = np.zeros((2, len(FAPU_NAMES), len(an)))  # ratio (5,) -> per-point scale (P,) of each axis
         for ax in range(2):
-            onehot[ax, POINT_UNITS[:, ax], np.arange(len(an))] = 1.0
+            onehot[ax, units[:, ax], np.arange(len(an))] = 1.0
         self.register_buffer("units", _const(onehot))
-        self.rigid = list(RIGID_POINTS)
+        self.rigid = rigid_points(scheme)
         self.register_buffer("an_rigid", _const(an[self.rigid]))
-        up, lo = eyelid_pairs(IBUG68)
+        up, lo = eyelid_pairs(scheme)
         self.lid_up, self.lid_lo = [int(i) for i in up], [int(i) for i in lo]
         self.register_buffer("put_up", _scatter(self.lid_up, len(an)))
         self.register_buffer("put_lo", _scatter(self.lid_lo, len(an)))
@@ -89,10 +103,18 @@ class RetargetGraph(nn.Module):
             self.register_buffer("off", _const(s._off))
             self.register_buffer("limit", _const(s.limit))
             self.register_buffer("comp", _const(s.components))
-            self.eyes = [([int(i) for i in idx], int(c0), int(c1)) for idx, c0, c1 in eye_patches(IBUG68)]
+            self.eyes = [([int(i) for i in idx], int(c0), int(c1)) for idx, c0, c1 in eye_patches(scheme)]
             for k, (idx, _, _) in enumerate(self.eyes):
                 self.register_buffer(f"put_eye{k}", _scatter(idx, len(an)))
             self.keep_eyes = bool(s.keep_eyes)
+
+    def _iris_diameter(self, face: torch.Tensor) -> torch.Tensor:
+        """:func:`facesynth.retarget.iris_diameter` of a (P, 2) face."""
+        out = []
+        for idx in self.iris:
+            d = face[idx[1:]] - face[idx[0]]
+            out.append(2.0 * torch.sqrt((d * d).sum(-1)).mean())
+        return 0.5 * (out[0] + out[1])
 
     def forward(self, driver: torch.Tensor, neutral: torch.Tensor) -> torch.Tensor:
         f = torch.matmul(self.fp, neutral)  # (10, 2) feature points of the driver's neutral
@@ -104,6 +126,8 @@ class RetargetGraph(nn.Module):
         iris = 0.5 * (torch.sqrt(((f[6] - f[7]) ** 2).sum()) + torch.sqrt(((f[8] - f[9]) ** 2).sum()))
         fapu_d = torch.stack([es, ((f[2] - pupils) * down).sum(), ((f[3] - f[2]) * down).sum(),
                               torch.sqrt(((f[4] - f[5]) ** 2).sum()), iris]) / 1024.0
+        if self.iris is not None:
+            fapu_d = fapu_d + self.iris_put * (self._iris_diameter(neutral) - fapu_d)
         ratio = self.fapu_a / fapu_d  # (5,)
         axes_d = torch.stack([xd, down])  # (2, 2) rows x, down
         scale = torch.matmul(ratio, self.units).t()  # (P, 2) per point and driver axis
@@ -189,7 +213,7 @@ class _Mesh:
 
 
 class FrameWarpGraph(ToTarget):
-    """:class:`FrameWarp` (affine) as tensor ops: avatar landmarks (B, 68, 2) -> the warped
+    """:class:`FrameWarp` (affine) as tensor ops: avatar landmarks (B, P, 2) -> the warped
     neutral frame (B, 3, H, W), float values 0..255 rounded to integers.
 
     The control points' triangles are located at the nodes of FrameWarp's grid by
@@ -205,6 +229,8 @@ class FrameWarpGraph(ToTarget):
         wn, hn = len(nx), len(ny)
         span = np.tile(np.array([[wn, hn]], np.int64), (len(fw.triangles), 1))  # every node column
         super().__init__(_Mesh(fw.src, fw.triangles, (h, w)), span, canvas=(hn, wn))
+        scheme = scheme_for_points(fw.n_points)
+        self.view = None if scheme is IBUG68 else _const(scheme.ibug68_matrix())
         self.frame_size = (h, w)
         self.register_buffer("neutral68", _const(fw.neutral68[HEAD_POINTS]))
         extra = fw.src[fw.n_face:]
@@ -238,14 +264,16 @@ class FrameWarpGraph(ToTarget):
         self.register_buffer("outward", _const(out))
 
     def control_points(self, face: torch.Tensor) -> torch.Tensor:
-        """(B, 68, 2) -> (B, K, 2) (FrameWarp.control_points)."""
+        """(B, P, 2) -> (B, K, 2) (FrameWarp.control_points)."""
+        if self.view is not None:
+            face = torch.matmul(self.view, face)  # the iBUG-68 view of a denser scheme
         s = similarity_to(self.neutral68.unsqueeze(0).expand(face.shape[0], -1, -1), face[:, HEAD_POINTS])
         moved = self.extra + self.share * (_apply(self.extra.unsqueeze(0), s[:, :, :2], s[:, :, 2]) - self.extra)
         moved = torch.minimum(torch.maximum(moved, self.lo_clip), self.hi_clip)
         return torch.cat([face, moved], 1)
 
     def node_maps(self, face: torch.Tensor) -> torch.Tensor:
-        """(B, 68, 2) -> (B, 2, Hn, Wn): the neutral-frame pixel (x, y) each grid node reads."""
+        """(B, P, 2) -> (B, 2, Hn, Wn): the neutral-frame pixel (x, y) each grid node reads."""
         target = self.control_points(face) * self.to_node
         vert, e, _ = self.coordinates(target)
         maps, det = self.affine_maps(vert, e)

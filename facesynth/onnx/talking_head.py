@@ -1,8 +1,8 @@
 """The whole talking head as one ONNX graph (torch side; the runtime side is
 :class:`facesynth.runtime.talking_head.TalkingHead`, torch-free):
 
-    driver (B, 68, 2) frame px, driver_neutral (68, 2) -> frame (B, H, W, 3) uint8,
-                                                          avatar_landmarks (B, 68, 2)
+    driver (B, P, 2) frame px, driver_neutral (P, 2) -> frame (B, H, W, 3) uint8,
+                                                          avatar_landmarks (B, P, 2)
 
 In between, the steps of the numpy reference pipeline (:class:`facesynth.runtime.Reenactor`
 with ``full_frame``, relative motion), each as tensor ops (:mod:`facesynth.onnx.head_parts`):
@@ -14,7 +14,7 @@ default :func:`facesynth.runtime.blend.seam_width` of the face's mask rendered a
 avatar's neutral), where ``blend_face`` measures it per frame.
 
 Standard ONNX operators only (opset 18: Gather, GatherElements, ScatterElements, CumSum,
-MaxPool, Conv, Pad, GridSample, Range, ...), none outside ONNX Runtime Web's.
+Conv, Pad, Resize, Slice, Range, MatMulInteger, ...), none outside ONNX Runtime Web's.
 """
 
 from __future__ import annotations
@@ -32,9 +32,11 @@ from facesynth import __version__
 from facesynth.contract import OPSET
 from facesynth.errors import FacesynthError
 from facesynth.io import atomic_path
+from facesynth.landmarks import get_scheme
 from facesynth.onnx.head_parts import FrameWarpGraph, RetargetGraph, SeamGraph
 from facesynth.onnx.passes import int32_indices
 from facesynth.onnx.synthesis import SynthesisGraph
+from facesynth.retarget import RETARGET_SCHEMES
 from facesynth.runtime.blend import seam_width
 from facesynth.runtime.fullframe import FrameWarp
 from facesynth.runtime.reenact import Avatar
@@ -47,24 +49,25 @@ OUTPUTS = ("frame", "avatar_landmarks")
 class TalkingHeadGraph(nn.Module):
     """Driver landmarks and the driver's neutral -> the composited avatar frame.
 
-    syn : Synthesizer (ibug68, 68 points); avatar : :class:`facesynth.runtime.reenact.Avatar`
+    syn : Synthesizer (ibug68 or mediapipe478: P = 68 or 478); avatar : :class:`facesynth.runtime.reenact.Avatar`
     (its neutral, shape PCA and neutral frame, from the model's metadata); feather : seam
     width in pixels (default: :func:`default_feather`).
 
-    Forward: driver (B, 68, 2), neutral (68, 2) float32 -> frame (B, H, W, 3) uint8,
-    avatar landmarks (B, 68, 2) float32.
+    Forward: driver (B, P, 2), neutral (P, 2) float32 -> frame (B, H, W, 3) uint8,
+    avatar landmarks (B, P, 2) float32.
     """
 
     def __init__(self, syn, avatar: Avatar, feather: float | None = None):
         super().__init__()
-        if getattr(syn, "scheme", "ibug68") != "ibug68" or syn.n_points != 68:
-            raise FacesynthError(f"talking-head graph: takes ibug68 models (68 points), not {syn.scheme} ({syn.n_points})")
+        scheme = str(getattr(syn, "scheme", "ibug68"))
+        if scheme not in RETARGET_SCHEMES:
+            raise FacesynthError(f"talking-head graph: takes {' or '.join(RETARGET_SCHEMES)} models, not {scheme}")
         frame = avatar.background
         if avatar.neutral is None or frame is None:
             raise FacesynthError(f"{avatar.where}: the talking-head graph needs the avatar's neutral and frame in the "
                                  "metadata (re-export the model)")
         self.synthesis = SynthesisGraph(syn.eval()).eval()
-        self.retarget = RetargetGraph(avatar.neutral, avatar.shape_space)
+        self.retarget = RetargetGraph(avatar.neutral, avatar.shape_space, get_scheme(scheme))
         self.frame_warp = FrameWarpGraph(FrameWarp(frame, avatar.neutral))
         self.feather = float(default_feather(self.synthesis, avatar.neutral) if feather is None else feather)
         self.seam = SeamGraph(self.feather, (frame.shape[1], frame.shape[0]), tuple(syn.warp.canvas))
@@ -78,7 +81,7 @@ class TalkingHeadGraph(nn.Module):
 
 
 def default_feather(synthesis: SynthesisGraph, neutral: np.ndarray) -> float:
-    """:func:`seam_width` (crop pixels) of the face's mask rendered at ``neutral`` (68, 2)."""
+    """:func:`seam_width` (crop pixels) of the face's mask rendered at ``neutral`` (P, 2)."""
     with torch.no_grad():
         _, mask, _ = synthesis(torch.from_numpy(np.asarray(neutral, np.float32)[None]))
     return float(seam_width(mask[0, 0].numpy()))
@@ -92,13 +95,14 @@ def export_talking_head(syn, metadata: dict, path: str | os.PathLike, feather: f
     import onnx  # heavy: imported when a graph is written
 
     path = Path(path)
+    metadata = {"landmark_scheme": str(getattr(syn, "scheme", "ibug68")), **metadata}
     graph = TalkingHeadGraph(syn, Avatar(metadata, str(path)), feather).eval()
     n = np.asarray(metadata["avatar_neutral"], np.float32)
     example = (torch.from_numpy(np.stack([n + 1.5, n * 1.01 - 2.0])), torch.from_numpy(n + 0.5))
     h, w = graph.frame_warp.frame_size
     meta = {k: metadata[k] for k in ("avatar_neutral", "shape_pca", "background_jpeg", "landmark_scheme") if k in metadata}
     meta.update({"facesynth_version": __version__, "format": TALKING_HEAD_FORMAT, "frame_size": [w, h],
-                 "feather": graph.feather, "opset": opset, "n_landmarks": 68})
+                 "feather": graph.feather, "opset": opset, "n_landmarks": int(n.shape[0])})
     with atomic_path(path) as tmp, warnings.catch_warnings():
         warnings.simplefilter("ignore")  # the TorchScript exporter's deprecation and tracer warnings
         with torch.no_grad():

@@ -150,6 +150,7 @@ class FrameWarp:
         self.frame, self.method = frame, method
         h, w = frame.shape[:2]
         self.size = (w, h)
+        self.n_points = int(np.asarray(neutral).shape[-2])  # of the landmarks' scheme (P)
         self.neutral68 = ibug68_view(neutral)
         if not np.isfinite(self.neutral68).all():
             raise FacesynthError("full-frame warp: the avatar's neutral landmarks are not finite")

@@ -3,8 +3,8 @@
 
     from facesynth.runtime.talking_head import TalkingHead
     th = TalkingHead("head.onnx", driver_neutral=lm0)   # or None: chosen from the first frames
-    for lm in driver_landmarks:                         # (68, 2) driver frame pixels
-        frame, avatar_lm = th.step(lm)                  # uint8 (H, W, 3), float32 (68, 2)
+    for lm in driver_landmarks:                         # (P, 2) driver frame pixels
+        frame, avatar_lm = th.step(lm)                  # uint8 (H, W, 3), float32 (P, 2)
 
 The graph computes what :class:`facesynth.runtime.Reenactor` computes with the full-frame
 warp and relative motion (retargeting, shape clamp, synthesis, warp of the avatar's neutral
@@ -30,7 +30,7 @@ TALKING_HEAD_FORMAT = "facesynth-talking-head-2"  # 2: the feather in crop pixel
 class TalkingHead:
     """Driver landmarks -> composited avatar frames, one ONNX Runtime call per batch.
 
-    path : the talking-head ONNX file; driver_neutral : (68, 2), optional; threads : ONNX
+    path : the talking-head ONNX file; driver_neutral : (P, 2), optional; threads : ONNX
     Runtime's intra-op threads; neutral_frames : frames collected to choose the driver's
     neutral when none is given.
     """
@@ -58,7 +58,7 @@ class TalkingHead:
                            " (a frame without a face)")
 
     def run(self, driver) -> tuple[np.ndarray, np.ndarray]:
-        """(B, 68, 2) driver landmarks -> uint8 (B, H, W, 3) frames, float32 (B, 68, 2)
+        """(B, P, 2) driver landmarks -> uint8 (B, H, W, 3) frames, float32 (B, P, 2)
         avatar landmarks; needs the driver's neutral (given, or chosen by :meth:`step`)."""
         if self.driver_neutral is None:
             raise FacesynthError(f"{self.path}: no driver neutral yet (give driver_neutral, or call step)")
@@ -67,7 +67,7 @@ class TalkingHead:
         return frames, avatar
 
     def step(self, landmarks) -> tuple[np.ndarray, np.ndarray]:
-        """One (68, 2) driver frame -> (uint8 (H, W, 3) frame, float32 (68, 2) avatar landmarks)."""
+        """One (P, 2) driver frame -> (uint8 (H, W, 3) frame, float32 (P, 2) avatar landmarks)."""
         lm = self._points(np.asarray(landmarks)[None], "driver landmarks")
         if self._collecting:  # no neutral given: choose among the frames seen so far
             self._seen.append(lm[0])
