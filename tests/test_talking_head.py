@@ -99,3 +99,43 @@ def test_runtime_chooses_the_drivers_neutral_and_checks_its_input(head, shared_c
         th.step(np.full(lm.shape[1:], np.nan, np.float32))
     with pytest.raises(FacesynthError, match="not a talking-head graph"):
         TalkingHead(face)
+
+
+def test_export_and_app_run_a_talking_head_file(tmp_path, capsys):
+    """``facesynth export RUN --talking-head`` writes a checked talking-head file; ``facesynth
+    app`` renders every driver frame with it (the avatar landmarks it saves are the graph's
+    own), and refuses, with exit 2 and no output, the options the file fixes at export."""
+    import json
+    import subprocess
+    import sys
+
+    import cv2
+
+    from facesynth.cli import main
+    from facesynth.data.synthetic import make_synthetic_sequence
+    from facesynth.runtime.talking_head import TalkingHead
+
+    run = tmp_path / "run"
+    train = [sys.executable, "-m", "facesynth", "train", "regressor=linear", "eval.frame_level=false",
+             "eval.train_level=false", "eval.common_region=false", "eval.noise=[0]", "model.n_appearance=8",
+             "data.n_frames=40", "data.size=128", f"hydra.run.dir={run}", "quiet=true"]
+    subprocess.run(train, check=True, capture_output=True, timeout=300)
+    head = tmp_path / "head.onnx"
+    assert main(["export", str(run), "--out", str(head), "--talking-head", "--quiet"]) == 0
+    summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert summary["talking_head"] and summary["max_abs_diff_vs_torch"] <= 2
+    lm = make_synthetic_sequence(n_frames=12, size=128, seed=5).landmarks
+    np.save(tmp_path / "lm.npy", lm)
+    out, saved = tmp_path / "o.mp4", tmp_path / "avatar.npy"
+    assert main(["app", "--model", str(head), "--landmarks", str(tmp_path / "lm.npy"), "--out", str(out),
+                 "--save-landmarks", str(saved), "--driver-neutral", "0", "--no-progress"]) == 0
+    assert json.loads(capsys.readouterr().out.strip().splitlines()[-1])["talking_head_graph"] is True
+    cap = cv2.VideoCapture(str(out))
+    assert int(cap.get(cv2.CAP_PROP_FRAME_COUNT)) == len(lm) and cap.read()[0]
+    cap.release()
+    _, want = TalkingHead(head, driver_neutral=lm[0]).run(lm)
+    np.testing.assert_allclose(np.load(saved), want, atol=1e-4)
+    bad = tmp_path / "bad.mp4"
+    assert main(["app", "--model", str(head), "--landmarks", str(tmp_path / "lm.npy"), "--out", str(bad),
+                 "--feather", "3", "--no-progress"]) == 2
+    assert "--feather cannot apply" in capsys.readouterr().err and not bad.exists()

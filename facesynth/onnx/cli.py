@@ -3,6 +3,10 @@
 The export code is :mod:`facesynth.onnx.synthesis`; the written model is checked once
 with ONNX Runtime against torch.
 
+With ``--talking-head`` the whole talking head is exported instead (driver landmarks and
+the driver's neutral -> the avatar's composited frame; :mod:`facesynth.onnx.talking_head`),
+checked against torch on driver frames made from the avatar's own neutral.
+
 With ``--target IMAGE_OR_DIR`` the run's ERI model is exported instead, for that target
 face (:mod:`facesynth.onnx.eri`; the target is named as in ``transfer-expression``):
 MPEG-4 FAPs (B, 36) -> the target's rendered face.
@@ -40,6 +44,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "its PSNR against float32 measured and recorded; or float32")
     p.add_argument("--landmarks", default=None,
                    help="training landmarks (.npy (N, P, 2), run's scheme) for the compression (default: reloaded from RUN/config.yaml)")
+    p.add_argument("--talking-head", action="store_true",
+                   help="export the whole talking head: driver landmarks + driver neutral -> the avatar's frame, its head "
+                        "warped with the face (run it with 'facesynth app --model' or 'facesynth serve')")
     eri = p.add_argument_group("ERI model (exported when --target is given)")
     eri.add_argument("--target", metavar="IMAGE_OR_DIR",
                      help="target neutral face: an image, or a folder in ingest layout (its neutral frame is used)")
@@ -86,14 +93,16 @@ def run(args: argparse.Namespace) -> int:
 
     check_args(args.out, args.opset)  # before reading --landmarks
 
+    if args.target and args.talking_head:
+        raise FacesynthError("--talking-head and --target: a talking head is exported from a run's SADM model, not its ERI one")
     if args.target:
         summary = export_eri_model(args.run, args.out, args.target, args.target_landmarks, args.target_frame,
                                    args.variant, args.raw_ratios, args.opset, not args.no_check)
     else:
         lm = load_landmarks(args.landmarks, scheme=_run_scheme(args.run)) if args.landmarks else None
         comps = DEFAULT_COMPONENTS if args.components is None else args.components
-        summary = export_model(args.run, args.out, args.opset, comps, args.predicted_variance, lm, not args.no_check,
-                               args.basis)
+        export = export_talking_head_model if args.talking_head else export_model
+        summary = export(args.run, args.out, args.opset, comps, args.predicted_variance, lm, not args.no_check, args.basis)
     print(summary_json(summary))
     return 0
 
@@ -119,6 +128,35 @@ def export_model(run_dir, out, opset: int = OPSET, components: int | None = DEFA
             with stage("ONNX Runtime vs torch check"):
                 summary["max_abs_diff_vs_torch"] = _checked(out, tmp, lambda p: check_export(syn, p), meta)
     log.info("exported %s (%s regressor, %.1f MB)", out, meta.get("regressor"), summary["bytes"] / 1e6)
+    return summary
+
+
+def export_talking_head_model(run_dir, out, opset: int = OPSET, components: int | None = DEFAULT_COMPONENTS,
+                              predicted_variance: float | None = None, landmarks=None, check: bool = True,
+                              basis: str = DEFAULT_BASIS) -> dict:
+    """Export a run's talking head (``facesynth export RUN --talking-head``): the synthesizer
+    as :func:`export_model` compresses it, in one graph with the retargeting, the full-frame
+    warp and the seam; returns the JSON summary (the ONNX Runtime vs torch difference, 0-255,
+    when ``check``)."""
+    from facesynth.onnx.synthesis import prepare_run  # lazy: keeps --help fast (torch)
+    from facesynth.onnx.talking_head import check_talking_head, export_talking_head
+    from facesynth.runs.rundir import is_eri_run
+
+    check_args(out, opset)
+    run_dir = Path(run_dir)
+    if is_eri_run(run_dir):
+        raise FacesynthError(f"{run_dir}: holds an ERI model only; a talking head needs a SADM run")
+    with atomic_path(out) as tmp:
+        with stage("ONNX export (talking head)"):
+            syn, meta = prepare_run(run_dir, components, predicted_variance, landmarks, basis)
+            if "avatar_neutral" not in meta or "background_jpeg" not in meta:
+                raise FacesynthError(f"{run_dir}: the run's data gives no avatar neutral and frame (its video is needed)")
+            export_talking_head(syn, meta, tmp, opset=opset)
+        summary = {"out": str(out), "bytes": tmp.stat().st_size, **_brief(meta), "opset": opset, "talking_head": True}
+        if check:
+            with stage("ONNX Runtime vs torch check"):
+                summary["max_abs_diff_vs_torch"] = _checked(out, tmp, lambda p: check_talking_head(syn, meta, p), meta)
+    log.info("exported %s (talking head, %s regressor, %.1f MB)", out, meta.get("regressor"), summary["bytes"] / 1e6)
     return summary
 
 

@@ -228,6 +228,15 @@ def export_run(
     (:func:`compress_for_export`; ``landmarks`` default: the run's training landmarks),
     quantize its basis (:func:`quantize_for_export`) and export it. Returns the file, the
     exported (compressed, quantized) synthesizer and the metadata."""
+    syn, meta = prepare_run(run_dir, components, predicted_variance, landmarks, basis)
+    return export_synthesizer(syn, out, meta, opset), syn, meta
+
+
+def prepare_run(run_dir: str | os.PathLike, components: int | None = DEFAULT_COMPONENTS,
+                predicted_variance: float | None = None, landmarks=None,
+                basis: str = DEFAULT_BASIS) -> tuple[Synthesizer, dict]:
+    """A run's synthesizer as :func:`export_run` exports it (compressed, quantized) and its
+    metadata (the avatar's included), without writing a file."""
     syn, meta = load_synthesizer(run_dir)
     lm = functools.cache(lambda: landmarks if landmarks is not None else training_landmarks(run_dir))  # loaded once, if needed
     syn, info = compress_for_export(syn, lm, components, predicted_variance)
@@ -235,7 +244,7 @@ def export_run(
     syn, info = quantize_for_export(syn, lm, basis)
     meta.update(info)
     meta.update(run_avatar_metadata(run_dir, syn))
-    return export_synthesizer(syn, out, meta, opset), syn, meta
+    return syn, meta
 
 
 def check_export(syn: Synthesizer, path: str | os.PathLike, landmarks: np.ndarray | None = None, tol: float = 1e-4) -> float:

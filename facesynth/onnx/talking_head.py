@@ -100,7 +100,7 @@ def export_talking_head(syn, metadata: dict, path: str | os.PathLike, feather: f
     n = np.asarray(metadata["avatar_neutral"], np.float32)
     example = (torch.from_numpy(np.stack([n + 1.5, n * 1.01 - 2.0])), torch.from_numpy(n + 0.5))
     h, w = graph.frame_warp.frame_size
-    meta = {k: metadata[k] for k in ("avatar_neutral", "shape_pca", "background_jpeg", "landmark_scheme") if k in metadata}
+    meta = {k: v for k, v in metadata.items() if k not in ("format", "inputs", "outputs")}  # the model's provenance too
     meta.update({"facesynth_version": __version__, "format": TALKING_HEAD_FORMAT, "frame_size": [w, h],
                  "feather": graph.feather, "opset": opset, "n_landmarks": int(n.shape[0])})
     with atomic_path(path) as tmp, warnings.catch_warnings():
@@ -119,3 +119,32 @@ def export_talking_head(syn, metadata: dict, path: str | os.PathLike, feather: f
         onnx.checker.check_model(model)
         onnx.save(model, str(tmp))
     return path
+
+
+def check_talking_head(syn, metadata: dict, path: str | os.PathLike, frames: int = 4, tol: int = 2) -> int:
+    """Run the talking-head file ``path`` in ONNX Runtime and its graph in torch on ``frames``
+    driver frames made from the avatar's own neutral (the neutral as the driver's neutral;
+    the frames moved, turned and scaled a little). Returns the largest pixel difference (0-255);
+    FacesynthError above ``tol`` or when the avatar landmarks differ by more than 0.01 px."""
+    from facesynth.runtime.talking_head import TalkingHead
+
+    metadata = {"landmark_scheme": str(getattr(syn, "scheme", "ibug68")), **metadata}
+    n = np.asarray(metadata["avatar_neutral"], np.float32)
+    th = TalkingHead(path, driver_neutral=n)
+    graph = TalkingHeadGraph(syn, Avatar(metadata, str(path)), th.feather).eval()
+    c = n.mean(0)
+    driver = []
+    for k in range(frames):
+        a, s = 0.04 * (k - frames / 2), 1.0 + 0.02 * k
+        rot = s * np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]], np.float32)
+        driver.append((n - c) @ rot.T + c + np.float32(3 * k))
+    driver = np.stack(driver).astype(np.float32)
+    got, got_lm = th.run(driver)
+    with torch.no_grad():
+        want, want_lm = (t.numpy() for t in graph(torch.from_numpy(driver), torch.from_numpy(n)))
+    worst = int(np.abs(got.astype(int) - want).max())
+    lm_diff = float(np.abs(got_lm - want_lm).max())
+    if worst > tol or not lm_diff <= 0.01:
+        raise FacesynthError(f"{path}: ONNX Runtime and torch differ by {worst}/255 (> {tol}) or the avatar landmarks by "
+                             f"{lm_diff:.3g} px")
+    return worst

@@ -202,10 +202,31 @@ def detect_with_progress(driver, max_frames: int | None, scheme: str, enabled: b
     return landmarks
 
 
+def talking_head(args: argparse.Namespace):
+    """A :class:`facesynth.runtime.talking_head.TalkingHead` when ``--model`` is a talking-head
+    file (``facesynth export RUN --talking-head``), else None; FacesynthError naming the
+    options such a file fixes at export (its own frame, relative motion, its seam)."""
+    from facesynth.runtime.renderer import read_metadata
+    from facesynth.runtime.talking_head import TALKING_HEAD_FORMAT, TalkingHead
+
+    if read_metadata(args.model).get("format") != TALKING_HEAD_FORMAT:
+        return None
+    fixed = [opt for opt, given in (("--background", args.background), ("--motion absolute", args.motion == "absolute"),
+                                    ("--feather", args.feather is not None), ("--no-colour-match", args.no_colour_match),
+                                    ("--size", args.size)) if given]
+    if fixed:
+        raise FacesynthError(f"{args.model} is a talking-head file (its frame, relative motion and seam are fixed at "
+                             f"export): {', '.join(fixed)} cannot apply; export the face model for that "
+                             "(facesynth export RUN --out M.onnx)")
+    args.motion = "relative"
+    return TalkingHead(args.model, threads=args.threads)
+
+
 # ------------------------------------------------------------------ command
 def run(args: argparse.Namespace) -> int:
     from facesynth.data.frames import VideoFrames
     from facesynth.data.readers import ingest_video, load_landmarks
+    from facesynth.landmarks import get_scheme
     from facesynth.retarget import RETARGET_SCHEMES
     from facesynth.runtime.filters import smooth_landmarks
     from facesynth.runtime.reenact import Avatar, Reenactor, driver_neutral_of, reenact_frames
@@ -221,9 +242,11 @@ def run(args: argparse.Namespace) -> int:
         driver_video = folder_video if args.side_by_side or args.contact_sheet or meta_fps is None else None
     driver_video = args.video or args.driver_video or driver_video
     refuse_overwriting_inputs(outputs, inputs)
-    renderer = Renderer(args.model, threads=args.threads)
-    scheme = renderer.scheme.name
-    avatar = Avatar(renderer.metadata, args.model)
+    head = talking_head(args)  # a talking-head file renders whole frames; else a face model and the numpy pipeline
+    renderer = None if head else Renderer(args.model, threads=args.threads)
+    metadata = head.metadata if head else renderer.metadata
+    scheme = head.scheme if head else renderer.scheme.name
+    avatar = Avatar(metadata, args.model)
     if scheme not in RETARGET_SCHEMES and args.motion == "relative":
         raise FacesynthError(f"--motion relative: retargeting takes {' or '.join(RETARGET_SCHEMES)} landmarks, and "
                              f"{args.model} takes {scheme} ones; use --motion absolute (a driver in the same scheme)")
@@ -256,8 +279,11 @@ def run(args: argparse.Namespace) -> int:
         neutral, neutral_row = driver_neutral_of(landmarks, args.driver_neutral)
     # the avatar's own frame, warped so that its whole head follows the face (either motion)
     full_frame = not args.background and avatar.neutral is not None and avatar.background is not None
-    reenactor = Reenactor(renderer, neutral, args.motion, feather=args.feather, match_colour=not args.no_colour_match,
-                          full_frame=full_frame)
+    if head:
+        reenactor = head.use_neutral(neutral)
+    else:
+        reenactor = Reenactor(renderer, neutral, args.motion, feather=args.feather, match_colour=not args.no_colour_match,
+                              full_frame=full_frame)
     if args.background:
         background = load_background(args.background, (0, 0))
     elif full_frame:
@@ -277,7 +303,7 @@ def run(args: argparse.Namespace) -> int:
     out_w = 2 * w if args.side_by_side else w
     n = len(landmarks)
     latencies: list = []
-    rendered = np.full((n, renderer.scheme.n_points, 2), np.nan, np.float32)  # the avatar landmarks of each frame (--save-landmarks)
+    rendered = np.full((n, get_scheme(scheme).n_points, 2), np.nan, np.float32)  # the avatar landmarks of each frame (--save-landmarks)
     sheet_idx = set(np.linspace(0, n - 1, min(6, n)).round().astype(int).tolist()) if args.contact_sheet else set()
     sheet_top, sheet_bottom = [], []
     shown_left = set(range(n)) if args.side_by_side else sheet_idx  # the frames that need the driver's picture
@@ -315,7 +341,8 @@ def run(args: argparse.Namespace) -> int:
     summary.update({"out": str(out), "size": [out_w, h], "fps": fps, "wall_s": round(wall, 3),
                     "frames_per_s": round(n / wall, 1) if wall > 0 else None,
                     "skipped_no_face": int(n - summary["frames"]), "smooth": bool(args.smooth),
-                    "regressor": renderer.metadata.get("regressor"), "threads": args.threads, "motion": args.motion})
+                    "regressor": metadata.get("regressor"), "threads": args.threads, "motion": args.motion,
+                    "talking_head_graph": head is not None})
     if neutral is not None:
         summary["driver_neutral_row"] = neutral_row
     if args.save_landmarks:

@@ -15,14 +15,15 @@ is chosen as there when none is given.
 from __future__ import annotations
 
 import os
+import time
 from pathlib import Path
 
 import numpy as np
 
 from facesynth.errors import FacesynthError
 from facesynth.neutral import select_neutral
-from facesynth.runtime.reenact import NEUTRAL_FRAMES
-from facesynth.runtime.renderer import _session, check_batch, read_metadata
+from facesynth.runtime.reenact import NEUTRAL_FRAMES, Avatar
+from facesynth.runtime.renderer import _decode, _session, check_batch
 
 TALKING_HEAD_FORMAT = "facesynth-talking-head-2"  # 2: the feather in crop pixels, the warp on a grid
 
@@ -39,11 +40,15 @@ class TalkingHead:
                  neutral_frames: int = NEUTRAL_FRAMES):
         self.path = Path(path)
         self.session = _session(self.path, threads, False)
-        self.metadata = read_metadata(self.path)
+        self.metadata = _decode(self.session.get_modelmeta().custom_metadata_map)
         if self.metadata.get("format") != TALKING_HEAD_FORMAT:
             raise FacesynthError(f"{self.path}: not a talking-head graph (format {self.metadata.get('format')!r}, "
                                  f"expected {TALKING_HEAD_FORMAT!r})")
         self.n_points = int(self.metadata.get("n_landmarks", 68))
+        self.scheme = str(self.metadata.get("landmark_scheme", "ibug68"))
+        self.avatar = Avatar(self.metadata, str(self.path))
+        self.background = self.avatar.background  # uint8 (H, W, 3) its neutral frame: shown where a driver has no face
+        self.last_model_s = 0.0  # seconds of the last ONNX Runtime call
         self.feather = float(self.metadata["feather"])
         self.frame_size = tuple(int(v) for v in self.metadata["frame_size"])  # (W, H)
         self.neutral_frames = int(neutral_frames)
@@ -51,7 +56,13 @@ class TalkingHead:
         self._collecting = driver_neutral is None
         self.driver_neutral = None
         if driver_neutral is not None:
-            self.driver_neutral = self._points(np.asarray(driver_neutral)[None], "driver_neutral")[0]
+            self.use_neutral(driver_neutral)
+
+    def use_neutral(self, driver_neutral) -> "TalkingHead":
+        """Take (P, 2) ``driver_neutral`` as the driver's neutral from now on; returns self."""
+        self.driver_neutral = self._points(np.asarray(driver_neutral)[None], "driver_neutral")[0]
+        self._collecting, self._seen = False, []
+        return self
 
     def _points(self, values, field: str) -> np.ndarray:
         return check_batch(values, field, (self.n_points, 2), "frame pixels", f"(B, {self.n_points}, 2)",
@@ -63,7 +74,9 @@ class TalkingHead:
         if self.driver_neutral is None:
             raise FacesynthError(f"{self.path}: no driver neutral yet (give driver_neutral, or call step)")
         d = self._points(driver, "driver landmarks")
+        t0 = time.perf_counter()
         frames, avatar = self.session.run(None, {"driver": d, "driver_neutral": self.driver_neutral})
+        self.last_model_s = time.perf_counter() - t0
         return frames, avatar
 
     def step(self, landmarks) -> tuple[np.ndarray, np.ndarray]:
