@@ -18,10 +18,12 @@ blocks every request off 127.0.0.1, waits for the first avatar frame, then measu
   JavaScript and WebAssembly memory (``performance.measureUserAgentSpecificMemory``, which the
   page's cross-origin isolation allows; Chromium may delay its answer by up to ~20 s);
 * ``offline``: no request left 127.0.0.1; ``python_avatar_ms``: Python ONNX Runtime, one
-  thread, the same model on the avatar's neutral landmarks, median of 200 runs in this process;
-  ``avatar_alone_ms``: the page's synthesis graph on the same landmarks with the tracker paused
-  (median of 100, ``performance.now()``), and ``avatar_vs_python`` their ratio (the live
-  ``avatar_ms`` runs beside the tracker and includes the interim retarget).
+  thread, the same talking-head file (:class:`facesynth.runtime.TalkingHead`) with the avatar's
+  neutral as driver and driver neutral, median of 200 runs in this process;
+  ``avatar_alone_ms``: the page's run of the same file on the same landmarks with the tracker
+  paused (median of 100, ``performance.now()``), and ``avatar_vs_python`` their ratio (the live
+  ``avatar_ms`` runs beside the tracker). ``composite_ms``: the page's copy of the graph's RGB
+  frame into the canvas (RGBA, ``putImageData``).
 
     PYTHONPATH=. python bench/bench_web.py --model M.onnx --video CLIP.mp4 [--seconds 10]
 
@@ -115,16 +117,17 @@ def memory_mb(pid: int) -> dict[str, float]:
 
 
 def python_avatar_ms(model: Path, n: int = 200) -> float:
-    from facesynth.runtime.renderer import Renderer, read_metadata
+    from facesynth.runtime.talking_head import TalkingHead
 
-    lm = np.asarray(read_metadata(model)["avatar_neutral"], np.float32)[None]
-    r = Renderer(model, threads=1)
+    th = TalkingHead(model, threads=1)
+    lm = np.asarray(th.avatar.neutral, np.float32)
+    th.use_neutral(lm)
     for _ in range(10):
-        r.render(lm)
+        th.run(lm[None])
     t = []
     for _ in range(n):
         a = time.perf_counter()
-        r.render(lm)
+        th.run(lm[None])
         t.append(time.perf_counter() - a)
     return float(np.median(t) * 1e3)
 
@@ -163,13 +166,13 @@ def main() -> None:
             mem = memory_mb(renderer)
             js_mb = page.evaluate("""async () => crossOriginIsolated && performance.measureUserAgentSpecificMemory
                 ? (await performance.measureUserAgentSpecificMemory()).bytes / 2 ** 20 : null""")
-            # the avatar graph alone (tracking paused), on the avatar's neutral: the ratio to Python
+            # the talking-head graph alone (tracking paused), on the avatar's neutral: the ratio to Python
             page.evaluate("window.facesynth.state.ready = false")
             time.sleep(0.5)
             alone = page.evaluate("""async (n) => {
-                const a = window.facesynth.state.avatar, x = a.neutral, t = [];
-                for (let i = 0; i < 10; i++) await a.synthesize(x);
-                for (let i = 0; i < n; i++) { const t0 = performance.now(); await a.synthesize(x); t.push(performance.now() - t0); }
+                const a = window.facesynth.state.avatar, x = Float32Array.from(a.meta.avatar_neutral.flat()), t = [];
+                for (let i = 0; i < 10; i++) await a.render(x, x);
+                for (let i = 0; i < n; i++) { const t0 = performance.now(); await a.render(x, x); t.push(performance.now() - t0); }
                 t.sort((p, q) => p - q);
                 return t[n >> 1];
             }""", 100)

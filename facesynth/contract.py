@@ -13,16 +13,23 @@ OPSET = 18
 
 SYNTHESIS_FORMAT = "facesynth.synthesis.onnx/1"
 ERI_FORMAT = "facesynth.eri.onnx/1"
+TALKING_HEAD_FORMAT = "facesynth.talking-head.onnx/2"  # 2: the feather in crop pixels, the frame warp on a grid
 LANDMARK_SCHEME = DEFAULT_SCHEME.name
 N_LANDMARKS = DEFAULT_SCHEME.n_points
 
 SYNTHESIS_INPUT = "landmarks"
 ERI_INPUT = "faps"
 OUTPUT_NAMES = ("crop", "mask", "placement")
+TALKING_HEAD_INPUTS = ("driver", "driver_neutral")
+TALKING_HEAD_OUTPUTS = ("frame", "avatar_landmarks")
 
 SYNTHESIS_OUTPUT_LAYOUT = (
     "crop: float32 (B, C, H, W) in [0, 1], zeros outside the face; mask: float32 (B, 1, H, W) in {0, 1}; "
     "placement: float32 (B, 2, 3) affine map from crop pixels (x, y) to frame pixels"
+)
+TALKING_HEAD_LAYOUT = (
+    "driver: float32 (B, P, 2) frame pixels; driver_neutral: float32 (P, 2) -> frame: uint8 (B, H, W, 3) RGB, the "
+    "avatar's whole frame; avatar_landmarks: float32 (B, P, 2) its landmarks in that frame"
 )
 ERI_OUTPUT_LAYOUT = (
     "crop: float32 (B, 3, H, W) in [0, 1], zeros outside the face; mask: float32 (B, 1, H, W) in {0, 1}; "
@@ -50,6 +57,7 @@ AVATAR_METADATA_KEYS = ("avatar_neutral", "avatar_neutral_row", "avatar_neutral_
 FORMAT_HINTS = {
     ERI_FORMAT: "an ERI model: use facesynth.runtime.EriRenderer",
     SYNTHESIS_FORMAT: "a landmark-driven model: use facesynth.runtime.Renderer",
+    TALKING_HEAD_FORMAT: "a talking head: use facesynth.runtime.TalkingHead",
 }
 
 # The int8 appearance basis (facesynth.ops.int8_matmul, one MatMulInteger u8 x s8): coefficient

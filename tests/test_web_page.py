@@ -15,7 +15,7 @@ pytest.importorskip("playwright")
 pytest.importorskip("tflite")
 pytest.importorskip("mediapipe")
 
-from facesynth.contract import SYNTHESIS_FORMAT  # noqa: E402
+from facesynth.contract import SYNTHESIS_FORMAT, TALKING_HEAD_FORMAT  # noqa: E402
 from facesynth.web import browser, site  # noqa: E402
 
 if browser.chromium_path() is None:
@@ -30,17 +30,20 @@ SHOTS = Path(os.environ.get("FACESYNTH_WEB_SHOTS", "/tmp"))
 
 @pytest.fixture(scope="module")
 def avatar(shared_clip_dir, tmp_path_factory):
-    """A small linear model of lp_d10 exported with its avatar metadata (68 points)."""
+    """A small linear model of lp_d10 on MediaPipe's 478 points (``facesynth ingest --landmarker
+    mediapipe``: the points the page's tracker gives), exported as its talking head."""
     from _onnx_models import linear_avatar
 
-    from facesynth.data import load_sequence, temporal_split
-    from facesynth.onnx.synthesis import export_synthesizer
+    from facesynth.data import temporal_split
+    from facesynth.data.ingest import ingest_video
+    from facesynth.onnx.talking_head import export_talking_head
 
-    seq = load_sequence(shared_clip_dir("lp_d10"))
+    seq = ingest_video(shared_clip_dir("lp_d10") / "video.mp4", tmp_path_factory.mktemp("lp_d10_mp"),
+                       landmarker="mediapipe")
     train, _ = temporal_split(len(seq))
     syn, meta = linear_avatar(seq, train)
     path = tmp_path_factory.mktemp("web") / "lp_d10.onnx"
-    export_synthesizer(syn, path, meta)
+    export_talking_head(syn, meta, path)
     return path, seq
 
 
@@ -62,7 +65,9 @@ def _wait(page, expr: str, timeout_s: float = 60.0):
 
 
 def test_camera_drives_the_avatar_offline_and_matches_python(page_site, camera, avatar):
-    from facesynth.runtime.renderer import Renderer
+    import base64
+
+    from facesynth.runtime.talking_head import TalkingHead
 
     path, seq = avatar
     with browser.served(page_site) as url, browser.browser_page(camera) as (page, blocked):
@@ -91,32 +96,22 @@ def test_camera_drives_the_avatar_offline_and_matches_python(page_site, camera, 
         texts = [m["text"] for m in page.evaluate("window.facesynth.state.messages")[n_msgs:]]
         assert texts[0].startswith("Look at the camera") and texts[1] == "Live."
 
-        # replay hook: the same landmarks through the page's avatar graph and Python's runtime
-        renderer = Renderer(path)
-        lm = seq.landmarks[[0, len(seq) // 2]].astype(np.float32)
-        for x in lm:
-            out = page.evaluate("(a) => window.facesynth.synthesize(a)", x.ravel().tolist())
-            crops, masks, placements = renderer.render(x[None], copy=True)
-            crop = np.array(out["crop"]["data"], np.float32).reshape(out["crop"]["dims"])
-            mask = np.array(out["mask"]["data"], np.float32).reshape(out["mask"]["dims"])
-            assert np.abs(crop - crops).max() <= 2 / 255
-            assert np.array_equal(mask, masks)
-            np.testing.assert_allclose(np.array(out["placement"]["data"]).reshape(1, 2, 3), placements, atol=1e-3)
-        # the page reads the .onnx metadata itself (onnxmeta.js): the same as ONNX Runtime's in Python
-        from facesynth.retarget import ShapeSpace
+        # replay hook: the same driver landmarks (lp_d10's own held-out frames, 478 points) through
+        # the page's avatar graph and Python's runtime
+        from facesynth.runtime.reenact import driver_neutral_of
         from facesynth.runtime.renderer import read_metadata
 
+        driver = seq.landmarks[-60:].astype(np.float32)
+        neutral, _ = driver_neutral_of(seq.landmarks)
+        th = TalkingHead(path, driver_neutral=neutral)
+        for x in driver[[0, len(driver) // 2, len(driver) - 1]]:
+            out = page.evaluate("([d, n]) => window.facesynth.render(d, n)",
+                                [x.ravel().tolist(), neutral.astype(np.float32).ravel().tolist()])
+            got = np.frombuffer(base64.b64decode(out["data"]), np.uint8).reshape(out["dims"])
+            want, _ = th.run(x[None])
+            assert got.shape == want.shape and np.abs(got.astype(int) - want).max() <= 2
+        # the page reads the .onnx metadata itself (onnxmeta.js): the same as ONNX Runtime's in Python
         assert page.evaluate("window.facesynth.state.avatar.meta") == read_metadata(path)
-
-        # the interim retarget's shape clamp against Python's ShapeSpace.project (keep_eyes=False)
-
-        space = ShapeSpace.from_dict(read_metadata(path)["shape_pca"])
-        space.keep_eyes = False
-        far = lm[0] + 4 * (lm[1] - lm[0])  # an expression four times as strong: clamped by up to ~44 px
-        assert np.abs(space.project(far) - far).max() > 10
-        for x in (lm[0], far):
-            got = np.array(page.evaluate("(a) => window.facesynth.projectShape(a)", x.ravel().tolist())).reshape(-1, 2)
-            np.testing.assert_allclose(got, space.project(x), atol=2e-3)
     assert blocked == []
 
 
@@ -172,11 +167,13 @@ def test_error_messages(page_site, camera, tmp_path):
             assert "junk.onnx is not an ONNX file" in _error_shown(page, "junk.onnx")
             page.evaluate(drop, ["other.onnx", list(_tiny_onnx({"producer": "other"}))])
             assert "other.onnx is not a facesynth avatar" in _error_shown(page, "other.onnx")
-            syn = {"format": SYNTHESIS_FORMAT, "landmark_scheme": "dlib5"}
+            page.evaluate(drop, ["face.onnx", list(_tiny_onnx({"format": SYNTHESIS_FORMAT, "landmark_scheme": "ibug68"}))])
+            assert "face.onnx is a face model, not a talking head" in _error_shown(page, "face.onnx")
+            syn = {"format": TALKING_HEAD_FORMAT, "landmark_scheme": "dlib5"}
             page.evaluate(drop, ["five.onnx", list(_tiny_onnx(syn))])
             assert "cannot be driven by the page's tracker" in _error_shown(page, "five.onnx")
-            syn = {"format": SYNTHESIS_FORMAT, "landmark_scheme": "ibug68", "avatar_neutral": [[0, 0]] * 68,
-                   "frame_size": [8, 8], "background_jpeg": "AA=="}
+            syn = {"format": TALKING_HEAD_FORMAT, "landmark_scheme": "mediapipe478", "frame_size": [8, 8],
+                   "background_jpeg": "AA=="}
             page.evaluate(drop, ["broken.onnx", list(_tiny_onnx(syn, op="NoSuchOp"))])
             assert "broken.onnx is corrupt" in _error_shown(page, "broken.onnx")
             frames = page.evaluate("window.facesynth.state.frames")

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from facesynth.cli import main
-from facesynth.contract import SYNTHESIS_FORMAT
+from facesynth.contract import SYNTHESIS_FORMAT, TALKING_HEAD_FORMAT
 from facesynth.web import site
 
 
@@ -36,7 +36,7 @@ def _site_avatar(tmp_path):
     except Exception as exc:
         pytest.skip(str(exc))
     model = tmp_path / "avatar.onnx"
-    _tiny_onnx(model, {"format": SYNTHESIS_FORMAT, "landmark_scheme": "ibug68"})
+    _tiny_onnx(model, {"format": TALKING_HEAD_FORMAT, "landmark_scheme": "ibug68"})
     return model
 
 
@@ -51,6 +51,10 @@ def test_not_an_avatar_is_one_line(tmp_path, capsys, command):
     assert not (tmp_path / "site").exists()
     assert main([*command, str(tmp_path / "missing.onnx"), *out]) == 2
     assert "no such model file" in capsys.readouterr().err
+    _tiny_onnx(model, {"format": SYNTHESIS_FORMAT, "landmark_scheme": "ibug68"})  # a face model: named, with the export
+    assert main([*command, str(model), *out]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "a face model, not a talking head" in err and "--talking-head" in err and not (tmp_path / "site").exists()
 
 
 def test_schemes_json_equals_the_landmark_tables():

@@ -3,7 +3,6 @@
 import * as ort from './ort/ort.wasm.min.mjs';
 import { onnxMetadata } from './onnxmeta.js';
 
-const SYNTHESIS_FORMAT = 'facesynth.synthesis.onnx/1';
 const NEUTRAL_MS = 1000, NO_FACE_FRAMES = 15;
 const base = new URL('.', location.href).href;
 const $ = (id) => document.getElementById(id);
@@ -25,157 +24,56 @@ function toScheme(points, scheme, schemes) {
   rows.forEach((row, i) => { for (const [j, w] of row) { out[2 * i] += w * points[2 * j]; out[2 * i + 1] += w * points[2 * j + 1]; } });
   return out;
 }
-const EYE_CORNERS = { ibug68: [36, 45], mediapipe478: [33, 263] };
-const dist = (p, a, b) => Math.hypot(p[2 * a] - p[2 * b], p[2 * a + 1] - p[2 * b + 1]);
+const SCHEMES = ['ibug68', 'mediapipe478'];  // the avatars the tracker's 478 points drive
 
-// The avatar's shape PCA ({mean (2P), components (K, 2P), limit (K)}, metadata shape_pca): the
-// nearest model shape with parameters clamped to +-limit, in the shape's own frame. Python's
-// retarget.ShapeSpace.project with keep_eyes=False (the eyes are clamped with the rest).
-function projectShape(x, pca) {
-  const n = x.length / 2, mean = pca.mean, comps = pca.components, lim = pca.limit;
-  let mx = 0, my = 0, ux = 0, uy = 0;
-  for (let i = 0; i < n; i++) { mx += x[2 * i] / n; my += x[2 * i + 1] / n; ux += mean[2 * i] / n; uy += mean[2 * i + 1] / n; }
-  let var_ = 0, ca = 0, sa = 0;
-  for (let i = 0; i < n; i++) {
-    const xc = x[2 * i] - mx, yc = x[2 * i + 1] - my, mcx = mean[2 * i] - ux, mcy = mean[2 * i + 1] - uy;
-    var_ += xc * xc + yc * yc; ca += xc * mcx + yc * mcy; sa += xc * mcy - yc * mcx;
-  }
-  var_ = var_ || 1; ca /= var_; sa /= var_;
-  const al = new Float64Array(2 * n);
-  for (let i = 0; i < n; i++) {
-    const xc = x[2 * i] - mx, yc = x[2 * i + 1] - my;
-    al[2 * i] = ca * xc - sa * yc + ux; al[2 * i + 1] = sa * xc + ca * yc + uy;
-  }
-  const rec = Float64Array.from(al);
-  for (let k = 0; k < lim.length; k++) {
-    const c = comps[k];
-    let b = 0;
-    for (let j = 0; j < 2 * n; j++) b += (al[j] - mean[j]) * c[j];
-    const ex = Math.max(b - lim[k], 0) + Math.min(b + lim[k], 0);
-    if (ex) for (let j = 0; j < 2 * n; j++) rec[j] -= ex * c[j];
-  }
-  const nn = ca * ca + sa * sa, out = new Float32Array(2 * n);
-  for (let i = 0; i < n; i++) {
-    const rx = rec[2 * i] - ux, ry = rec[2 * i + 1] - uy;
-    out[2 * i] = (ca * rx + sa * ry) / nn + mx; out[2 * i + 1] = (-sa * rx + ca * ry) / nn + my;
-  }
-  return out;
-}
-
-// The avatar graph: driver landmarks (P, 2) + driver neutral (P, 2) -> the avatar's frame.
-// INTERIM: until the exported full-frame talking-head graph exists, this class stands in for it
-// with the face-only synthesis graph (landmarks -> crop, mask, placement), a relative-motion
-// retarget (avatar neutral + scale x (driver - driver neutral), projected on the avatar's shape PCA
-// with clamped parameters) and a canvas composite of the
-// crop into the avatar's neutral frame. Swapping in the full graph replaces run() with one
-// session.run on (driver, neutral) and drawing its frame output.
-class InterimAvatarGraph {
-  static async create(buffer, name, schemes) {
+// The avatar: one talking-head graph (facesynth export RUN --talking-head): driver landmarks (1, P, 2)
+// and the driver's neutral (P, 2) -> the avatar's whole frame (1, H, W, 3) uint8, its head warped
+// with the face. The retargeting, the shape clamp, the synthesis, the warp and the seam are all in
+// the graph (Python's facesynth.runtime.TalkingHead runs the same file); the page only maps the
+// tracker's points to the avatar's scheme and draws the frame.
+class AvatarGraph {
+  static async create(buffer, name, schemes, formats) {
     let meta;
     try { meta = onnxMetadata(buffer); } catch (e) { throw new Error(`${name} is not an ONNX file (${e.message})`); }
-    if (meta.format !== SYNTHESIS_FORMAT) throw new Error(`${name} is not a facesynth avatar (format ${JSON.stringify(meta.format ?? null)}, expected ${SYNTHESIS_FORMAT})`);
+    if (meta.format === formats.synthesis) throw new Error(`${name} is a face model, not a talking head: export one with 'facesynth export RUN --talking-head --out ${name}'`);
+    if (meta.format !== formats.talking_head) throw new Error(`${name} is not a facesynth avatar (format ${JSON.stringify(meta.format ?? null)}, expected ${formats.talking_head})`);
     const scheme = meta.landmark_scheme;
-    if (!(scheme in EYE_CORNERS) || !(scheme in schemes)) throw new Error(`${name}: its landmark scheme ${scheme} cannot be driven by the page's tracker (MediaPipe 478 points; it drives mediapipe478 and ibug68 avatars)`);
-    if (!Array.isArray(meta.avatar_neutral) || !Array.isArray(meta.frame_size) || !meta.background_jpeg) throw new Error(`${name}: a facesynth model without the avatar's neutral and frame (export it from a run with 'facesynth export')`);
+    if (!SCHEMES.includes(scheme) || !(scheme in schemes)) throw new Error(`${name}: its landmark scheme ${scheme} cannot be driven by the page's tracker (MediaPipe 478 points; it drives mediapipe478 and ibug68 avatars)`);
+    if (!Array.isArray(meta.frame_size) || !meta.background_jpeg) throw new Error(`${name}: a talking head without its frame size and neutral frame (re-export it)`);
     let session;
     try { session = await ort.InferenceSession.create(buffer, { executionProviders: ['wasm'] }); }
     catch (e) { throw new Error(`${name} is corrupt: ONNX Runtime cannot load it (${e.message || e})`); }
     const bg = new Image();
     bg.src = 'data:image/jpeg;base64,' + meta.background_jpeg;
     await bg.decode();
-    const g = new InterimAvatarGraph();
-    Object.assign(g, { name, meta, scheme, session, schemes, bg, neutral: Float32Array.from(meta.avatar_neutral.flat()) });
+    const g = new AvatarGraph();
+    Object.assign(g, { name, meta, scheme, session, schemes, bg, n: schemes[scheme].n_points });
     [g.width, g.height] = meta.frame_size;
+    g.rgba = new ImageData(g.width, g.height);
     return g;
   }
 
-  // landmarks in the avatar's scheme -> {crop, mask, placement} (the synthesis graph's outputs)
-  async synthesize(landmarks) {
-    const n = landmarks.length / 2;
-    const out = await this.session.run({ [this.session.inputNames[0]]: new ort.Tensor('float32', landmarks, [1, n, 2]) });
-    return out;
-  }
-
-  retarget(driver, driverNeutral) {
-    const d = toScheme(driver, this.scheme, this.schemes), dn = toScheme(driverNeutral, this.scheme, this.schemes);
-    const [a, b] = EYE_CORNERS[this.scheme], s = dist(this.neutral, a, b) / dist(dn, a, b);
-    const x = this.neutral.map((v, i) => v + s * (d[i] - dn[i]));
-    return this.meta.shape_pca ? projectShape(x, this.meta.shape_pca) : x;
+  // driver points and the driver's neutral, both in the avatar's scheme (P x 2 flat) -> frame (uint8 H x W x 3)
+  async render(driver, neutral) {
+    const out = await this.session.run({ driver: new ort.Tensor('float32', driver, [1, this.n, 2]),
+      driver_neutral: new ort.Tensor('float32', neutral, [this.n, 2]) });
+    return out.frame;
   }
 
   async run(driver, driverNeutral, ctx) {
+    const d = toScheme(driver, this.scheme, this.schemes), dn = toScheme(driverNeutral, this.scheme, this.schemes);
     const t0 = performance.now();
-    const out = await this.synthesize(this.retarget(driver, driverNeutral));
+    const frame = await this.render(d, dn);
     const t1 = performance.now();
-    this.composite(out, ctx);
+    const src = frame.data, px = this.rgba.data, hw = this.width * this.height;
+    for (let i = 0, j = 0; i < hw; i++, j += 3) { px[4 * i] = src[j]; px[4 * i + 1] = src[j + 1]; px[4 * i + 2] = src[j + 2]; px[4 * i + 3] = 255; }
+    ctx.putImageData(this.rgba, 0, 0);
     return { avatarMs: t1 - t0, compositeMs: performance.now() - t1 };
   }
-
-  composite(out, ctx) {  // INTERIM composite: the crop drawn through its placement, feathered mask
-    const crop = out.crop, [, C, H, W] = crop.dims, c = crop.data, p = out.placement.data;
-    if (!this.face || this.face.width !== W || this.face.height !== H) { this.face = new OffscreenCanvas(W, H); this.fctx = this.face.getContext('2d'); this.rgba = new ImageData(W, H); }
-    const alpha = featherMask(out.mask.data, W, H, Math.sqrt(Math.abs(p[0] * p[4] - p[1] * p[3])));
-    const px = this.rgba.data, hw = H * W;
-    for (let i = 0; i < hw; i++) {
-      for (let k = 0; k < 3; k++) px[4 * i + k] = c[(C === 3 ? k : 0) * hw + i] * 255 + 0.5;
-      px[4 * i + 3] = alpha[i] * 255 + 0.5;
-    }
-    this.fctx.putImageData(this.rgba, 0, 0);
-    ctx.setTransform(1, 0, 0, 1, 0, 0);
-    ctx.drawImage(this.bg, 0, 0);
-    ctx.setTransform(p[0], p[3], p[1], p[4], p[2], p[5]);
-    ctx.drawImage(this.face, 0, 0);
-    ctx.setTransform(1, 0, 0, 1, 0, 0);
-  }
-}
-
-// 1-D min (erosion; the outside does not erode, as OpenCV's default) or box mean (zeros outside,
-// a running sum) over a window of radius r, along rows (stride 1) or columns (stride W)
-function filter1d(src, W, H, r, horizontal, op) {
-  const out = new Float32Array(src.length);
-  const n = horizontal ? W : H, lines = horizontal ? H : W, step = horizontal ? 1 : W, lineStep = horizontal ? W : 1;
-  for (let l = 0; l < lines; l++) {
-    const o = l * lineStep;
-    if (op === 'mean') {
-      let acc = 0;
-      for (let j = 0; j < Math.min(r, n); j++) acc += src[o + j * step];
-      for (let i = 0; i < n; i++) {
-        if (i + r < n) acc += src[o + (i + r) * step];
-        if (i - r - 1 >= 0) acc -= src[o + (i - r - 1) * step];
-        out[o + i * step] = acc / (2 * r + 1);
-      }
-    } else {
-      for (let i = 0; i < n; i++) {
-        let acc = 1;
-        const j1 = Math.min(n - 1, i + r);
-        for (let j = Math.max(0, i - r); j <= j1 && acc > 0; j++) acc = Math.min(acc, src[o + j * step]);
-        out[o + i * step] = acc;
-      }
-    }
-  }
-  return out;
-}
-
-// The mask's soft edge, as facesynth.runtime.blend.blend_face makes it (approximately): a seam of
-// f = max(2, 4 % of the face's size) frame pixels (crop pixels / scale), the mask eroded by f and
-// blurred (two box blurs ~ a Gaussian of sigma f / 2), kept inside the hard mask. (H*W) in [0, 1].
-function featherMask(mask, W, H, scale) {
-  const hard = new Float32Array(W * H);
-  let x0 = W, x1 = -1, y0 = H, y1 = -1;
-  for (let y = 0; y < H; y++) for (let x = 0; x < W; x++) {
-    if (mask[y * W + x] > 0.5) { hard[y * W + x] = 1; x0 = Math.min(x0, x); x1 = Math.max(x1, x); y0 = Math.min(y0, y); y1 = Math.max(y1, y); }
-  }
-  if (x1 < 0) return hard;
-  const f = Math.max(2, 0.04 * Math.max(x1 - x0, y1 - y0) * scale) / scale, r = Math.max(1, Math.ceil(f));
-  let a = filter1d(filter1d(hard, W, H, r, true, 'min'), W, H, r, false, 'min');
-  const b = Math.max(1, Math.round((f / 2) * Math.sqrt(3) / Math.SQRT2));  // two boxes: sigma^2 = 2 (b^2 + b) / 3
-  for (let k = 0; k < 2; k++) a = filter1d(filter1d(a, W, H, b, true, 'mean'), W, H, b, false, 'mean');
-  for (let i = 0; i < a.length; i++) a[i] *= hard[i];
-  return a;
 }
 
 async function loadAvatar(buffer, name) {
-  const g = await InterimAvatarGraph.create(buffer, name, state.schemes);
+  const g = await AvatarGraph.create(buffer, name, state.schemes, state.formats);
   state.avatar = g;
   const cv = $('avatar');
   cv.width = g.width; cv.height = g.height;
@@ -184,10 +82,13 @@ async function loadAvatar(buffer, name) {
   $('avatarname').textContent = `avatar: ${name} (${g.scheme})`;
 }
 
-// replay hook for tests and tools: landmarks (P, 2) flat in the avatar's scheme -> its synthesis outputs
-window.facesynth.synthesize = async (flat) => {
-  const out = await state.avatar.synthesize(Float32Array.from(flat));
-  return Object.fromEntries(Object.entries(out).map(([k, t]) => [k, { dims: t.dims, data: Array.from(t.data) }]));
+// replay hook for tests and tools: driver points and the driver's neutral (P x 2 flat, the avatar's
+// scheme) -> the avatar's frame: {dims, data: base64 of its uint8 H x W x 3 pixels}
+window.facesynth.render = async (driver, neutral) => {
+  const f = await state.avatar.render(Float32Array.from(driver), Float32Array.from(neutral));
+  let bin = '';
+  for (let i = 0; i < f.data.length; i += 8192) bin += String.fromCharCode(...f.data.subarray(i, i + 8192));
+  return { dims: f.dims, data: btoa(bin) };
 };
 
 // replay hook for tests and tools: frames of RGBA pixels (base64) through a tracker worker of its own
@@ -211,8 +112,6 @@ window.facesynth.track = async (width, height, frames) => {
   w.terminate();
   return out;
 };
-
-window.facesynth.projectShape = (flat) => Array.from(projectShape(Float32Array.from(flat), state.avatar.meta.shape_pca));
 
 function captureNeutral() {
   state.neutral = null; state.neutralSamples = []; state.neutralStart = null;
@@ -352,6 +251,7 @@ async function main() {
   $('showcam').onchange = (e) => { $('camera').style.display = e.target.checked ? '' : 'none'; };
   const site = await (await fetch('site.json')).json();
   state.schemes = await (await fetch('schemes.json')).json();
+  state.formats = site.formats;
   try { await loadAvatar(await (await fetch(site.avatar)).arrayBuffer(), site.avatar_name); }
   catch (e) { message(e.message, true); }
   state.worker = new Worker('tracker.js', { type: 'module' });

@@ -29,7 +29,7 @@ import torch
 from torch import nn
 
 from facesynth import __version__
-from facesynth.contract import OPSET
+from facesynth.contract import OPSET, TALKING_HEAD_FORMAT, TALKING_HEAD_INPUTS, TALKING_HEAD_LAYOUT, TALKING_HEAD_OUTPUTS
 from facesynth.errors import FacesynthError
 from facesynth.io import atomic_path
 from facesynth.landmarks import get_scheme
@@ -40,10 +40,8 @@ from facesynth.retarget import RETARGET_SCHEMES
 from facesynth.runtime.blend import seam_width
 from facesynth.runtime.fullframe import FrameWarp
 from facesynth.runtime.reenact import Avatar
-from facesynth.runtime.talking_head import TALKING_HEAD_FORMAT
 
-INPUTS = ("driver", "driver_neutral")
-OUTPUTS = ("frame", "avatar_landmarks")
+INPUTS, OUTPUTS = TALKING_HEAD_INPUTS, TALKING_HEAD_OUTPUTS
 
 
 class TalkingHeadGraph(nn.Module):
@@ -102,7 +100,7 @@ def export_talking_head(syn, metadata: dict, path: str | os.PathLike, feather: f
     h, w = graph.frame_warp.frame_size
     meta = {k: v for k, v in metadata.items() if k not in ("format", "inputs", "outputs")}  # the model's provenance too
     meta.update({"facesynth_version": __version__, "format": TALKING_HEAD_FORMAT, "frame_size": [w, h],
-                 "feather": graph.feather, "opset": opset, "n_landmarks": int(n.shape[0])})
+                 "feather": graph.feather, "opset": opset, "output_layout": TALKING_HEAD_LAYOUT, "n_landmarks": int(n.shape[0])})
     with atomic_path(path) as tmp, warnings.catch_warnings():
         warnings.simplefilter("ignore")  # the TorchScript exporter's deprecation and tracer warnings
         with torch.no_grad():

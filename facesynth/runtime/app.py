@@ -206,8 +206,9 @@ def talking_head(args: argparse.Namespace):
     """A :class:`facesynth.runtime.talking_head.TalkingHead` when ``--model`` is a talking-head
     file (``facesynth export RUN --talking-head``), else None; FacesynthError naming the
     options such a file fixes at export (its own frame, relative motion, its seam)."""
+    from facesynth.contract import TALKING_HEAD_FORMAT
     from facesynth.runtime.renderer import read_metadata
-    from facesynth.runtime.talking_head import TALKING_HEAD_FORMAT, TalkingHead
+    from facesynth.runtime.talking_head import TalkingHead
 
     if read_metadata(args.model).get("format") != TALKING_HEAD_FORMAT:
         return None

@@ -20,12 +20,11 @@ from pathlib import Path
 
 import numpy as np
 
+from facesynth.contract import TALKING_HEAD_FORMAT, TALKING_HEAD_INPUTS
 from facesynth.errors import FacesynthError
 from facesynth.neutral import select_neutral
 from facesynth.runtime.reenact import NEUTRAL_FRAMES, Avatar
 from facesynth.runtime.renderer import _decode, _session, check_batch
-
-TALKING_HEAD_FORMAT = "facesynth-talking-head-2"  # 2: the feather in crop pixels, the warp on a grid
 
 
 class TalkingHead:
@@ -75,7 +74,7 @@ class TalkingHead:
             raise FacesynthError(f"{self.path}: no driver neutral yet (give driver_neutral, or call step)")
         d = self._points(driver, "driver landmarks")
         t0 = time.perf_counter()
-        frames, avatar = self.session.run(None, {"driver": d, "driver_neutral": self.driver_neutral})
+        frames, avatar = self.session.run(None, dict(zip(TALKING_HEAD_INPUTS, (d, self.driver_neutral), strict=True)))
         self.last_model_s = time.perf_counter() - t0
         return frames, avatar
 

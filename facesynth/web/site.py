@@ -33,17 +33,21 @@ def ort_dist(web: Path = WEB) -> Path:
 
 
 def check_avatar(model: str | Path) -> dict:
-    """The model's metadata; a clear error when it is not a facesynth synthesis file."""
-    from facesynth.contract import SYNTHESIS_FORMAT
+    """The model's metadata; a clear error when it is not a facesynth talking-head file (a
+    face model is named as such, with the export that makes its talking head)."""
+    from facesynth.contract import SYNTHESIS_FORMAT, TALKING_HEAD_FORMAT
     from facesynth.runtime.renderer import read_metadata
 
     path = Path(model)
     if not path.is_file():
         raise FacesynthError(f"{path}: no such model file")
     meta = read_metadata(path)
-    if meta.get("format") != SYNTHESIS_FORMAT:
+    if meta.get("format") == SYNTHESIS_FORMAT:
+        raise FacesynthError(f"{path}: a face model, not a talking head; the page runs the whole talking head: "
+                             f"facesynth export RUN --talking-head --out {path.name}")
+    if meta.get("format") != TALKING_HEAD_FORMAT:
         raise FacesynthError(f"{path}: not a facesynth avatar (format {meta.get('format')!r}, "
-                             f"expected {SYNTHESIS_FORMAT!r})")
+                             f"expected {TALKING_HEAD_FORMAT!r})")
     return meta
 
 
@@ -81,6 +85,8 @@ def tracker_dir() -> Path:
 
 def build_site(model: str | Path, out: str | Path) -> Path:
     """Write the self-contained page folder ``out`` for ``model``; returns it."""
+    from facesynth.contract import SYNTHESIS_FORMAT, TALKING_HEAD_FORMAT
+
     meta = check_avatar(model)
     dist = ort_dist()
     models = tracker_dir()
@@ -94,7 +100,9 @@ def build_site(model: str | Path, out: str | Path) -> Path:
         shutil.copy2(model, tmp / "avatar.onnx")
         (tmp / "schemes.json").write_text(json.dumps(schemes_json()))
         (tmp / "site.json").write_text(json.dumps({"avatar": "avatar.onnx", "avatar_name": Path(model).name,
-                                                   "landmark_scheme": meta.get("landmark_scheme")}))
+                                                   "landmark_scheme": meta.get("landmark_scheme"),
+                                                   "formats": {"talking_head": TALKING_HEAD_FORMAT,
+                                                               "synthesis": SYNTHESIS_FORMAT}}))
     return Path(out)
 
 
