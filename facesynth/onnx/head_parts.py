@@ -252,16 +252,8 @@ class FrameWarpGraph(ToTarget):
         self.register_buffer("rows_f", torch.arange(hn + 1, dtype=torch.float32))
         self.register_buffer("uv_max", torch.tensor([float(w - 1), float(h - 1)]).reshape(1, 2, 1, 1))
         self.tex_w = w + 1
-        # scanline coverage is half-open (a node on the canvas's right or bottom edge belongs
-        # to no triangle): the border anchors there are pushed a thousandth of a node out for
-        # locating only (past float32's rounding of the scaled coordinates), the affine maps
-        # stay the true triangles'
-        src = fw.src
-        out = np.zeros_like(src)
-        out[:, 0] = np.where(src[:, 0] == w - 1, 1e-3, 0.0)  # these hold the coordinate that puts them there
-        out[:, 1] = np.where(src[:, 1] == h - 1, 1e-3, 0.0)
-        out[: fw.n_face] = 0.0
-        self.register_buffer("outward", _const(out))
+        # the nodes are located with FrameWarp's push of the right and bottom anchors (node units)
+        self.register_buffer("outward", _const(fw.locate_push))
 
     def control_points(self, face: torch.Tensor) -> torch.Tensor:
         """(B, P, 2) -> (B, K, 2) (FrameWarp.control_points)."""

@@ -21,7 +21,11 @@ down with the head: hair cut by the frame's top then continues above it as the t
 replicated (held on the top edge instead, the hair was pulled into a peak there), and the
 ring's points above the frame are kept, so that the hair there moves with the head. Ring
 points on the border band or outside the frame elsewhere are dropped, on the neutral: the
-triangulation is fixed per avatar.
+triangulation is fixed per avatar. A still guard ring ``GUARD`` times the frame's size
+outside it closes the triangulation round the frame, so that every pixel lies in a
+triangle however the anchors move (the band above top anchors that moved down stretches
+from them to the guards, where it would otherwise keep its own pixels: a tear along the
+frame's top).
 
 Two interpolants of the control points' motion (``method``):
 
@@ -67,6 +71,7 @@ NECK = ((-0.6, 1.6), (0.6, 1.6), (0.0, 2.05))
 BORDER_STEPS = 8  # anchors per frame side (corners included)
 INSIDE = 0.02  # ring points closer to the frame's border than this share of its size are dropped,
 OUTSIDE = 0.25  # and so are those outside it, but for those above it by less than this share
+GUARD = 0.3  # a still guard ring this share of the frame's size outside it (module docstring)
 # the head's motion: the similarity fitted on the eye corners, the top of the nose bridge and
 # the jaw's top points by the ears (the nose tip and the lower jaw turn ahead of the skull)
 HEAD_POINTS = [0, 1, 15, 16, 27, 36, 39, 42, 45]
@@ -115,8 +120,13 @@ def head_points(neutral68: np.ndarray, size: tuple[int, int]) -> tuple[np.ndarra
     border = np.concatenate([np.stack([bx, np.zeros_like(bx)], 1), np.stack([bx, np.full_like(bx, h - 1)], 1),
                              np.stack([np.zeros_like(by[1:-1]), by[1:-1]], 1),
                              np.stack([np.full_like(by[1:-1], w - 1), by[1:-1]], 1)])
-    pts = np.concatenate([pts, border])
-    return pts, motion_weight((pts - o) @ axes.T / unit)
+    g = GUARD * max(w, h)  # still points round the frame: every pixel lies in some triangle, however the anchors move
+    gx, gy = np.linspace(-g, w - 1 + g, BORDER_STEPS + 1), np.linspace(-g, h - 1 + g, BORDER_STEPS + 1)
+    guard = np.concatenate([np.stack([gx, np.full_like(gx, -g)], 1), np.stack([gx, np.full_like(gx, h - 1 + g)], 1),
+                            np.stack([np.full_like(gy[1:-1], -g), gy[1:-1]], 1),
+                            np.stack([np.full_like(gy[1:-1], w - 1 + g), gy[1:-1]], 1)])
+    weights = np.concatenate([motion_weight((np.concatenate([pts, border]) - o) @ axes.T / unit), np.zeros(len(guard))])
+    return np.concatenate([pts, border, guard]), weights
 
 
 def head_region(face68: np.ndarray, size: tuple[int, int]) -> np.ndarray:
@@ -161,9 +171,19 @@ class FrameWarp:
         # or bottom side keeps the coordinate that puts it there (module docstring)
         held = np.stack([(extra[:, 0] == 0.0) | (extra[:, 0] == w - 1.0), extra[:, 1] == h - 1.0], 1)
         self._share = self.weights[:, None] * ~held
-        self._ring = ~(held.any(1) | (extra[:, 1] == 0.0))
+        g = GUARD * max(w, h)
+        guard = (extra[:, 0] <= -g) | (extra[:, 0] >= w - 1 + g) | (extra[:, 1] <= -g) | (extra[:, 1] >= h - 1 + g)
+        self._ring = ~(held.any(1) | (extra[:, 1] == 0.0) | guard)
         self.triangles = Delaunay(self.src).simplices.astype(np.int64)
         self.nodes = grid_nodes(w), grid_nodes(h)  # (x, y) of the affine warp's grid
+        # the anchors on the right and bottom edges are pushed a thousandth of a node spacing
+        # out when nodes are located (not for the maps): the nodes on those edges then lie
+        # strictly inside the frame's triangles, never on a tie (the graph's scanline
+        # coverage is half-open there); in node units, (K, 2)
+        push = np.zeros_like(self.src)
+        push[self.n_face:, 0] = np.where(extra[:, 0] == w - 1, 1e-3, 0.0)
+        push[self.n_face:, 1] = np.where(extra[:, 1] == h - 1, 1e-3, 0.0)
+        self.locate_push = push
         self._up = interpolation_matrix(w, len(self.nodes[0])), interpolation_matrix(h, len(self.nodes[1]))
         self._grid = np.stack(np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32)), -1)
 
@@ -216,6 +236,8 @@ class FrameWarp:
         m[ok] = np.linalg.solve(a[ok], self.src[tri[ok]]).transpose(0, 2, 1)
         nx, ny = self.nodes
         gx, gy = np.meshgrid(nx, ny)
+        spacing = np.array([nx[1] - nx[0], ny[1] - ny[0]])
+        loc = (dst + self.locate_push * spacing)[tri]  # where the nodes are located
         maps = np.stack([gx, gy])  # (2, Hn, Wn): own positions where no single triangle holds the node
         count = np.zeros(gx.shape, np.int64)  # triangles holding the node strictly inside
         # the node's map is its most inside triangle's (on a shared edge either triangle's map
@@ -223,13 +245,13 @@ class FrameWarp:
         best = np.full(gx.shape, -1e-9)
         taken = np.zeros(gx.shape, bool)
         for t in np.flatnonzero(ok):
-            lo, hi = d[t].min(0) - 1e-6, d[t].max(0) + 1e-6
+            lo, hi = loc[t].min(0) - 1e-6, loc[t].max(0) + 1e-6
             c0, c1 = np.searchsorted(nx, lo[0]), np.searchsorted(nx, hi[0], "right")
             r0, r1 = np.searchsorted(ny, lo[1]), np.searchsorted(ny, hi[1], "right")
             if c1 <= c0 or r1 <= r0:
                 continue
             x, y = gx[r0:r1, c0:c1], gy[r0:r1, c0:c1]
-            (x0, y0), (x1, y1), (x2, y2) = d[t]
+            (x0, y0), (x1, y1), (x2, y2) = loc[t]
             den = (y1 - y2) * (x0 - x2) + (x2 - x1) * (y0 - y2)
             l0 = ((y1 - y2) * (x - x2) + (x2 - x1) * (y - y2)) / den
             l1 = ((y2 - y0) * (x - x2) + (x0 - x2) * (y - y2)) / den
