@@ -170,7 +170,10 @@ def test_transfer_expression_cli(seq, model, tmp_path, capsys, monkeypatch):
     assert int(cap.get(cv2.CAP_PROP_FRAME_COUNT)) == len(seq)
     sheet = cv2.imread(str(tmp_path / "s.png"))
     assert sheet.shape == (28 + 3 * 256, 3 * 256, 3)
-    assert json.loads(capsys.readouterr().out.strip())["frames"] == len(seq)
+    summary = json.loads(capsys.readouterr().out.strip())
+    assert summary["frames"] == len(seq) and summary["frame_warp"] is True
+    assert main([*args, "--still-frame", "--out", str(tmp_path / "still.mp4")]) == 0
+    assert json.loads(capsys.readouterr().out.strip())["frame_warp"] is False
     assert main(args[:3] + ["--target", str(tmp_path / "nope.png")] + args[5:]) == 2
     assert "no such target" in capsys.readouterr().err
     monkeypatch.setitem(sys.modules, "dlib", None)  # import dlib -> ImportError
@@ -178,6 +181,32 @@ def test_transfer_expression_cli(seq, model, tmp_path, capsys, monkeypatch):
 
     with pytest.raises(MissingExtraError, match="ingest"):
         _detect(seq.frame(0), tmp_path / "b.png")
+
+
+def test_transfer_composites_into_the_image_warped_with_the_face(seq, model):
+    """With a background warp (transfer-expression's default) each frame is the face over B's
+    image warped to that frame's landmarks: off the face, the warped image's own pixels, which
+    follow the jaw as the mouth opens; at B's neutral the warp is the identity."""
+    from facesynth.eri.faps import compute_faps
+    from facesynth.retarget import Retargeter
+    from facesynth.runtime.fullframe import FrameWarp
+
+    image, lm = seq.frame(0), seq.landmarks[0]
+    syn = EriSynthesizer(model, image, lm)
+    warp = FrameWarp(image, syn.neutral)
+    open_ = int(np.argmax(np.linalg.norm(seq.landmarks[:, 66] - seq.landmarks[:, 62], axis=1)))
+    rows = [0, open_]
+    faps = compute_faps(seq.landmarks[rows], seq.landmarks[0])
+    pos = Retargeter(syn.neutral, seq.landmarks[0], head_motion=False)(seq.landmarks[rows])
+    still = list(syn.iter_render(faps, "eri", positions=pos))
+    warped = list(syn.iter_render(faps, "eri", positions=pos, background=warp))
+    _, masks = syn.render(faps, "eri", positions=pos)
+    np.testing.assert_allclose(warp(pos[0]).astype(int), image.astype(int), atol=1)  # the neutral: identity
+    bg = warp(pos[1])
+    off = ~cv2.dilate(masks[1].astype(np.uint8), np.ones((15, 15), np.uint8)).astype(bool)
+    assert np.array_equal(warped[1][off], bg[off])  # off the face: the warped image itself
+    assert np.array_equal(still[1][off], image[off])
+    assert np.abs(bg.astype(int) - image).max() > 10  # which moved with the jaw
 
 
 def test_write_video_is_atomic(tmp_path):

@@ -36,6 +36,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="apply the predicted ratios as they are (no edge confidence / brightening cap)")
     p.add_argument("--max-frames", type=int, default=0, help="render only the first N driver frames (0 = all)")
     p.add_argument("--fps", type=float, help="output frame rate (default: the driver's)")
+    p.add_argument("--still-frame", action="store_true",
+                   help="composite into the target image as it is (default: the image warped with the face, so that "
+                        "its jaw, neck and hair follow the expression; facesynth.runtime.fullframe)")
 
 
 def load_target(target, target_landmarks=None, target_frame: int | None = None) -> tuple[np.ndarray, np.ndarray, str]:
@@ -96,6 +99,7 @@ def run(args) -> int:
     from facesynth.eri.render import contact_sheet, pick_sheet_rows, write_video
     from facesynth.eri.synthesis import EriSynthesizer
     from facesynth.retarget import Retargeter
+    from facesynth.runtime.fullframe import FrameWarp
 
     model = EriModel.load(args.eri)
     image, landmarks, target_desc = load_target(args.target, args.target_landmarks, args.target_frame)
@@ -118,19 +122,24 @@ def run(args) -> int:
     t0 = time.perf_counter()
     from facesynth import progress
 
-    rendered = progress.bar(syn.iter_render(faps, "eri", positions=positions), total=n, desc="render", unit="frame")
+    # B's image warped with the face (jaw, neck and hair follow the expression), or as it is
+    background = None if args.still_frame else FrameWarp(image, syn.neutral)
+    rendered = progress.bar(syn.iter_render(faps, "eri", positions=positions, background=background), total=n,
+                            desc="render", unit="frame")
     with progress.stage("transfer-expression render") as st:
         frames = write_video(args.out, rendered, args.fps or driver.fps)
         st.set(f"{frames} frames")
     per_frame = (time.perf_counter() - t0) / frames
     summary = {"out": str(args.out), "frames": frames, "seconds_per_frame": per_frame, "target": target_desc,
-               "driver": str(args.driver), "driver_neutral": how, "variant": syn.variant}
+               "driver": str(args.driver), "driver_neutral": how, "variant": syn.variant,
+               "frame_warp": background is not None}
     if args.sheet:
         if not driver.has_frames:
             raise FacesynthError(f"{args.driver}: the contact sheet needs the driver's frames (video)")
         rows = pick_sheet_rows(faps, args.sheet_rows)
-        geo, _ = syn.render(faps[rows], "geometry", positions=positions[rows])
-        eri, _ = syn.render(faps[rows], "eri", positions=positions[rows])
+        bgs = None if background is None else np.stack([background(p) for p in positions[rows]])
+        geo, _ = syn.render(faps[rows], "geometry", backgrounds=bgs, positions=positions[rows])
+        eri, _ = syn.render(faps[rows], "eri", backgrounds=bgs, positions=positions[rows])
         contact_sheet(args.sheet, list(driver.iter_frames(rows)), driver.landmarks[rows], list(geo), list(eri),
                       positions[rows])
         summary.update(sheet=str(args.sheet), sheet_rows=rows.tolist())

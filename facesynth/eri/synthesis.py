@@ -131,10 +131,14 @@ class EriSynthesizer:
         return np.stack(frames), np.stack(masks)
 
     def iter_render(self, faps: np.ndarray, mode: str = "eri", batch_size: int | None = None,
-                    positions: np.ndarray | None = None) -> Iterator[np.ndarray]:
+                    positions: np.ndarray | None = None, background=None) -> Iterator[np.ndarray]:
         """Yield uint8 (H, W, 3) frames of B driven by (N, 36) FAPs, in batches
-        (``positions``: as in :meth:`render`)."""
+        (``positions``: as in :meth:`render`). ``background``, optional: B's landmarks (68, 2)
+        of a frame -> its uint8 (H, W, 3) background (e.g. B's image warped so that its head
+        follows the face, :class:`facesynth.runtime.fullframe.FrameWarp`); default B's image."""
         bs = batch_size or self.model.config.batch_size
         for s in range(0, len(faps), bs):
-            pos = None if positions is None else positions[s : s + bs]
-            yield from self.render(faps[s : s + bs], mode, positions=pos)[0]
+            f = faps[s : s + bs]
+            pos = self.positions(np.asarray(f, np.float32)) if positions is None else positions[s : s + bs]
+            bgs = None if background is None else np.stack([background(p) for p in pos])
+            yield from self.render(f, mode, backgrounds=bgs, positions=pos)[0]
