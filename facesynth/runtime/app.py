@@ -76,7 +76,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--fps", type=float, help="output frame rate (default: the driver's own: an ingest folder's meta.json, "
                                          "else the driver video's; 30 when neither records one)")
     p.add_argument("--threads", type=int, default=1, help="ONNX Runtime intra-op threads (default 1)")
-    p.add_argument("--feather", type=float, help="soft edge of the pasted face, pixels (default: 4%% of the face)")
+    p.add_argument("--feather", type=float, help="soft edge of the pasted face: pixels of the rendered crop in the avatar's "
+                                                 "own frame (default 4%% of the face), frame pixels on --background (default 2)")
     p.add_argument("--no-colour-match", action="store_true", help="do not match the face's colour to the frame at the seam")
     p.add_argument("--max-frames", type=int, help="render only the first N frames (N >= 1)")
     p.add_argument("--contact-sheet", help=f"also write a PNG contact sheet (driver above rendering), e.g. {SHEET_DIR}/sheet.png")

@@ -51,38 +51,24 @@ def seam_layers(mask: np.ndarray, feather: float) -> tuple[np.ndarray, np.ndarra
     return alpha, band.astype(np.float32)
 
 
-def face_box(landmarks: np.ndarray, size: tuple[int, int]) -> tuple[int, int, int, int]:
-    """(x0, y0, x1, y1): the frame pixels a face on (P, 2) ``landmarks`` can touch (their
-    bounding box plus 2 px, clipped to the frame of ``size`` (W, H))."""
-    w, h = size
-    lm = np.asarray(landmarks, np.float64)
-    x0, y0 = np.maximum(np.floor(lm.min(0)).astype(int) - 2, 0)
-    x1, y1 = np.minimum(np.ceil(lm.max(0)).astype(int) + 3, [w, h])
-    return int(x0), int(y0), int(max(x1, x0 + 1)), int(max(y1, y0 + 1))
-
-
 def blend_face(crop: np.ndarray, mask: np.ndarray, placement: np.ndarray, background: np.ndarray,
-               feather: float | None = None, match_colour: bool = True,
-               box: tuple[int, int, int, int] | None = None) -> np.ndarray:
+               feather: float | None = None, match_colour: bool = True) -> np.ndarray:
     """Paste a rendered crop into ``background``.
 
     crop : float32 (H_c, W_c, 3) in [0, 1]; mask : float32 (H_c, W_c); placement : (2, 3)
     crop -> frame; background : uint8 (H, W, 3); feather : soft edge in the crop's pixels
     (default :func:`seam_width` of the mask); match_colour : shift the face's colour by the
-    frame's mean less the face's in the seam band; box : (x0, y0, x1, y1) frame pixels that
-    hold the placed face (default: the placed crop's bounding box). Returns uint8 (H, W, 3):
+    frame's mean less the face's in the seam band. Returns uint8 (H, W, 3):
     ``face * alpha + shift * alpha + frame * (1 - alpha)`` with alpha and the premultiplied
     face placed bilinearly, rounded.
     """
     h, w = background.shape[:2]
     ch, cw = mask.shape
     out = background.copy()
-    if box is None:
-        corners = np.array([[0, 0, 1], [cw, 0, 1], [0, ch, 1], [cw, ch, 1]], np.float64) @ np.asarray(placement, np.float64).T
-        x0, y0 = np.maximum(np.floor(corners.min(0)).astype(int) - 2, 0)
-        x1, y1 = np.minimum(np.ceil(corners.max(0)).astype(int) + 2, [w, h])
-    else:
-        x0, y0, x1, y1 = box
+    # work in the placed crop's bounding box (warping the whole frame costs milliseconds)
+    corners = np.array([[0, 0, 1], [cw, 0, 1], [0, ch, 1], [cw, ch, 1]], np.float64) @ np.asarray(placement, np.float64).T
+    x0, y0 = np.maximum(np.floor(corners.min(0)).astype(int) - 2, 0)
+    x1, y1 = np.minimum(np.ceil(corners.max(0)).astype(int) + 2, [w, h])
     if x1 <= x0 or y1 <= y0:
         return out
     f = float(feather) if feather is not None else seam_width(mask)

@@ -83,7 +83,8 @@ class Reenactor:
     neutral_frames : frames collected to choose the driver's neutral when none is given
     background : uint8 (H, W, 3), optional; default the avatar's own frame from the
         metadata, else grey of the driver's landmark extent
-    feather : soft edge in pixels (default: 4% of the face), match_colour : seam colour matching
+    feather : soft edge in the rendered crop's pixels (default: 4% of the face,
+        :func:`facesynth.runtime.blend.blend_face`), match_colour : seam colour matching
     full_frame : warp the avatar's own frame so that the whole head follows the face, and
         composite into that (default: when no ``background`` is given and the metadata has the
         avatar's neutral and frame); False pastes the face into the still ``background``
