@@ -184,7 +184,7 @@ class FrameWarp:
         push[self.n_face:, 0] = np.where(extra[:, 0] == w - 1, 1e-3, 0.0)
         push[self.n_face:, 1] = np.where(extra[:, 1] == h - 1, 1e-3, 0.0)
         self.locate_push = push
-        self._up = interpolation_matrix(w, len(self.nodes[0])), interpolation_matrix(h, len(self.nodes[1]))
+        self._up = interpolation_weights(w, len(self.nodes[0])), interpolation_weights(h, len(self.nodes[1]))
         self._grid = np.stack(np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32)), -1)
 
     def control_points(self, landmarks: np.ndarray) -> np.ndarray:
@@ -219,9 +219,11 @@ class FrameWarp:
         return cv2.remap(self.frame, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
 
     def _affine_maps(self, dst: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        maps = self.node_maps(dst)
-        rx, ry = self._up
-        return tuple(np.ascontiguousarray((ry @ maps[k] @ rx.T).astype(np.float32)) for k in (0, 1))
+        (kx, fx), (ky, fy) = self._up
+        m = self.node_maps(dst)
+        m = m[:, :, kx] * (1.0 - fx) + m[:, :, kx + 1] * fx  # along x: (2, Hn, W)
+        m = m[:, ky] * (1.0 - fy)[:, None] + m[:, ky + 1] * fy[:, None]  # along y: (2, H, W)
+        return np.ascontiguousarray(m[0], np.float32), np.ascontiguousarray(m[1], np.float32)
 
     def node_maps(self, dst: np.ndarray) -> np.ndarray:
         """float64 (2, Hn, Wn): the neutral-frame pixel (x, y) each grid node reads, for the
@@ -282,18 +284,13 @@ def grid_nodes(n: int, step: int = GRID_STEP) -> np.ndarray:
     return np.linspace(0.0, n - 1.0, int(np.ceil((n - 1) / step)) + 1)
 
 
-def interpolation_matrix(n: int, nodes: int) -> np.ndarray:
-    """float64 (n, nodes): row x holds the linear interpolation weights of pixel x between
-    ``nodes`` evenly spaced nodes from 0 to n - 1 (node k at k (n - 1) / (nodes - 1); the
-    ``align_corners`` convention of ONNX's Resize)."""
-    pos = np.arange(n, dtype=np.float64) * (nodes - 1) / max(n - 1, 1)
-    k = np.minimum(np.floor(pos).astype(int), nodes - 2) if nodes > 1 else np.zeros(n, int)
-    f = pos - k
-    out = np.zeros((n, nodes))
-    out[np.arange(n), k] = 1.0 - f
-    if nodes > 1:
-        out[np.arange(n), k + 1] += f
-    return out
+def interpolation_weights(n: int, nodes: int) -> tuple[np.ndarray, np.ndarray]:
+    """Linear interpolation of pixels 0..n-1 between ``nodes`` evenly spaced nodes from 0 to
+    n - 1 (node k at k (n - 1) / (nodes - 1); the ``align_corners`` convention of ONNX's
+    Resize): int (n,) left node k and float64 (n,) weight f of node k + 1 (1 - f of node k)."""
+    pos = np.arange(n, dtype=np.float64) * (nodes - 1) / (n - 1)
+    k = np.minimum(np.floor(pos).astype(int), nodes - 2)
+    return k, pos - k
 
 
 def thin_plate(ctrl: np.ndarray, values: np.ndarray, at: np.ndarray, smooth: float = TPS_SMOOTH) -> np.ndarray:
@@ -326,4 +323,4 @@ def _signed_area(points: np.ndarray, tri: np.ndarray) -> np.ndarray:
     return e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]
 
 
-__all__ = ["METHODS", "FrameWarp", "grid_nodes", "head_points", "head_region", "interpolation_matrix", "thin_plate"]
+__all__ = ["METHODS", "FrameWarp", "grid_nodes", "head_points", "head_region", "interpolation_weights", "thin_plate"]
