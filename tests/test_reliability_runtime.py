@@ -117,8 +117,8 @@ def test_row6_export_summary_is_strict_json():
 
 APP_UNDER_SIGTERM = """
 import sys
-import facesynth.runtime.app as app
-real = app.render_frames
+import facesynth.runtime.pipeline as pipeline
+real = pipeline.render_frames
 
 def slow(*a, **k):  # one real frame, then wait for the parent's signal (mid-write)
     for frame in real(*a, **k):
@@ -126,7 +126,7 @@ def slow(*a, **k):  # one real frame, then wait for the parent's signal (mid-wri
         print("ready", flush=True)
         sys.stdin.read()
 
-app.render_frames = slow
+pipeline.render_frames = slow
 from facesynth.cli import main
 sys.exit(main(sys.argv[1:]))
 """

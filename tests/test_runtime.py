@@ -16,7 +16,8 @@ from _onnx_models import driving_landmarks, exported, real_linear_synthesizer, s
 
 from facesynth.errors import FacesynthError
 from facesynth.runtime import OneEuroFilter, Renderer, composite, smooth_landmarks
-from facesynth.runtime.app import default_size, latency_summary, parse_size, render_frames
+from facesynth.runtime.app import default_size, parse_size
+from facesynth.runtime.pipeline import latency_summary, render_frames
 
 ROOT = Path(__file__).resolve().parents[1]
 

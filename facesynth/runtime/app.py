@@ -4,14 +4,15 @@
                   [--motion relative|absolute] [--driver-neutral N] [--save-landmarks L.npy]
                   [--background IMG] [--side-by-side] [--smooth] [--size WxH]
 
-Each frame's landmarks are retargeted onto the avatar (``--motion relative``, the default:
-the driver's expression and head motion relative to its neutral, on the avatar's own face;
-:class:`facesynth.runtime.reenact.Reenactor`) and drive the model (batch 1, as a live app
-would); the face is composited into the avatar's own frame (the model's metadata) with a
-feathered, colour-matched seam (:func:`facesynth.runtime.blend.blend_face`), and the video is
-written atomically (mp4v) at the driver's own frame rate. A progress bar shows frames/s; the
-summary gives latency percentiles of the model call and of the whole frame. Torch is never
-imported.
+A thin command line round :class:`facesynth.runtime.pipeline.AvatarPipeline`, which does the
+per-frame work: a talking-head file (``facesynth export RUN --talking-head``) renders each
+frame in one ONNX Runtime call; a face model is driven through the numpy pipeline (each
+frame's landmarks retargeted onto the avatar, ``--motion relative``, the default; the avatar's
+own frame warped with the face and the face composited with a feathered, colour-matched
+seam), batch 1, as a live app would. This module reads the driver (landmarks or a video,
+frame by frame), picks the background, and writes the video atomically (mp4v) at the
+driver's own frame rate; a progress bar shows frames/s, the summary gives latency
+percentiles of the model call and of the whole frame. Torch is never imported.
 
 Every output path is checked, and refused when it is one of the inputs, before the model is
 loaded; the video is reopened and checked before it is kept
@@ -28,13 +29,11 @@ import logging
 import os
 import time
 from pathlib import Path
-from typing import Iterator
 
 import cv2
 import numpy as np
 
 from facesynth.errors import FacesynthError
-from facesynth.imaging import composite
 from facesynth.io import atomic_path, check_writable, refuse_overwriting_inputs
 from facesynth.progress import bar, stage
 from facesynth.runtime.checks import check_coordinate_range, check_frame_size, check_in_frame
@@ -120,41 +119,6 @@ def load_background(path: str | None, size: tuple[int, int]) -> np.ndarray:
     return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
 
 
-# ----------------------------------------------------------------- rendering
-def render_frames(renderer, landmarks: np.ndarray, background: np.ndarray, feather: float = 2.0,
-                  latencies: list | None = None) -> Iterator[np.ndarray]:
-    """uint8 (H, W, 3) frames, one per landmark row (the background where a row is NaN).
-
-    ``latencies`` (a list) collects (model seconds, frame seconds) per rendered frame.
-    """
-    for lm in landmarks:
-        t0 = time.perf_counter()
-        if not np.isfinite(lm).all():
-            frame = background.copy()
-            t1 = time.perf_counter()
-        else:
-            crops, masks, placements = renderer.render(lm[None])
-            t1 = time.perf_counter()
-            crop = np.ascontiguousarray(crops[0].transpose(1, 2, 0))
-            if crop.shape[2] == 1:
-                crop = np.repeat(crop, 3, axis=2)
-            frame = composite(crop, masks[0, 0], placements[0].astype(np.float64), background, feather)
-            if latencies is not None:
-                latencies.append((t1 - t0, time.perf_counter() - t0))
-        yield frame
-
-
-def latency_summary(latencies: list) -> dict:
-    """p50/p90/p99 (ms) of the model call and of the whole frame."""
-    if not latencies:
-        return {"frames": 0}
-    a = np.asarray(latencies) * 1e3
-    out = {"frames": len(a)}
-    for i, name in enumerate(("model_ms", "frame_ms")):
-        out[name] = {f"p{q}": round(float(np.percentile(a[:, i], q)), 3) for q in (50, 90, 99)}
-    return out
-
-
 # ------------------------------------------------------------------ checks
 def check_options(args: argparse.Namespace) -> list[str]:
     """The numeric options and every output path, before any file is read; returns the outputs."""
@@ -203,38 +167,24 @@ def detect_with_progress(driver, max_frames: int | None, scheme: str, enabled: b
     return landmarks
 
 
-def talking_head(args: argparse.Namespace):
-    """A :class:`facesynth.runtime.talking_head.TalkingHead` when ``--model`` is a talking-head
-    file (``facesynth export RUN --talking-head``), else None; FacesynthError naming the
-    options such a file fixes at export (its own frame, relative motion, its seam)."""
-    from facesynth.contract import TALKING_HEAD_FORMAT
-    from facesynth.runtime.renderer import read_metadata
-    from facesynth.runtime.talking_head import TalkingHead
-
-    if read_metadata(args.model).get("format") != TALKING_HEAD_FORMAT:
-        return None
+def check_head_options(args: argparse.Namespace, model: str) -> None:
+    """FacesynthError naming the options a talking-head file fixes at export (its own frame,
+    relative motion, its seam)."""
     fixed = [opt for opt, given in (("--background", args.background), ("--motion absolute", args.motion == "absolute"),
                                     ("--feather", args.feather is not None), ("--no-colour-match", args.no_colour_match),
                                     ("--size", args.size)) if given]
     if fixed:
-        raise FacesynthError(f"{args.model} is a talking-head file (its frame, relative motion and seam are fixed at "
+        raise FacesynthError(f"{model} is a talking-head file (its frame, relative motion and seam are fixed at "
                              f"export): {', '.join(fixed)} cannot apply; export the face model for that "
                              "(facesynth export RUN --out M.onnx)")
-    args.motion = "relative"
-    return TalkingHead(args.model, threads=args.threads)
 
 
 # ------------------------------------------------------------------ command
-def run(args: argparse.Namespace) -> int:
-    from facesynth.data.frames import VideoFrames
-    from facesynth.data.readers import ingest_video, load_landmarks
-    from facesynth.landmarks import get_scheme
-    from facesynth.retarget import RETARGET_SCHEMES
-    from facesynth.runtime.filters import smooth_landmarks
-    from facesynth.runtime.reenact import Avatar, Reenactor, driver_neutral_of, reenact_frames
-    from facesynth.runtime.renderer import Renderer
+def driver_sources(args: argparse.Namespace, outputs: list[str]) -> tuple[str | None, float | None]:
+    """The driver's video (to show or to read its rate; None when not needed) and the frame
+    rate an ingest folder's meta.json records; refuses outputs that are inputs."""
+    from facesynth.data.readers import ingest_video
 
-    outputs = check_options(args)  # before any decoding or rendering
     meta_fps = driver_video = None
     inputs = [args.model, args.background, args.video, args.landmarks, args.driver_video]
     if args.landmarks and Path(args.landmarks).is_dir():  # an ingest folder: its meta.json names the video and rate
@@ -242,86 +192,77 @@ def run(args: argparse.Namespace) -> int:
         inputs += [Path(args.landmarks, "landmarks.npy"), Path(args.landmarks, "meta.json"), folder_video]
         # its video is opened when its frames are shown, or for its frame rate when meta.json has none
         driver_video = folder_video if args.side_by_side or args.contact_sheet or meta_fps is None else None
-    driver_video = args.video or args.driver_video or driver_video
     refuse_overwriting_inputs(outputs, inputs)
-    head = talking_head(args)  # a talking-head file renders whole frames; else a face model and the numpy pipeline
-    renderer = None if head else Renderer(args.model, threads=args.threads)
-    metadata = head.metadata if head else renderer.metadata
-    scheme = head.scheme if head else renderer.scheme.name
-    avatar = Avatar(metadata, args.model)
-    if scheme not in RETARGET_SCHEMES and args.motion == "relative":
-        raise FacesynthError(f"--motion relative: retargeting takes {' or '.join(RETARGET_SCHEMES)} landmarks, and "
-                             f"{args.model} takes {scheme} ones; use --motion absolute (a driver in the same scheme)")
-    if args.motion is None:
-        args.motion = "relative" if avatar.neutral is not None else "absolute"
-        if avatar.neutral is None:
-            log.warning("%s has no avatar metadata (%s): --motion absolute", args.model,
-                        "an older export" if scheme in RETARGET_SCHEMES else f"retargeting does not take {scheme} landmarks")
-    if args.motion == "relative":
-        avatar.require_neutral()
-    driver = VideoFrames(driver_video) if driver_video else None  # decoded frame by frame, never held whole
-    video_fps = driver.fps if driver is not None and 0 < driver.fps < 1e4 else None
+    return args.video or args.driver_video or driver_video, meta_fps
+
+
+def open_pipeline(args: argparse.Namespace):
+    """The :class:`AvatarPipeline` of ``--model`` and the options; ``args.motion`` set to its motion."""
+    from facesynth.retarget import RETARGET_SCHEMES
+    from facesynth.runtime.pipeline import AvatarPipeline
+
+    pipeline = AvatarPipeline(args.model, args.motion, still=bool(args.background), feather=args.feather,
+                              match_colour=not args.no_colour_match, threads=args.threads)
+    if pipeline.head:
+        check_head_options(args, args.model)
+    elif args.motion is None and pipeline.motion == "absolute":
+        log.warning("%s has no avatar metadata (%s): --motion absolute", args.model, "an older export"
+                    if pipeline.scheme in RETARGET_SCHEMES else f"retargeting does not take {pipeline.scheme} landmarks")
+    args.motion = pipeline.motion
+    return pipeline
+
+
+def read_driver(args: argparse.Namespace, driver, driver_video, scheme: str) -> np.ndarray:
+    """(T, P, 2) driver landmarks in ``scheme``: detected in ``--video``, or read from
+    ``--landmarks`` (mediapipe478 ones mapped for an ibug68 model), checked before any work."""
+    from facesynth.data.readers import load_landmarks
+
     if args.video:
-        landmarks = detect_with_progress(driver, args.max_frames, scheme, not args.no_progress)
-    else:
-        landmarks = load_landmarks(args.landmarks, scheme=scheme)  # mediapipe478 -> ibug68 is mapped; the reverse is an error
-        if args.max_frames:
-            landmarks = landmarks[: args.max_frames]
-        check_faces(landmarks, args.landmarks, args.max_frames)
-        if (args.side_by_side or args.contact_sheet) and driver is not None and 0 < len(driver) < len(landmarks):
-            # the header's count, before any work; reading the frames checks the rest
-            raise FacesynthError(f"{driver_video}: {len(driver)} frames for {len(landmarks)} landmark rows")
-    fps = float(args.fps or meta_fps or video_fps or 30.0)
-    if not (args.fps or meta_fps or video_fps):
-        log.info("%s records no frame rate: %g fps (--fps sets it)", args.video or args.landmarks, fps)
-    if args.smooth:
-        landmarks = smooth_landmarks(landmarks, fps, args.min_cutoff, args.beta)
-    neutral = None
-    if args.motion == "relative" or args.driver_neutral is not None:
-        neutral, neutral_row = driver_neutral_of(landmarks, args.driver_neutral)
-    # the avatar's own frame, warped so that its whole head follows the face (either motion)
-    full_frame = not args.background and avatar.neutral is not None and avatar.background is not None
-    if head:
-        reenactor = head.use_neutral(neutral)
-    else:
-        reenactor = Reenactor(renderer, neutral, args.motion, feather=args.feather, match_colour=not args.no_colour_match,
-                              full_frame=full_frame)
+        return detect_with_progress(driver, args.max_frames, scheme, not args.no_progress)
+    landmarks = load_landmarks(args.landmarks, scheme=scheme)  # mediapipe478 -> ibug68 is mapped; the reverse is an error
+    if args.max_frames:
+        landmarks = landmarks[: args.max_frames]
+    check_faces(landmarks, args.landmarks, args.max_frames)
+    if (args.side_by_side or args.contact_sheet) and driver is not None and 0 < len(driver) < len(landmarks):
+        # the header's count, before any work; reading the frames checks the rest
+        raise FacesynthError(f"{driver_video}: {len(driver)} frames for {len(landmarks)} landmark rows")
+    return landmarks
+
+
+def choose_background(args: argparse.Namespace, pipeline, driver, landmarks: np.ndarray) -> np.ndarray:
+    """uint8 (H, W, 3): ``--background``, the avatar's own frame (warped with the face), or grey
+    of the driver video's size, ``--size`` or the landmarks' extent."""
     if args.background:
-        background = load_background(args.background, (0, 0))
-    elif full_frame:
-        background = avatar.background
-    elif driver is not None and not args.size:
+        return load_background(args.background, (0, 0))
+    if pipeline.full_frame:  # the avatar's own frame, warped so that its whole head follows the face
+        return pipeline.avatar.background
+    if driver is not None and not args.size:
         h, w = driver.size
-        background = load_background(None, (w, h))
-    else:
-        background = load_background(None, parse_size(args.size) if args.size else default_size(landmarks))
+        return load_background(None, (w, h))
+    return load_background(None, parse_size(args.size) if args.size else default_size(landmarks))
+
+
+def write_outputs(args: argparse.Namespace, pipeline, landmarks: np.ndarray, neutral, background: np.ndarray,
+                  driver, fps: float) -> tuple[list, np.ndarray]:
+    """Render every frame into ``--out`` (driver beside it with ``--side-by-side``), then the
+    landmarks and the contact sheet; all renamed into place together. Returns the latencies
+    and the avatar landmarks rendered (T, P, 2)."""
     h, w = background.shape[:2]
-    # before any rendering; the driver's points are in its own frame, when known
-    driver_size = (w, h) if driver is None else driver.size[::-1]
-    check_in_frame(landmarks, driver_size, args.landmarks or args.video)
     # without a driver video, its dots are drawn in its own frame (not on the avatar's face)
     dots_on = background if args.motion == "absolute" or driver is not None else \
         load_background(None, default_size(landmarks))
-    out_w = 2 * w if args.side_by_side else w
     n = len(landmarks)
     latencies: list = []
-    rendered = np.full((n, get_scheme(scheme).n_points, 2), np.nan, np.float32)  # the avatar landmarks of each frame (--save-landmarks)
+    rendered = np.full((n, pipeline.n_points, 2), np.nan, np.float32)  # the avatar landmarks of each frame (--save-landmarks)
     sheet_idx = set(np.linspace(0, n - 1, min(6, n)).round().astype(int).tolist()) if args.contact_sheet else set()
     sheet_top, sheet_bottom = [], []
     shown_left = set(range(n)) if args.side_by_side else sheet_idx  # the frames that need the driver's picture
     driver_iter = driver.read(sorted(shown_left)) if driver is not None else None
-    out = Path(args.out)
-    t_start = time.perf_counter()
     with contextlib.ExitStack() as written:  # every output is renamed into place only once all are written
-        video = written.enter_context(atomic_video(out, fps, (out_w, h)))
+        video = written.enter_context(atomic_video(Path(args.out), fps, (2 * w if args.side_by_side else w, h)))
         progress = bar(total=n, unit="frame", desc="app", enabled=not args.no_progress)
-        reenactor.background = background
-        if args.motion == "relative" or full_frame:
-            frames = reenact_frames(reenactor, landmarks, rendered, latencies)
-        else:  # the driver's landmarks as they are, composited as before retargeting existed
-            rendered[:] = landmarks
-            frames = render_frames(renderer, landmarks, background, 2.0 if args.feather is None else args.feather, latencies)
-        for i, frame in enumerate(frames):
+        pipeline.start(neutral, background)
+        for i, frame in enumerate(pipeline.frames(landmarks, rendered, latencies)):
             if i in shown_left:
                 left = fit_into(next(driver_iter) if driver_iter is not None else draw_landmarks(dots_on, landmarks[i]),
                                 (h, w))
@@ -338,22 +279,47 @@ def run(args: argparse.Namespace) -> int:
         if args.contact_sheet:
             write_image(written.enter_context(atomic_path(args.contact_sheet)), contact_sheet(sheet_top, sheet_bottom),
                         args.contact_sheet)
-    wall = time.perf_counter() - t_start
+    return latencies, rendered
+
+
+def run(args: argparse.Namespace) -> int:
+    from facesynth.data.frames import VideoFrames
+    from facesynth.runtime.filters import smooth_landmarks
+    from facesynth.runtime.pipeline import latency_summary
+    from facesynth.runtime.reenact import driver_neutral_of
+
+    outputs = check_options(args)  # before any decoding or rendering
+    driver_video, meta_fps = driver_sources(args, outputs)
+    pipeline = open_pipeline(args)
+    driver = VideoFrames(driver_video) if driver_video else None  # decoded frame by frame, never held whole
+    video_fps = driver.fps if driver is not None and 0 < driver.fps < 1e4 else None
+    landmarks = read_driver(args, driver, driver_video, pipeline.scheme)
+    fps = float(args.fps or meta_fps or video_fps or 30.0)
+    if not (args.fps or meta_fps or video_fps):
+        log.info("%s records no frame rate: %g fps (--fps sets it)", args.video or args.landmarks, fps)
+    if args.smooth:
+        landmarks = smooth_landmarks(landmarks, fps, args.min_cutoff, args.beta)
+    neutral = neutral_row = None
+    if args.motion == "relative" or args.driver_neutral is not None:
+        neutral, neutral_row = driver_neutral_of(landmarks, args.driver_neutral)
+    background = choose_background(args, pipeline, driver, landmarks)
+    h, w = background.shape[:2]
+    # before any rendering; the driver's points are in its own frame, when known
+    check_in_frame(landmarks, (w, h) if driver is None else driver.size[::-1], args.landmarks or args.video)
+    t_start = time.perf_counter()
+    latencies, _ = write_outputs(args, pipeline, landmarks, neutral, background, driver, fps)
+    wall, n, out_w = time.perf_counter() - t_start, len(landmarks), 2 * w if args.side_by_side else w
     summary = latency_summary(latencies)
-    summary.update({"out": str(out), "size": [out_w, h], "fps": fps, "wall_s": round(wall, 3),
+    summary.update({"out": str(args.out), "size": [out_w, h], "fps": fps, "wall_s": round(wall, 3),
                     "frames_per_s": round(n / wall, 1) if wall > 0 else None,
                     "skipped_no_face": int(n - summary["frames"]), "smooth": bool(args.smooth),
-                    "regressor": metadata.get("regressor"), "threads": args.threads, "motion": args.motion,
-                    "talking_head_graph": head is not None})
-    if neutral is not None:
-        summary["driver_neutral_row"] = neutral_row
-    if args.save_landmarks:
-        summary["landmarks_out"] = str(args.save_landmarks)
-    if args.contact_sheet:
-        summary["contact_sheet"] = str(args.contact_sheet)
+                    "regressor": pipeline.metadata.get("regressor"), "threads": args.threads, "motion": args.motion,
+                    "talking_head_graph": pipeline.head is not None})
+    extra = {"driver_neutral_row": neutral_row, "landmarks_out": args.save_landmarks, "contact_sheet": args.contact_sheet}
+    summary.update({k: v for k, v in extra.items() if v is not None})
     if latencies:
         m, f = summary["model_ms"], summary["frame_ms"]
-        print(f"{n} frames -> {out} ({out_w}x{h}, {fps:g} fps) in {wall:.1f} s; latency ms p50/p90/p99: "
+        print(f"{n} frames -> {args.out} ({out_w}x{h}, {fps:g} fps) in {wall:.1f} s; latency ms p50/p90/p99: "
               f"model {m['p50']}/{m['p90']}/{m['p99']}, frame {f['p50']}/{f['p90']}/{f['p99']}")
     print(json.dumps(summary))
     return 0

@@ -25,8 +25,9 @@ from facesynth.runtime.cpu import check_int8_basis
 
 
 def read_metadata(model_path: str | os.PathLike) -> dict:
-    """Metadata properties of an exported model, JSON values decoded."""
-    sess = _session(Path(model_path), 1, False)
+    """Metadata properties of an exported model, JSON values decoded (the model is loaded
+    without its graph optimisations: a look at its metadata, not a session to run)."""
+    sess = _session(Path(model_path), 1, False, optimize=False)
     return _decode(sess.get_modelmeta().custom_metadata_map)
 
 
@@ -40,14 +41,15 @@ def _decode(props: dict) -> dict:
     return out
 
 
-def _session(path: Path, threads: int, spin: bool) -> ort.InferenceSession:
+def _session(path: Path, threads: int, spin: bool, optimize: bool = True) -> ort.InferenceSession:
     if not path.is_file():
         raise FacesynthError(f"{path}: model file not found")
     so = ort.SessionOptions()
     so.intra_op_num_threads = int(threads)
     so.inter_op_num_threads = 1
     so.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
-    so.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+    so.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL if optimize else \
+        ort.GraphOptimizationLevel.ORT_DISABLE_ALL
     so.log_severity_level = 3
     so.add_session_config_entry("session.intra_op.allow_spinning", "1" if spin else "0")
     try:
