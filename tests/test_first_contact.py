@@ -45,3 +45,25 @@ def test_ingest_shows_progress_where_stderr_is_not_a_terminal(cli_ingest, tmp_pa
         assert lines[0].startswith(f"[facesynth] ingest: {path} (128x128, 6 frames) with dlib")
         assert lines[-1].startswith("[facesynth] ingest: 6/6 frame [")
         assert len(lines) >= 2
+
+
+def test_readme_main_job_runs_as_written(tmp_path):
+    """README's Getting started, step 2 (``facesynth train``, the default configuration on the
+    built-in synthetic subject) trains, evaluates and writes its report."""
+    import json
+    import os
+    import re
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    step = (root / "README.md").read_text().split("**2. Run the main job**")[1].split("**3.")[0]
+    command = re.search(r"```bash\n(.*?)\s*(#.*)?\n```", step, re.S).group(1).strip()
+    assert command == "facesynth train"
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    proc = subprocess.run([sys.executable, "-m", "facesynth", "train", f"hydra.run.dir={tmp_path / 'run'}"], cwd=tmp_path,
+                          env=env, capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    metrics = json.loads((tmp_path / "run" / "metrics.json").read_text())
+    assert metrics["regressor"] == "krr"
+    assert metrics["psnr_ref"]["sadm"]["0"] > metrics["psnr_ref"]["mean_texture"]["0"]
+    assert (tmp_path / "run" / "report.html").stat().st_size > 1000
