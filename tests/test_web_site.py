@@ -123,3 +123,46 @@ def test_serve_prints_the_url_and_serves_the_page(tmp_path):
         proc.send_signal(signal.SIGTERM)
         proc.wait(timeout=30)
     assert list((tmp_path / "tmp").glob("facesynth-web-*")) == []
+
+
+def test_readme_live_page_path_runs_as_written(tmp_path, shared_clip_dir):
+    """README's Getting started, step 4, command by command as written, on a shorter shared
+    clip (lp_d0, 78 frames, in place of lp_d6) and in a temporary folder: MediaPipe ingest,
+    training, the talking-head export, and ``facesynth serve`` serving that avatar."""
+    import os
+    import re
+    import shlex
+    import signal
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    _site_avatar(tmp_path)  # skips without what the page needs
+    root = Path(__file__).resolve().parents[1]
+    step = (root / "README.md").read_text().split("**4. Drive an avatar.**")[1].split("```bash\n")[1].split("```")[0]
+    commands = [shlex.split(c) for c in re.split(r"\s*&&\s*", step.replace("\\\n", " ").strip())]
+    assert [c[:2] for c in commands] == [["facesynth", "ingest"], ["facesynth", "train"], ["facesynth", "export"],
+                                         ["facesynth", "serve"]]
+    clip = str(shared_clip_dir("lp_d0") / "video.mp4")
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "XDG_CACHE_HOME": str(tmp_path / "cache")}
+
+    def local(args):  # the clip and /tmp paths moved into this test's folder
+        return [a.replace("../shared/data/faces/lp_d6/video.mp4", clip).replace("/tmp/", f"{tmp_path}/") for a in args]
+
+    for c in commands[:3]:
+        proc = subprocess.run([sys.executable, "-m", "facesynth", *local(c)[1:]], env=env, capture_output=True,
+                              text=True, timeout=600, cwd=tmp_path)
+        assert proc.returncode == 0, (c, proc.stderr[-2000:])
+    serve = local(commands[3])
+    model = Path(serve[-1])
+    assert model.is_file()
+    proc = subprocess.Popen([sys.executable, "-m", "facesynth", *serve[1:], "--port", "0"], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, env=env)
+    try:
+        line = proc.stdout.readline()
+        assert line.startswith("open http://127.0.0.1:"), line + proc.stderr.read()
+        with urllib.request.urlopen(line.split()[1] + "avatar.onnx") as r:
+            assert r.read() == model.read_bytes()
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        proc.wait(timeout=30)
