@@ -5,9 +5,11 @@
   :meth:`facesynth.retarget.ShapeSpace.project`, with the driver's neutral a graph input
   (its FAP units, face axes and rigid-point fits are computed in the graph);
 * :class:`FrameWarpGraph`: :class:`facesynth.runtime.fullframe.FrameWarp` (affine), the
-  control points' motion and the piecewise-affine warp of the neutral frame by
-  :class:`facesynth.model.warp.ToTarget`'s scanline coverage counting over the whole frame;
-* :class:`SeamGraph`: :func:`facesynth.runtime.blend.blend_face` with a fixed feather.
+  control points' motion and the piecewise-affine warp of the neutral frame, located by
+  :class:`facesynth.model.warp.ToTarget`'s scanline coverage counting at the warp's grid
+  nodes and bilinear between them;
+* :class:`SeamGraph`: :func:`facesynth.runtime.blend.blend_face` with a fixed feather (its
+  alpha and band in the crop's pixels).
 
 Landmarks of :data:`facesynth.retarget.RETARGET_SCHEMES` (the full-frame warp's control
 points are placed on their iBUG-68 view).
