@@ -404,3 +404,9 @@ if __name__ == "__main__":  # regenerate the two generated reference pages
     CLI_PAGE.write_text(cli_page())
     CONFIG_PAGE.write_text(config_page())
     print(f"wrote {CLI_PAGE.relative_to(ROOT)} and {CONFIG_PAGE.relative_to(ROOT)}")
+
+
+def test_every_bench_script_is_in_the_benchmarks_page():
+    page = (DOCS / "reference" / "benchmarks.md").read_text()
+    missing = [p.name for p in sorted((ROOT / "bench").glob("*.py")) if f"bench/{p.name}" not in page]
+    assert not missing, missing
