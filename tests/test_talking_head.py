@@ -139,3 +139,35 @@ def test_export_and_app_run_a_talking_head_file(tmp_path, capsys):
     assert main(["app", "--model", str(head), "--landmarks", str(tmp_path / "lm.npy"), "--out", str(bad),
                  "--feather", "3", "--no-progress"]) == 2
     assert "--feather cannot apply" in capsys.readouterr().err and not bad.exists()
+
+
+def test_the_reports_talking_head_figures():
+    """eval.talking_head: the synthetic avatar driving itself on held-out frames; the static
+    renderer's figures recomputed here from the avatar's neutral frame (as exported: JPEG) and
+    the real frames; every figure a PSNR / SSIM; the strip's tiles."""
+    from _faces import face_sequence_arrays
+    from _onnx_models import synthetic_synthesizer
+
+    from facesynth.data import FaceSequence, temporal_split
+    from facesynth.data.frames import ArrayFrames
+    from facesynth.eval.talking_head import talking_head_figures
+    from facesynth.landmarks import ibug68_view
+    from facesynth.metrics import psnr
+    from facesynth.onnx.avatar import avatar_metadata
+    from facesynth.runtime.fullframe import head_region
+    from facesynth.runtime.reenact import Avatar
+
+    frames, lm = face_sequence_arrays(n=24, seed=1)  # the frames synthetic_model() was fitted on
+    seq = FaceSequence.from_arrays(lm, ArrayFrames(frames), name="unit")
+    syn = synthetic_synthesizer("linear")
+    train, test = temporal_split(len(seq))
+    figures, tiles = talking_head_figures(syn, seq, train, test, frames=4, strip=3)
+    assert figures["frames"] == 4 and figures["neutral_row"] in train
+    background = Avatar(avatar_metadata(syn, lm[train], train, seq)).background
+    rows = test[np.unique(np.linspace(0, len(test) - 1, 4).round().astype(int))]
+    want = np.mean([psnr(background, frames[r], head_region(ibug68_view(lm[r]), frames[r].shape[1::-1])) for r in rows])
+    assert figures["static"]["psnr_head_db"] == pytest.approx(want, abs=0.01)
+    for r in ("static", "warp", "full"):
+        assert 0 < figures[r]["ssim_head"] <= 1 and 0 < figures[r]["ssim_frame"] <= 1 and figures[r]["psnr_frame_db"] > 5
+    assert figures["full"] != figures["warp"]  # the synthesised face is in it
+    assert len(tiles) == 3 and tiles[0]["real"].shape == tiles[0]["synth"].shape

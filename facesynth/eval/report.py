@@ -33,6 +33,9 @@ PLOTS = {
                      "titles give the frame number and its PSNR over the face region.",
     "motion_strip.png": "The face moving: consecutive held-out frames (sigma 0), real (top) and synthesized from the "
                         "landmarks, pasted into the real frame with blend_face (bottom); one frame box for all.",
+    "talking_head_strip.png": "The talking head: held-out frames (top) and the avatar driving itself through the whole "
+                              "talking head (retargeted landmarks, the synthesised face in its own frame warped with "
+                              "the head; bottom); one head box for all.",
     "error_map.png": "Mean squared error of the synthesized test textures per reference pixel (sigma 0).",
     "ncc.png": "Per-component NCC of predicted vs true appearance parameters; red bars are negative.",
 }
@@ -54,6 +57,9 @@ def write_plots(metrics: dict, extras: dict, out_dir: str | os.PathLike) -> list
     if extras.get("strip"):
         write_strip(extras["strip"], d / "motion_strip.png")
         written.append("motion_strip.png")
+    if extras.get("talking_head_strip"):
+        write_strip(extras["talking_head_strip"], d / "talking_head_strip.png")
+        written.append("talking_head_strip.png")
     if extras.get("err_map") is not None:
         P.error_map(extras["err_map"], d / "error_map.png")
         written.append("error_map.png")
@@ -138,6 +144,17 @@ def write_report(metrics: dict, out_dir: str | os.PathLike, plots: list[str], he
         doc.heading(f"Test PSNR in the original frame over the common region, {region} (dB; dlib hull 0-26 eroded 3 px)")
         _table(doc, table)
     face_detail_sections(doc, metrics)
+    head = metrics.get("talking_head")
+    if head:
+        doc.heading(f"Talking head: the avatar driving itself on {head['frames']} held-out frames (relative motion, "
+                    f"neutral = training frame {head['neutral_row']})")
+        doc.para("static: the avatar's neutral frame unchanged; warp: that frame warped with the landmarks, no "
+                 "synthesised face; full: the synthesised face composited into the warped frame (what the exported "
+                 "talking head renders). Head region: the real landmarks' hull grown to hair and neck.")
+        doc.table(["renderer", "head PSNR (dB)", "head SSIM", "frame PSNR (dB)", "frame SSIM"],
+                  [[r] + [f"{head[r][k]:.2f}" if k.startswith("psnr") else f"{head[r][k]:.3f}"
+                          for k in ("psnr_head_db", "ssim_head", "psnr_frame_db", "ssim_frame")]
+                   for r in ("static", "warp", "full")])
     if "psnr_train_ref" in metrics:
         doc.heading("Training-frame PSNR in the reference frame (the paper's Table 2 setting)")
         _table(doc, metrics["psnr_train_ref"])

@@ -55,7 +55,10 @@ class EvalConfig:
     feather: paste edge width; batch_size: frames per batched prediction/render.
     common_region: also measure ``psnr_frame_common`` (needs the clip's dlib landmarks);
     common_landmarks: where they are (a (T, 68, 2) .npy or clip folder indexed by video
-    frame; None: found as :func:`facesynth.eval.common_region.common_landmarks` says)."""
+    frame; None: found as :func:`facesynth.eval.common_region.common_landmarks` says).
+    talking_head: also drive the avatar with its own held-out frames through the whole talking
+    head (static / warp / full; :mod:`facesynth.eval.talking_head`; clips with frames, on up
+    to ``talking_head_frames`` frames)."""
 
     noise: list = field(default_factory=lambda: [0.0, 1.0, 2.0, 3.0])
     frame_level: bool = True
@@ -65,6 +68,8 @@ class EvalConfig:
     batch_size: int = 32
     common_region: bool = True
     common_landmarks: Optional[str] = None
+    talking_head: bool = True
+    talking_head_frames: int = 40
 
 
 def _key(s: float) -> str:

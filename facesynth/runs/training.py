@@ -25,6 +25,7 @@ from facesynth.eval.common_region import common_landmarks
 from facesynth.eval.eri_report import write_eri_report
 from facesynth.eval.report import write_plots, write_report
 from facesynth.eval.sadm_eval import EvalConfig, evaluate_sadm
+from facesynth.eval.talking_head import talking_head_figures
 from facesynth.io import dumps_json, write_text
 from facesynth.landmarks import get_scheme
 from facesynth.model.face_model import FaceModel, FaceModelConfig
@@ -104,6 +105,12 @@ def run_training(cfg, out_dir: str | Path) -> dict:
     t2 = time.perf_counter()
     with progress.stage("evaluation"):
         metrics, extras = evaluate_sadm(sadm, seq, tr, te, eval_cfg, cfg.seed, train_textures=tex_tr, common=common)
+    if eval_cfg.talking_head and seq.has_frames:
+        with progress.stage("talking head (self-driven, held out)"):
+            figures, extras["talking_head_strip"] = talking_head_figures(sadm.synthesizer(), seq, tr, te,
+                                                                         eval_cfg.talking_head_frames)
+        if figures:
+            metrics["talking_head"] = figures
     t3 = time.perf_counter()
     provenance = {
         "facesynth_version": __version__,
