@@ -121,9 +121,11 @@ def retarget_scheme(name: str) -> LandmarkScheme:
 
 
 def eye_open(landmarks: np.ndarray) -> np.ndarray:
-    """Mean eyelid gap (37-41, 38-40, 43-47, 44-46) / inter-ocular distance: (N, 68, 2) -> (N,)."""
+    """Mean eyelid gap (the facing eyelid points of both eyes, :func:`eyelid_pairs`: 37-41,
+    38-40, 43-47, 44-46) / inter-ocular distance: (N, 68, 2) -> (N,)."""
     lm = np.asarray(landmarks, np.float64)
-    gap = np.linalg.norm(lm[..., [37, 38, 43, 44], :] - lm[..., [41, 40, 47, 46], :], axis=-1).mean(-1)
+    up, lo = eyelid_pairs(IBUG68)
+    gap = np.linalg.norm(lm[..., up, :] - lm[..., lo, :], axis=-1).mean(-1)
     return gap / inter_ocular(lm)
 
 
