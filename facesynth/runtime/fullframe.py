@@ -245,7 +245,6 @@ class FrameWarp:
         # the node's map is its most inside triangle's (on a shared edge either triangle's map
         # gives the same point; where a fold leaves a sliver, the sliver does not take it)
         best = np.full(gx.shape, -1e-9)
-        taken = np.zeros(gx.shape, bool)
         for t in np.flatnonzero(ok):
             lo, hi = loc[t].min(0) - 1e-6, loc[t].max(0) + 1e-6
             c0, c1 = np.searchsorted(nx, lo[0]), np.searchsorted(nx, hi[0], "right")
@@ -263,8 +262,7 @@ class FrameWarp:
             new = inside > best[r0:r1, c0:c1]
             maps[:, r0:r1, c0:c1][:, new] = (m[t] @ np.stack([x[new], y[new], np.ones(int(new.sum()))]))
             best[r0:r1, c0:c1][new] = inside[new]
-            taken[r0:r1, c0:c1] |= new
-        return np.where(taken & (count < 2), maps, np.stack([gx, gy]))
+        return np.where(count < 2, maps, np.stack([gx, gy]))  # a node no triangle took kept its own position
 
     def _tps_maps(self, dst: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         w, h = self.size
