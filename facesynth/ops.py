@@ -59,21 +59,24 @@ class _Slice(torch.autograd.Function):
     exported as one ONNX ``Slice`` on axes 2 and 3."""
 
     @staticmethod
-    def forward(ctx, x: torch.Tensor, bounds: torch.Tensor, axes: torch.Tensor) -> torch.Tensor:
+    def forward(ctx, x: torch.Tensor, bounds: torch.Tensor) -> torch.Tensor:
         y0, x0, y1, x1 = (int(v) for v in bounds.tolist())
         return x[:, :, y0:y1, x0:x1].clone()
 
     @staticmethod
-    def symbolic(g, x, bounds, axes):
-        starts = g.op("Slice", bounds, g.op("Constant", value_t=torch.tensor([0])), g.op("Constant", value_t=torch.tensor([2])))
-        ends = g.op("Slice", bounds, g.op("Constant", value_t=torch.tensor([2])), g.op("Constant", value_t=torch.tensor([4])))
-        return g.op("Slice", x, starts, ends, axes)
+    def symbolic(g, x, bounds):
+        def const(v):
+            return g.op("Constant", value_t=torch.tensor(v))
+
+        starts = g.op("Slice", bounds, const([0]), const([2]))
+        ends = g.op("Slice", bounds, const([2]), const([4]))
+        return g.op("Slice", x, starts, ends, const([2, 3]))
 
 
-def slice_by_tensor(x: torch.Tensor, bounds: torch.Tensor, axes: torch.Tensor) -> torch.Tensor:
+def slice_by_tensor(x: torch.Tensor, bounds: torch.Tensor) -> torch.Tensor:
     """(B, C, H, W) ``x`` cut to rows y0:y1 and columns x0:x1 of int64 ``bounds`` (4,)
-    [y0, x0, y1, x1]; ``axes`` is the int64 constant tensor [2, 3]."""
-    return _Slice.apply(x, bounds, axes)
+    [y0, x0, y1, x1]."""
+    return _Slice.apply(x, bounds)
 
 
 def sum4(ones4: torch.Tensor, prod: torch.Tensor) -> torch.Tensor:

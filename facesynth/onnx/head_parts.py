@@ -321,7 +321,6 @@ class SeamGraph(nn.Module):
         self.register_buffer("gy", torch.from_numpy(g.copy()).reshape(1, 1, k, 1))
         self.register_buffer("frame_max", torch.tensor([float(w), float(h)]))
         self.register_buffer("zero2", torch.zeros(2))
-        self.register_buffer("axes23", torch.tensor([2, 3]))
 
     @staticmethod
     def _erode(x: torch.Tensor, r: int) -> torch.Tensor:
@@ -383,7 +382,7 @@ class SeamGraph(nn.Module):
         v = inv[:, 3] * xr + (inv[:, 4] * yr + inv[:, 5])
         placed = self._bilinear(layers, u, v)
         pre, alpha, band = placed[:, :3], placed[:, 3:4], placed[:, 4:5]
-        bg255 = slice_by_tensor(frame, torch.cat([lo.flip(0), hi.flip(0)]).to(torch.int64), self.axes23)
+        bg255 = slice_by_tensor(frame, torch.cat([lo.flip(0), hi.flip(0)]).to(torch.int64))
         bg = bg255 / 255.0
         n = band.sum((2, 3))  # (B, 1)
         shift = (bg * band).sum((2, 3)) / torch.clamp(n, min=1.0) - face_mean
