@@ -44,8 +44,8 @@ class TalkingHead:
             raise FacesynthError(f"{self.path}: not a talking-head graph (format {self.metadata.get('format')!r}, "
                                  f"expected {TALKING_HEAD_FORMAT!r})")
         self.n_points = int(self.metadata.get("n_landmarks", 68))
-        self.scheme = str(self.metadata.get("landmark_scheme", "ibug68"))
         self.avatar = Avatar(self.metadata, str(self.path))
+        self.scheme = self.avatar.scheme  # the landmark scheme's name, as the metadata gives it
         self.background = self.avatar.background  # uint8 (H, W, 3) its neutral frame: shown where a driver has no face
         self.last_model_s = 0.0  # seconds of the last ONNX Runtime call
         self.feather = float(self.metadata["feather"])
