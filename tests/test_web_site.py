@@ -91,7 +91,7 @@ def test_build_writes_the_page(tmp_path, monkeypatch):
     assert main(["web", "build", str(model), str(tmp_path / "site")]) == 0
     out = tmp_path / "site"
     for f in (*site.PAGE_FILES, *(f"ort/{f}" for f in site.ORT_FILES), "avatar.onnx", "schemes.json", "site.json",
-              "models/face_detection.onnx", "models/face_landmark.onnx", "models/iris_landmark.onnx"):
+              "models/face_detection.onnx", "models/face_landmark.onnx"):
         assert (out / f).is_file(), f
     assert json.loads((out / "site.json").read_text())["avatar"] == "avatar.onnx"
     assert (out / "avatar.onnx").read_bytes() == model.read_bytes()

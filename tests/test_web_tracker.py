@@ -46,11 +46,11 @@ def _mediapipe(frames, refine):
 def test_converted_graphs_shapes(models):
     import onnxruntime as ort
 
-    want = {"face_detection": [(1, 896, 16), (1, 896, 1)], "face_landmark": [(1, 1, 1, 1404), (1, 1, 1, 1)],
-            "iris_landmark": [(1, 213), (1, 15)]}
+    want = {"face_detection": [(1, 896, 16), (1, 896, 1)], "face_landmark": [(1, 478, 2), (1, 1, 1, 1)]}
+    assert set(models) == set(want)
     for name, path in models.items():
         s = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
-        h = {"face_detection": 128, "face_landmark": 192, "iris_landmark": 64}[name]
+        h = {"face_detection": 128, "face_landmark": 192}[name]
         x = np.random.default_rng(0).random((2, h, h, 3), dtype=np.float32)
         one = s.run(None, {"input": x[:1]})
         assert [o.shape for o in one] == want[name]
@@ -60,27 +60,52 @@ def test_converted_graphs_shapes(models):
 
 
 def test_mesh_matches_mediapipe_same_model(models, frames):
-    """The converted 468-point mesh, cropped where MediaPipe's own tracking crops it (from its
-    previous frame's points), gives MediaPipe's points (refine_landmarks=False: the same .tflite)."""
-    ref = _mediapipe(frames, refine=False)
+    """The converted attention mesh, its custom ops and refinement included, cropped where
+    MediaPipe's own tracking crops it (from its previous frame's points), gives MediaPipe's
+    ``refine_landmarks=True`` points: the same .tflite, so well under a pixel, lips, eyes and
+    irises (the refined parts) as well as the rest."""
+    ref = _mediapipe(frames, refine=True)
     tr = track.OnnxFaceTracker(next(iter(models.values())).parent)
     err = []
     for i in range(1, len(frames)):
         roi = track.roi_from_points(ref[i - 1], 33, 263, track.FACE_SCALE)
         err.append(np.linalg.norm(tr.mesh_points(frames[i], roi) - ref[i], axis=1))
     err = np.array(err)
-    assert np.median(err) < 1.0, np.median(err)
+    # measured 0.45 px (lips 0.50, eyes 0.19-0.24, irises 0.10-0.15); sampling the crop without
+    # MediaPipe's half-pixel shift (track._crop) gives 0.79
+    assert np.median(err) < 0.7, np.median(err)
+    for name, rows in _refined_rows().items():
+        assert np.median(err[:, rows]) < 0.7, (name, np.median(err[:, rows]))
     assert np.abs(np.median(err, axis=0)).max() < 4.0
 
 
+def _refined_rows() -> dict[str, np.ndarray]:
+    """Which of the 478 points each refinement (lips, eyes, irises) writes."""
+    from facesynth.web import mediapipe_ops
+
+    table = mediapipe_ops.refinement_table()
+    bounds = np.cumsum([0, 468, 80, 71, 71, 5, 5])
+    return {name: np.flatnonzero((table >= lo) & (table < hi))
+            for name, lo, hi in zip(mediapipe_ops.REFINE_STREAMS[1:], bounds[1:-1], bounds[2:], strict=True)}
+
+
+def test_refinement_table_covers_the_478_points():
+    """Read from the wheel: the mesh first, every point written, lips 80, eyes 71 each, irises 468-477."""
+    rows = _refined_rows()
+    assert [len(r) for r in rows.values()] == [80, 71, 71, 5, 5]
+    assert list(rows["left_iris"]) == [468, 469, 470, 471, 472]
+    assert list(rows["right_iris"]) == [473, 474, 475, 476, 477]
+    assert not set(rows["left_eye"]) & set(rows["right_eye"])
+
+
 def test_tracker_agrees_with_ingest_landmarker(models, frames):
-    """The whole tracker (detector, then tracking on its own points, irises) against
-    ``facesynth ingest --landmarker mediapipe`` (refine_landmarks=True, whose mesh comes from
-    MediaPipe's attention model, which the page does not run). Measured: ~2.3-2.8 px median."""
+    """The whole tracker (detector, then tracking on its own points) against ``facesynth ingest
+    --landmarker mediapipe`` (refine_landmarks=True): the same attention mesh, so within the
+    2 px the page promises, everywhere and on the irises."""
     ref = _mediapipe(frames, refine=True)
     tr = track.OnnxFaceTracker(next(iter(models.values())).parent)
     got = [tr.track(rgb) for rgb in frames]
-    assert all(g is not None and g.shape == (478, 2) for g in got)
+    assert all(g is not None and g.shape == (478, 2) and g.dtype == np.float32 for g in got)
     err = np.linalg.norm(np.array(got) - np.array(ref), axis=2)
-    assert np.median(err[:, 468:]) < 2.5, np.median(err[:, 468:])  # irises
-    assert np.median(err) < 3.5, np.median(err)
+    assert np.median(err[:, 468:]) < 2.0, np.median(err[:, 468:])  # irises
+    assert np.median(err) < 2.0, np.median(err)

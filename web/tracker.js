@@ -1,14 +1,14 @@
-// The face tracker, in a Web Worker: MediaPipe's detector, 468-point mesh and iris models
-// (converted to ONNX at build time) with MediaPipe's crop-and-track steps. Mirrors
+// The face tracker, in a Web Worker: MediaPipe's detector and attention mesh (478 points with
+// irises, the model of `facesynth ingest --landmarker mediapipe`; converted to ONNX at build
+// time, refined inside the graph) with MediaPipe's crop-and-track steps. Mirrors
 // facesynth/web/track.py step for step (its Python reference, tested against MediaPipe).
 // Messages in: {type:'init', base}, {type:'frame', bitmap, t}, {type:'pixels', data, width, height}, {type:'reset'}.
 // Out: {type:'ready'}, {type:'points', points: Float32Array(478*2) | null, t, ms} ('tracked' for 'pixels'),
 // {type:'error', message}.
 import * as ort from './ort/ort.wasm.min.mjs';
 
-const MESH = 192, IRIS = 64, DET = 128, FACE_SCALE = 1.5, EYE_SCALE = 2.3;
-const EYES = [[33, 133], [362, 263]];
-let det, mesh, iris, anchors, prev = null, canvas, ctx;
+const MESH = 192, DET = 128, FACE_SCALE = 1.5;
+let det, mesh, anchors, prev = null, canvas, ctx;
 const stage = {};
 
 function makeAnchors() {
@@ -26,17 +26,16 @@ export function cropMatrix(cx, cy, ang, size, out) {
   const a = c * k, b = -s * k, d = s * k, e = c * k;
   return [a, b, cx - (a * h + b * h), d, e, cy - (d * h + e * h)];
 }
-const mirror = (m, w) => [-m[0], m[1], m[0] * w + m[2], -m[3], m[4], m[3] * w + m[5]];
 const apply = (m, x, y) => [m[0] * x + m[1] * y + m[2], m[3] * x + m[4] * y + m[5]];
 
-// bilinear sampling of an RGBA frame at M(u, v) (cv2.warpAffine, WARP_INVERSE_MAP, zeros outside),
+// bilinear sampling of an RGBA frame at M(u, v) + 0.5 (track._crop: cv2.warpAffine, zeros outside),
 // scaled from [0, 255] to [lo, hi]; (1, out, out, 3) float32
 function crop(img, m, out, lo, hi) {
   const { data, width: W, height: H } = img, t = new Float32Array(out * out * 3), sc = (hi - lo) / 255;
   const px = (xx, yy) => (xx < 0 || yy < 0 || xx >= W || yy >= H ? -1 : (yy * W + xx) * 4);
   let o = 0;
   for (let v = 0; v < out; v++) {
-    let x = m[1] * v + m[2], y = m[4] * v + m[5];
+    let x = m[1] * v + m[2] + 0.5, y = m[4] * v + m[5] + 0.5;  // MediaPipe's half pixel (track._crop)
     for (let u = 0; u < out; u++, x += m[0], y += m[3], o += 3) {
       const x0 = Math.floor(x), y0 = Math.floor(y), fx = x - x0, fy = y - y0;
       const w00 = (1 - fx) * (1 - fy), w10 = fx * (1 - fy), w01 = (1 - fx) * fy, w11 = fx * fy;
@@ -65,7 +64,7 @@ function roi(pts, a, b, scale, idx) {
   return [(x0 + x1) / 2, (y0 + y1) / 2, ang, Math.max(x1 - x0, y1 - y0) * scale];
 }
 const sigmoid = (x) => 1 / (1 + Math.exp(-Math.max(-100, Math.min(100, x))));
-const ALL = Array.from({ length: 468 }, (_, i) => i);
+const ALL = Array.from({ length: 478 }, (_, i) => i);
 
 async function detect(img) {
   const side = Math.max(img.width, img.height);
@@ -91,30 +90,11 @@ async function track(img) {
   stage.crop = performance.now() - tc;
   const tm = performance.now(), out = await mesh.run({ input: x });
   stage.mesh = performance.now() - tm;
-  const names = mesh.outputNames;
-  const lm = out[names[0]].data, presence = out[names[1]].data[0];
+  const lm = out.landmarks.data, presence = out.conv_faceflag.data[0];
   if (sigmoid(presence) < 0.5) { prev = null; return null; }
   const pts = new Float32Array(478 * 2);
-  for (let i = 0; i < 468; i++) { const [x, y] = apply(m, lm[3 * i], lm[3 * i + 1]); pts[2 * i] = x; pts[2 * i + 1] = y; }
-  prev = pts.slice(0, 468 * 2);
-  const ti = performance.now();
-  const maps = [], both = new Float32Array(2 * IRIS * IRIS * 3);
-  for (let e = 0; e < 2; e++) {  // both eyes in one batch; the image-right eye mirrored
-    const [a, b] = EYES[e];
-    const [cx, cy, ang, size] = roi(pts, a, b, EYE_SCALE, [a, b]);
-    const mm = cropMatrix(cx, cy, ang, size, IRIS);
-    both.set(crop(img, e === 1 ? mirror(mm, IRIS - 1) : mm, IRIS, 0, 1).data, e * IRIS * IRIS * 3);
-    maps.push(e === 1 ? mirror(mm, IRIS) : mm);
-  }
-  const o = await iris.run({ input: new ort.Tensor('float32', both, [2, IRIS, IRIS, 3]) });
-  const ir = o[iris.outputNames[1]].data;
-  for (let e = 0; e < 2; e++) {
-    for (let i = 0; i < 5; i++) {
-      const [x, y] = apply(maps[e], ir[15 * e + 3 * i], ir[15 * e + 3 * i + 1]);
-      pts[2 * (468 + 5 * e + i)] = x; pts[2 * (468 + 5 * e + i) + 1] = y;
-    }
-  }
-  stage.iris = performance.now() - ti;
+  for (let i = 0; i < 478; i++) { const [x, y] = apply(m, lm[2 * i], lm[2 * i + 1]); pts[2 * i] = x; pts[2 * i + 1] = y; }
+  prev = pts.slice();
   return pts;
 }
 
@@ -125,7 +105,7 @@ self.onmessage = async (ev) => {
       ort.env.wasm.wasmPaths = msg.base + 'ort/';
       ort.env.wasm.numThreads = 1;
       const opts = { executionProviders: ['wasm'] };
-      [det, mesh, iris] = await Promise.all(['face_detection', 'face_landmark', 'iris_landmark']
+      [det, mesh] = await Promise.all(['face_detection', 'face_landmark']
         .map((n) => ort.InferenceSession.create(msg.base + `models/${n}.onnx`, opts)));
       anchors = makeAnchors();
       self.postMessage({ type: 'ready' });

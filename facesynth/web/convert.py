@@ -1,12 +1,15 @@
 """MediaPipe's face tracker models (``.tflite`` inside the installed ``mediapipe`` wheel) -> ONNX
-for the page's tracker worker (onnxruntime-web, WebAssembly, no GPU).
+for the page's tracker worker (onnxruntime-web, WebAssembly, no GPU) and its Python reference.
 
-The three models (face detector, 468-point mesh, iris) use a dozen TensorFlow Lite ops; each
-maps to one or two ONNX ops. Tensors are NHWC in TFLite; the graph converts its input to NCHW
-once, keeps every 4-D activation NCHW and converts back where a RESHAPE or a graph output
-needs NHWC order. fp16 weights (DEQUANTIZE of a constant) are folded to float32.
+The two models are the face detector and the attention face mesh, the same mesh that
+``facesynth ingest --landmarker mediapipe`` runs (``refine_landmarks=True``). They use a dozen
+TensorFlow Lite ops, each mapped to one or two ONNX ops, and three MediaPipe custom ops
+(``facesynth.web.mediapipe_ops``). Tensors are NHWC in TFLite; the graph converts its input to
+NCHW once, keeps every 4-D activation NCHW and converts back where a RESHAPE or a graph output
+needs NHWC order. fp16 weights (DEQUANTIZE of a constant) are folded to float32. The mesh's six
+outputs are refined into MediaPipe's 478 points inside the graph (output ``landmarks``).
 
-    python -m facesynth.web.convert OUT_DIR     # writes face_detection.onnx, face_landmark.onnx, iris_landmark.onnx
+    python -m facesynth.web.convert OUT_DIR     # writes face_detection.onnx, face_landmark.onnx
 """
 
 from __future__ import annotations
@@ -19,14 +22,14 @@ import numpy as np
 
 from facesynth.errors import FacesynthError
 from facesynth.io import write_bytes
+from facesynth.web import mediapipe_ops
 
 # name in the page -> path under site-packages/mediapipe/modules/
 MODELS = {
     "face_detection": "face_detection/face_detection_short_range.tflite",
-    "face_landmark": "face_landmark/face_landmark.tflite",
-    "iris_landmark": "iris_landmark/iris_landmark.tflite",
+    "face_landmark": "face_landmark/face_landmark_with_attention.tflite",
 }
-CONVERTER_VERSION = 2  # part of the cache key: bump when the converted graphs change
+CONVERTER_VERSION = 3  # part of the cache key: bump when the converted graphs change
 OPSET = 13
 
 
@@ -69,6 +72,7 @@ class _Converter:
         self.nodes, self.inits = [], []
         self.consts: dict[int, np.ndarray] = {}
         self.nchw: set[int] = set()  # tensors held in NCHW order in the ONNX graph
+        self.made: set[str] = set()  # NHWC copies already written
         self.codes = {v: k for k, v in vars(tflite.BuiltinOperator).items() if not k.startswith("_")}
 
     def tname(self, i: int) -> str:
@@ -122,7 +126,9 @@ class _Converter:
         if i not in self.nchw:
             return self.tname(i)
         out = self.tname(i) + "_nhwc"
-        self.node("Transpose", [self.tname(i)], [out], perm=[0, 2, 3, 1])
+        if out not in self.made:
+            self.node("Transpose", [self.tname(i)], [out], perm=[0, 2, 3, 1])
+            self.made.add(out)
         return out
 
     def conv(self, op, depthwise: bool) -> None:
@@ -212,8 +218,47 @@ class _Converter:
                 names = [self.nhwc(i) for i in ins]
             out = self.activation(opts.FusedActivationFunction(), self.tname(y))
             self.node("Concat", names, [out], axis=axis)
+        elif code == "MUL":
+            k = self.const(ins[1])
+            if k is None or ins[0] in self.nchw:
+                raise FacesynthError(f"{self.name}: MUL is supported by a constant, outside feature maps")
+            out = self.activation(_options(op, "MulOptions").FusedActivationFunction(), self.tname(y))
+            self.node("Mul", [self.tname(ins[0]), self.init(self.tname(y) + "_k", k.astype(np.float32))], [out])
+        elif code == "STRIDED_SLICE":
+            self.strided_slice(op, ins, y)
+        elif code == "CUSTOM":
+            self.custom(op, oc.CustomCode().decode())
         else:
             raise FacesynthError(f"{self.name}: TFLite op {code} is not supported by the converter")
+
+    def strided_slice(self, op, ins, y) -> None:
+        opts = _options(op, "StridedSliceOptions")
+        begin, end, step = (self.const(i).astype(np.int64) for i in ins[1:4])
+        if opts.EllipsisMask() or opts.NewAxisMask() or opts.ShrinkAxisMask():
+            raise FacesynthError(f"{self.name}: STRIDED_SLICE with ellipsis, new or shrunk axes is not supported")
+        big = np.iinfo(np.int64).max
+        begin = np.array([0 if opts.BeginMask() >> a & 1 else b for a, b in enumerate(begin)], np.int64)
+        end = np.array([big if opts.EndMask() >> a & 1 else e for a, e in enumerate(end)], np.int64)
+        if begin[0] == 0 and step[0] == 1 and end[0] >= self.shape(ins[0])[0]:
+            end[0] = big  # the whole batch, whatever its size
+        axes = np.arange(len(begin), dtype=np.int64)
+        t = self.tname(y)
+        self.node("Slice", [self.nhwc(ins[0]), self.init(t + "_b", begin), self.init(t + "_e", end),
+                            self.init(t + "_a", axes), self.init(t + "_s", step)], [t])
+
+    def custom(self, op, name: str) -> None:
+        from flatbuffers import flexbuffers
+
+        raw = bytes(op.CustomOptionsAsNumpy()) if op.CustomOptionsLength() else b""
+        opts = flexbuffers.Loads(raw) if len(raw) > 2 else {}
+        if name == "Landmarks2TransformMatrix":
+            mediapipe_ops.landmarks_to_matrix(self, op, opts)
+        elif name == "TransformTensorBilinear":
+            mediapipe_ops.transform_tensor_bilinear(self, op, opts)
+        elif name == "TransformLandmarks":
+            mediapipe_ops.transform_landmarks(self, op)
+        else:
+            raise FacesynthError(f"{self.name}: custom op {name} is not supported by the converter")
 
     def convert(self):
         from onnx import TensorProto, helper
@@ -226,9 +271,11 @@ class _Converter:
         for k in range(g.OperatorsLength()):
             self.convert_op(g.Operators(k))
         outputs = []
-        for k in range(g.OutputsLength()):
-            i = g.Outputs(k)
-            name = g.Tensors(i).Name().decode()
+        named = {g.Tensors(g.Outputs(k)).Name().decode(): g.Outputs(k) for k in range(g.OutputsLength())}
+        if set(mediapipe_ops.REFINE_SOURCES) <= set(named):  # the attention mesh: 478 refined points
+            mediapipe_ops.refine(self, [self.nhwc(named.pop(n)) for n in mediapipe_ops.REFINE_SOURCES], "landmarks")
+            outputs.append(helper.make_tensor_value_info("landmarks", TensorProto.FLOAT, ["N", 478, 2]))
+        for name, i in named.items():
             self.node("Identity", [self.nhwc(i)], [name])
             outputs.append(helper.make_tensor_value_info(name, TensorProto.FLOAT, ["N"] + self.shape(i)[1:]))
         graph = helper.make_graph(self.nodes, self.name, [helper.make_tensor_value_info(
@@ -268,7 +315,7 @@ def convert_all(out_dir: str | Path) -> dict[str, Path]:
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m facesynth.web.convert", description=__doc__.split("\n\n")[0])
-    p.add_argument("out_dir", help="folder for face_detection.onnx, face_landmark.onnx, iris_landmark.onnx")
+    p.add_argument("out_dir", help="folder for face_detection.onnx and face_landmark.onnx")
     args = p.parse_args(argv)
     try:
         for path in convert_all(args.out_dir).values():
