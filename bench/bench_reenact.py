@@ -44,15 +44,15 @@ PAIRS = (("lp_d3", "lp_d6"), ("lp_d10", "lp_d13"), ("lp_d20", "lp_d6"))  # lp_d2
 SHEET_COLUMNS = 6
 
 
-def model_for(clip: str, work: Path, dense: Path | None = None) -> tuple[Path, Path]:
-    """(run directory, exported ONNX) of a linear avatar model of ``clip`` (the shared clip,
-    or ``dense / clip``), trained if missing."""
-    tag = clip if dense is None else f"{clip}_mp478"
+def model_for(clip: str, work: Path, dense: Path | None = None, regressor: str = "linear") -> tuple[Path, Path]:
+    """(run directory, exported ONNX) of an avatar model of ``clip`` (the shared clip, or
+    ``dense / clip``) with ``regressor`` (every other setting the default), trained if missing."""
+    tag = (clip if dense is None else f"{clip}_mp478") + ("" if regressor == "linear" else f"_{regressor}")
     run, onnx_path = work / f"run_{tag}", work / f"{tag}.onnx"
     if not onnx_path.is_file():
         env = dict(os.environ, PYTHONPATH=str(ROOT))
         subprocess.run([sys.executable, str(ROOT / "train.py"), "data=video", f"data.path={clip_dir(clip, dense)}",
-                        "regressor=linear", "eval.frame_level=false", f"hydra.run.dir={run}"], check=True, cwd=ROOT, env=env,
+                        f"regressor={regressor}", "eval.frame_level=false", f"hydra.run.dir={run}"], check=True, cwd=ROOT, env=env,
                        stdout=subprocess.DEVNULL)
         subprocess.run([sys.executable, "-m", "facesynth", "export", str(run), "--out", str(onnx_path)], check=True, cwd=ROOT,
                        env=env, stdout=subprocess.DEVNULL)

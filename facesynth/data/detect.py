@@ -156,8 +156,21 @@ class LandmarkDetector:
             "full-resolution frame; largest face / nearest previous face kept"
         )
 
-    def _pick(self, dets, scale: float) -> np.ndarray:
-        boxes = np.array([[d.left(), d.top(), d.right(), d.bottom()] for d in dets], np.float64) / scale
+    def boxes(self, rgb: np.ndarray) -> tuple[np.ndarray, str]:
+        """Every face box (K, 4) (left, top, right, bottom) in full-resolution pixels found by the
+        detector on the downscaled frame (upsample 0, then 1 when 0 finds none), and which
+        pass found them ("hog_up0", "hog_up1"; "miss" with K = 0). No temporal memory."""
+        h, w = rgb.shape[:2]
+        scale = min(1.0, self.max_side / max(h, w))
+        small = rgb if scale >= 1.0 else cv2.resize(rgb, (round(w * scale), round(h * scale)), interpolation=cv2.INTER_AREA)
+        small = np.ascontiguousarray(small)
+        for up, source in ((0, "hog_up0"), (1, "hog_up1")):
+            dets = self._detector(small, up)
+            if len(dets):
+                return np.array([[d.left(), d.top(), d.right(), d.bottom()] for d in dets], np.float64) / scale, source
+        return np.zeros((0, 4)), "miss"
+
+    def _pick(self, boxes: np.ndarray) -> np.ndarray:
         if len(boxes) > 1 and self._prev is not None:
             c = 0.5 * (boxes[:, :2] + boxes[:, 2:])
             pc = 0.5 * (self._prev[:2] + self._prev[2:])
@@ -168,16 +181,11 @@ class LandmarkDetector:
     def detect(self, rgb: np.ndarray) -> tuple[np.ndarray | None, str, int]:
         """Face box (left, top, right, bottom) in full-resolution pixels, its source, and
         the number of faces detected, for one uint8 RGB (H, W, 3) frame."""
-        h, w = rgb.shape[:2]
-        scale = min(1.0, self.max_side / max(h, w))
-        small = rgb if scale >= 1.0 else cv2.resize(rgb, (round(w * scale), round(h * scale)), interpolation=cv2.INTER_AREA)
-        small = np.ascontiguousarray(small)
-        for up, source in ((0, "hog_up0"), (1, "hog_up1")):
-            dets = self._detector(small, up)
-            if len(dets):
-                box = self._pick(dets, scale)
-                self._prev, self._reused = box, 0
-                return box, source, len(dets)
+        found, source = self.boxes(rgb)
+        if len(found):
+            box = self._pick(found)
+            self._prev, self._reused = box, 0
+            return box, source, len(found)
         if self._prev is not None and self._reused < self.reuse_limit:
             self._reused += 1
             return self._prev, "previous_box", 0
