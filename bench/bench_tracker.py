@@ -1,5 +1,5 @@
 """The page's face tracker (facesynth.web.track: the converted detector and attention mesh,
-the Python reference of web/tracker.js) against ``facesynth ingest --landmarker mediapipe``
+the Python reference of facesynth/web/page/tracker.js) against ``facesynth ingest --landmarker mediapipe``
 (MediaPipe's own Face Mesh, refine_landmarks=True) on the same frames of shared clips.
 
 Per clip: the median distance in pixels over all 478 points, over the irises (468-477), over

@@ -34,7 +34,7 @@ def _wheel_venv(tmp: Path) -> Path:
     it alone in a new venv under ``tmp``; the venv's ``bin`` folder."""
     src = tmp / "src"
     src.mkdir()
-    shutil.copytree(ROOT / "facesynth", src / "facesynth", ignore=shutil.ignore_patterns("__pycache__"))
+    shutil.copytree(ROOT / "facesynth", src / "facesynth", ignore=shutil.ignore_patterns("__pycache__", "node_modules"))
     for name in ("pyproject.toml", "README.md"):
         shutil.copy(ROOT / name, src / name)
     pip = [sys.executable, "-m", "pip"]
@@ -90,6 +90,18 @@ def test_wheel_installed_outside_the_checkout_trains_exports_renders_and_batches
     cap = cv2.VideoCapture(str(work / "o.mp4"))
     assert int(cap.get(cv2.CAP_PROP_FRAME_COUNT)) == 5 and cap.read()[0]
     cap.release()
+
+    # the live page ships in the wheel: without its npm packages, build says how to get them
+    run("facesynth", "export", work / "run", "--out", work / "head.onnx", "--talking-head", "--quiet")
+    env["XDG_CACHE_HOME"] = str(work / "cache")
+    built = subprocess.run(["facesynth", "web", "build", work / "head.onnx", work / "site"], cwd=work, env=env,
+                           capture_output=True, text=True, timeout=300)
+    assert built.returncode == 2 and "facesynth web setup" in built.stderr and not (work / "site").exists(), built.stderr
+    if shutil.which("npm") and find_spec("tflite") and find_spec("mediapipe"):
+        run("facesynth", "web", "setup")  # npm ci of the wheel's lockfile, beside the installed page
+        run("facesynth", "web", "build", work / "head.onnx", work / "site")
+        for f in ("index.html", "tracker.js", "ort/ort-wasm-simd-threaded.wasm", "models/face_landmark.onnx", "avatar.onnx"):
+            assert (work / "site" / f).is_file(), f
 
     if find_spec("dlib") is None or find_spec("face_recognition_models") is None:
         return  # batch ingests with dlib (the ingest extra)

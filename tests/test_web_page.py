@@ -1,7 +1,7 @@
 """The live page in headless system Chromium (Playwright for Python): a shared clip as the fake
 camera drives the avatar, nothing leaves 127.0.0.1, the avatar graph's output equals Python's
 runtime on the same landmarks, and each error path shows its message. Skips without chromium,
-playwright or web/node_modules (``npm ci`` in web/)."""
+playwright or the page's npm packages (``facesynth web setup``)."""
 
 from __future__ import annotations
 

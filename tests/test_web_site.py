@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import urllib.request
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -28,7 +29,7 @@ def _tiny_onnx(path, metadata: dict) -> None:
 
 def _site_avatar(tmp_path):
     """A stand-in avatar file for building the page; skips without what the page needs (the
-    tflite parser and MediaPipe for the tracker, onnxruntime-web from ``npm ci``)."""
+    tflite parser and MediaPipe for the tracker, onnxruntime-web from ``facesynth web setup``)."""
     pytest.importorskip("tflite")
     pytest.importorskip("mediapipe")
     try:
@@ -38,6 +39,29 @@ def _site_avatar(tmp_path):
     model = tmp_path / "avatar.onnx"
     _tiny_onnx(model, {"format": TALKING_HEAD_FORMAT, "landmark_scheme": "ibug68"})
     return model
+
+
+@pytest.mark.parametrize("command", [["web", "build"], ["serve"]])
+def test_without_the_npm_packages_is_one_line_naming_setup(tmp_path, capsys, monkeypatch, command):
+    model = tmp_path / "avatar.onnx"
+    _tiny_onnx(model, {"format": TALKING_HEAD_FORMAT, "landmark_scheme": "ibug68"})
+    monkeypatch.setattr(site, "npm_roots", lambda: [tmp_path / "page", tmp_path / "cache"])
+    out = [str(tmp_path / "site")] if command[0] == "web" else ["--port", "0"]
+    assert main([*command, str(model), *out]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "facesynth web setup" in err, err
+    assert not (tmp_path / "site").exists()
+
+
+def test_page_files_are_package_data():
+    """The page and its npm manifest ship in the wheel (pyproject's package-data lists them)."""
+    import tomllib
+
+    data = tomllib.loads((Path(__file__).resolve().parents[1] / "pyproject.toml").read_text())
+    listed = data["tool"]["setuptools"]["package-data"]["facesynth"]
+    for f in (*site.PAGE_FILES, *site.NPM_FILES):
+        assert (site.PAGE / f).is_file(), f
+        assert any(Path("web/page", f).match(p) for p in listed), f
 
 
 @pytest.mark.parametrize("command", [["web", "build"], ["serve"]])

@@ -1,5 +1,5 @@
 """The page's face tracker: MediaPipe's .tflite models converted to ONNX (facesynth.web.convert)
-and its crop-and-track steps (facesynth.web.track, mirrored by web/tracker.js), against Python
+and its crop-and-track steps (facesynth.web.track, mirrored by web/page/tracker.js), against Python
 MediaPipe on the same frames of a shared clip."""
 
 import numpy as np

@@ -1,4 +1,4 @@
-"""The browser page as a folder: ``web/`` (the page), onnxruntime-web's files (npm), the face
+"""The browser page as a folder: ``page/`` (the page, package data), onnxruntime-web's files (npm), the face
 tracker converted from the installed MediaPipe wheel, the avatar and the landmark tables the
 page needs. ``facesynth web build`` writes it; ``facesynth serve`` writes it to a temporary
 folder and serves it on 127.0.0.1 with the headers WebAssembly threads need.
@@ -16,20 +16,56 @@ from pathlib import Path
 from facesynth.errors import FacesynthError
 from facesynth.io import atomic_dir
 
-WEB = Path(__file__).resolve().parents[2] / "web"
+PAGE = Path(__file__).resolve().parent / "page"  # the page and its npm manifest: package data
 PAGE_FILES = ("index.html", "main.js", "tracker.js", "onnxmeta.js", "style.css")
+NPM_FILES = ("package.json", "package-lock.json")
 ORT_FILES = ("ort.wasm.min.mjs", "ort-wasm-simd-threaded.mjs", "ort-wasm-simd-threaded.wasm")
 HEADERS = {"Cross-Origin-Opener-Policy": "same-origin", "Cross-Origin-Embedder-Policy": "require-corp",
            "Cache-Control": "no-store"}
-INSTALL_HINT = "run 'npm ci' in web/ (the page's one install step)"
+INSTALL_HINT = "run 'facesynth web setup' once (npm ci of the page's lockfile)"
 
 
-def ort_dist(web: Path = WEB) -> Path:
-    dist = web / "node_modules" / "onnxruntime-web" / "dist"
-    missing = [f for f in ORT_FILES if not (dist / f).is_file()]
-    if missing:
-        raise FacesynthError(f"{dist}: onnxruntime-web is not installed ({missing[0]} missing): {INSTALL_HINT}")
-    return dist
+def npm_roots() -> list[Path]:
+    """Where the page's npm packages may be installed: beside the page (a source checkout, or
+    an installed package whose folder is writable), else a cache folder keyed by the lockfile."""
+    import hashlib
+    import os
+
+    key = hashlib.sha256((PAGE / "package-lock.json").read_bytes()).hexdigest()[:12]
+    cache = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "facesynth" / f"web-npm-{key}"
+    return [PAGE, cache]
+
+
+def ort_dist() -> Path:
+    """onnxruntime-web's files (npm), from the first of :func:`npm_roots` that has them all."""
+    for root in npm_roots():
+        dist = root / "node_modules" / "onnxruntime-web" / "dist"
+        if all((dist / f).is_file() for f in ORT_FILES):
+            return dist
+    raise FacesynthError(f"the page's onnxruntime-web is not installed: {INSTALL_HINT}")
+
+
+def setup_npm() -> Path:
+    """``npm ci`` of the page's lockfile (the npm registry, nothing else) beside the page when
+    its folder is writable, else into the cache folder; returns the folder with node_modules."""
+    import os
+    import subprocess
+
+    npm = shutil.which("npm")
+    if npm is None:
+        raise FacesynthError("npm is not installed: the page's browser packages come from npm (Debian: apt-get install npm)")
+    target = PAGE if os.access(PAGE, os.W_OK) else npm_roots()[-1]
+    if target != PAGE:
+        target.mkdir(parents=True, exist_ok=True)
+        for f in NPM_FILES:
+            shutil.copy2(PAGE / f, target / f)
+    done = subprocess.run([npm, "ci", "--no-audit", "--no-fund", "--loglevel=error"], cwd=target,
+                          stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    if done.returncode != 0:
+        last = (done.stderr.strip().splitlines() or ["no message"])[-1]
+        raise FacesynthError(f"npm ci failed in {target}: {last}")
+    ort_dist()  # every file the page copies is there
+    return target
 
 
 def check_avatar(model: str | Path) -> dict:
@@ -92,7 +128,7 @@ def build_site(model: str | Path, out: str | Path) -> Path:
     models = tracker_dir()
     with atomic_dir(out) as tmp:
         for f in PAGE_FILES:
-            shutil.copy2(WEB / f, tmp / f)
+            shutil.copy2(PAGE / f, tmp / f)
         (tmp / "ort").mkdir()
         for f in ORT_FILES:
             shutil.copy2(dist / f, tmp / "ort" / f)

@@ -1,6 +1,6 @@
 """MediaPipe's crop-and-track face tracking on the converted ONNX models (numpy + OpenCV).
 
-The reference of the page's tracker worker (``web/tracker.js`` does the same steps in the same
+The reference of the page's tracker worker (``page/tracker.js`` does the same steps in the same
 order): the face detector finds a face once; then each frame's points come from the attention
 mesh in a rotated square around the previous frame's points (eye line horizontal, 1.5 x the
 points' box). The mesh is the one behind ``refine_landmarks=True``, refined inside the converted
