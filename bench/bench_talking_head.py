@@ -334,10 +334,10 @@ def main() -> None:
     out = {"load_average_start": os.getloadavg()[0], "regressor": args.regressor, "self": {}, "cross": {}, "sheets": []}
     infos = {}
     pairs = [tuple(p.split("<-")) for p in args.pairs.split(",") if p]
-    for clip in dict.fromkeys(args.clips.split(",") + [a for a, _ in pairs]):
+    for clip in dict.fromkeys([c for c in args.clips.split(",") if c] + [a for a, _ in pairs]):
         infos[clip] = avatar_info(clip, work, dl, args.regressor)
     sheet_for = {(a, d) for a, d in SHEET_PAIRS}
-    for clip in args.clips.split(","):
+    for clip in [c for c in args.clips.split(",") if c]:
         info = infos[clip]
         test = info["test"]
         held = np.asarray(info["seq"].landmarks[test], np.float32)
