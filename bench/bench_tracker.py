@@ -19,22 +19,10 @@ import tempfile
 import time
 from pathlib import Path
 
-import cv2
 import numpy as np
+from bench_ingest_mediapipe import _frames  # the clip's first frames, RGB
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data" / "faces"
-
-
-def _frames(path: Path, n: int) -> list[np.ndarray]:
-    cap = cv2.VideoCapture(str(path))
-    out = []
-    while len(out) < n:
-        ok, bgr = cap.read()
-        if not ok:
-            break
-        out.append(cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB))
-    cap.release()
-    return out
 
 
 def main() -> int:
