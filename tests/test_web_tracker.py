@@ -109,3 +109,105 @@ def test_tracker_agrees_with_ingest_landmarker(models, frames):
     err = np.linalg.norm(np.array(got) - np.array(ref), axis=2)
     assert np.median(err[:, 468:]) < 2.0, np.median(err[:, 468:])  # irises
     assert np.median(err) < 2.0, np.median(err)
+
+
+class _Op:
+    """A stand-in TFLite operator: tensor indices in and out."""
+
+    def __init__(self, ins, outs):
+        self.ins, self.outs = ins, outs
+
+    def Inputs(self, k):  # noqa: N802 - tflite's API
+        return self.ins[k]
+
+    def Outputs(self, k):  # noqa: N802
+        return self.outs[k]
+
+
+class _Graph:
+    """The converter's surface that facesynth.web.mediapipe_ops writes into."""
+
+    def __init__(self, shapes, nchw=()):
+        self.name, self.nodes, self.inits, self.shapes, self.nchw = "test", [], [], shapes, set(nchw)
+
+    def tname(self, i):
+        return f"t{i}"
+
+    def shape(self, i):
+        return self.shapes[i]
+
+    def init(self, name, arr):
+        from onnx import numpy_helper
+
+        self.inits.append(numpy_helper.from_array(np.ascontiguousarray(arr), name))
+        return name
+
+    def node(self, op, ins, outs, **attrs):
+        from onnx import helper
+
+        self.nodes.append(helper.make_node(op, ins, outs, **attrs))
+
+    def run(self, feeds: dict, out: str):
+        import onnxruntime as ort
+        from onnx import TensorProto, helper
+
+        g = helper.make_graph(self.nodes, "g", [helper.make_tensor_value_info(k, TensorProto.FLOAT, v.shape) for k, v in feeds.items()],
+                              [helper.make_tensor_value_info(out, TensorProto.FLOAT, None)], self.inits)
+        m = helper.make_model(g, opset_imports=[helper.make_opsetid("", convert.OPSET)])
+        m.ir_version = 8
+        return ort.InferenceSession(m.SerializeToString(), providers=["CPUExecutionProvider"]).run(None, feeds)[0]
+
+
+def test_landmarks_to_matrix_is_mediapipes_product_of_four():
+    """Against MediaPipe's own formulation: shift(centre) rot(-r) scale shift(-out / 2), 4 x 4 products."""
+    from facesynth.web import mediapipe_ops
+
+    rng = np.random.default_rng(0)
+    pts = (rng.random((1, 30, 3)) * 100).astype(np.float32)
+    opts = {"left_rotation_idx": 3, "right_rotation_idx": 17, "subset_idxs": [[1, 2], [5, 9], [20, 28]],
+            "output_width": 16, "output_height": 12, "scale_x": 1.5, "scale_y": 1.25, "target_rotation_radians": 0.3}
+    g = _Graph({0: [1, 30, 3]})
+    mediapipe_ops.landmarks_to_matrix(g, _Op([0], [1]), opts)
+    got = g.run({"t0": pts}, "t1")[0]
+    p = pts[0, :, :2].astype(np.float64)
+    d = p[17] - p[3]
+    r = opts["target_rotation_radians"] - np.arctan2(d[1], d[0])
+    rot = lambda a: np.array([[np.cos(a), -np.sin(a), 0, 0], [np.sin(a), np.cos(a), 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]])  # noqa: E731
+    sub = p[[1, 2, 5, 9, 20, 28]] @ rot(r)[:2, :2].T
+    lo, hi = sub.min(0), sub.max(0)
+    centre = rot(-r)[:2, :2] @ ((lo + hi) / 2)
+    shift = lambda x, y: np.array([[1, 0, 0, x], [0, 1, 0, y], [0, 0, 1, 0], [0, 0, 0, 1]])  # noqa: E731
+    scale = np.diag([1.5 * (hi - lo)[0] / 16, 1.25 * (hi - lo)[1] / 12, 1, 1])
+    want = shift(*centre) @ rot(-r) @ scale @ shift(-8, -6)
+    np.testing.assert_allclose(got, want, atol=1e-4)
+
+
+def test_transform_tensor_bilinear_is_mediapipes_loop():
+    """Against MediaPipe's per-pixel loop (v2: half-pixel shift, zero outside [0, W-1] x [0, H-1])."""
+    from facesynth.web import mediapipe_ops
+
+    rng = np.random.default_rng(1)
+    feat = rng.random((1, 4, 10, 12)).astype(np.float32)  # NCHW, as the converter holds feature maps
+    m = np.eye(4, dtype=np.float32)
+    m[:2, :2] = [[0.9, -0.3], [0.25, 0.8]]
+    m[:2, 3] = [1.73, -0.41]  # some samples fall outside (none on the border): the zero rule is exercised
+    g = _Graph({0: [1, 10, 12, 4], 1: [1, 4, 4]}, nchw={0})
+    mediapipe_ops.transform_tensor_bilinear(g, _Op([0, 1], [2]), {"output_height": 7, "output_width": 9})
+    got = g.run({"t0": feat, "t1": m[None]}, "t2")[0]  # (C, 7, 9)
+    x_t, y_t = m[0].astype(np.float64).copy(), m[1].astype(np.float64).copy()
+    x_t[3] += x_t[0] * 0.5 + x_t[1] * 0.5 - 0.5
+    y_t[3] += y_t[0] * 0.5 + y_t[1] * 0.5 - 0.5
+    want = np.zeros((4, 7, 9))
+    for v in range(7):
+        for u in range(9):
+            x, y = x_t[0] * u + x_t[1] * v + x_t[3], y_t[0] * u + y_t[1] * v + y_t[3]
+            if x < 0 or x > 11 or y < 0 or y > 9:
+                continue
+            x0, y0 = int(np.floor(x)), int(np.floor(y))
+            read = lambda yy, xx: feat[0, :, yy, xx] if yy < 10 and xx < 12 else 0.0  # noqa: E731
+            fx, fy = x - x0, y - y0
+            top = (1 - fx) * read(y0, x0) + fx * read(y0, x0 + 1)
+            bottom = (1 - fx) * read(y0 + 1, x0) + fx * read(y0 + 1, x0 + 1)
+            want[:, v, u] = fy * bottom + (1 - fy) * top
+    assert (want == 0).all(axis=0).any() and not (want == 0).all()
+    np.testing.assert_allclose(got, want, atol=1e-5)
