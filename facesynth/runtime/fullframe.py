@@ -240,28 +240,34 @@ class FrameWarp:
         gx, gy = np.meshgrid(nx, ny)
         spacing = np.array([nx[1] - nx[0], ny[1] - ny[0]])
         loc = (dst + self.locate_push * spacing)[tri]  # where the nodes are located
-        maps = np.stack([gx, gy])  # (2, Hn, Wn): own positions where no single triangle holds the node
-        count = np.zeros(gx.shape, np.int64)  # triangles holding the node strictly inside
-        # the node's map is its most inside triangle's (on a shared edge either triangle's map
-        # gives the same point; where a fold leaves a sliver, the sliver does not take it)
-        best = np.full(gx.shape, -1e-9)
-        for t in np.flatnonzero(ok):
-            lo, hi = loc[t].min(0) - 1e-6, loc[t].max(0) + 1e-6
-            c0, c1 = np.searchsorted(nx, lo[0]), np.searchsorted(nx, hi[0], "right")
-            r0, r1 = np.searchsorted(ny, lo[1]), np.searchsorted(ny, hi[1], "right")
-            if c1 <= c0 or r1 <= r0:
-                continue
-            x, y = gx[r0:r1, c0:c1], gy[r0:r1, c0:c1]
-            (x0, y0), (x1, y1), (x2, y2) = loc[t]
-            den = (y1 - y2) * (x0 - x2) + (x2 - x1) * (y0 - y2)
-            l0 = ((y1 - y2) * (x - x2) + (x2 - x1) * (y - y2)) / den
-            l1 = ((y2 - y0) * (x - x2) + (x0 - x2) * (y - y2)) / den
-            lam = np.stack([l0, l1, 1.0 - l0 - l1])
-            inside = lam.min(0)
-            count[r0:r1, c0:c1] += inside > 1e-9
-            new = inside > best[r0:r1, c0:c1]
-            maps[:, r0:r1, c0:c1][:, new] = (m[t] @ np.stack([x[new], y[new], np.ones(int(new.sum()))]))
-            best[r0:r1, c0:c1][new] = inside[new]
+        # every (triangle, node) pair whose node lies in the triangle's bounding box, triangle-major
+        ts = np.flatnonzero(ok)
+        lo, hi = loc[ts].min(1) - 1e-6, loc[ts].max(1) + 1e-6
+        c0, c1 = np.searchsorted(nx, lo[:, 0]), np.searchsorted(nx, hi[:, 0], "right")
+        r0, r1 = np.searchsorted(ny, lo[:, 1]), np.searchsorted(ny, hi[:, 1], "right")
+        wide, tall = np.maximum(c1 - c0, 0), np.maximum(r1 - r0, 0)
+        n_pairs = wide * tall
+        t = np.repeat(ts, n_pairs)
+        k = np.arange(int(n_pairs.sum())) - np.repeat(np.cumsum(n_pairs) - n_pairs, n_pairs)  # within each box
+        w_t = np.repeat(wide, n_pairs)
+        col, row = np.repeat(c0, n_pairs) + k % np.maximum(w_t, 1), np.repeat(r0, n_pairs) + k // np.maximum(w_t, 1)
+        x, y = nx[col], ny[row]
+        (x0, y0), (x1, y1), (x2, y2) = (loc[t, j].T for j in range(3))
+        den = (y1 - y2) * (x0 - x2) + (x2 - x1) * (y0 - y2)
+        l0 = ((y1 - y2) * (x - x2) + (x2 - x1) * (y - y2)) / den
+        l1 = ((y2 - y0) * (x - x2) + (x0 - x2) * (y - y2)) / den
+        inside = np.minimum(np.minimum(l0, l1), 1.0 - l0 - l1)
+        node = row * len(nx) + col
+        # triangles holding the node strictly inside; the node's map is its most inside
+        # triangle's, the first in triangle order on a tie (on a shared edge either triangle's
+        # map gives the same point; where a fold leaves a sliver, the sliver does not take it)
+        count = np.bincount(node[inside > 1e-9], minlength=gx.size).reshape(gx.shape)
+        order = np.lexsort((t, -inside, node))
+        first = order[np.r_[True, node[order][1:] != node[order][:-1]]]
+        first = first[inside[first] > -1e-9]
+        maps = np.stack([gx, gy]).reshape(2, -1)  # own positions where no single triangle holds the node
+        maps[:, node[first]] = np.einsum("nij,jn->in", m[t[first]], np.stack([x[first], y[first], np.ones(len(first))]))
+        maps = maps.reshape(2, *gx.shape)
         return np.where(count < 2, maps, np.stack([gx, gy]))  # a node no triangle took kept its own position
 
     def _tps_maps(self, dst: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
