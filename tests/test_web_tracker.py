@@ -139,7 +139,7 @@ class _Graph:
     def init(self, name, arr):
         from onnx import numpy_helper
 
-        self.inits.append(numpy_helper.from_array(np.ascontiguousarray(arr), name))
+        self.inits.append(numpy_helper.from_array(np.asarray(arr, order="C"), name))
         return name
 
     def node(self, op, ins, outs, **attrs):

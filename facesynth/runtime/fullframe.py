@@ -265,10 +265,10 @@ class FrameWarp:
         order = np.lexsort((t, -inside, node))
         first = order[np.r_[True, node[order][1:] != node[order][:-1]]]
         first = first[inside[first] > -1e-9]
-        maps = np.stack([gx, gy]).reshape(2, -1)  # own positions where no single triangle holds the node
+        own = np.stack([gx, gy])  # (2, Hn, Wn): where no single triangle holds the node
+        maps = own.reshape(2, -1).copy()
         maps[:, node[first]] = np.einsum("nij,jn->in", m[t[first]], np.stack([x[first], y[first], np.ones(len(first))]))
-        maps = maps.reshape(2, *gx.shape)
-        return np.where(count < 2, maps, np.stack([gx, gy]))  # a node no triangle took kept its own position
+        return np.where(count < 2, maps.reshape(own.shape), own)  # a node no triangle took kept its own position
 
     def _tps_maps(self, dst: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         w, h = self.size

@@ -29,7 +29,7 @@ MODELS = {
     "face_detection": "face_detection/face_detection_short_range.tflite",
     "face_landmark": "face_landmark/face_landmark_with_attention.tflite",
 }
-CONVERTER_VERSION = 3  # part of the cache key: bump when the converted graphs change
+CONVERTER_VERSION = 4  # part of the cache key: bump when the converted graphs change
 OPSET = 13
 
 
@@ -99,7 +99,7 @@ class _Converter:
     def init(self, name: str, arr: np.ndarray) -> str:
         from onnx import numpy_helper
 
-        self.inits.append(numpy_helper.from_array(np.ascontiguousarray(arr), name))
+        self.inits.append(numpy_helper.from_array(np.asarray(arr, order="C"), name))  # a 0-d array stays 0-d
         return name
 
     def node(self, op: str, ins: list[str], outs: list[str], **attrs) -> None:

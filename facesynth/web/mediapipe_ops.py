@@ -47,12 +47,7 @@ class _Ops:
 
     def take(self, x: str, idx, axis: int) -> str:
         """Gather along ``axis``; a scalar ``idx`` drops the axis."""
-        from onnx import numpy_helper
-
-        self.k += 1
-        name = f"{self.tag}_i{self.k}"  # numpy_helper directly: conv.init would make a scalar 1-D
-        self.c.inits.append(numpy_helper.from_array(np.array(idx, np.int64), name))
-        return self("Gather", x, name, axis=axis)
+        return self("Gather", x, self.const(idx, np.int64), axis=axis)
 
 
 def landmarks_to_matrix(conv, op, opts: dict) -> None:
