@@ -121,6 +121,35 @@ def test_round_trip_and_onnx_parity(tmp_path, kernel):
     np.testing.assert_allclose(got, reg.predict(xs), rtol=1e-5, atol=1e-5 * np.abs(y).max())
 
 
+def test_factored_centres_give_float64_distances_on_low_rank_inputs():
+    """Inputs on a 5-dimensional plane in 40 dimensions (as a face's aligned landmarks lie on a
+    few dozen of their 956): the centres are stored as 5 coordinates, and the factored squared
+    distances equal float64's to float32 rounding, for inputs off the plane too."""
+    from facesynth.regressors.krr import factor_centres
+
+    rng = np.random.default_rng(3)
+    c = rng.normal(size=(300, 5)) @ rng.normal(size=(5, 40)) + rng.normal(size=40)
+    f = factor_centres(c)
+    assert f["proj"].shape == (40, 5) and f["coords"].shape == (300, 5)
+    np.testing.assert_allclose(f["proj"].T @ f["proj"], np.eye(5), atol=1e-12)
+    s = rng.normal(size=(20, 40)) * 0.5 + c[:20]
+    want = ((s[:, None] - c[None]) ** 2).sum(-1)
+    t = {k: torch.from_numpy(v).float() for k, v in f.items()}
+    sc = torch.from_numpy(s).float() - t["centre_mean"]
+    got = (sc * sc).sum(1, keepdim=True) + t["centres_sq"] - 2.0 * (sc @ t["proj"]) @ t["coords"].T
+    np.testing.assert_allclose(got.double().numpy(), want, rtol=2e-6, atol=2e-6 * want.max())
+
+
+def test_a_state_with_unfactored_centres_loads_factored():
+    x, y = _data()
+    reg = KRRRegressor.fit(x, y, KRRConfig(blend=1.0))
+    t = {k: v.clone() for k, v in reg.state_dict().items()}
+    c = (t.pop("coords").double() @ t.pop("proj").double().T + t.pop("centre_mean").double()).float()
+    t.pop("centres_sq")
+    again = KRRRegressor.from_state(reg.config_dict(), {**t, "centres": c, "centres_sq": (c.double() ** 2).sum(1).float()})
+    np.testing.assert_allclose(again.predict(x[:30]), reg.predict(x[:30]), rtol=1e-5, atol=1e-5)
+
+
 @pytest.mark.parametrize("bad", [{"alpha": 0.0}, {"gamma_mult": -1.0}, {"blend": 1.5}, {"ridge": -1.0}, {"alhpa": 1.0},
                                  {"kernel": "laplacian"}, {"scale": "minmax"}])
 def test_bad_config_is_a_clear_error(bad):

@@ -27,11 +27,14 @@ distribution) and a linear map (extrapolates gracefully to shapes the training s
 never shows); on the held-out segments of the real clips the blend beats either member
 (docs/sadm.md).
 
-Inference is tensor ops only (one (B, N) kernel matrix and two matmuls), so the regressor
+Inference is tensor ops only (one (B, N) kernel matrix and a few matmuls), so the regressor
 traces to ONNX: ``||s - c||^2 = ||s||^2 + ||c||^2 - 2 s c^T`` clamped >= 0, with
 sqrt(gamma) and the standardisation folded into a per-feature shift/scale and the stored
 centres (as the SVR does); Matern 3/2 adds one sqrt (its derivative in r is 0 at r = 0, so
-float32 cancellation in ``||s - c||^2`` near 0 does not matter).
+float32 cancellation in ``||s - c||^2`` near 0 does not matter). The centres are stored
+factored (:func:`factor_centres`): the aligned landmarks of one face span a few dozen
+dimensions, so the (N, D) centres become (N, r) coordinates in an r-dimensional basis, exact to
+float32 precision, with the kernel's matmul and the file r / D as large (55 of 972 on lp_d6).
 
 Matern 3/2 instead of RBF: the same sigma-0 accuracy or slightly better on the validation
 slices with a smaller sigma 0 -> 2 loss (the figures are in docs/sadm.md): its
@@ -102,6 +105,20 @@ def kernel_of_sqdist(d2, kernel: str):
     return (1.0 + a) * torch.exp(-a)
 
 
+def factor_centres(c: np.ndarray, rtol: float = 1e-6) -> dict[str, np.ndarray]:
+    """Centres (N, D) -> ``centre_mean`` m (D,), ``proj`` P (D, r): an orthonormal basis of the
+    centred centres' span, ``coords`` Q (N, r): their coordinates in it, and ``centres_sq``
+    ||q_i||^2 (N,); r counts the singular values above ``rtol`` times the largest. Then
+    ``||s - c_i||^2 = ||s - m||^2 + ||q_i||^2 - 2 ((s - m) P) . q_i`` for any s, the centres'
+    residual beyond P being below float32's rounding at the default ``rtol`` (on lp_d6's
+    avatar the factored distances are closer to float64's than the unfactored float32 ones)."""
+    m = c.mean(0)
+    u, sv, vt = np.linalg.svd(c - m, full_matrices=False)
+    r = max(1, int((sv > rtol * sv[0]).sum())) if sv.size and sv[0] > 0 else 1
+    q = u[:, :r] * sv[:r]
+    return {"centre_mean": m, "proj": vt[:r].T, "coords": q, "centres_sq": (q * q).sum(1)}
+
+
 def kernel_dual(z: np.ndarray, t: np.ndarray, gamma: float, alpha: float, kernel: str = "rbf") -> np.ndarray:
     """Dual coefficients A = (K + alpha I)^-1 t of kernel ridge, K_ij = k(gamma |z_i - z_j|^2)
     (:func:`kernel_of_sqdist`).
@@ -152,14 +169,14 @@ class KRRRegressor(Regressor):
         g = np.sqrt(gamma)
         c = g * z  # centres, (N, D), so that k = exp(-||s - c||^2) with s = (x - shift) * scale
         tensors = {
-            "shift": mx, "scale": g / sx, "centres": c, "centres_sq": (c * c).sum(1),
+            "shift": mx, "scale": g / sx, **factor_centres(c),
             "coef": blend * dual.T,  # (D_out, N)
             "weight": (1.0 - blend) * w,  # (D_out, D)
             "bias": blend * my + (1.0 - blend) * b,
         }
         if cfg.clip_inputs:
             tensors["x_lo"], tensors["x_hi"] = x.min(0), x.max(0)
-        info = {"gamma": gamma, "n_centres": int(n)}
+        info = {"gamma": gamma, "n_centres": int(n), "centres_rank": int(tensors["proj"].shape[1])}
         model = cls(cfg, {k: torch.from_numpy(np.ascontiguousarray(v)) for k, v in tensors.items()}, info)
         model.parts_ = {"dual": dual, "y_mean": my, "x_mean": mx, "x_scale": sx, "linear": lin}  # for checks
         return model
@@ -167,8 +184,8 @@ class KRRRegressor(Regressor):
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         if self.config.clip_inputs:
             x = torch.minimum(torch.maximum(x, self.x_lo), self.x_hi)
-        s = (x - self.shift) * self.scale
-        d2 = (s * s).sum(1, keepdim=True) + self.centres_sq - 2.0 * torch.matmul(s, self.centres.t())
+        s = (x - self.shift) * self.scale - self.centre_mean
+        d2 = (s * s).sum(1, keepdim=True) + self.centres_sq - 2.0 * torch.matmul(torch.matmul(s, self.proj), self.coords.t())
         k = kernel_of_sqdist(torch.clamp(d2, min=0.0), self.config.kernel)
         return torch.matmul(k, self.coef.t()) + torch.matmul(x, self.weight.t()) + self.bias
 
@@ -184,8 +201,13 @@ class KRRRegressor(Regressor):
         info = config.pop("info", {})
         cfg = as_config(KRRConfig, config, "regressor krr")
         check_config(cfg)
-        return cls(cfg, dict(tensors), info)
+        tensors = dict(tensors)
+        if "centres" in tensors:  # a state with its centres unfactored: factor them as fit does
+            c = tensors.pop("centres").double().numpy()
+            tensors.update({k: torch.from_numpy(v) for k, v in factor_centres(c).items()})
+        return cls(cfg, tensors, info)
 
     def summary(self) -> dict:
-        return {"n_centres": self.info.get("n_centres"), "gamma": self.info.get("gamma"), "blend": float(self.config.blend),
+        return {"n_centres": self.info.get("n_centres"), "centres_rank": int(self.proj.shape[1]),
+                "gamma": self.info.get("gamma"), "blend": float(self.config.blend),
                 "kernel": self.config.kernel}
