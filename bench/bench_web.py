@@ -14,7 +14,8 @@ blocks every request off 127.0.0.1, waits for the first avatar frame, then measu
 * ``e2e_fps``: rendered avatar frames per second of wall time; ``frames``: frames rendered;
 * ``load_s``: page open -> first avatar frame (includes the ~1 s neutral capture, ``neutral_s``);
 * ``page_mb``: the renderer process's resident memory (VmRSS) at the end, ``page_anon_mb`` its
-  own (RssAnon: without shared libraries and files), ``page_js_mb`` the page's and its worker's
+  own (RssAnon: without shared libraries and files), ``page_anon_mb_run`` the median and the
+  maximum of RssAnon sampled every 0.5 s through the run, ``page_js_mb`` the page's and its worker's
   JavaScript and WebAssembly memory (``performance.measureUserAgentSpecificMemory``, which the
   page's cross-origin isolation allows; Chromium may delay its answer by up to ~20 s);
 * ``offline``: no request left 127.0.0.1; ``python_avatar_ms``: Python ONNX Runtime, one
@@ -49,6 +50,10 @@ from facesynth.runtime.cpu import cpu_flags  # noqa: E402
 from facesynth.web import browser, site  # noqa: E402
 
 TICK = os.sysconf("SC_CLK_TCK")
+# the page's figures, and only them: serialising the whole state (the avatar's metadata, its
+# neutral frame as JPEG) made 25 MB of garbage in the page being measured
+STATS = """(({ frames, firstFrameMs, trackerMs, avatarMs, compositeMs, latencyMs, messages }) =>
+    ({ frames, firstFrameMs, trackerMs, avatarMs, compositeMs, latencyMs, messages }))(window.facesynth.state)"""
 
 
 def _procs():
@@ -153,12 +158,16 @@ def main() -> None:
             t0 = time.perf_counter()
             page.goto(url)
             page.wait_for_function("window.facesynth && window.facesynth.state.frames >= 1", timeout=120_000)
-            st = page.evaluate("window.facesynth.state")
+            st = page.evaluate(STATS)
             pids, renderers = chromium_tree(marker)
             f0, p0, w0 = st["frames"], process_cpu(pids), time.perf_counter()
             c0 = {r: thread_cpu(r) for r in renderers}
-            time.sleep(args.seconds)
-            st = page.evaluate("window.facesynth.state")
+            anon = {r: [] for r in renderers}  # RssAnon through the run: V8 frees spent buffers only at its GCs
+            while time.perf_counter() - w0 < args.seconds:
+                time.sleep(0.5)
+                for r in renderers:
+                    anon[r].append(memory_mb(r).get("RssAnon", 0.0))
+            st = page.evaluate(STATS)
             f1, p1, w1 = st["frames"], process_cpu(pids), time.perf_counter()
             c1 = {r: thread_cpu(r) for r in renderers}
             renderer = max(renderers, key=lambda r: sum(c1[r].values()) - sum(c0[r].values()))  # the page's
@@ -193,6 +202,7 @@ def main() -> None:
         "e2e_fps": round((f1 - f0) / (w1 - w0), 2), "frames": f1,
         "load_s": round(st["firstFrameMs"] / 1e3, 2), "neutral_s": 1.0, "open_s": round(w0 - t0, 2),
         "page_mb": mem.get("VmRSS"), "page_anon_mb": mem.get("RssAnon"),
+        "page_anon_mb_run": {"median": round(float(np.median(anon[renderer])), 1), "max": max(anon[renderer])},
         "page_js_mb": round(js_mb, 1) if js_mb is not None else None, "site_mb": round(page_bytes / 2**20, 1),
         "offline": not blocked, "blocked": blocked[:5], "errors": errors,
         "python_avatar_ms": round(python_avatar_ms(args.model), 3),

@@ -32,7 +32,9 @@ const SCHEMES = ['ibug68', 'mediapipe478'];  // the avatars the tracker's 478 po
 // the graph (Python's facesynth.runtime.TalkingHead runs the same file); the page only maps the
 // tracker's points to the avatar's scheme and draws the frame.
 class AvatarGraph {
-  static async create(buffer, name, schemes, formats) {
+  // externalData: the weights file beside a split avatar ([{ path, data }], as the page's own
+  // avatar is built), or undefined for a whole .onnx file (one dropped on the page)
+  static async create(buffer, name, schemes, formats, externalData) {
     let meta;
     try { meta = onnxMetadata(buffer); } catch (e) { throw new Error(`${name} is not an ONNX file (${e.message})`); }
     if (meta.format === formats.synthesis) throw new Error(`${name} is a face model, not a talking head: export one with 'facesynth export RUN --talking-head --out ${name}'`);
@@ -41,7 +43,7 @@ class AvatarGraph {
     if (!SCHEMES.includes(scheme) || !(scheme in schemes)) throw new Error(`${name}: its landmark scheme ${scheme} cannot be driven by the page's tracker (MediaPipe 478 points; it drives mediapipe478 and ibug68 avatars)`);
     if (!Array.isArray(meta.frame_size) || !meta.background_jpeg) throw new Error(`${name}: a talking head without its frame size and neutral frame (re-export it)`);
     let session;
-    try { session = await ort.InferenceSession.create(buffer, { executionProviders: ['wasm'] }); }
+    try { session = await ort.InferenceSession.create(buffer, { executionProviders: ['wasm'], ...(externalData && { externalData }) }); }
     catch (e) { throw new Error(`${name} is corrupt: ONNX Runtime cannot load it (${e.message || e})`); }
     const bg = new Image();
     bg.src = 'data:image/jpeg;base64,' + meta.background_jpeg;
@@ -68,12 +70,16 @@ class AvatarGraph {
     const src = frame.data, px = this.rgba.data, hw = this.width * this.height;
     for (let i = 0, j = 0; i < hw; i++, j += 3) { px[4 * i] = src[j]; px[4 * i + 1] = src[j + 1]; px[4 * i + 2] = src[j + 2]; px[4 * i + 3] = 255; }
     ctx.putImageData(this.rgba, 0, 0);
+    // Hand the spent frame to the tracker's worker, which drops it. A frame is ~1 MB that V8 frees
+    // only at a garbage collection, and this thread allocates too little else to collect often:
+    // ~50 MB of spent frames piled up here, where the worker, collecting every few frames, frees them.
+    state.worker?.postMessage({ type: 'spent', buffer: src.buffer }, [src.buffer]);
     return { avatarMs: t1 - t0, compositeMs: performance.now() - t1 };
   }
 }
 
-async function loadAvatar(buffer, name) {
-  const g = await AvatarGraph.create(buffer, name, state.schemes, state.formats);
+async function loadAvatar(buffer, name, externalData) {
+  const g = await AvatarGraph.create(buffer, name, state.schemes, state.formats, externalData);
   state.avatar = g;
   const cv = $('avatar');
   cv.width = g.width; cv.height = g.height;
@@ -252,8 +258,17 @@ async function main() {
   const site = await (await fetch('site.json')).json();
   state.schemes = await (await fetch('schemes.json')).json();
   state.formats = site.formats;
-  try { await loadAvatar(await (await fetch(site.avatar)).arrayBuffer(), site.avatar_name); }
-  catch (e) { message(e.message, true); }
+  // the avatar as built: its graph and its weights apart (ONNX external data), so that ONNX Runtime
+  // reads each weight straight into its tensor instead of copying and parsing one whole file in a
+  // WebAssembly heap that never shrinks (31 MB less page memory for a 24 MB avatar, docs/web.md)
+  try {
+    const [graph, weights] = await Promise.all([site.avatar, site.avatar_data].map(async (f) => {
+      const r = await fetch(f);
+      if (!r.ok) throw new Error(`The page's avatar file ${f} is missing (HTTP ${r.status}): rebuild the page.`);
+      return r.arrayBuffer();
+    }));
+    await loadAvatar(graph, site.avatar_name, [{ path: site.avatar_data, data: new Uint8Array(weights) }]);
+  } catch (e) { message(e.message, true); }
   state.worker = new Worker('tracker.js', { type: 'module' });
   const workerReady = new Promise((resolve, reject) => {
     state.worker.onmessage = (ev) => {
