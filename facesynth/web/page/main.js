@@ -70,12 +70,18 @@ class AvatarGraph {
     const src = frame.data, px = this.rgba.data, hw = this.width * this.height;
     for (let i = 0, j = 0; i < hw; i++, j += 3) { px[4 * i] = src[j]; px[4 * i + 1] = src[j + 1]; px[4 * i + 2] = src[j + 2]; px[4 * i + 3] = 255; }
     ctx.putImageData(this.rgba, 0, 0);
-    // Hand the spent frame to the tracker's worker, which drops it. A frame is ~1 MB that V8 frees
-    // only at a garbage collection, and this thread allocates too little else to collect often:
-    // ~50 MB of spent frames piled up here, where the worker, collecting every few frames, frees them.
-    state.worker?.postMessage({ type: 'spent', buffer: src.buffer }, [src.buffer]);
+    release(src.buffer);
     return { avatarMs: t1 - t0, compositeMs: performance.now() - t1 };
   }
+}
+
+// Hand a spent buffer (an avatar frame, a model file once loaded) to the tracker's worker, which
+// drops it. V8 frees a large buffer only at a garbage collection, and this thread allocates too
+// little else to collect often: ~50 MB of spent frames piled up here (docs/web.md), and a loaded
+// avatar's weights stayed for good; the worker, collecting every few frames, frees them.
+function release(...buffers) {
+  buffers = buffers.filter((b) => b instanceof ArrayBuffer);  // never wasm memory (a SharedArrayBuffer)
+  if (state.worker && buffers.length) state.worker.postMessage({ type: 'spent', buffers }, buffers);
 }
 
 async function loadAvatar(buffer, name, externalData) {
@@ -243,8 +249,10 @@ function setupDrop() {
     if (f) await window.facesynth.loadFile(f);
   });
   window.facesynth.loadFile = async (file) => {
-    try { await loadAvatar(await file.arrayBuffer(), file.name); message(`Loaded ${file.name}.`); }
+    const buffer = await file.arrayBuffer();
+    try { await loadAvatar(buffer, file.name); message(`Loaded ${file.name}.`); }
     catch (err) { message(`${err.message} The current avatar is kept.`, true); }
+    finally { release(buffer); }
   };
 }
 
@@ -261,15 +269,17 @@ async function main() {
   // the avatar as built: its graph and its weights apart (ONNX external data), so that ONNX Runtime
   // reads each weight straight into its tensor instead of copying and parsing one whole file in a
   // WebAssembly heap that never shrinks (31 MB less page memory for a 24 MB avatar, docs/web.md)
+  let files = [];
   try {
-    const [graph, weights] = await Promise.all([site.avatar, site.avatar_data].map(async (f) => {
+    files = await Promise.all([site.avatar, site.avatar_data].map(async (f) => {
       const r = await fetch(f);
       if (!r.ok) throw new Error(`The page's avatar file ${f} is missing (HTTP ${r.status}): rebuild the page.`);
       return r.arrayBuffer();
     }));
-    await loadAvatar(graph, site.avatar_name, [{ path: site.avatar_data, data: new Uint8Array(weights) }]);
+    await loadAvatar(files[0], site.avatar_name, [{ path: site.avatar_data, data: new Uint8Array(files[1]) }]);
   } catch (e) { message(e.message, true); }
   state.worker = new Worker('tracker.js', { type: 'module' });
+  release(...files);
   const workerReady = new Promise((resolve, reject) => {
     state.worker.onmessage = (ev) => {
       const m = ev.data;

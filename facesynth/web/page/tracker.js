@@ -109,7 +109,7 @@ self.onmessage = async (ev) => {
         .map((n) => ort.InferenceSession.create(msg.base + `models/${n}.onnx`, opts)));
       anchors = makeAnchors();
       self.postMessage({ type: 'ready' });
-    } else if (msg.type === 'spent') {  // the page's spent avatar frame, handed here to be freed sooner
+    } else if (msg.type === 'spent') {  // the page's spent buffers, handed here to be freed sooner (main.js: release)
     } else if (msg.type === 'reset') {
       prev = null;
     } else if (msg.type === 'pixels') {  // replay: RGBA pixels in, points out (the tests' hook)
