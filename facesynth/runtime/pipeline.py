@@ -29,14 +29,11 @@ import numpy as np
 
 from facesynth.contract import TALKING_HEAD_FORMAT
 from facesynth.errors import FacesynthError
-from facesynth.imaging import composite
 from facesynth.landmarks import get_scheme
 from facesynth.retarget import RETARGET_SCHEMES
 from facesynth.runtime.reenact import Avatar, Reenactor, reenact_frames
-from facesynth.runtime.renderer import Renderer, read_metadata
+from facesynth.runtime.renderer import STILL_FEATHER, Renderer, composite_face, read_metadata
 from facesynth.runtime.talking_head import TalkingHead
-
-STILL_FEATHER = 2.0  # frame pixels: the composite into a still background
 
 
 def render_frames(renderer, landmarks: np.ndarray, background: np.ndarray, feather: float = STILL_FEATHER,
@@ -51,12 +48,9 @@ def render_frames(renderer, landmarks: np.ndarray, background: np.ndarray, feath
         if not np.isfinite(lm).all():
             frame = background.copy()
         else:
-            crops, masks, placements = renderer.render(lm[None])
+            rendered = renderer.render(lm[None])
             t1 = time.perf_counter()
-            crop = np.ascontiguousarray(crops[0].transpose(1, 2, 0))
-            if crop.shape[2] == 1:
-                crop = np.repeat(crop, 3, axis=2)
-            frame = composite(crop, masks[0, 0], placements[0].astype(np.float64), background, feather)
+            frame = composite_face(*rendered, background, feather)
             if latencies is not None:
                 latencies.append((t1 - t0, time.perf_counter() - t0))
         yield frame

@@ -23,6 +23,8 @@ from facesynth.landmarks import SCHEMES, scheme_for_points
 from facesynth.runtime.checks import as_array, check_coordinate_range, check_metadata_size, check_outputs
 from facesynth.runtime.cpu import check_int8_basis
 
+STILL_FEATHER = 2.0  # frame pixels: the seam of a face composited into a still frame
+
 
 def read_metadata(model_path: str | os.PathLike) -> dict:
     """Metadata properties of an exported model, JSON values decoded (the model is loaded
@@ -206,7 +208,7 @@ class Renderer:
         check_outputs(str(self.path), crops=bufs[0], masks=bufs[1], placements=bufs[2])
         return tuple(b.copy() for b in bufs) if copy else bufs
 
-    def render_frame(self, landmarks, background: np.ndarray, feather: float = 2.0) -> np.ndarray:
+    def render_frame(self, landmarks, background: np.ndarray, feather: float = STILL_FEATHER) -> np.ndarray:
         """One face composited into a frame.
 
         landmarks : (P, 2) frame pixels; background : uint8 (H, W, 3) RGB.
@@ -218,11 +220,17 @@ class Renderer:
         x = self.validate(landmarks)
         if len(x) != 1:
             raise FacesynthError(f"render_frame: one face at a time, got a batch of {len(x)}")
-        crops, masks, placements = self.render(x)
-        crop = np.ascontiguousarray(crops[0].transpose(1, 2, 0))
-        if crop.shape[2] == 1:
-            crop = np.repeat(crop, 3, axis=2)
-        return composite(crop, masks[0, 0], placements[0].astype(np.float64), bg, feather)
+        return composite_face(*self.render(x), bg, feather)
 
 
-__all__ = ["Renderer", "read_metadata", "__version__"]
+def composite_face(crops, masks, placements, background: np.ndarray, feather: float = STILL_FEATHER,
+                   i: int = 0) -> np.ndarray:
+    """Face ``i`` of :meth:`Renderer.render`'s (crops, masks, placements) composited into
+    ``background`` (uint8 (H, W, 3) RGB) -> uint8 (H, W, 3) (:func:`facesynth.imaging.composite`)."""
+    crop = np.ascontiguousarray(crops[i].transpose(1, 2, 0))
+    if crop.shape[2] == 1:
+        crop = np.repeat(crop, 3, axis=2)
+    return composite(crop, masks[i, 0], placements[i].astype(np.float64), background, feather)
+
+
+__all__ = ["STILL_FEATHER", "Renderer", "composite_face", "read_metadata", "__version__"]
