@@ -13,9 +13,11 @@ blocks every request off 127.0.0.1, waits for the first avatar frame, then measu
   every Chromium process;
 * ``e2e_fps``: rendered avatar frames per second of wall time; ``frames``: frames rendered;
 * ``load_s``: page open -> first avatar frame (includes the ~1 s neutral capture, ``neutral_s``);
-* ``page_mb``: the renderer process's resident memory (VmRSS) at the end, ``page_anon_mb`` its
-  own (RssAnon: without shared libraries and files), ``page_anon_mb_run`` the median and the
-  maximum of RssAnon sampled every 0.5 s through the run, ``page_js_mb`` the page's and its worker's
+* ``page_mb``: the page's memory: its renderer process's own resident memory (RssAnon: what
+  Chrome's task manager counts as its footprint, without shared libraries, files and the
+  compositor's discardable image cache), the median of samples every 0.5 s through the run
+  (it moves with V8's garbage collections), ``page_mb_max`` their maximum; ``page_rss_mb`` the
+  renderer's VmRSS at the end (shared libraries and that cache included); ``page_js_mb`` the page's and its worker's
   JavaScript and WebAssembly memory (``performance.measureUserAgentSpecificMemory``, which the
   page's cross-origin isolation allows; Chromium may delay its answer by up to ~20 s);
 * ``offline``: no request left 127.0.0.1; ``python_avatar_ms``: Python ONNX Runtime, one
@@ -201,8 +203,8 @@ def main() -> None:
         "chromium_cpu_ms": round((p1 - p0) * 1e3 / n, 2),
         "e2e_fps": round((f1 - f0) / (w1 - w0), 2), "frames": f1,
         "load_s": round(st["firstFrameMs"] / 1e3, 2), "neutral_s": 1.0, "open_s": round(w0 - t0, 2),
-        "page_mb": mem.get("VmRSS"), "page_anon_mb": mem.get("RssAnon"),
-        "page_anon_mb_run": {"median": round(float(np.median(anon[renderer])), 1), "max": max(anon[renderer])},
+        "page_mb": round(float(np.median(anon[renderer])), 1), "page_mb_max": max(anon[renderer]),
+        "page_rss_mb": mem.get("VmRSS"),
         "page_js_mb": round(js_mb, 1) if js_mb is not None else None, "site_mb": round(page_bytes / 2**20, 1),
         "offline": not blocked, "blocked": blocked[:5], "errors": errors,
         "python_avatar_ms": round(python_avatar_ms(args.model), 3),
