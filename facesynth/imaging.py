@@ -10,9 +10,18 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+STILL_FEATHER = 2.0  # frame pixels: the seam of a face composited into a still frame
+
+
+def crop_rgb(crops: np.ndarray, i: int = 0) -> np.ndarray:
+    """Crop ``i`` of a rendered batch (B, C, H_c, W_c), C 1 or 3, as a contiguous
+    (H_c, W_c, 3) image (a grey crop repeated to three channels)."""
+    crop = np.ascontiguousarray(crops[i].transpose(1, 2, 0))
+    return np.repeat(crop, 3, axis=2) if crop.shape[2] == 1 else crop
+
 
 def composite(
-    crop: np.ndarray, mask: np.ndarray, placement: np.ndarray, background: np.ndarray, feather: float = 2.0
+    crop: np.ndarray, mask: np.ndarray, placement: np.ndarray, background: np.ndarray, feather: float = STILL_FEATHER
 ) -> np.ndarray:
     """Paste a rendered crop into a frame with a feathered boundary.
 

@@ -20,6 +20,7 @@ import time
 import cv2
 import numpy as np
 
+from facesynth.imaging import crop_rgb
 from facesynth.landmarks import ibug68_view
 from facesynth.metrics import psnr
 from facesynth.neutral import mouth_open, select_neutral
@@ -72,9 +73,8 @@ def drive(model_path, driver: np.ndarray, motion: str = "relative", neutral: np.
         hull = hull_mask(a, sz)
         cov[i] = (placed_mask(masks[0, 0], place[0], sz) & hull).sum() / max(1, hull.sum())
         if i in sheet_rows:
-            crop = np.ascontiguousarray(crops[0].transpose(1, 2, 0))
             bg = re.frame_warp(a) if re.full_frame else re.background
-            shown[i] = blend_face(crop, masks[0, 0], place[0], bg, re.feather, re.match_colour)
+            shown[i] = blend_face(crop_rgb(crops), masks[0, 0], place[0], bg, re.feather, re.match_colour)
     return {"landmarks": out_lm, "coverage": cov, "frames": shown}
 
 

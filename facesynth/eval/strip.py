@@ -14,6 +14,7 @@ import numpy as np
 import torch
 
 from facesynth.errors import FacesynthError
+from facesynth.imaging import crop_rgb
 from facesynth.io import write_bytes
 from facesynth.runtime.blend import blend_face
 
@@ -43,10 +44,7 @@ def strip_tiles(syn, seq, rows: np.ndarray, height: int = 128, margin: float = 0
         h, w = frame.shape[:2]
         x0, y0 = np.maximum(np.floor(lo - pad).astype(int), 0)
         x1, y1 = np.minimum(np.ceil(hi + pad).astype(int), [w, h])
-        crop = np.ascontiguousarray(crops[j].transpose(1, 2, 0))
-        if crop.shape[2] == 1:
-            crop = np.repeat(crop, 3, axis=2)
-        shown = blend_face(crop, masks[j, 0], places[j].astype(np.float64), frame)
+        shown = blend_face(crop_rgb(crops, j), masks[j, 0], places[j].astype(np.float64), frame)
         size = (max(1, round((x1 - x0) * height / (y1 - y0))), height)
         tiles.append({"frame": int(rows[j]),
                       "real": cv2.resize(frame[y0:y1, x0:x1], size, interpolation=cv2.INTER_AREA),

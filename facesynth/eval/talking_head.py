@@ -20,6 +20,7 @@ import cv2
 import numpy as np
 import torch
 
+from facesynth.imaging import crop_rgb
 from facesynth.landmarks import ibug68_view
 from facesynth.metrics import psnr, ssim
 from facesynth.onnx.avatar import avatar_metadata
@@ -56,9 +57,8 @@ def talking_head_figures(syn, seq, train_rows: np.ndarray, test_rows: np.ndarray
         a = retarget.one(np.asarray(seq.landmarks[row], np.float64)).astype(np.float32)
         with torch.no_grad():
             crop, mask, place = (t.numpy() for t in syn(torch.from_numpy(a[None])))
-        c = np.ascontiguousarray(crop[0].transpose(1, 2, 0))
         bg = warp(a)
-        full = blend_face(np.repeat(c, 3, 2) if c.shape[2] == 1 else c, mask[0, 0], place[0].astype(np.float64), bg)
+        full = blend_face(crop_rgb(crop), mask[0, 0], place[0].astype(np.float64), bg)
         head = head_region(ibug68_view(seq.landmarks[row]), (real.shape[1], real.shape[0]))
         for name, img in zip(RENDERERS, (avatar.background, bg, full), strict=True):
             for key, value in zip(MEASURES, (psnr(img, real, head), ssim(img, real, head), psnr(img, real),

@@ -14,7 +14,7 @@ import numpy as np
 
 from facesynth.contract import ERI_FORMAT, ERI_INPUT
 from facesynth.errors import FacesynthError
-from facesynth.imaging import composite
+from facesynth.imaging import composite, crop_rgb
 from facesynth.runtime.renderer import Renderer, check_batch
 
 
@@ -83,7 +83,7 @@ class EriRenderer(Renderer):
             raise FacesynthError(f"background: {len(bg)} frames for a batch of {len(crops)}")
         f = self.feather if feather is None else float(feather)
         return np.stack([
-            composite(np.ascontiguousarray(crops[i].transpose(1, 2, 0)), masks[i, 0], places[i].astype(np.float64),
+            composite(crop_rgb(crops, i), masks[i, 0], places[i].astype(np.float64),
                       bg[i] if bg.ndim == 4 else bg, f)
             for i in range(len(crops))
         ])

@@ -29,10 +29,11 @@ import numpy as np
 
 from facesynth.contract import TALKING_HEAD_FORMAT
 from facesynth.errors import FacesynthError
+from facesynth.imaging import STILL_FEATHER
 from facesynth.landmarks import get_scheme
 from facesynth.retarget import RETARGET_SCHEMES
 from facesynth.runtime.reenact import Avatar, Reenactor, reenact_frames
-from facesynth.runtime.renderer import STILL_FEATHER, Renderer, composite_face, read_metadata
+from facesynth.runtime.renderer import Renderer, composite_face, read_metadata
 from facesynth.runtime.talking_head import TalkingHead
 
 

@@ -18,12 +18,10 @@ import onnxruntime as ort
 from facesynth import __version__
 from facesynth.contract import FORMAT_HINTS, OUTPUT_NAMES, SYNTHESIS_FORMAT, SYNTHESIS_INPUT
 from facesynth.errors import FacesynthError
-from facesynth.imaging import composite
+from facesynth.imaging import STILL_FEATHER, composite, crop_rgb
 from facesynth.landmarks import SCHEMES, scheme_for_points
 from facesynth.runtime.checks import as_array, check_coordinate_range, check_metadata_size, check_outputs
 from facesynth.runtime.cpu import check_int8_basis
-
-STILL_FEATHER = 2.0  # frame pixels: the seam of a face composited into a still frame
 
 
 def read_metadata(model_path: str | os.PathLike) -> dict:
@@ -227,10 +225,7 @@ def composite_face(crops, masks, placements, background: np.ndarray, feather: fl
                    i: int = 0) -> np.ndarray:
     """Face ``i`` of :meth:`Renderer.render`'s (crops, masks, placements) composited into
     ``background`` (uint8 (H, W, 3) RGB) -> uint8 (H, W, 3) (:func:`facesynth.imaging.composite`)."""
-    crop = np.ascontiguousarray(crops[i].transpose(1, 2, 0))
-    if crop.shape[2] == 1:
-        crop = np.repeat(crop, 3, axis=2)
-    return composite(crop, masks[i, 0], placements[i].astype(np.float64), background, feather)
+    return composite(crop_rgb(crops, i), masks[i, 0], placements[i].astype(np.float64), background, feather)
 
 
-__all__ = ["STILL_FEATHER", "Renderer", "composite_face", "read_metadata", "__version__"]
+__all__ = ["Renderer", "composite_face", "read_metadata", "__version__"]
