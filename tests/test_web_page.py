@@ -6,6 +6,7 @@ playwright or the page's npm packages (``facesynth web setup``)."""
 from __future__ import annotations
 
 import os
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -70,6 +71,7 @@ def test_camera_drives_the_avatar_offline_and_matches_python(page_site, camera, 
     from facesynth.runtime.talking_head import TalkingHead
 
     path, seq = avatar
+    shutil.copy2(path, page_site / "whole.onnx")  # for the drop below
     with browser.served(page_site) as url, browser.browser_page(camera) as (page, blocked):
         page.goto(url)
         frames = _wait(page, "window.facesynth && window.facesynth.state.frames >= 100 && window.facesynth.state.frames")
@@ -112,6 +114,18 @@ def test_camera_drives_the_avatar_offline_and_matches_python(page_site, camera, 
             assert got.shape == want.shape and np.abs(got.astype(int) - want).max() <= 2
         # the page reads the .onnx metadata itself (onnxmeta.js): the same as ONNX Runtime's in Python
         assert page.evaluate("window.facesynth.state.avatar.meta") == read_metadata(path)
+
+        # the page loads its avatar as graph + weights; a dropped file is one whole .onnx: the same frames
+        page.evaluate("async () => window.facesynth.loadFile(new File([await (await fetch('whole.onnx')).arrayBuffer()], "
+                      "'whole.onnx'))")
+        assert "Loaded whole.onnx." in _messages(page)
+        x = driver[len(driver) // 2]
+        out = page.evaluate("([d, n]) => window.facesynth.render(d, n)",
+                            [x.ravel().tolist(), neutral.astype(np.float32).ravel().tolist()])
+        got = np.frombuffer(base64.b64decode(out["data"]), np.uint8).reshape(out["dims"])
+        assert np.abs(got.astype(int) - th.run(x[None])[0]).max() <= 2
+        frames = page.evaluate("window.facesynth.state.frames")
+        page.wait_for_function(f"window.facesynth.state.frames > {frames + 10}", timeout=30000)  # still live
     assert blocked == []
 
 

@@ -34,7 +34,7 @@ centres (as the SVR does); Matern 3/2 adds one sqrt (its derivative in r is 0 at
 float32 cancellation in ``||s - c||^2`` near 0 does not matter). The centres are stored
 factored (:func:`factor_centres`): the aligned landmarks of one face span a few dozen
 dimensions, so the (N, D) centres become (N, r) coordinates in an r-dimensional basis, exact to
-float32 precision, with the kernel's matmul and the file r / D as large (55 of 972 on lp_d6).
+float32 precision, with the kernel's matmul and the file r / D as large (docs/sadm.md).
 
 Matern 3/2 instead of RBF: the same sigma-0 accuracy or slightly better on the validation
 slices with a smaller sigma 0 -> 2 loss (the figures are in docs/sadm.md): its
@@ -110,8 +110,7 @@ def factor_centres(c: np.ndarray, rtol: float = 1e-6) -> dict[str, np.ndarray]:
     centred centres' span, ``coords`` Q (N, r): their coordinates in it, and ``centres_sq``
     ||q_i||^2 (N,); r counts the singular values above ``rtol`` times the largest. Then
     ``||s - c_i||^2 = ||s - m||^2 + ||q_i||^2 - 2 ((s - m) P) . q_i`` for any s, the centres'
-    residual beyond P being below float32's rounding at the default ``rtol`` (on lp_d6's
-    avatar the factored distances are closer to float64's than the unfactored float32 ones)."""
+    residual beyond P being below float32's rounding at the default ``rtol``."""
     m = c.mean(0)
     u, sv, vt = np.linalg.svd(c - m, full_matrices=False)
     r = max(1, int((sv > rtol * sv[0]).sum())) if sv.size and sv[0] > 0 else 1

@@ -123,7 +123,7 @@ def split_avatar(model: str | Path, out: Path) -> None:
     """Write ``model`` into ``out`` as its graph (:data:`AVATAR`) and its weights beside it
     (:data:`AVATAR_DATA`, ONNX external data). onnxruntime-web then reads each weight straight
     into its tensor; from one whole file it first copies and parses the file in its WebAssembly
-    heap, which never shrinks: 31 MB more page memory for a 24 MB avatar (docs/web.md)."""
+    heap, which never shrinks (the page's memory, docs/web.md)."""
     import onnx
     from onnx import numpy_helper
 

@@ -77,8 +77,8 @@ class AvatarGraph {
 
 // Hand a spent buffer (an avatar frame, a model file once loaded) to the tracker's worker, which
 // drops it. V8 frees a large buffer only at a garbage collection, and this thread allocates too
-// little else to collect often: ~50 MB of spent frames piled up here (docs/web.md), and a loaded
-// avatar's weights stayed for good; the worker, collecting every few frames, frees them.
+// little else to collect often, so spent frames piled up here and a loaded avatar's weights
+// stayed (docs/web.md); the worker, collecting every few frames, frees them.
 function release(...buffers) {
   buffers = buffers.filter((b) => b instanceof ArrayBuffer);  // never wasm memory (a SharedArrayBuffer)
   if (state.worker && buffers.length) state.worker.postMessage({ type: 'spent', buffers }, buffers);
@@ -268,7 +268,7 @@ async function main() {
   state.formats = site.formats;
   // the avatar as built: its graph and its weights apart (ONNX external data), so that ONNX Runtime
   // reads each weight straight into its tensor instead of copying and parsing one whole file in a
-  // WebAssembly heap that never shrinks (31 MB less page memory for a 24 MB avatar, docs/web.md)
+  // WebAssembly heap that never shrinks (the page's memory, docs/web.md)
   let files = [];
   try {
     files = await Promise.all([site.avatar, site.avatar_data].map(async (f) => {
