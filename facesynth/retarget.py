@@ -21,7 +21,11 @@ P = 478; the FAP units and face axes are measured on their iBUG-68 view,
    :func:`iris_diameter`), and its displacement is multiplied by avatar unit / driver unit
    (:func:`facesynth.faps.fapu` of both neutrals), then put on the avatar's face axes and
    added to ``A_n``; on the FAP feature points this is exactly ``faps_to_landmarks(A_n,
-   compute_faps(D, D_n))`` along the FAP axes;
+   compute_faps(D, D_n))`` along the FAP axes. Facing eyelid points, and facing inner-lip
+   points, that would cross (an upper one below its lower one along the avatar's ``down``
+   axis) meet at their midpoint instead (:func:`closing_pairs`): a driver whose neutral
+   mouth is open, closing it, would otherwise fold the lips of an avatar whose neutral mouth
+   is closed (docs/reenact.md), and a blink on nearly shut eyes the eyelids;
 4. head motion (``motion="relative"``): ``C P C^-1`` applied to the result, with ``C`` the
    similarity from ``D_n`` to ``A_n`` (rigid points): the driver's rotation, scale change
    and translation (in avatar pixels) around the avatar's own neutral placement;
@@ -31,7 +35,9 @@ P = 478; the FAP units and face axes are measured on their iBUG-68 view,
    eye corners (the corners stay clamped): a clip's shape PCA spends its few components on
    head turns and the mouth, so the clamp would otherwise cut a driver's blinks and wide
    eyes (docs/reenact.md measures the eye-opening correlation with and without). Eyelid
-   motion changes no proportion of the face, and the fold-free warp renders any of it.
+   motion changes no proportion of the face, and the fold-free warp renders any of it. The
+   clamped shape can cross the inner lips again (a mouth the PCA does not reach): they are
+   uncrossed once more as in step 3, along the avatar's down axis moved with the head.
 
 ``motion="absolute"`` returns the driver's landmarks unchanged (the behaviour before
 retargeting; for self-driving and tests).
@@ -99,6 +105,14 @@ def eyelid_pairs(scheme: LandmarkScheme) -> tuple[np.ndarray, np.ndarray]:
     corner over the upper lid to the other corner (index n / 2) and back, so point k faces n - k."""
     right, left = facing_pairs(scheme.region("right_eye")), facing_pairs(scheme.region("left_eye"))
     return np.concatenate([right[0], left[0]]), np.concatenate([right[1], left[1]])
+
+
+def closing_pairs(scheme: LandmarkScheme) -> tuple[np.ndarray, np.ndarray]:
+    """(upper, lower) facing points that close onto each other: the eyelids of both eyes
+    (:func:`eyelid_pairs`) and the inner lips (the ``inner_lips`` ring, corner to corner over
+    the upper lip and back over the lower one)."""
+    lids, lips = eyelid_pairs(scheme), facing_pairs(scheme.region("inner_lips"))
+    return np.concatenate([lids[0], lips[0]]), np.concatenate([lids[1], lips[1]])
 
 
 def iris_diameter(scheme: LandmarkScheme, face: np.ndarray) -> float:
@@ -244,7 +258,7 @@ class Retargeter:
             ratio[FAPU_NAMES.index("IRISD")] = iris_diameter(sch, self.avatar_neutral) / iris_diameter(sch, self.driver_neutral)
         axes_d, axes_a = face_axes(d68), face_axes(a68)
         self._down = axes_a[1]
-        self._lid_up, self._lid_lo = eyelid_pairs(sch)
+        self._shut_up, self._shut_lo = closing_pairs(sch)
         # expression: disp_a = ((disp_d @ axes_d.T) * ratio_p) @ axes_a, one (2, 2) map per point
         units = POINT_UNITS if sch.name == "ibug68" else point_units(sch, self.avatar_neutral)
         scale = ratio[units]  # (P, 2)
@@ -255,18 +269,18 @@ class Retargeter:
         self._c_lin, self._c_t = c[:, :2], c[:, 2]
         self._c_inv_lin = np.linalg.inv(self._c_lin)
 
-    def _lids_apart(self, expr: np.ndarray) -> np.ndarray:
-        """Eyelids that would cross (an upper point below its lower one along the avatar's
-        ``down`` axis: a driver's blink on an avatar whose neutral eyes are nearly shut) meet
-        at their midpoint instead; (P, 2) -> (P, 2), unchanged where no lid crosses."""
-        du, dl = expr[self._lid_up] @ self._down, expr[self._lid_lo] @ self._down
+    def _uncrossed(self, expr: np.ndarray, down: np.ndarray) -> np.ndarray:
+        """Eyelids and inner lips (:func:`closing_pairs`) that would cross (an upper point
+        below its lower one along the unit axis ``down`` (2,)) meet at their midpoint instead;
+        (P, 2) -> (P, 2), unchanged where none crosses (module docstring, steps 3 and 5)."""
+        du, dl = expr[self._shut_up] @ down, expr[self._shut_lo] @ down
         cross = du > dl
         if not cross.any():
             return expr
         out = expr.copy()
         mid = 0.5 * (du + dl)
-        out[self._lid_up[cross]] += np.outer(mid[cross] - du[cross], self._down)
-        out[self._lid_lo[cross]] += np.outer(mid[cross] - dl[cross], self._down)
+        out[self._shut_up[cross]] += np.outer(mid[cross] - du[cross], down)
+        out[self._shut_lo[cross]] += np.outer(mid[cross] - dl[cross], down)
         return out
 
     def pose(self, frame: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -283,14 +297,17 @@ class Retargeter:
         inv_t = lin / (lin[0, 0] ** 2 + lin[1, 0] ** 2)  # transpose of the similarity's inverse
         disp = (frame - t) @ inv_t - self.driver_neutral  # expression in the driver's neutral frame
         expr = self.avatar_neutral + disp[:, 0:1] * self._e0 + disp[:, 1:2] * self._e1
-        expr = self._lids_apart(expr)
+        expr = self._uncrossed(expr, self._down)
         if not self.head_motion:
-            return expr if self.shape_space is None else self.shape_space.project(expr)
+            return expr if self.shape_space is None else self._uncrossed(self.shape_space.project(expr), self._down)
         # head motion C P C^-1 around the avatar's neutral placement
         m_lin = self._c_lin @ lin @ self._c_inv_lin
         m_t = self._c_lin @ (t - lin @ (self._c_inv_lin @ self._c_t)) + self._c_t
         out = expr @ m_lin.T + m_t
-        return out if self.shape_space is None else self.shape_space.project(out)
+        if self.shape_space is None:
+            return out
+        down = m_lin @ self._down  # the avatar's down axis, moved with the head
+        return self._uncrossed(self.shape_space.project(out), down / np.linalg.norm(down))
 
     def __call__(self, driver) -> np.ndarray:
         d = np.asarray(driver, np.float64)

@@ -225,3 +225,70 @@ def test_shape_space_keeps_the_eyelids_relative_to_their_corners():
         assert np.abs(local(cut, eye) - local(wide, eye)).max() > 1e-3  # without: the clamp moves the lids too
     others = [i for i in range(68) if i not in RIGHT_EYE + LEFT_EYE]
     np.testing.assert_allclose(kept[others], cut[others], atol=1e-12)  # the rest of the face is clamped alike
+
+
+def _mouth_closing_case(turn: float):
+    """A driver whose neutral mouth is open (inner lips 8 px apart) closes it, its head turned by
+    ``turn`` rad; the avatar's neutral mouth is closed (1 px): the driver's displacement alone
+    would put the avatar's lower inner lip above its upper one."""
+    lm = _faces()
+    up, lo = [61, 62, 63], [67, 66, 65]
+    driver_n, avatar = lm[0].copy(), lm[1].copy()
+    driver_n[lo, 1] = driver_n[up, 1] + 8.0
+    avatar[lo, 1] = avatar[up, 1] + 1.0
+    frame = driver_n.copy()
+    frame[lo, 1] = frame[up, 1]  # closed
+    c = frame.mean(0)
+    rot = np.array([[np.cos(turn), -np.sin(turn)], [np.sin(turn), np.cos(turn)]])
+    return driver_n, avatar, (frame - c) @ rot.T + c, rot, up, lo
+
+
+@pytest.mark.parametrize("turn", [0.0, 0.3])
+def test_inner_lips_meet_instead_of_crossing(turn):
+    """Facing inner-lip points that would cross meet at their midpoint (a closed mouth), along
+    the avatar's down axis moved with the head; without that step they cross by ~6 px."""
+    from facesynth.retarget import Retargeter
+
+    driver_n, avatar, frame, rot, up, lo = _mouth_closing_case(turn)
+    r = Retargeter(avatar, driver_n)
+    out = r(frame[None])[0].astype(np.float64)
+    down = rot @ r._down
+    gap = (out[lo] - out[up]) @ down
+    np.testing.assert_allclose(gap, 0.0, atol=1e-3)  # they meet
+    naive = r._uncrossed
+    r._uncrossed = lambda expr, d: expr  # the displacement alone
+    crossed = r(frame[None])[0].astype(np.float64)
+    r._uncrossed = naive
+    assert ((crossed[lo] - crossed[up]) @ down).max() < -4.0
+
+
+def test_the_graph_uncrosses_the_lips_as_numpy_does():
+    """RetargetGraph (the talking-head file's retargeting) against Retargeter on the closing
+    mouth, head turned, through a shape clamp that moves the mouth (step 5 uncrosses again)."""
+    import torch
+
+    from facesynth.onnx.head_parts import RetargetGraph
+    from facesynth.retarget import Retargeter, ShapeSpace
+
+    driver_n, avatar, frame, rot, up, lo = _mouth_closing_case(0.3)
+    rng = np.random.default_rng(2)
+    mean = avatar - avatar.mean(0)
+    mean[lo, 1] = mean[up, 1] - 8.0  # a model whose mean mouth is folded
+    mean = (mean / np.linalg.norm(mean)).reshape(-1)
+    lips = np.zeros((68, 2))
+    lips[lo, 1] = 1.0  # its first component opens the mouth, so clamping it folds the mouth again
+    comps = np.c_[lips.reshape(-1), rng.normal(size=(136, 2))].T
+    comps -= np.outer(comps @ mean, mean)
+    comps = np.linalg.qr(comps.T)[0].T
+    space = ShapeSpace(mean, comps, np.array([1e-4, 1e-4, 1e-4]))
+    r = Retargeter(avatar, driver_n, shape_space=space)
+    want = r(frame[None])[0]
+    down = rot @ r._down
+    np.testing.assert_allclose((want[lo] - want[up]) @ down, 0.0, atol=1e-3)
+    r.shape_space = None
+    clamped = space.project(r(frame[None])[0].astype(np.float64))
+    assert ((clamped[lo] - clamped[up]) @ down).max() < -1.0  # the clamp alone crosses them
+    g = RetargetGraph(avatar, space).eval()
+    with torch.no_grad():
+        got = g(torch.from_numpy(frame[None].astype(np.float32)), torch.from_numpy(driver_n.astype(np.float32)))[0].numpy()
+    np.testing.assert_allclose(got, want, atol=0.02)

@@ -29,7 +29,7 @@ from facesynth.landmarks import IBUG68, LandmarkScheme, ibug68_view, scheme_for_
 from facesynth.model.warp import invert_affine_t, similarity_to
 from facesynth.model.warp_target import ToTarget
 from facesynth.ops import pad_by_tensor, slice_by_tensor
-from facesynth.retarget import POINT_UNITS, ShapeSpace, eye_patches, eyelid_pairs, iris_diameter, point_units, rigid_points
+from facesynth.retarget import POINT_UNITS, ShapeSpace, closing_pairs, eye_patches, iris_diameter, point_units, rigid_points
 from facesynth.runtime.blend import MIN_BAND, gaussian_kernel
 from facesynth.runtime.fullframe import HEAD_POINTS, FrameWarp
 
@@ -92,10 +92,10 @@ class RetargetGraph(nn.Module):
         self.register_buffer("units", _const(onehot))
         self.rigid = rigid_points(scheme)
         self.register_buffer("an_rigid", _const(an[self.rigid]))
-        up, lo = eyelid_pairs(scheme)
-        self.lid_up, self.lid_lo = [int(i) for i in up], [int(i) for i in lo]
-        self.register_buffer("put_up", _scatter(self.lid_up, len(an)))
-        self.register_buffer("put_lo", _scatter(self.lid_lo, len(an)))
+        up, lo = closing_pairs(scheme)
+        self.shut_up, self.shut_lo = [int(i) for i in up], [int(i) for i in lo]
+        self.register_buffer("put_up", _scatter(self.shut_up, len(an)))
+        self.register_buffer("put_lo", _scatter(self.shut_lo, len(an)))
         self.space = shape_space
         if shape_space is not None:
             s = shape_space
@@ -151,7 +151,7 @@ class RetargetGraph(nn.Module):
         inv_t = lin / (ca * ca + sa * sa)[:, None, None]
         disp = torch.matmul(driver - t.unsqueeze(1), inv_t) - neutral
         expr = self.an + disp[..., 0:1] * e0 + disp[..., 1:2] * e1
-        expr = self._lids_apart(expr)
+        expr = self._uncrossed(expr, self.axes_a[1])
         # head motion C P C^-1 around the avatar's neutral placement
         c = similarity_to(dn.unsqueeze(0), self.an_rigid)[0]  # (2, 3) driver -> avatar
         c_lin, c_t = c[:, :2], c[:, 2]
@@ -160,11 +160,14 @@ class RetargetGraph(nn.Module):
         m_lin = torch.matmul(torch.matmul(c_lin, lin), c_inv)
         m_t = torch.matmul(c_lin, (t - torch.matmul(lin, torch.matmul(c_inv, c_t))).unsqueeze(-1))[..., 0] + c_t
         out = _apply(expr, m_lin, m_t)
-        return out if self.space is None else self._project(out)
+        if self.space is None:
+            return out
+        down = torch.matmul(m_lin, self.axes_a[1])  # (B, 2): the avatar's down axis, moved with the head
+        down = down / torch.sqrt((down * down).sum(-1, keepdim=True))
+        return self._uncrossed(self._project(out), down.unsqueeze(1))
 
-    def _lids_apart(self, expr: torch.Tensor) -> torch.Tensor:
-        down = self.axes_a[1]
-        up, lo = expr[:, self.lid_up], expr[:, self.lid_lo]
+    def _uncrossed(self, expr: torch.Tensor, down: torch.Tensor) -> torch.Tensor:  # Retargeter._uncrossed
+        up, lo = expr[:, self.shut_up], expr[:, self.shut_lo]
         du, dl = (up * down).sum(-1, keepdim=True), (lo * down).sum(-1, keepdim=True)
         cross = du > dl
         mid = 0.5 * (du + dl)
