@@ -41,15 +41,20 @@ def strip_tiles(syn, seq, rows: np.ndarray, height: int = 128, margin: float = 0
         crops, masks, places = (t.numpy() for t in syn(torch.from_numpy(lm)))
     tiles = []
     for j, frame in enumerate(seq.iter_frames(rows)):
-        h, w = frame.shape[:2]
-        x0, y0 = np.maximum(np.floor(lo - pad).astype(int), 0)
-        x1, y1 = np.minimum(np.ceil(hi + pad).astype(int), [w, h])
         shown = blend_face(crop_rgb(crops, j), masks[j, 0], places[j].astype(np.float64), frame)
-        size = (max(1, round((x1 - x0) * height / (y1 - y0))), height)
-        tiles.append({"frame": int(rows[j]),
-                      "real": cv2.resize(frame[y0:y1, x0:x1], size, interpolation=cv2.INTER_AREA),
-                      "synth": cv2.resize(shown[y0:y1, x0:x1], size, interpolation=cv2.INTER_AREA)})
+        tiles.append(box_tile(int(rows[j]), frame, shown, lo - pad, hi + pad, height))
     return tiles
+
+
+def box_tile(row: int, real: np.ndarray, synth: np.ndarray, lo, hi, height: int) -> dict:
+    """A strip tile: the box ``lo``..``hi`` (x, y frame pixels, clipped to the frame) of the
+    real frame and the rendered one, both uint8 (H, W, 3), scaled to ``height`` pixels high."""
+    h, w = real.shape[:2]
+    x0, y0 = np.maximum(np.floor(lo).astype(int), 0)
+    x1, y1 = np.minimum(np.ceil(hi).astype(int), [w, h])
+    size = (max(1, round((x1 - x0) * height / (y1 - y0))), height)
+    return {"frame": row, "real": cv2.resize(real[y0:y1, x0:x1], size, interpolation=cv2.INTER_AREA),
+            "synth": cv2.resize(synth[y0:y1, x0:x1], size, interpolation=cv2.INTER_AREA)}
 
 
 def write_strip(tiles: list[dict], path) -> None:

@@ -16,10 +16,10 @@ over the whole frame, mean over up to ``frames`` evenly spaced held-out frames
 
 from __future__ import annotations
 
-import cv2
 import numpy as np
 import torch
 
+from facesynth.eval.strip import box_tile
 from facesynth.imaging import crop_rgb
 from facesynth.landmarks import ibug68_view
 from facesynth.metrics import psnr, ssim
@@ -80,10 +80,4 @@ def _tiles(pairs: list, height: int, margin: float = 0.6) -> list[dict]:
     pts = np.concatenate([p[3] for p in pairs])
     lo, hi = pts.min(0), pts.max(0)
     pad = margin * (hi - lo)
-    h, w = pairs[0][1].shape[:2]
-    x0, y0 = np.maximum(np.floor(lo - pad).astype(int), 0)
-    x1, y1 = np.minimum(np.ceil(hi + pad).astype(int), [w, h])
-    size = (max(1, round((x1 - x0) * height / (y1 - y0))), height)
-    return [{"frame": row, "real": cv2.resize(real[y0:y1, x0:x1], size, interpolation=cv2.INTER_AREA),
-             "synth": cv2.resize(full[y0:y1, x0:x1], size, interpolation=cv2.INTER_AREA)}
-            for row, real, full, _ in pairs]
+    return [box_tile(row, real, full, lo - pad, hi + pad, height) for row, real, full, _ in pairs]

@@ -55,8 +55,7 @@ def _crop(rgb: np.ndarray, m: np.ndarray, out: int) -> np.ndarray:
     """(1, out, out, 3) float32 in [0, 1]: ``rgb`` sampled bilinearly at M(u, v) + (0.5, 0.5),
     zeros outside. MediaPipe maps its crop onto the image in continuous coordinates (a pixel's
     left edge at 0) and samples there as if they were pixel centres: half a pixel right and down
-    of M(u, v) in ours. Measured: without the shift the points sit (0.49, 0.49) px from MediaPipe's
-    on vrt_face1; with it 0.04 px median."""
+    of M(u, v) in ours (without the shift the points sit half a pixel off, docs/web.md)."""
     sample = m + np.array([[0, 0, 0.5], [0, 0, 0.5]])
     img = cv2.warpAffine(rgb, sample, (out, out), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
                          borderMode=cv2.BORDER_CONSTANT)
