@@ -5,12 +5,12 @@ headless system Chromium with the clip's first ``--frames`` frames (looped) as t
 blocks every request off 127.0.0.1, waits for the first avatar frame, then measures for
 ``--seconds``:
 
-* ``tracker_ms`` / ``avatar_ms`` / ``composite_ms``: per frame, ``wall`` (the page's own
-  ``performance.now()`` timings, median) and ``cpu``: CPU time of the renderer's threads per
-  rendered frame from /proc (the tracker's worker thread; the page's main thread, which runs
-  both the avatar graph and the composite, so its figure is under ``avatar_ms`` and
-  ``composite_ms.cpu`` is null); ``renderer_cpu_ms`` all renderer threads, ``chromium_cpu_ms``
-  every Chromium process;
+* ``tracker_ms`` / ``avatar_ms`` / ``composite_ms``: per frame, the page's own
+  ``performance.now()`` timings (median): the worker's tracking and its talking-head run, and the
+  page's copy of the frame into the canvas; ``worker_cpu_ms`` / ``main_cpu_ms``: CPU time per
+  rendered frame from /proc of the worker's thread (tracker + avatar: the pipeline stage) and of
+  the page's main thread (drawing, neutral capture, messages); ``renderer_cpu_ms`` all renderer
+  threads, ``chromium_cpu_ms`` every Chromium process;
 * ``e2e_fps``: rendered avatar frames per second of wall time; ``frames``: frames rendered;
 * ``load_s``: page open -> first avatar frame (includes the ~1 s neutral capture, ``neutral_s``);
 * ``page_mb``: the page's memory: its renderer process's own resident memory (RssAnon: what
@@ -24,9 +24,8 @@ blocks every request off 127.0.0.1, waits for the first avatar frame, then measu
   thread, the same talking-head file (:class:`facesynth.runtime.TalkingHead`) with the avatar's
   neutral as driver and driver neutral, median of 200 runs in this process;
   ``avatar_alone_ms``: the page's run of the same file on the same landmarks with the tracker
-  paused (median of 100, ``performance.now()``), and ``avatar_vs_python`` their ratio (the live
-  ``avatar_ms`` runs beside the tracker). ``composite_ms``: the page's copy of the graph's RGB
-  frame into the canvas (RGBA, ``putImageData``).
+  paused (median of 100, ``performance.now()``, the worker's message round trip included), and
+  ``avatar_vs_python`` their ratio.
 
     PYTHONPATH=. python bench/bench_web.py --model M.onnx --video CLIP.mp4 [--seconds 10]
 
@@ -195,9 +194,8 @@ def main() -> None:
     med = lambda k: round(float(np.median(st[k][-n:])), 2) if st[k] else None  # noqa: E731
     out = {
         "bench": "web", "model": str(args.model), "video": str(args.video), "size": list(size),
-        "tracker_ms": {"wall": med("trackerMs"), "cpu": round(worker, 2)},
-        "avatar_ms": {"wall": med("avatarMs"), "cpu": round(main_thread, 2), "cpu_is": "page main thread: avatar + composite"},
-        "composite_ms": {"wall": med("compositeMs"), "cpu": None},
+        "tracker_ms": med("trackerMs"), "avatar_ms": med("avatarMs"), "composite_ms": med("compositeMs"),
+        "worker_cpu_ms": round(worker, 2), "main_cpu_ms": round(main_thread, 2),
         "latency_ms": med("latencyMs"),
         "renderer_cpu_ms": round(sum(d.values()), 2),
         "chromium_cpu_ms": round((p1 - p0) * 1e3 / n, 2),

@@ -100,7 +100,7 @@ def test_wheel_installed_outside_the_checkout_trains_exports_renders_and_batches
     if shutil.which("npm") and find_spec("tflite") and find_spec("mediapipe"):
         run("facesynth", "web", "setup")  # npm ci of the wheel's lockfile, beside the installed page
         run("facesynth", "web", "build", work / "head.onnx", work / "site")
-        for f in ("index.html", "tracker.js", "ort/ort-wasm-simd-threaded.wasm", "models/face_landmark.onnx", "avatar.onnx",
+        for f in ("index.html", "worker.js", "tracker.js", "ort/ort-wasm-simd-threaded.wasm", "models/face_landmark.onnx", "avatar.onnx",
                   "avatar.onnx.data"):
             assert (work / "site" / f).is_file(), f
 

@@ -198,8 +198,9 @@ def test_error_messages(page_site, camera, tmp_path):
 
 def test_page_tracker_matches_its_reference_and_mediapipe(page_site, shared_clip_dir, tmp_path):
     """The worker's tracker (tracker.js) on lp_d3's first frames, fed as pixels through its replay
-    hook, against its numpy reference (facesynth.web.track) and against ``facesynth ingest
-    --landmarker mediapipe``'s settings (MediaPipe, refine_landmarks=True)."""
+    hook (whole, and read only in its region as live frames are), against its numpy reference
+    (facesynth.web.track) and against ``facesynth ingest --landmarker mediapipe``'s settings
+    (MediaPipe, refine_landmarks=True)."""
     import base64
 
     import cv2
@@ -219,9 +220,12 @@ def test_page_tracker_matches_its_reference_and_mediapipe(page_site, shared_clip
         page.goto(url)
         page.wait_for_function("window.facesynth && typeof window.facesynth.track === 'function'")
         got = page.evaluate("([w, h, f]) => window.facesynth.track(w, h, f)", [w, h, rgba])
+        boxed = page.evaluate("([w, h, f]) => window.facesynth.track(w, h, f, true)", [w, h, rgba])
     assert blocked == []
     assert all(g is not None for g in got)
     js = np.array(got, np.float32).reshape(len(frames), 478, 2)
+    # live frames are read only in the tracker's region: the same points as from the whole frame
+    assert np.abs(np.array(boxed, np.float32).reshape(js.shape) - js).max() < 1e-3
     ref = OnnxFaceTracker(Path(page_site) / "models")
     py = np.array([ref.track(f) for f in frames])
     assert np.median(np.linalg.norm(js - py, axis=2)) < 0.25

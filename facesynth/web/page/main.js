@@ -1,39 +1,36 @@
 // facesynth live: the webcam drives an avatar, on the CPU (WebAssembly), offline.
-// The tracker runs in a worker (tracker.js); this page runs the avatar graph and draws it.
-import * as ort from './ort/ort.wasm.min.mjs';
+// One worker (worker.js) tracks each camera frame and renders the avatar from it, in one ONNX
+// Runtime instance; this page captures the driver's neutral, draws the frames and records them.
 import { onnxMetadata } from './onnxmeta.js';
 
 const NEUTRAL_MS = 1000, NO_FACE_FRAMES = 15;
 const base = new URL('.', location.href).href;
 const $ = (id) => document.getElementById(id);
 const state = { frames: 0, trackerMs: [], avatarMs: [], compositeMs: [], latencyMs: [], messages: [], firstFrameMs: null,
-  avatar: null, neutral: null, neutralSamples: [], neutralStart: null, noFace: 0, busy: false, ready: false };
+  avatar: null, neutral: null, neutralSamples: [], neutralStart: null, noFace: 0, busy: false, ready: false,
+  calls: 0, pending: new Map() };
 window.facesynth = { state };
 
 function message(text, error = false) {
+  const last = state.messages[state.messages.length - 1];
+  if (last && last.text === text && last.error === error) return;  // a repeated error is shown once
   const el = $('message');
   el.textContent = text;
   el.className = error ? 'error' : '';
   state.messages.push({ text, error });
 }
 
-// Driver points (478, MediaPipe's order) -> the avatar's scheme, with the landmark tables of the project.
-function toScheme(points, scheme, schemes) {
-  if (scheme === 'mediapipe478') return points;
-  const rows = schemes[scheme].to_ibug68, out = new Float32Array(rows.length * 2);
-  rows.forEach((row, i) => { for (const [j, w] of row) { out[2 * i] += w * points[2 * j]; out[2 * i + 1] += w * points[2 * j + 1]; } });
-  return out;
-}
 const SCHEMES = ['ibug68', 'mediapipe478'];  // the avatars the tracker's 478 points drive
 
 // The avatar: one talking-head graph (facesynth export RUN --talking-head): driver landmarks (1, P, 2)
 // and the driver's neutral (P, 2) -> the avatar's whole frame (1, H, W, 3) uint8, its head warped
 // with the face. The retargeting, the shape clamp, the synthesis, the warp and the seam are all in
-// the graph (Python's facesynth.runtime.TalkingHead runs the same file); the page only maps the
-// tracker's points to the avatar's scheme and draws the frame.
+// the graph (Python's facesynth.runtime.TalkingHead runs the same file), which the worker runs; the
+// page checks the file, keeps its metadata and draws the frames.
 class AvatarGraph {
-  // externalData: the weights file beside a split avatar ([{ path, data }], as the page's own
-  // avatar is built), or undefined for a whole .onnx file (one dropped on the page)
+  // externalData: the weights file beside a split avatar ({ path, data: ArrayBuffer }, as the page's
+  // own avatar is built), or undefined for a whole .onnx file (one dropped on the page); the buffers
+  // go to the worker
   static async create(buffer, name, schemes, formats, externalData) {
     let meta;
     try { meta = onnxMetadata(buffer); } catch (e) { throw new Error(`${name} is not an ONNX file (${e.message})`); }
@@ -42,45 +39,46 @@ class AvatarGraph {
     const scheme = meta.landmark_scheme;
     if (!SCHEMES.includes(scheme) || !(scheme in schemes)) throw new Error(`${name}: its landmark scheme ${scheme} cannot be driven by the page's tracker (MediaPipe 478 points; it drives mediapipe478 and ibug68 avatars)`);
     if (!Array.isArray(meta.frame_size) || !meta.background_jpeg) throw new Error(`${name}: a talking head without its frame size and neutral frame (re-export it)`);
-    let session;
-    try { session = await ort.InferenceSession.create(buffer, { executionProviders: ['wasm'], ...(externalData && { externalData }) }); }
-    catch (e) { throw new Error(`${name} is corrupt: ONNX Runtime cannot load it (${e.message || e})`); }
+    const n = schemes[scheme].n_points, rows = scheme === 'mediapipe478' ? null : schemes[scheme].to_ibug68;
+    const weights = externalData?.data, files = [buffer, weights].filter(Boolean);
+    await call('avatar', { graph: buffer, weights, weightsPath: externalData?.path, name, n, rows }, files);  // the worker's now
     const bg = new Image();
     bg.src = 'data:image/jpeg;base64,' + meta.background_jpeg;
     await bg.decode();
     const g = new AvatarGraph();
-    Object.assign(g, { name, meta, scheme, session, schemes, bg, n: schemes[scheme].n_points });
+    Object.assign(g, { name, meta, scheme, bg, n });
     [g.width, g.height] = meta.frame_size;
     g.rgba = new ImageData(g.width, g.height);
     return g;
   }
 
-  // driver points and the driver's neutral, both in the avatar's scheme (P x 2 flat) -> frame (uint8 H x W x 3)
+  // driver points and the driver's neutral, both in the avatar's scheme (P x 2 flat) -> frame {data: uint8 H x W x 3, dims}
   async render(driver, neutral) {
-    const out = await this.session.run({ driver: new ort.Tensor('float32', driver, [1, this.n, 2]),
-      driver_neutral: new ort.Tensor('float32', neutral, [this.n, 2]) });
-    return out.frame;
+    return call('render', { driver, neutral });
   }
 
-  async run(driver, driverNeutral, ctx) {
-    const d = toScheme(driver, this.scheme, this.schemes), dn = toScheme(driverNeutral, this.scheme, this.schemes);
-    const t0 = performance.now();
-    const frame = await this.render(d, dn);
-    const t1 = performance.now();
+  // one frame from the worker -> the canvas (RGBA)
+  draw(frame, ctx) {
     const src = frame.data, px = this.rgba.data, hw = this.width * this.height;
     for (let i = 0, j = 0; i < hw; i++, j += 3) { px[4 * i] = src[j]; px[4 * i + 1] = src[j + 1]; px[4 * i + 2] = src[j + 2]; px[4 * i + 3] = 255; }
     ctx.putImageData(this.rgba, 0, 0);
-    release(src.buffer);
-    return { avatarMs: t1 - t0, compositeMs: performance.now() - t1 };
   }
 }
 
-// Hand a spent buffer (an avatar frame, a model file once loaded) to the tracker's worker, which
-// drops it. V8 frees a large buffer only at a garbage collection, and this thread allocates too
-// little else to collect often, so spent frames piled up here and a loaded avatar's weights
-// stayed (docs/web.md); the worker, collecting every few frames, frees them.
+// A request to the worker, answered by a message with the same id.
+function call(type, payload, transfer = []) {
+  const id = ++state.calls;
+  return new Promise((resolve, reject) => {
+    state.pending.set(id, { resolve, reject });
+    state.worker.postMessage({ type, id, ...payload }, transfer);
+  });
+}
+
+// Hand a spent buffer (a drawn avatar frame) back to the worker, which drops it. V8 frees a large
+// buffer only at a garbage collection, and this thread allocates too little else to collect often,
+// so spent frames piled up here (docs/web.md); the worker, collecting every few frames, frees them.
 function release(...buffers) {
-  buffers = buffers.filter((b) => b instanceof ArrayBuffer);  // never wasm memory (a SharedArrayBuffer)
+  buffers = buffers.filter((b) => b instanceof ArrayBuffer && b.byteLength);  // never wasm memory (a SharedArrayBuffer), nor one sent
   if (state.worker && buffers.length) state.worker.postMessage({ type: 'spent', buffers }, buffers);
 }
 
@@ -104,9 +102,10 @@ window.facesynth.render = async (driver, neutral) => {
 };
 
 // replay hook for tests and tools: frames of RGBA pixels (base64) through a tracker worker of its own
-// (its tracking state apart from the camera's) -> each frame's points (478 x 2 flat) or null
-window.facesynth.track = async (width, height, frames) => {
-  const w = new Worker('tracker.js', { type: 'module' });
+// (its tracking state apart from the camera's) -> each frame's points (478 x 2 flat) or null;
+// region: each frame read only where the tracker looks, as the camera's frames are
+window.facesynth.track = async (width, height, frames, region = false) => {
+  const w = new Worker('worker.js', { type: 'module' });
   const reply = () => new Promise((resolve, reject) => {
     w.onmessage = (ev) => (ev.data.type === 'error' ? reject(new Error(ev.data.message)) : resolve(ev.data));
   });
@@ -117,7 +116,7 @@ window.facesynth.track = async (width, height, frames) => {
   for (const b64 of frames) {
     const data = Uint8Array.from(atob(b64), (c) => c.charCodeAt(0)).buffer;
     r = reply();
-    w.postMessage({ type: 'pixels', data, width, height }, [data]);
+    w.postMessage({ type: 'pixels', id: 1, data, width, height, region }, [data]);
     const m = await r;
     out.push(m.points ? Array.from(m.points) : null);
   }
@@ -127,6 +126,7 @@ window.facesynth.track = async (width, height, frames) => {
 
 function captureNeutral() {
   state.neutral = null; state.neutralSamples = []; state.neutralStart = null;
+  state.worker.postMessage({ type: 'neutral', points: null });
   message('Look at the camera with a neutral face...');
 }
 
@@ -138,7 +138,7 @@ function median(rows) {
 
 const recent = (arr, v) => { arr.push(v); if (arr.length > 300) arr.shift(); };
 
-async function onPoints(msg) {
+function onPoints(msg) {
   state.busy = false;
   sendFrame();
   recent(state.trackerMs, msg.ms);
@@ -154,43 +154,36 @@ async function onPoints(msg) {
     state.neutralSamples.push(msg.points);
     if (performance.now() - state.neutralStart >= NEUTRAL_MS && state.neutralSamples.length >= 3) {
       state.neutral = median(state.neutralSamples);
+      state.worker.postMessage({ type: 'neutral', points: state.neutral });
       message('Live.');
       $('neutral').disabled = false; $('record').disabled = false;
     }
     return;
   }
-  if (!state.avatar) return;
-  state.latest = msg;  // one avatar run at a time, on the newest points (older ones are dropped)
-  if (state.rendering) return;
-  state.rendering = true;
-  try {
-    while (state.latest) {
-      const m = state.latest;
-      state.latest = null;
-      await renderAvatar(m);
-    }
-  } finally {
-    state.rendering = false;
+}
+
+function onFrame(msg) {
+  const g = state.avatar;
+  if (g && msg.dims[1] === g.height && msg.dims[2] === g.width) {  // not a frame of an avatar just replaced
+    const t0 = performance.now();
+    g.draw(msg, state.ctx);
+    recent(state.avatarMs, msg.ms); recent(state.compositeMs, performance.now() - t0);
+    const now = performance.now();
+    recent(state.latencyMs, now - msg.t);
+    state.frames++;
+    state.firstFrameMs ??= now;
+    state.frameTimes = (state.frameTimes || []).filter((t) => t > now - 1000).concat(now);
+    const avg = (a) => (a.slice(-30).reduce((x, y) => x + y, 0) / Math.min(a.length, 30)).toFixed(1);
+    $('stats').textContent = `${state.frameTimes.length} frames/s, latency ${avg(state.latencyMs)} ms ` +
+      `(tracker ${avg(state.trackerMs)}, avatar ${avg(state.avatarMs)}, composite ${avg(state.compositeMs)} ms)`;
   }
+  release(msg.data.buffer);
 }
 
-async function renderAvatar(msg) {
-  const r = await state.avatar.run(msg.points, state.neutral, state.ctx);
-  recent(state.avatarMs, r.avatarMs); recent(state.compositeMs, r.compositeMs);
-  const now = performance.now();
-  recent(state.latencyMs, now - msg.t);
-  state.frames++;
-  state.firstFrameMs ??= now;
-  state.frameTimes = (state.frameTimes || []).filter((t) => t > now - 1000).concat(now);
-  const avg = (a) => (a.slice(-30).reduce((x, y) => x + y, 0) / Math.min(a.length, 30)).toFixed(1);
-  $('stats').textContent = `${state.frameTimes.length} frames/s, latency ${avg(state.latencyMs)} ms ` +
-    `(tracker ${avg(state.trackerMs)}, avatar ${avg(state.avatarMs)}, composite ${avg(state.compositeMs)} ms)`;
-}
-
-// Send the camera's newest frame to the tracker when it is idle and the frame is new. Called when
-// the camera has a frame (requestVideoFrameCallback, or each animation frame where that is
-// missing) and as soon as the tracker answers, before the avatar renders the answer: the tracker
-// works on frame n + 1 while the page renders frame n.
+// Send the camera's newest frame to the worker when its tracker is idle and the frame is new.
+// Called when the camera has a frame (requestVideoFrameCallback, or each animation frame where
+// that is missing) and as soon as the tracker answers, before the worker renders the answer: the
+// next frame is read from the camera while the avatar renders.
 function sendFrame() {
   const v = $('camera');
   if (!state.ready || state.busy || v.readyState < 2 || v.currentTime === state.lastTime) return;
@@ -258,37 +251,41 @@ function setupDrop() {
 
 async function main() {
   if (typeof WebAssembly !== 'object') { message('WebAssembly is unavailable in this browser: the page needs it to run the models.', true); return; }
-  ort.env.wasm.wasmPaths = base + 'ort/';
-  ort.env.wasm.numThreads = 1;
   setupDrop(); setupRecording();
   $('neutral').onclick = captureNeutral;
   $('showcam').onchange = (e) => { $('camera').style.display = e.target.checked ? '' : 'none'; };
+  state.worker = new Worker('worker.js', { type: 'module' });
+  const workerReady = new Promise((resolve, reject) => {
+    state.worker.onmessage = (ev) => {
+      const m = ev.data, p = state.pending.get(m.id);
+      if (m.type === 'ready') resolve();
+      else if (m.type === 'points') onPoints(m);
+      else if (m.type === 'frame') onFrame(m);
+      else if (p) { state.pending.delete(m.id); if (m.type === 'error') p.reject(new Error(m.message)); else p.resolve(m); }
+      else if (m.type === 'error') { state.busy = false; message(`Worker error: ${m.message}`, true); reject(new Error(m.message)); }
+    };
+  });
+  state.worker.onerror = (e) => {  // the worker's script itself failed (a broken or partial page folder)
+    const err = new Error(`The page's worker failed to start (${e.message || 'worker.js'}): rebuild the page.`);
+    for (const p of state.pending.values()) p.reject(err);
+    state.pending.clear();
+    message(err.message, true);
+  };
+  state.worker.postMessage({ type: 'init', base });
   const site = await (await fetch('site.json')).json();
   state.schemes = await (await fetch('schemes.json')).json();
   state.formats = site.formats;
   // the avatar as built: its graph and its weights apart (ONNX external data), so that ONNX Runtime
   // reads each weight straight into its tensor instead of copying and parsing one whole file in a
   // WebAssembly heap that never shrinks (the page's memory, docs/web.md)
-  let files = [];
   try {
-    files = await Promise.all([site.avatar, site.avatar_data].map(async (f) => {
+    const files = await Promise.all([site.avatar, site.avatar_data].map(async (f) => {
       const r = await fetch(f);
       if (!r.ok) throw new Error(`The page's avatar file ${f} is missing (HTTP ${r.status}): rebuild the page.`);
       return r.arrayBuffer();
     }));
-    await loadAvatar(files[0], site.avatar_name, [{ path: site.avatar_data, data: new Uint8Array(files[1]) }]);
+    await loadAvatar(files[0], site.avatar_name, { path: site.avatar_data, data: files[1] });
   } catch (e) { message(e.message, true); }
-  state.worker = new Worker('tracker.js', { type: 'module' });
-  release(...files);
-  const workerReady = new Promise((resolve, reject) => {
-    state.worker.onmessage = (ev) => {
-      const m = ev.data;
-      if (m.type === 'ready') resolve();
-      else if (m.type === 'points') onPoints(m).catch((e) => message(`Avatar error: ${e.message}`, true));
-      else if (m.type === 'error') { state.busy = false; message(`Tracker error: ${m.message}`, true); reject(new Error(m.message)); }
-    };
-  });
-  state.worker.postMessage({ type: 'init', base });
   try { await startCamera(); } catch (e) { message(e.message, true); window.facesynth.cameraError = e.message; return; }
   await workerReady;
   state.ready = true;

@@ -1,15 +1,10 @@
-// The face tracker, in a Web Worker: MediaPipe's detector and attention mesh (478 points with
-// irises, the model of `facesynth ingest --landmarker mediapipe`; converted to ONNX at build
-// time, refined inside the graph) with MediaPipe's crop-and-track steps. Mirrors
-// facesynth/web/track.py step for step (its Python reference, tested against MediaPipe).
-// Messages in: {type:'init', base}, {type:'frame', bitmap, t}, {type:'pixels', data, width, height}, {type:'reset'}.
-// Out: {type:'ready'}, {type:'points', points: Float32Array(478*2) | null, t, ms} ('tracked' for 'pixels'),
-// {type:'error', message}.
+// The face tracker: MediaPipe's detector and attention mesh (478 points with irises, the model of
+// `facesynth ingest --landmarker mediapipe`; converted to ONNX at build time, refined inside the
+// graph) with MediaPipe's crop-and-track steps. Mirrors facesynth/web/track.py step for step (its
+// Python reference, tested against MediaPipe). Runs in the page's worker (worker.js).
 import * as ort from './ort/ort.wasm.min.mjs';
 
 const MESH = 192, DET = 128, FACE_SCALE = 1.5;
-let det, mesh, anchors, prev = null, canvas, ctx;
-const stage = {};
 
 function makeAnchors() {
   const out = [];
@@ -28,14 +23,18 @@ export function cropMatrix(cx, cy, ang, size, out) {
 }
 const apply = (m, x, y) => [m[0] * x + m[1] * y + m[2], m[3] * x + m[4] * y + m[5]];
 
+const crops = {};  // one input buffer per crop size, rewritten by each crop (ONNX Runtime copies it in)
+
 // bilinear sampling of an RGBA frame at M(u, v) + 0.5 (track._crop: cv2.warpAffine, zeros outside),
-// scaled from [0, 255] to [lo, hi]; (1, out, out, 3) float32
+// scaled from [0, 255] to [lo, hi]; (1, out, out, 3) float32. img: {data, width, height, x?, y?}, the
+// frame or a region of it at (x, y) that holds every pixel the crop reads inside the frame (region())
 function crop(img, m, out, lo, hi) {
-  const { data, width: W, height: H } = img, t = new Float32Array(out * out * 3), sc = (hi - lo) / 255;
+  const { data, width: W, height: H } = img, sc = (hi - lo) / 255;
+  const t = (crops[out] ??= new Float32Array(out * out * 3)), ox = img.x || 0, oy = img.y || 0;
   const px = (xx, yy) => (xx < 0 || yy < 0 || xx >= W || yy >= H ? -1 : (yy * W + xx) * 4);
   let o = 0;
   for (let v = 0; v < out; v++) {
-    let x = m[1] * v + m[2] + 0.5, y = m[4] * v + m[5] + 0.5;  // MediaPipe's half pixel (track._crop)
+    let x = m[1] * v + m[2] + 0.5 - ox, y = m[4] * v + m[5] + 0.5 - oy;  // MediaPipe's half pixel (track._crop)
     for (let u = 0; u < out; u++, x += m[0], y += m[3], o += 3) {
       const x0 = Math.floor(x), y0 = Math.floor(y), fx = x - x0, fy = y - y0;
       const w00 = (1 - fx) * (1 - fy), w10 = fx * (1 - fy), w01 = (1 - fx) * fy, w11 = fx * fy;
@@ -66,72 +65,60 @@ function roi(pts, a, b, scale, idx) {
 const sigmoid = (x) => 1 / (1 + Math.exp(-Math.max(-100, Math.min(100, x))));
 const ALL = Array.from({ length: 478 }, (_, i) => i);
 
-async function detect(img) {
-  const side = Math.max(img.width, img.height);
-  const m = cropMatrix((img.width - 1) / 2, (img.height - 1) / 2, 0, side, DET);
-  const r = await det.run({ input: crop(img, m, DET, -1, 1) });
-  const raw = r.regressors.data, logit = r.classificators.data;
-  let k = 0;
-  for (let i = 1; i < 896; i++) if (logit[i] > logit[k]) k = i;
-  if (sigmoid(logit[k]) < 0.5) return null;
-  const q = (j) => raw[k * 16 + j] / DET;
-  const px = (x, y) => apply(m, x * DET, y * DET);
-  const [cx, cy] = px(anchors[2 * k] + q(0), anchors[2 * k + 1] + q(1));
-  const [ax, ay] = px(anchors[2 * k] + q(4), anchors[2 * k + 1] + q(5));
-  const [bx, by] = px(anchors[2 * k] + q(6), anchors[2 * k + 1] + q(7));
-  return [cx, cy, Math.atan2(by - ay, bx - ax), Math.max(q(2), q(3)) * side * FACE_SCALE];
-}
-
-async function track(img) {
-  const r = prev ? roi(prev, 33, 263, FACE_SCALE, ALL) : await detect(img);
-  if (!r) return null;
-  const m = cropMatrix(...r, MESH);
-  const tc = performance.now(), x = crop(img, m, MESH, 0, 1);
-  stage.crop = performance.now() - tc;
-  const tm = performance.now(), out = await mesh.run({ input: x });
-  stage.mesh = performance.now() - tm;
-  const lm = out.landmarks.data, presence = out.conv_faceflag.data[0];
-  if (sigmoid(presence) < 0.5) { prev = null; return null; }
-  const pts = new Float32Array(478 * 2);
-  for (let i = 0; i < 478; i++) { const [x, y] = apply(m, lm[2 * i], lm[2 * i + 1]); pts[2 * i] = x; pts[2 * i + 1] = y; }
-  prev = pts.slice();
-  return pts;
-}
-
-self.onmessage = async (ev) => {
-  const msg = ev.data;
-  try {
-    if (msg.type === 'init') {
-      ort.env.wasm.wasmPaths = msg.base + 'ort/';
-      ort.env.wasm.numThreads = 1;
-      const opts = { executionProviders: ['wasm'] };
-      [det, mesh] = await Promise.all(['face_detection', 'face_landmark']
-        .map((n) => ort.InferenceSession.create(msg.base + `models/${n}.onnx`, opts)));
-      anchors = makeAnchors();
-      self.postMessage({ type: 'ready' });
-    } else if (msg.type === 'spent') {  // the page's spent buffers, handed here to be freed sooner (main.js: release)
-    } else if (msg.type === 'reset') {
-      prev = null;
-    } else if (msg.type === 'pixels') {  // replay: RGBA pixels in, points out (the tests' hook)
-      const img = { data: new Uint8ClampedArray(msg.data), width: msg.width, height: msg.height };
-      const points = await track(img);
-      self.postMessage({ type: 'tracked', points }, points ? [points.buffer] : []);
-    } else if (msg.type === 'frame') {
-      const t0 = performance.now();
-      const bm = msg.bitmap;
-      if (!canvas || canvas.width !== bm.width || canvas.height !== bm.height) {
-        canvas = new OffscreenCanvas(bm.width, bm.height);
-        ctx = canvas.getContext('2d', { willReadFrequently: true });
-      }
-      ctx.drawImage(bm, 0, 0);
-      bm.close();
-      const img = ctx.getImageData(0, 0, canvas.width, canvas.height);
-      stage.read = performance.now() - t0;
-      const points = await track(img);
-      self.postMessage({ type: 'points', points, t: msg.t, ms: performance.now() - t0, stage: { ...stage }, width: img.width, height: img.height },
-        points ? [points.buffer] : []);
-    }
-  } catch (e) {
-    self.postMessage({ type: 'error', message: String(e && e.message || e) });
+export class Tracker {
+  // base: the page's URL folder (the models are in base/models/)
+  static async create(base) {
+    const t = new Tracker(), opts = { executionProviders: ['wasm'] };
+    [t.det, t.mesh] = await Promise.all(['face_detection', 'face_landmark']
+      .map((n) => ort.InferenceSession.create(base + `models/${n}.onnx`, opts)));
+    Object.assign(t, { anchors: makeAnchors(), prev: null, stage: {} });
+    return t;
   }
-};
+
+  reset() { this.prev = null; }
+
+  // The part of a W x H frame that the next track() reads, {x, y, width, height}, or null for the
+  // whole frame (the detector's): the box of the mesh crop's bilinear taps, placed from the last
+  // points, 1 px to spare. The worker reads only it from the camera frame.
+  region(W, H) {
+    if (!this.prev) return null;
+    const m = cropMatrix(...roi(this.prev, 33, 263, FACE_SCALE, ALL), MESH), e = MESH - 1, xs = [], ys = [];
+    for (const [u, v] of [[0, 0], [e, 0], [0, e], [e, e]]) { const [x, y] = apply(m, u, v); xs.push(x + 0.5); ys.push(y + 0.5); }
+    const x0 = Math.max(0, Math.floor(Math.min(...xs)) - 1), y0 = Math.max(0, Math.floor(Math.min(...ys)) - 1);
+    const x1 = Math.min(W, Math.floor(Math.max(...xs)) + 3), y1 = Math.min(H, Math.floor(Math.max(...ys)) + 3);
+    return x1 > x0 && y1 > y0 ? { x: x0, y: y0, width: x1 - x0, height: y1 - y0 } : null;
+  }
+
+  async detect(img) {
+    const side = Math.max(img.width, img.height);
+    const m = cropMatrix((img.width - 1) / 2, (img.height - 1) / 2, 0, side, DET);
+    const r = await this.det.run({ input: crop(img, m, DET, -1, 1) });
+    const raw = r.regressors.data, logit = r.classificators.data;
+    let k = 0;
+    for (let i = 1; i < 896; i++) if (logit[i] > logit[k]) k = i;
+    if (sigmoid(logit[k]) < 0.5) return null;
+    const q = (j) => raw[k * 16 + j] / DET;
+    const px = (x, y) => apply(m, x * DET, y * DET);
+    const [cx, cy] = px(this.anchors[2 * k] + q(0), this.anchors[2 * k + 1] + q(1));
+    const [ax, ay] = px(this.anchors[2 * k] + q(4), this.anchors[2 * k + 1] + q(5));
+    const [bx, by] = px(this.anchors[2 * k] + q(6), this.anchors[2 * k + 1] + q(7));
+    return [cx, cy, Math.atan2(by - ay, bx - ax), Math.max(q(2), q(3)) * side * FACE_SCALE];
+  }
+
+  // RGBA frame {data, width, height} -> Float32Array(478 * 2) frame pixels, or null (no face)
+  async track(img) {
+    const r = this.prev ? roi(this.prev, 33, 263, FACE_SCALE, ALL) : await this.detect(img);
+    if (!r) return null;
+    const m = cropMatrix(...r, MESH);
+    const tc = performance.now(), x = crop(img, m, MESH, 0, 1);
+    this.stage.crop = performance.now() - tc;
+    const tm = performance.now(), out = await this.mesh.run({ input: x });
+    this.stage.mesh = performance.now() - tm;
+    const lm = out.landmarks.data, presence = out.conv_faceflag.data[0];
+    if (sigmoid(presence) < 0.5) { this.prev = null; return null; }
+    const pts = new Float32Array(478 * 2);
+    for (let i = 0; i < 478; i++) { const [x, y] = apply(m, lm[2 * i], lm[2 * i + 1]); pts[2 * i] = x; pts[2 * i + 1] = y; }
+    this.prev = pts.slice();
+    return pts;
+  }
+}

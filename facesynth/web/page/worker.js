@@ -1,0 +1,113 @@
+// The page's worker: the face tracker (tracker.js) and the avatar's talking-head graph, both in
+// this one ONNX Runtime instance. Each ONNX Runtime Web instance costs about 60 MB before any
+// model (docs/web.md), so the page keeps one; a camera frame is tracked and then rendered here,
+// and the page only draws the frame.
+//
+// Messages in: {type:'init', base}; {type:'avatar', id, graph, weights?, n, rows} (an avatar's
+// graph bytes, its weights file (ONNX external data) if apart, its point count and its rows of
+// the 478 -> scheme table, or null for mediapipe478); {type:'neutral', points} (the driver's
+// neutral, 478 x 2, or null while it is captured again); {type:'frame', bitmap, t}; {type:'render',
+// id, driver, neutral} (both already in the avatar's scheme); {type:'pixels', id, data, width,
+// height, region} (region: only the tracker's region() of it is read); {type:'reset'}; {type:'spent', buffers} (the page's spent frames, dropped here).
+// Out: {type:'ready'}; {type:'points', points | null, t, ms, stage}; {type:'frame', data (H x W x 3
+// uint8), dims, t, ms} after each tracked frame once the avatar and the neutral are there;
+// {type:'reply', id, ...} to the messages with an id; {type:'error', id?, message}.
+import * as ort from './ort/ort.wasm.min.mjs';
+import { Tracker } from './tracker.js';
+
+let tracker = null, avatar = null, neutral = null, canvas, ctx;
+let chain = Promise.resolve();
+// one piece of ONNX Runtime work at a time, in the order the messages came
+const serial = (fn) => { const p = chain.then(fn); chain = p.catch(() => {}); return p; };
+
+// Driver points (478, MediaPipe's order) -> the avatar's scheme with its rows of the landmark table.
+function toScheme(points, rows) {
+  if (!rows) return points;
+  const out = new Float32Array(rows.length * 2);
+  rows.forEach((row, i) => { for (const [j, w] of row) { out[2 * i] += w * points[2 * j]; out[2 * i + 1] += w * points[2 * j + 1]; } });
+  return out;
+}
+
+// driver and driver neutral, P x 2 flat in the avatar's scheme -> its frame (ort.Tensor, uint8 1 x H x W x 3)
+async function render(a, driver, driverNeutral) {
+  const out = await a.session.run({ driver: new ort.Tensor('float32', driver, [1, a.n, 2]),
+    driver_neutral: new ort.Tensor('float32', driverNeutral, [a.n, 2]) });
+  return out.frame;
+}
+
+// the box {x, y, width, height} of an RGBA frame {data, width}, copied
+function cut(img, b) {
+  const out = new Uint8ClampedArray(b.width * b.height * 4);
+  for (let r = 0; r < b.height; r++) {
+    const i = ((b.y + r) * img.width + b.x) * 4;
+    out.set(img.data.subarray(i, i + b.width * 4), r * b.width * 4);
+  }
+  return out;
+}
+
+async function loadAvatar(msg) {
+  const opts = { executionProviders: ['wasm'] };
+  if (msg.weights) opts.externalData = [{ path: msg.weightsPath, data: new Uint8Array(msg.weights) }];
+  let session;
+  try { session = await ort.InferenceSession.create(new Uint8Array(msg.graph), opts); }
+  catch (e) { throw new Error(`${msg.name} is corrupt: ONNX Runtime cannot load it (${e.message || e})`); }
+  const old = avatar;
+  avatar = { session, n: msg.n, rows: msg.rows };
+  if (old) await old.session.release();
+}
+
+async function onFrame(msg) {
+  const t0 = performance.now(), bm = msg.bitmap;
+  if (!canvas || canvas.width !== bm.width || canvas.height !== bm.height) {
+    canvas = new OffscreenCanvas(bm.width, bm.height);
+    ctx = canvas.getContext('2d', { willReadFrequently: true });
+  }
+  ctx.drawImage(bm, 0, 0);
+  bm.close();
+  const box = tracker.region(canvas.width, canvas.height) ?? { x: 0, y: 0, width: canvas.width, height: canvas.height };
+  const img = { data: ctx.getImageData(box.x, box.y, box.width, box.height).data, ...box };
+  tracker.stage.read = performance.now() - t0;
+  const points = await tracker.track(img);
+  const live = points && avatar && neutral ? [toScheme(points, avatar.rows), toScheme(neutral, avatar.rows)] : null;
+  // copied, not transferred: the avatar renders from the same points (3.8 kB)
+  self.postMessage({ type: 'points', points, t: msg.t, ms: performance.now() - t0, stage: { ...tracker.stage } });
+  if (!live) return;
+  const t1 = performance.now(), f = await render(avatar, ...live);
+  self.postMessage({ type: 'frame', data: f.data, dims: f.dims, t: msg.t, ms: performance.now() - t1 }, [f.data.buffer]);
+}
+
+async function handle(msg) {
+  switch (msg.type) {
+    case 'init':
+      ort.env.wasm.wasmPaths = msg.base + 'ort/';
+      ort.env.wasm.numThreads = 1;
+      tracker = await Tracker.create(msg.base);
+      return { type: 'ready' };
+    case 'avatar': await loadAvatar(msg); return {};
+    case 'frame': await onFrame(msg); return null;
+    case 'render': {
+      const f = await render(avatar, msg.driver, msg.neutral);
+      return { data: f.data, dims: f.dims };
+    }
+    case 'pixels': {  // replay: RGBA pixels in, points out (the tests' hook); region: read as live frames are
+      let img = { data: new Uint8ClampedArray(msg.data), width: msg.width, height: msg.height };
+      const box = msg.region && tracker.region(msg.width, msg.height);
+      if (box) img = { data: cut(img, box), ...box };
+      return { points: await tracker.track(img) };
+    }
+    default: return null;
+  }
+}
+
+self.onmessage = (ev) => {
+  const msg = ev.data;
+  if (msg.type === 'spent') return;  // the page's spent buffers, freed here sooner (main.js: release)
+  if (msg.type === 'neutral') { neutral = msg.points; return; }
+  if (msg.type === 'reset') { tracker?.reset(); return; }
+  serial(() => handle(msg)).then((r) => {
+    if (!r) return;
+    if (r.type === 'ready') { self.postMessage(r); return; }
+    const buffers = [r.data?.buffer, r.points?.buffer].filter(Boolean);
+    self.postMessage({ type: 'reply', id: msg.id, ...r }, buffers);
+  }, (e) => self.postMessage({ type: 'error', id: msg.id, message: String(e && e.message || e) }));
+};
