@@ -5,12 +5,14 @@ headless system Chromium with the clip's first ``--frames`` frames (looped) as t
 blocks every request off 127.0.0.1, waits for the first avatar frame, then measures for
 ``--seconds``:
 
-* ``tracker_ms`` / ``avatar_ms`` / ``composite_ms``: per frame, the page's own
-  ``performance.now()`` timings (median): the worker's tracking and its talking-head run, and the
-  page's copy of the frame into the canvas; ``worker_cpu_ms`` / ``main_cpu_ms``: CPU time per
-  rendered frame from /proc of the worker's thread (tracker + avatar: the pipeline stage) and of
-  the page's main thread (drawing, neutral capture, messages); ``renderer_cpu_ms`` all renderer
-  threads, ``chromium_cpu_ms`` every Chromium process;
+* ``tracker_ms`` / ``avatar_ms`` / ``composite_ms``: per frame, ``wall``: the page's own
+  ``performance.now()`` timings (median) of the worker's tracking, its talking-head run and the
+  page's copy of the frame into the canvas; ``cpu``: CPU time per rendered frame from /proc.
+  The tracker and the avatar share the worker's thread (``workers`` 1; with 2, each has a worker),
+  whose CPU time (``worker_cpu_ms``, all worker threads) is split between them in proportion to
+  their wall times (``cpu_is`` says so); the composite's is the page's main thread
+  (``main_cpu_ms``: drawing, neutral capture, messages). ``--workers`` / ``--stage-ms`` set the page's mode.
+  ``renderer_cpu_ms``: all renderer threads, ``chromium_cpu_ms``: every Chromium process;
 * ``e2e_fps``: rendered avatar frames per second of wall time; ``frames``: frames rendered;
 * ``load_s``: page open -> first avatar frame (includes the ~1 s neutral capture, ``neutral_s``);
 * ``page_mb``: the page's memory: its renderer process's own resident memory (RssAnon: what
@@ -27,7 +29,7 @@ blocks every request off 127.0.0.1, waits for the first avatar frame, then measu
   paused (median of 100, ``performance.now()``, the worker's message round trip included), and
   ``avatar_vs_python`` their ratio.
 
-    PYTHONPATH=. python bench/bench_web.py --model M.onnx --video CLIP.mp4 [--seconds 10]
+    PYTHONPATH=. python bench/bench_web.py --model M.onnx --video CLIP.mp4 [--seconds 10] [--workers 1|2|auto] [--stage-ms 30]
 
 Prints ONE JSON line.
 """
@@ -53,8 +55,8 @@ from facesynth.web import browser, site  # noqa: E402
 TICK = os.sysconf("SC_CLK_TCK")
 # the page's figures, and only them: serialising the whole state (the avatar's metadata, its
 # neutral frame as JPEG) made 25 MB of garbage in the page being measured
-STATS = """(({ frames, firstFrameMs, trackerMs, avatarMs, compositeMs, latencyMs, messages }) =>
-    ({ frames, firstFrameMs, trackerMs, avatarMs, compositeMs, latencyMs, messages }))(window.facesynth.state)"""
+STATS = """(({ frames, firstFrameMs, trackerMs, avatarMs, compositeMs, latencyMs, messages, workers }) =>
+    ({ frames, firstFrameMs, trackerMs, avatarMs, compositeMs, latencyMs, messages, workers }))(window.facesynth.state)"""
 
 
 def _procs():
@@ -145,6 +147,9 @@ def main() -> None:
     ap.add_argument("--seconds", type=float, default=10.0)
     ap.add_argument("--frames", type=int, default=150, help="camera clip length (looped by Chromium)")
     ap.add_argument("--size", default="640x480", help="camera frame size WxH")
+    ap.add_argument("--workers", default="auto", choices=["1", "2", "auto"],
+                    help="the page's ?workers= (auto: one, two if its stage is over --stage-ms)")
+    ap.add_argument("--stage-ms", type=float, default=30.0, help="the page's ?stage_ms= (auto's budget per stage)")
     args = ap.parse_args()
     size = tuple(int(v) for v in args.size.split("x"))
     marker = f"--facesynth-bench={uuid.uuid4().hex}"
@@ -157,7 +162,7 @@ def main() -> None:
         with browser.served(folder) as url, browser.browser_page(
                 y4m, extra_args=[marker, "--enable-blink-features=ForceEagerMeasureMemory"]) as (page, blocked):
             t0 = time.perf_counter()
-            page.goto(url)
+            page.goto(f"{url}?workers={args.workers}&stage_ms={args.stage_ms:g}")
             page.wait_for_function("window.facesynth && window.facesynth.state.frames >= 1", timeout=120_000)
             st = page.evaluate(STATS)
             pids, renderers = chromium_tree(marker)
@@ -165,7 +170,7 @@ def main() -> None:
             c0 = {r: thread_cpu(r) for r in renderers}
             anon = {r: [] for r in renderers}  # RssAnon through the run: V8 frees spent buffers only at its GCs
             while time.perf_counter() - w0 < args.seconds:
-                time.sleep(0.5)
+                page.wait_for_timeout(500)  # (not time.sleep: Playwright serves the page's requests meanwhile)
                 for r in renderers:
                     anon[r].append(memory_mb(r).get("RssAnon", 0.0))
             st = page.evaluate(STATS)
@@ -178,7 +183,7 @@ def main() -> None:
                 ? (await performance.measureUserAgentSpecificMemory()).bytes / 2 ** 20 : null""")
             # the talking-head graph alone (tracking paused), on the avatar's neutral: the ratio to Python
             page.evaluate("window.facesynth.state.ready = false")
-            time.sleep(0.5)
+            page.wait_for_timeout(500)
             alone = page.evaluate("""async (n) => {
                 const a = window.facesynth.state.avatar, x = Float32Array.from(a.meta.avatar_neutral.flat()), t = [];
                 for (let i = 0; i < 10; i++) await a.render(x, x);
@@ -192,10 +197,14 @@ def main() -> None:
     worker = sum(v for k, v in d.items() if "Worker" in k)
     main_thread = d.get("main", float("nan"))
     med = lambda k: round(float(np.median(st[k][-n:])), 2) if st[k] else None  # noqa: E731
+    share = med("trackerMs") / (med("trackerMs") + med("avatarMs"))  # the tracker's part of the worker's thread
+    split = "the worker's thread, split by wall time"
     out = {
         "bench": "web", "model": str(args.model), "video": str(args.video), "size": list(size),
-        "tracker_ms": med("trackerMs"), "avatar_ms": med("avatarMs"), "composite_ms": med("compositeMs"),
-        "worker_cpu_ms": round(worker, 2), "main_cpu_ms": round(main_thread, 2),
+        "tracker_ms": {"wall": med("trackerMs"), "cpu": round(worker * share, 2), "cpu_is": split},
+        "avatar_ms": {"wall": med("avatarMs"), "cpu": round(worker * (1 - share), 2), "cpu_is": split},
+        "composite_ms": {"wall": med("compositeMs"), "cpu": round(main_thread, 2), "cpu_is": "the page's main thread"},
+        "worker_cpu_ms": round(worker, 2), "main_cpu_ms": round(main_thread, 2), "workers": st["workers"],
         "latency_ms": med("latencyMs"),
         "renderer_cpu_ms": round(sum(d.values()), 2),
         "chromium_cpu_ms": round((p1 - p0) * 1e3 / n, 2),

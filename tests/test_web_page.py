@@ -129,6 +129,32 @@ def test_camera_drives_the_avatar_offline_and_matches_python(page_site, camera, 
     assert blocked == []
 
 
+@pytest.mark.parametrize("query", ["?workers=2", "?stage_ms=0"])
+def test_two_workers(page_site, camera, avatar, query):
+    """The avatar in a second worker, beside the tracker's: asked for (``?workers=2``), or moved
+    there when the one worker's stage is over budget (``auto`` with a budget of 0 ms): the camera
+    still drives the avatar, and the page's frames equal Python's runtime within 2/255."""
+    import base64
+
+    from facesynth.runtime.reenact import driver_neutral_of
+    from facesynth.runtime.talking_head import TalkingHead
+
+    path, seq = avatar
+    neutral, _ = driver_neutral_of(seq.landmarks)
+    x = seq.landmarks[-30].astype(np.float32)
+    with browser.served(page_site) as url, browser.browser_page(camera) as (page, blocked):
+        page.goto(url + query)
+        frames = _wait(page, "window.facesynth && window.facesynth.state.workers === 2 && window.facesynth.state.frames")
+        page.wait_for_function(f"window.facesynth.state.frames >= {frames + 30}", timeout=30000)
+        assert "2 workers" in page.inner_text("#stats")
+        assert not [m for m in page.evaluate("window.facesynth.state.messages") if m["error"]]
+        out = page.evaluate("([d, n]) => window.facesynth.render(d, n)",
+                            [x.ravel().tolist(), neutral.astype(np.float32).ravel().tolist()])
+        got = np.frombuffer(base64.b64decode(out["data"]), np.uint8).reshape(out["dims"])
+        assert np.abs(got.astype(int) - TalkingHead(path, driver_neutral=neutral).run(x[None])[0]).max() <= 2
+    assert blocked == []
+
+
 def _tiny_onnx(metadata: dict, op: str = "Identity") -> bytes:
     """A one-node ONNX file carrying ``metadata`` (values JSON-encoded, as facesynth writes them)."""
     import json

@@ -1,14 +1,19 @@
 // facesynth live: the webcam drives an avatar, on the CPU (WebAssembly), offline.
 // One worker (worker.js) tracks each camera frame and renders the avatar from it, in one ONNX
-// Runtime instance; this page captures the driver's neutral, draws the frames and records them.
+// Runtime instance (each costs ~60 MB); this page captures the driver's neutral, draws the frames
+// and records them. Where that worker's stage (tracker + avatar) takes longer than a frame's
+// budget, the avatar moves to a second worker and renders beside the tracker (docs/web.md).
+// URL options: ?workers=1|2|auto (default auto) and ?stage_ms=N (auto's budget, default 30).
 import { onnxMetadata } from './onnxmeta.js';
 
-const NEUTRAL_MS = 1000, NO_FACE_FRAMES = 15;
+const NEUTRAL_MS = 1000, NO_FACE_FRAMES = 15, STAGE_FRAMES = 30;
 const base = new URL('.', location.href).href;
+const options = new URLSearchParams(location.search);
+const WORKERS = options.get('workers') ?? 'auto', STAGE_MS = Number(options.get('stage_ms') ?? 30);
 const $ = (id) => document.getElementById(id);
 const state = { frames: 0, trackerMs: [], avatarMs: [], compositeMs: [], latencyMs: [], messages: [], firstFrameMs: null,
   avatar: null, neutral: null, neutralSamples: [], neutralStart: null, noFace: 0, busy: false, ready: false,
-  calls: 0, pending: new Map() };
+  calls: 0, pending: new Map(), workers: 1, latest: null, rendering: false };
 window.facesynth = { state };
 
 function message(text, error = false) {
@@ -28,33 +33,45 @@ const SCHEMES = ['ibug68', 'mediapipe478'];  // the avatars the tracker's 478 po
 // the graph (Python's facesynth.runtime.TalkingHead runs the same file), which the worker runs; the
 // page checks the file, keeps its metadata and draws the frames.
 class AvatarGraph {
-  // externalData: the weights file beside a split avatar ({ path, data: ArrayBuffer }, as the page's
-  // own avatar is built), or undefined for a whole .onnx file (one dropped on the page); the buffers
-  // go to the worker
-  static async create(buffer, name, schemes, formats, externalData) {
+  // files: () => Promise<{ graph: ArrayBuffer, weights?: ArrayBuffer, weightsPath?: string }>, the
+  // avatar's graph and, for a split avatar (as the page's own is built), its weights file (ONNX
+  // external data); read again when the avatar moves to another worker. The buffers go to the worker.
+  static async create(files, name, schemes, formats, worker) {
+    const f = await files();
+    try { return await AvatarGraph.#create(f, files, name, schemes, formats, worker); }
+    finally { release(f.graph, f.weights); }  // what the worker did not take (a refused file)
+  }
+
+  static async #create(f, files, name, schemes, formats, worker) {
     let meta;
-    try { meta = onnxMetadata(buffer); } catch (e) { throw new Error(`${name} is not an ONNX file (${e.message})`); }
+    try { meta = onnxMetadata(f.graph); } catch (e) { throw new Error(`${name} is not an ONNX file (${e.message})`); }
     if (meta.format === formats.synthesis) throw new Error(`${name} is a face model, not a talking head: export one with 'facesynth export RUN --talking-head --out ${name}'`);
     if (meta.format !== formats.talking_head) throw new Error(`${name} is not a facesynth avatar (format ${JSON.stringify(meta.format ?? null)}, expected ${formats.talking_head})`);
     const scheme = meta.landmark_scheme;
     if (!SCHEMES.includes(scheme) || !(scheme in schemes)) throw new Error(`${name}: its landmark scheme ${scheme} cannot be driven by the page's tracker (MediaPipe 478 points; it drives mediapipe478 and ibug68 avatars)`);
     if (!Array.isArray(meta.frame_size) || !meta.background_jpeg) throw new Error(`${name}: a talking head without its frame size and neutral frame (re-export it)`);
-    const n = schemes[scheme].n_points, rows = scheme === 'mediapipe478' ? null : schemes[scheme].to_ibug68;
-    const weights = externalData?.data, files = [buffer, weights].filter(Boolean);
-    await call('avatar', { graph: buffer, weights, weightsPath: externalData?.path, name, n, rows }, files);  // the worker's now
-    const bg = new Image();
-    bg.src = 'data:image/jpeg;base64,' + meta.background_jpeg;
-    await bg.decode();
     const g = new AvatarGraph();
-    Object.assign(g, { name, meta, scheme, bg, n });
+    Object.assign(g, { name, meta, scheme, files, n: schemes[scheme].n_points,
+      rows: scheme === 'mediapipe478' ? null : schemes[scheme].to_ibug68 });
+    await g.loadInto(worker, f);
+    g.bg = new Image();
+    g.bg.src = 'data:image/jpeg;base64,' + meta.background_jpeg;
+    await g.bg.decode();
     [g.width, g.height] = meta.frame_size;
     g.rgba = new ImageData(g.width, g.height);
     return g;
   }
 
+  // the avatar's session in a worker (its files read again unless given; they become the worker's)
+  async loadInto(worker, f) {
+    f ??= await this.files();
+    await call(worker, 'avatar', { graph: f.graph, weights: f.weights, weightsPath: f.weightsPath, name: this.name, n: this.n,
+      rows: this.rows }, [f.graph, f.weights].filter(Boolean));
+  }
+
   // driver points and the driver's neutral, both in the avatar's scheme (P x 2 flat) -> frame {data: uint8 H x W x 3, dims}
   async render(driver, neutral) {
-    return call('render', { driver, neutral });
+    return call(state.renderer, 'render', { driver, neutral });
   }
 
   // one frame from the worker -> the canvas (RGBA)
@@ -65,12 +82,12 @@ class AvatarGraph {
   }
 }
 
-// A request to the worker, answered by a message with the same id.
-function call(type, payload, transfer = []) {
+// A request to a worker, answered by a message with the same id.
+function call(worker, type, payload, transfer = []) {
   const id = ++state.calls;
   return new Promise((resolve, reject) => {
     state.pending.set(id, { resolve, reject });
-    state.worker.postMessage({ type, id, ...payload }, transfer);
+    worker.postMessage({ type, id, ...payload }, transfer);
   });
 }
 
@@ -82,8 +99,8 @@ function release(...buffers) {
   if (state.worker && buffers.length) state.worker.postMessage({ type: 'spent', buffers }, buffers);
 }
 
-async function loadAvatar(buffer, name, externalData) {
-  const g = await AvatarGraph.create(buffer, name, state.schemes, state.formats, externalData);
+async function loadAvatar(files, name) {
+  const g = await AvatarGraph.create(files, name, state.schemes, state.formats, state.renderer);
   state.avatar = g;
   const cv = $('avatar');
   cv.width = g.width; cv.height = g.height;
@@ -126,7 +143,7 @@ window.facesynth.track = async (width, height, frames, region = false) => {
 
 function captureNeutral() {
   state.neutral = null; state.neutralSamples = []; state.neutralStart = null;
-  state.worker.postMessage({ type: 'neutral', points: null });
+  state.renderer.postMessage({ type: 'neutral', points: null });
   message('Look at the camera with a neutral face...');
 }
 
@@ -154,16 +171,30 @@ function onPoints(msg) {
     state.neutralSamples.push(msg.points);
     if (performance.now() - state.neutralStart >= NEUTRAL_MS && state.neutralSamples.length >= 3) {
       state.neutral = median(state.neutralSamples);
-      state.worker.postMessage({ type: 'neutral', points: state.neutral });
+      state.renderer.postMessage({ type: 'neutral', points: state.neutral });
       message('Live.');
       $('neutral').disabled = false; $('record').disabled = false;
     }
     return;
   }
+  if (state.renderer !== state.worker) {  // two workers: the renderer takes the newest points when idle
+    state.latest = msg;
+    feedRenderer();
+  }
 }
 
-function onFrame(msg) {
+function feedRenderer() {
+  if (state.rendering || !state.latest) return;
+  const { points, t } = state.latest;
+  state.latest = null;
+  state.rendering = true;
+  state.renderer.postMessage({ type: 'live', points, t });
+}
+
+function onFrame(msg, worker) {
+  if (worker === state.renderer && state.renderer !== state.worker) { state.rendering = false; feedRenderer(); }
   const g = state.avatar;
+  if (!msg.data) return;  // no avatar or neutral there yet
   if (g && msg.dims[1] === g.height && msg.dims[2] === g.width) {  // not a frame of an avatar just replaced
     const t0 = performance.now();
     g.draw(msg, state.ctx);
@@ -175,9 +206,67 @@ function onFrame(msg) {
     state.frameTimes = (state.frameTimes || []).filter((t) => t > now - 1000).concat(now);
     const avg = (a) => (a.slice(-30).reduce((x, y) => x + y, 0) / Math.min(a.length, 30)).toFixed(1);
     $('stats').textContent = `${state.frameTimes.length} frames/s, latency ${avg(state.latencyMs)} ms ` +
-      `(tracker ${avg(state.trackerMs)}, avatar ${avg(state.avatarMs)}, composite ${avg(state.compositeMs)} ms)`;
+      `(tracker ${avg(state.trackerMs)}, avatar ${avg(state.avatarMs)}, composite ${avg(state.compositeMs)} ms; ` +
+      `${state.workers} worker${state.workers > 1 ? 's' : ''})`;
+    if (WORKERS === 'auto' && state.workers === 1 && state.frames >= STAGE_FRAMES) {
+      const med = (a) => a.slice(-STAGE_FRAMES).sort((x, y) => x - y)[STAGE_FRAMES >> 1];
+      if (med(state.trackerMs) + med(state.avatarMs) > STAGE_MS) useTwoWorkers();
+    }
   }
   release(msg.data.buffer);
+}
+
+// Two workers (two ONNX Runtime instances, ~60 MB more): one tracks, the other renders the newest
+// points meanwhile; for a machine on which one worker's stage is over budget. Both are new, so that
+// the one worker's heap, grown by the avatar (WebAssembly memory never shrinks), is freed with it.
+async function useTwoWorkers() {
+  if (state.workers === 2 || state.switching) return;
+  state.switching = true;
+  const t = startWorker(true), r = startWorker(false), g = state.avatar;
+  try {
+    await Promise.all([t.ready, r.ready]);
+    if (g) await g.loadInto(r);
+    if (state.avatar !== g) await state.avatar.loadInto(r);  // one dropped meanwhile
+    if (state.neutral) r.postMessage({ type: 'neutral', points: state.neutral });
+    const one = state.worker;
+    [state.worker, state.renderer, state.workers] = [t, r, 2];
+    one.terminate();
+    state.busy = false;  // the frame that worker had is dropped with it
+    sendFrame();
+  } catch (e) {
+    t.terminate(); r.terminate();
+    message(`A second worker could not start (${e.message}); the page goes on with one.`, true);
+  } finally {
+    state.switching = false;
+  }
+}
+
+// A worker (worker.js): with the tracker (the camera's) or without (a second worker, the avatar's).
+function startWorker(tracker) {
+  const w = new Worker('worker.js', { type: 'module' });
+  w.ready = new Promise((resolve, reject) => { w.started = resolve; w.failed = reject; });
+  w.onmessage = (ev) => {
+    const m = ev.data, p = state.pending.get(m.id);
+    if (m.type === 'ready') w.started();
+    else if (m.type === 'points') onPoints(m);
+    else if (m.type === 'frame') onFrame(m, w);
+    else if (p) { state.pending.delete(m.id); if (m.type === 'error') p.reject(new Error(m.message)); else p.resolve(m); }
+    else if (m.type === 'error') {
+      state.busy = false;
+      if (w === state.renderer) state.rendering = false;
+      message(`Worker error: ${m.message}`, true);
+      w.failed(new Error(m.message));
+    }
+  };
+  w.onerror = (e) => {  // the worker's script itself failed (a broken or partial page folder)
+    const err = new Error(`The page's worker failed to start (${e.message || 'worker.js'}): rebuild the page.`);
+    for (const p of state.pending.values()) p.reject(err);
+    state.pending.clear();
+    message(err.message, true);
+    w.failed(err);
+  };
+  w.postMessage({ type: 'init', base, tracker });
+  return w;
 }
 
 // Send the camera's newest frame to the worker when its tracker is idle and the frame is new.
@@ -242,10 +331,8 @@ function setupDrop() {
     if (f) await window.facesynth.loadFile(f);
   });
   window.facesynth.loadFile = async (file) => {
-    const buffer = await file.arrayBuffer();
-    try { await loadAvatar(buffer, file.name); message(`Loaded ${file.name}.`); }
+    try { await loadAvatar(async () => ({ graph: await file.arrayBuffer() }), file.name); message(`Loaded ${file.name}.`); }
     catch (err) { message(`${err.message} The current avatar is kept.`, true); }
-    finally { release(buffer); }
   };
 }
 
@@ -254,40 +341,25 @@ async function main() {
   setupDrop(); setupRecording();
   $('neutral').onclick = captureNeutral;
   $('showcam').onchange = (e) => { $('camera').style.display = e.target.checked ? '' : 'none'; };
-  state.worker = new Worker('worker.js', { type: 'module' });
-  const workerReady = new Promise((resolve, reject) => {
-    state.worker.onmessage = (ev) => {
-      const m = ev.data, p = state.pending.get(m.id);
-      if (m.type === 'ready') resolve();
-      else if (m.type === 'points') onPoints(m);
-      else if (m.type === 'frame') onFrame(m);
-      else if (p) { state.pending.delete(m.id); if (m.type === 'error') p.reject(new Error(m.message)); else p.resolve(m); }
-      else if (m.type === 'error') { state.busy = false; message(`Worker error: ${m.message}`, true); reject(new Error(m.message)); }
-    };
-  });
-  state.worker.onerror = (e) => {  // the worker's script itself failed (a broken or partial page folder)
-    const err = new Error(`The page's worker failed to start (${e.message || 'worker.js'}): rebuild the page.`);
-    for (const p of state.pending.values()) p.reject(err);
-    state.pending.clear();
-    message(err.message, true);
-  };
-  state.worker.postMessage({ type: 'init', base });
+  state.worker = state.renderer = startWorker(true);
+  if (WORKERS === '2') { state.renderer = startWorker(false); state.workers = 2; }  // the avatar never in the first
   const site = await (await fetch('site.json')).json();
   state.schemes = await (await fetch('schemes.json')).json();
   state.formats = site.formats;
   // the avatar as built: its graph and its weights apart (ONNX external data), so that ONNX Runtime
   // reads each weight straight into its tensor instead of copying and parsing one whole file in a
   // WebAssembly heap that never shrinks (the page's memory, docs/web.md)
-  try {
-    const files = await Promise.all([site.avatar, site.avatar_data].map(async (f) => {
+  const files = async () => {
+    const [graph, weights] = await Promise.all([site.avatar, site.avatar_data].map(async (f) => {
       const r = await fetch(f);
       if (!r.ok) throw new Error(`The page's avatar file ${f} is missing (HTTP ${r.status}): rebuild the page.`);
       return r.arrayBuffer();
     }));
-    await loadAvatar(files[0], site.avatar_name, { path: site.avatar_data, data: files[1] });
-  } catch (e) { message(e.message, true); }
+    return { graph, weights, weightsPath: site.avatar_data };
+  };
+  try { await loadAvatar(files, site.avatar_name); } catch (e) { message(e.message, true); }
   try { await startCamera(); } catch (e) { message(e.message, true); window.facesynth.cameraError = e.message; return; }
-  await workerReady;
+  await state.worker.ready;
   state.ready = true;
   if (!state.avatar) return;
   captureNeutral();

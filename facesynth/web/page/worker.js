@@ -1,12 +1,16 @@
 // The page's worker: the face tracker (tracker.js) and the avatar's talking-head graph, both in
 // this one ONNX Runtime instance. Each ONNX Runtime Web instance costs about 60 MB before any
-// model (docs/web.md), so the page keeps one; a camera frame is tracked and then rendered here,
-// and the page only draws the frame.
+// model (docs/web.md), so the page keeps one where it can; a camera frame is tracked and then
+// rendered here, and the page only draws the frame. On a machine where that is too slow, the
+// page starts a second worker without the tracker, which renders the points the page sends it
+// ('live') while this one tracks the next frame.
 //
-// Messages in: {type:'init', base}; {type:'avatar', id, graph, weights?, n, rows} (an avatar's
-// graph bytes, its weights file (ONNX external data) if apart, its point count and its rows of
-// the 478 -> scheme table, or null for mediapipe478); {type:'neutral', points} (the driver's
-// neutral, 478 x 2, or null while it is captured again); {type:'frame', bitmap, t}; {type:'render',
+// Messages in: {type:'init', base, tracker} (tracker false: no tracker); {type:'avatar', id,
+// graph, weights?, weightsPath?, name, n, rows} (an avatar's graph bytes, or null to drop the
+// avatar; its weights file (ONNX external data) if apart; its point count and its rows of the
+// 478 -> scheme table, or null for mediapipe478); {type:'neutral', points} (the driver's neutral,
+// 478 x 2, or null while it is captured again); {type:'frame', bitmap, t}; {type:'live', points,
+// t} (render these points; a frame with data null when there is no avatar or neutral); {type:'render',
 // id, driver, neutral} (both already in the avatar's scheme); {type:'pixels', id, data, width,
 // height, region} (region: only the tracker's region() of it is read); {type:'reset'}; {type:'spent', buffers} (the page's spent frames, dropped here).
 // Out: {type:'ready'}; {type:'points', points | null, t, ms, stage}; {type:'frame', data (H x W x 3
@@ -46,6 +50,11 @@ function cut(img, b) {
 }
 
 async function loadAvatar(msg) {
+  if (!msg.graph) {
+    if (avatar) await avatar.session.release();
+    avatar = null;
+    return;
+  }
   const opts = { executionProviders: ['wasm'] };
   if (msg.weights) opts.externalData = [{ path: msg.weightsPath, data: new Uint8Array(msg.weights) }];
   let session;
@@ -68,12 +77,17 @@ async function onFrame(msg) {
   const img = { data: ctx.getImageData(box.x, box.y, box.width, box.height).data, ...box };
   tracker.stage.read = performance.now() - t0;
   const points = await tracker.track(img);
-  const live = points && avatar && neutral ? [toScheme(points, avatar.rows), toScheme(neutral, avatar.rows)] : null;
   // copied, not transferred: the avatar renders from the same points (3.8 kB)
   self.postMessage({ type: 'points', points, t: msg.t, ms: performance.now() - t0, stage: { ...tracker.stage } });
-  if (!live) return;
-  const t1 = performance.now(), f = await render(avatar, ...live);
-  self.postMessage({ type: 'frame', data: f.data, dims: f.dims, t: msg.t, ms: performance.now() - t1 }, [f.data.buffer]);
+  if (points) await renderLive(points, msg.t);
+}
+
+// the tracker's points (478 x 2) -> the avatar's frame, posted; false when there is no avatar or neutral
+async function renderLive(points, t) {
+  if (!avatar || !neutral) return false;
+  const t1 = performance.now(), f = await render(avatar, toScheme(points, avatar.rows), toScheme(neutral, avatar.rows));
+  self.postMessage({ type: 'frame', data: f.data, dims: f.dims, t, ms: performance.now() - t1 }, [f.data.buffer]);
+  return true;
 }
 
 async function handle(msg) {
@@ -81,10 +95,13 @@ async function handle(msg) {
     case 'init':
       ort.env.wasm.wasmPaths = msg.base + 'ort/';
       ort.env.wasm.numThreads = 1;
-      tracker = await Tracker.create(msg.base);
+      if (msg.tracker !== false) tracker = await Tracker.create(msg.base);
       return { type: 'ready' };
     case 'avatar': await loadAvatar(msg); return {};
     case 'frame': await onFrame(msg); return null;
+    case 'live':
+      if (!(await renderLive(msg.points, msg.t))) self.postMessage({ type: 'frame', data: null, t: msg.t });
+      return null;
     case 'render': {
       const f = await render(avatar, msg.driver, msg.neutral);
       return { data: f.data, dims: f.dims };
