@@ -5,14 +5,19 @@
 // page starts a second worker without the tracker, which renders the points the page sends it
 // ('live') while this one tracks the next frame.
 //
-// Messages in: {type:'init', base, tracker} (tracker false: no tracker); {type:'avatar', id,
-// graph, weights?, weightsPath?, name, n, rows} (an avatar's graph bytes, or null to drop the
-// avatar; its weights file (ONNX external data) if apart; its point count and its rows of the
-// 478 -> scheme table, or null for mediapipe478); {type:'neutral', points} (the driver's neutral,
-// 478 x 2, or null while it is captured again); {type:'frame', bitmap, t}; {type:'live', points,
-// t} (render these points; a frame with data null when there is no avatar or neutral); {type:'render',
-// id, driver, neutral} (both already in the avatar's scheme); {type:'pixels', id, data, width,
-// height, region} (region: only the tracker's region() of it is read); {type:'reset'}; {type:'spent', buffers} (the page's spent frames, dropped here).
+// Messages in:
+// - {type:'init', base, tracker} (tracker false: no tracker);
+// - {type:'avatar', id, graph, weights?, weightsPath?, name, n, rows}: an avatar's graph bytes (null
+//   drops the avatar), its weights file (ONNX external data) if apart, its point count and its rows
+//   of the 478 -> scheme table (null for mediapipe478);
+// - {type:'neutral', points}: the driver's neutral, 478 x 2, or null while it is captured again;
+// - {type:'frame', bitmap, t}: a camera frame, tracked (and rendered when there is an avatar);
+// - {type:'live', points, t}: render these points (a frame with data null when there is no avatar
+//   or neutral);
+// - {type:'render', id, driver, neutral}: both already in the avatar's scheme (the replay hook);
+// - {type:'pixels', id, data, width, height, region}: track RGBA pixels (region: read only the
+//   tracker's region() of them, as camera frames are);
+// - {type:'reset'}; {type:'spent', buffers}: the page's spent frames, dropped here.
 // Out: {type:'ready'}; {type:'points', points | null, t, ms, stage}; {type:'frame', data (H x W x 3
 // uint8), dims, t, ms} after each tracked frame once the avatar and the neutral are there;
 // {type:'reply', id, ...} to the messages with an id; {type:'error', id?, message}.
