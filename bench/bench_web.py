@@ -29,7 +29,7 @@ blocks every request off 127.0.0.1, waits for the first avatar frame, then measu
   paused (median of 100, ``performance.now()``, the worker's message round trip included), and
   ``avatar_vs_python`` their ratio.
 
-    PYTHONPATH=. python bench/bench_web.py --model M.onnx --video CLIP.mp4 [--seconds 10] [--workers 1|2|auto] [--stage-ms 30]
+    PYTHONPATH=. python bench/bench_web.py --model M.onnx --video CLIP.mp4 [--seconds 30] [--workers 1|2|auto] [--stage-ms 30]
 
 Prints ONE JSON line.
 """
@@ -144,7 +144,8 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--model", required=True, type=Path)
     ap.add_argument("--video", required=True, type=Path)
-    ap.add_argument("--seconds", type=float, default=10.0)
+    ap.add_argument("--seconds", type=float, default=30.0,
+                    help="the measured run (page_mb is a median over V8's ~30 MB garbage-collection sawtooth)")
     ap.add_argument("--frames", type=int, default=150, help="camera clip length (looped by Chromium)")
     ap.add_argument("--size", default="640x480", help="camera frame size WxH")
     ap.add_argument("--workers", default="auto", choices=["1", "2", "auto"],
