@@ -260,3 +260,34 @@ def test_page_tracker_matches_its_reference_and_mediapipe(page_site, shared_clip
     err = np.linalg.norm(js - want, axis=2)
     assert np.median(err[:, 468:]) < 2.0, np.median(err[:, 468:])  # the page's promise: 2 px
     assert np.median(err) < 2.0, np.median(err)
+
+
+def test_page_neutral_is_the_projects_rule(page_site, shared_clip_dir):
+    """The page's neutral capture (neutral.js) picks the frame that facesynth.neutral.select_neutral
+    picks from the same frames: lp_d3's MediaPipe points (the tracker's scheme), its dlib points,
+    and those with the mouth forced open (no closed mouth: the fallback to the 10 % smallest gap)."""
+    import cv2
+
+    from facesynth.data.detect_mediapipe import MediaPipeLandmarker
+    from facesynth.neutral import select_neutral
+
+    cap = cv2.VideoCapture(str(shared_clip_dir("lp_d3") / "video.mp4"))
+    mp, mp_frames = MediaPipeLandmarker(), []
+    for _ in range(40):
+        ok, bgr = cap.read()
+        assert ok
+        mp_frames.append(mp.landmarks(cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)))
+    dlib = np.load(shared_clip_dir("lp_d3") / "landmarks.npy").astype(np.float64)[:90]
+    opened = dlib.copy()
+    opened[:, 65:68, 1] += 0.1 * np.linalg.norm(dlib[:, 36] - dlib[:, 45], axis=1)[:, None]  # lower inner lip down
+    cases = [(np.array(mp_frames, np.float64), "mediapipe478"), (dlib, "ibug68"), (opened, "ibug68"), (dlib[:1], "ibug68")]
+    with browser.served(page_site) as url, browser.browser_page(camera=False) as (page, blocked):
+        page.goto(url)
+        page.wait_for_function("window.facesynth && window.facesynth.state.schemes")
+        for frames, scheme in cases:
+            got = page.evaluate("([f, s]) => window.facesynth.selectNeutral(f, s)", [frames.reshape(len(frames), -1).tolist(), scheme])
+            want, info = select_neutral(frames)
+            assert got == want, (scheme, got, want, info)
+    assert select_neutral(opened)[1]["rule"].startswith("10%")  # the fallback was exercised
+    assert blocked == []
+

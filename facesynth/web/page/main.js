@@ -4,6 +4,7 @@
 // and records them. Where that worker's stage (tracker + avatar) takes longer than a frame's
 // budget, the avatar moves to a second worker and renders beside the tracker (docs/web.md).
 // URL options: ?workers=1|2|auto (default auto) and ?stage_ms=N (auto's budget, default 30).
+import { selectNeutral } from './neutral.js';
 import { onnxMetadata } from './onnxmeta.js';
 
 // auto: the stage is judged on the median of STAGE_FRAMES frames, once WARMUP_FRAMES frames have
@@ -149,11 +150,10 @@ function captureNeutral() {
   message('Look at the camera with a neutral face...');
 }
 
-function median(rows) {
-  const out = new Float32Array(rows[0].length);
-  for (let i = 0; i < out.length; i++) { const v = rows.map((r) => r[i]).sort((a, b) => a - b); out[i] = v[v.length >> 1]; }
-  return out;
-}
+// replay hook for tests and tools: frames (each P x 2 flat, the scheme's points) -> the index of
+// the one the page takes as the driver's neutral (neutral.js)
+window.facesynth.selectNeutral = (frames, scheme = 'mediapipe478') =>
+  selectNeutral(frames.map((f) => Float32Array.from(f)), state.schemes[scheme].to_ibug68);
 
 const recent = (arr, v) => { arr.push(v); if (arr.length > 300) arr.shift(); };
 
@@ -172,7 +172,9 @@ function onPoints(msg) {
     state.neutralStart ??= performance.now();
     state.neutralSamples.push(msg.points);
     if (performance.now() - state.neutralStart >= NEUTRAL_MS && state.neutralSamples.length >= 3) {
-      state.neutral = median(state.neutralSamples);
+      // the project's neutral rule over the captured frames (a closed mouth, the frame nearest the mean
+      // shape): a real frame, where a per-point median mixed the poses of a head that moved
+      state.neutral = state.neutralSamples[selectNeutral(state.neutralSamples, state.schemes.mediapipe478.to_ibug68)];
       state.renderer.postMessage({ type: 'neutral', points: state.neutral });
       message('Live.');
       $('neutral').disabled = false; $('record').disabled = false;
