@@ -180,6 +180,10 @@ def _error_shown(page, needle: str, timeout_s: float = 60.0) -> str:
 
 
 def test_error_messages(page_site, camera, tmp_path):
+    import base64
+
+    import cv2
+
     blank = tmp_path / "blank.y4m"
     with open(blank, "wb") as f:  # a grey wall: no face
         f.write(b"YUV4MPEG2 W320 H240 F30:1 Ip A1:1 C420jpeg\n")
@@ -214,6 +218,10 @@ def test_error_messages(page_site, camera, tmp_path):
             assert "cannot be driven by the page's tracker" in _error_shown(page, "five.onnx")
             syn = {"format": TALKING_HEAD_FORMAT, "landmark_scheme": "mediapipe478", "frame_size": [8, 8],
                    "background_jpeg": "AA=="}
+            page.evaluate(drop, ["nojpeg.onnx", list(_tiny_onnx(syn))])
+            assert "nojpeg.onnx: its neutral frame (background_jpeg) is not a JPEG" in _error_shown(page, "nojpeg.onnx")
+            jpeg = cv2.imencode(".jpg", np.zeros((8, 8, 3), np.uint8))[1].tobytes()
+            syn["background_jpeg"] = base64.b64encode(jpeg).decode()
             page.evaluate(drop, ["broken.onnx", list(_tiny_onnx(syn, op="NoSuchOp"))])
             assert "broken.onnx is corrupt" in _error_shown(page, "broken.onnx")
             frames = page.evaluate("window.facesynth.state.frames")

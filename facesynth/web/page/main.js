@@ -56,10 +56,10 @@ class AvatarGraph {
     const g = new AvatarGraph();
     Object.assign(g, { name, meta, scheme, files, n: schemes[scheme].n_points,
       rows: scheme === 'mediapipe478' ? null : schemes[scheme].to_ibug68 });
-    await g.loadInto(worker, f);
     g.bg = new Image();
     g.bg.src = 'data:image/jpeg;base64,' + meta.background_jpeg;
-    await g.bg.decode();
+    try { await g.bg.decode(); } catch { throw new Error(`${name}: its neutral frame (background_jpeg) is not a JPEG (re-export it)`); }
+    await g.loadInto(worker, f);  // last: the worker swaps avatars only for one the page can show
     [g.width, g.height] = meta.frame_size;
     g.rgba = new ImageData(g.width, g.height);
     return g;
