@@ -20,7 +20,8 @@ from facesynth.errors import FacesynthError
 from facesynth.io import atomic_dir
 
 PAGE = Path(__file__).resolve().parent / "page"  # the page and its npm manifest: package data
-PAGE_FILES = ("index.html", "main.js", "worker.js", "tracker.js", "neutral.js", "onnxmeta.js", "style.css")
+PAGE_FILES = ("index.html", "main.js", "worker.js", "tracker.js", "neutral.js", "schemes.js", "onnxmeta.js",
+              "style.css")
 NPM_FILES = ("package.json", "package-lock.json")
 ORT_FILES = ("ort.wasm.min.mjs", "ort-wasm-simd-threaded.mjs", "ort-wasm-simd-threaded.wasm")
 HEADERS = {"Cross-Origin-Opener-Policy": "same-origin", "Cross-Origin-Embedder-Policy": "require-corp",

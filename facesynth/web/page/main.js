@@ -125,22 +125,17 @@ window.facesynth.render = async (driver, neutral) => {
 // (its tracking state apart from the camera's) -> each frame's points (478 x 2 flat) or null;
 // region: each frame read only where the tracker looks, as the camera's frames are
 window.facesynth.track = async (width, height, frames, region = false) => {
-  const w = new Worker('worker.js', { type: 'module' });
-  const reply = () => new Promise((resolve, reject) => {
-    w.onmessage = (ev) => (ev.data.type === 'error' ? reject(new Error(ev.data.message)) : resolve(ev.data));
-  });
-  let r = reply();
-  w.postMessage({ type: 'init', base });
-  await r;
-  const out = [];
-  for (const b64 of frames) {
-    const data = Uint8Array.from(atob(b64), (c) => c.charCodeAt(0)).buffer;
-    r = reply();
-    w.postMessage({ type: 'pixels', id: 1, data, width, height, region }, [data]);
-    const m = await r;
-    out.push(m.points ? Array.from(m.points) : null);
+  const w = startWorker(true), out = [];
+  try {
+    await w.ready;
+    for (const b64 of frames) {
+      const data = Uint8Array.from(atob(b64), (c) => c.charCodeAt(0)).buffer;
+      const m = await call(w, 'pixels', { data, width, height, region }, [data]);
+      out.push(m.points ? Array.from(m.points) : null);
+    }
+  } finally {
+    w.terminate();
   }
-  w.terminate();
   return out;
 };
 

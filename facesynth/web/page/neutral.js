@@ -5,15 +5,14 @@
 // generalised Procrustes alignment (facesynth.geometry.generalised_procrustes). On the frames'
 // iBUG-68 view. Tested against Python on the same frames (tests/test_web_page.py).
 
+import { toScheme } from './schemes.js';
+
 const INNER_UPPER = [61, 62, 63], INNER_LOWER = [67, 66, 65], EYES = [36, 45], MOUTH_CLOSED_MAX = 0.03;
 
-// a frame (P x 2 flat) -> its 68 points [[x, y], ...] through the scheme's rows ([[j, w], ...] per point)
+// a frame (P x 2 flat) -> its 68 points [[x, y], ...] through the scheme's to_ibug68 rows
 function view68(points, rows) {
-  return rows.map((row) => {
-    let x = 0, y = 0;
-    for (const [j, w] of row) { x += w * points[2 * j]; y += w * points[2 * j + 1]; }
-    return [x, y];
-  });
+  const v = toScheme(points, rows, Float64Array);  // in double precision, as numpy
+  return Array.from({ length: v.length / 2 }, (_, k) => [v[2 * k], v[2 * k + 1]]);
 }
 
 const dist = (a, b) => Math.hypot(a[0] - b[0], a[1] - b[1]);

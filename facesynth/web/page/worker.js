@@ -22,20 +22,13 @@
 // uint8), dims, t, ms} after each tracked frame once the avatar and the neutral are there;
 // {type:'reply', id, ...} to the messages with an id; {type:'error', id?, message}.
 import * as ort from './ort/ort.wasm.min.mjs';
+import { toScheme } from './schemes.js';
 import { Tracker } from './tracker.js';
 
 let tracker = null, avatar = null, neutral = null, canvas, ctx;
 let chain = Promise.resolve();
 // one piece of ONNX Runtime work at a time, in the order the messages came
 const serial = (fn) => { const p = chain.then(fn); chain = p.catch(() => {}); return p; };
-
-// Driver points (478, MediaPipe's order) -> the avatar's scheme with its rows of the landmark table.
-function toScheme(points, rows) {
-  if (!rows) return points;
-  const out = new Float32Array(rows.length * 2);
-  rows.forEach((row, i) => { for (const [j, w] of row) { out[2 * i] += w * points[2 * j]; out[2 * i + 1] += w * points[2 * j + 1]; } });
-  return out;
-}
 
 // driver and driver neutral, P x 2 flat in the avatar's scheme -> its frame (ort.Tensor, uint8 1 x H x W x 3)
 async function render(a, driver, driverNeutral) {
