@@ -98,8 +98,9 @@ def _ingest(meta: dict | None) -> dict | None:
 def _run(metrics: dict) -> dict:
     regions = metrics["psnr_frame_common_regions"]
     sharp = metrics["sharpness_frame_common"]
-    psnr = {part: regions[part]["sadm"]["0"] for part in ("whole",) + PARTS}
-    below = [p for p in PARTS if regions[p]["sadm"]["0"] < regions[p]["mean_texture"]["0"]]
+    # a part no evaluated frame shows (a mouth that stays closed has no interior) is absent: None
+    psnr = {part: regions[part]["sadm"]["0"] if part in regions else None for part in ("whole",) + PARTS}
+    below = [p for p in PARTS if p in regions and regions[p]["sadm"]["0"] < regions[p]["mean_texture"]["0"]]
     return {"psnr": psnr, "sharpness": sharp["whole"]["sadm"], "sharpness_eyes": sharp["eyes"]["sadm"],
             "parts_below_mean": below, "test_frames": metrics.get("frame_level_frames")}
 
@@ -113,7 +114,8 @@ def collect(root: Path, faces: Path, clip: str) -> dict:
         log = root / "logs" / f"{key}_{clip}.log"
         row[key] = {**_run(metrics), "train_wall_s": _wall(log)} if metrics else {"error": _failure(log)}
     if "psnr" in row["ib"] and "psnr" in row["mp"]:
-        row["gain"] = {p: row["mp"]["psnr"][p] - row["ib"]["psnr"][p] for p in row["ib"]["psnr"]}
+        row["gain"] = {p: row["mp"]["psnr"][p] - row["ib"]["psnr"][p] for p in row["ib"]["psnr"]
+                       if row["mp"]["psnr"][p] is not None and row["ib"]["psnr"][p] is not None}
     return row
 
 
@@ -121,10 +123,12 @@ def summarise(rows: list[dict]) -> dict:
     both = [r for r in rows if "gain" in r]
     out = {"clips": len(rows), "compared": len(both), "missing": [r["clip"] for r in rows if "gain" not in r]}
     for part in ("whole",) + PARTS:
-        g = np.array([r["gain"][part] for r in both])
+        have = [r for r in both if part in r["gain"]]
+        g = np.array([r["gain"][part] for r in have])
         if len(g):
-            worst = both[int(np.argmin(g))]["clip"]
-            out[part] = {"mp_wins": int((g > 0).sum()), "mean_gain_db": float(g.mean()), "median_gain_db": float(np.median(g)),
+            worst = have[int(np.argmin(g))]["clip"]
+            out[part] = {"compared": len(g), "mp_wins": int((g > 0).sum()), "mean_gain_db": float(g.mean()),
+                         "median_gain_db": float(np.median(g)),
                          "worst_db": float(g.min()), "worst_clip": worst, "best_db": float(g.max())}
     ds = np.array([r["mp"]["sharpness"] - r["ib"]["sharpness"] for r in both])
     if len(ds):
@@ -163,12 +167,13 @@ def markdown(rows: list[dict], summary: dict) -> str:
         main.append(f"| {r['clip']} | {mp_i['frames']} | {det} | {ib['psnr']['whole']:.2f} | {mp['psnr']['whole']:.2f} | "
                     f"{r['gain']['whole']:+.2f} | {ib['sharpness']:.2f} / {mp['sharpness']:.2f} | {speed} |")
         parts.append(f"| {r['clip']} | " + " | ".join(
-            f"{ib['psnr'][p]:.2f} / {mp['psnr'][p]:.2f} ({r['gain'][p]:+.2f})" for p in PARTS) + " |")
+            f"{_f(ib['psnr'][p])} / {_f(mp['psnr'][p])}" + (f" ({r['gain'][p]:+.2f})" if p in r["gain"] else "")
+            for p in PARTS) + " |")
     summ = ["| part | MediaPipe wins | mean gain | median | worst (clip) | best |", "|---|---|---|---|---|---|"]
     for p in ("whole",) + PARTS:
         if p in summary:
             s = summary[p]
-            summ.append(f"| {p.replace('_', ' ')} | {s['mp_wins']} of {summary['compared']} | {s['mean_gain_db']:+.2f} | "
+            summ.append(f"| {p.replace('_', ' ')} | {s['mp_wins']} of {s['compared']} | {s['mean_gain_db']:+.2f} | "
                         f"{s['median_gain_db']:+.2f} | {s['worst_db']:+.2f} ({s['worst_clip']}) | {s['best_db']:+.2f} |")
     return "\n".join(main + [""] + parts + [""] + summ)
 

@@ -296,7 +296,9 @@ def face_region_masks(points68: np.ndarray, shape: tuple[int, int], within: np.n
     pixels of an image of ``shape`` (H, W); the one definition of the face's parts.
 
     ``eyes``: the eye polygons (36-41, 42-47); ``mouth_interior``: the inner-lip polygon
-    (60-67); ``lips``: the outer-lip polygon (48-59) without the interior; ``brows``: each
+    (60-67) of an open mouth (:func:`mouth_open` above :data:`MOUTH_CLOSED`; a closed mouth
+    has none: its inner-lip polygon is the line where the lips meet, and belongs to the lips);
+    ``lips``: the outer-lip polygon (48-59) without the interior; ``brows``: each
     brow closed by its eye's upper lid (17-21 + 39-36, 22-26 + 45-42) without the eyes;
     ``rest``: ``within`` (default: everything) without the others. All are cut to ``within``,
     so they partition it. Polygons are filled at pixel centres (4 fractional bits).
@@ -312,12 +314,24 @@ def face_region_masks(points68: np.ndarray, shape: tuple[int, int], within: np.n
         return m > 0
 
     eyes = (fill(RIGHT_EYE) | fill(LEFT_EYE)) & inside
-    interior = fill(INNER_LIPS) & inside & ~eyes
+    interior = (fill(INNER_LIPS) if float(mouth_open(pts)) > MOUTH_CLOSED else np.zeros((h, w), bool)) & inside & ~eyes
     lips = fill(OUTER_LIPS) & inside & ~eyes & ~interior
     upper_lids = (39, 38, 37, 36), (45, 44, 43, 42)
     brows = (fill(RIGHT_BROW + upper_lids[0]) | fill(LEFT_BROW + upper_lids[1])) & inside & ~eyes & ~interior & ~lips
     return {"eyes": eyes, "mouth_interior": interior, "lips": lips, "brows": brows,
             "rest": inside & ~(eyes | interior | lips | brows)}
+
+
+INNER_UPPER = (61, 62, 63)  # inner-lip points facing INNER_LOWER across the mouth opening
+INNER_LOWER = (67, 66, 65)
+MOUTH_CLOSED = 0.03  # mouth_open at or below this: a closed mouth (the neutral frame's rule, the face's parts)
+
+
+def mouth_open(landmarks: np.ndarray) -> np.ndarray:
+    """Mean inner-lip gap (61-67, 62-66, 63-65) / inter-ocular distance: (..., 68, 2) -> (...)."""
+    lm = np.asarray(landmarks, np.float64)
+    gap = np.linalg.norm(lm[..., list(INNER_UPPER), :] - lm[..., list(INNER_LOWER), :], axis=-1).mean(-1)
+    return gap / inter_ocular(lm)
 
 
 def inter_ocular(landmarks: np.ndarray) -> np.ndarray:

@@ -12,20 +12,12 @@ import numpy as np
 
 from facesynth.errors import FacesynthError
 from facesynth.geometry import generalised_procrustes
-from facesynth.landmarks import ibug68_view, inter_ocular, scheme_for_points
+from facesynth.landmarks import INNER_LOWER, INNER_UPPER, MOUTH_CLOSED, ibug68_view, mouth_open, scheme_for_points
 
-INNER_UPPER = (61, 62, 63)  # inner-lip points facing INNER_LOWER across the mouth opening
-INNER_LOWER = (67, 66, 65)
-
-
-def mouth_open(landmarks: np.ndarray) -> np.ndarray:
-    """Mean inner-lip gap (61-67, 62-66, 63-65) / inter-ocular distance: (N, 68, 2) -> (N,)."""
-    lm = np.asarray(landmarks, np.float64)
-    gap = np.linalg.norm(lm[..., list(INNER_UPPER), :] - lm[..., list(INNER_LOWER), :], axis=-1).mean(-1)
-    return gap / inter_ocular(lm)
+__all__ = ["INNER_LOWER", "INNER_UPPER", "MOUTH_CLOSED", "mouth_open", "select_neutral"]
 
 
-def select_neutral(landmarks: np.ndarray, mouth_closed_max: float = 0.03) -> tuple[int, dict]:
+def select_neutral(landmarks: np.ndarray, mouth_closed_max: float = MOUTH_CLOSED) -> tuple[int, dict]:
     """Automatic neutral frame: closest (Procrustes distance) to the mean shape among frames
     whose mouth is closed (``mouth_open <= mouth_closed_max``; if none is, the 10% of
     frames with the smallest gap).

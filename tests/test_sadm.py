@@ -19,7 +19,7 @@ from facesynth.model import FaceModel, FaceModelConfig
 from facesynth.regressors import REGISTRY
 from facesynth.runs.config import CONF_DIR, register_configs
 from facesynth.sadm.fit import SADMConfig, fit_sadm, load_sadm, save_sadm
-from facesynth.sadm.regions import fit_region_shrink, fit_weights, reference_regions
+from facesynth.sadm.regions import fit_region_shrink, fit_weights, frame_regions, reference_regions
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY = ["data.n_frames=64", "data.size=192", "eval.noise=[0,2]", "eval.max_test_frames=3"]
@@ -79,12 +79,56 @@ def test_region_shrink_weights_closed_form(synthetic):
     assert out["psnr"]["eyes"]["shrunk"] > 60  # halving a doubled deviation gives the truth back
 
 
+
+def test_frame_regions_follow_the_mouth(synthetic):
+    """In the reference frame, a closed-mouth frame's interior pixels are lips (as
+    face_region_masks cuts the frame itself); open-mouth frames keep the reference's parts; the
+    parts partition every frame's pixels."""
+    from facesynth.landmarks import MOUTH_CLOSED, mouth_open
+
+    seq, _, _, model, _ = synthetic
+    lm = seq.landmarks
+    closed = mouth_open(lm) <= MOUTH_CLOSED
+    assert closed.any() and (~closed).any()  # the synthetic face opens and closes its mouth
+    ref, parts = reference_regions(model), frame_regions(model, lm)
+    assert set(parts) == set(ref) and ref["mouth_interior"].any()
+    assert (sum(m.astype(int) for m in parts.values()) == 1).all()
+    for name, m in parts.items():
+        assert (m[~closed] == ref[name]).all()
+    assert not parts["mouth_interior"][closed].any()
+    assert (parts["lips"][closed] == (ref["lips"] | ref["mouth_interior"])).all()
+
+
+def test_the_interior_weight_comes_from_open_mouths(synthetic):
+    """A prediction exact everywhere but in closed mouths' interior pixels (far off there): with
+    the frames' landmarks the interior keeps weight 1 (it is weighed where it is an interior)
+    and the lips are untouched; without them the interior is shrunk."""
+    from facesynth.landmarks import MOUTH_CLOSED, mouth_open
+
+    seq, tr, _, model, tex_tr = synthetic
+    lm = seq.landmarks[tr]
+    closed = mouth_open(lm) <= MOUTH_CLOSED
+    mean = np.clip(model.appearance_pca.mean, 0, 1)
+    true = mean + 0.5 * (np.clip(tex_tr, 0, 1) - mean)
+    pred = true.copy().reshape(len(tr), model.n_channels, -1)
+    interior = reference_regions(model)["mouth_interior"]
+    off = pred[closed][:, :, interior]
+    pred[np.ix_(closed, np.arange(model.n_channels), np.flatnonzero(interior))] = 1.0 - off
+    pred = pred.reshape(len(tr), -1)
+    with_lm, without = fit_weights(model, pred, true, landmarks=lm), fit_weights(model, pred, true)
+    assert with_lm["weights"]["mouth_interior"] == pytest.approx(1.0) and with_lm["weights"]["lips"] == pytest.approx(1.0)
+    assert without["weights"]["mouth_interior"] < 0.9 and without["weights"]["lips"] == pytest.approx(1.0)
+    # no open mouth at all: the interior has no weight (kept at 1 when applied)
+    only_closed = fit_weights(model, pred[closed], true[closed], landmarks=lm[closed])
+    assert "mouth_interior" not in only_closed["weights"] and "mouth_interior" not in only_closed["psnr"]
+
 def test_region_shrink_blocked_cv_scores_every_frame_once_by_a_fit_without_it(synthetic):
-    _, _, _, model, tex_tr = synthetic
+    seq, tr, _, model, tex_tr = synthetic
     n = 23
     mean = np.clip(model.appearance_pca.mean, 0, 1)
     tex = mean + 0.1 * (np.clip(tex_tr[:n], 0, 1) - mean)  # doubled, still a convex mix: inside [0, 1]
-    lm = np.arange(n, dtype=np.float32)[:, None, None] + np.zeros((n, 2, 2), np.float32)  # frame i's "landmarks" = i
+    lm = seq.landmarks[tr[:n]].copy()
+    lm[:, 0, 0] = np.arange(n)  # frame i's first landmark's x = i, to tell the frames apart
     seen = []
 
     class Doubling:  # predicts each frame twice as far from the mean as it is: every weight is 0.5

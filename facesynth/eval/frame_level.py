@@ -82,7 +82,8 @@ def frame_level(model, predict, seq, rows, tex_te, oracle, cfg, seed, keys, nois
         ``psnr["common_shares"]``: {region: its pixels / the whole region's, over the frames
         evaluated}, and ``psnr["sharpness"]``: {region: {row: median over frames of the
         rendered face's Sobel energy over the real frame's}} at sigma 0, pasted with
-        ``blend_face`` (:mod:`facesynth.eval.sharpness`) (the caller pops all three)
+        ``blend_face`` (:mod:`facesynth.eval.sharpness`) (the caller pops all three); a region
+        with no pixels in any evaluated frame is left out of all three
     per_frame : {"index": (n,) test-row positions evaluated, "psnr": {row: (n,) dB at sigma 0}}
     grid : list of dicts (real, synth uint8 crops, frame row, psnr)
     """
@@ -153,15 +154,21 @@ def frame_level(model, predict, seq, rows, tex_te, oracle, cfg, seed, keys, nois
     bar.close()
     pooled = {name: {k: _db(*v.sum(0)) for k, v in d_.items()} for name, d_ in sq.items()}
     if common is not None:
-        pooled["common"] = {reg: {name: {k: _db(*v.sum(0)) for k, v in d_.items()} for name, d_ in per.items()}
-                            for reg, per in sq_common.items()}
+        # a part no evaluated frame shows (the mouth interior of a clip whose mouth stays
+        # closed) is left out of the three tables
         counts = {reg: float(per["sadm"][k0][:, 1].sum()) for reg, per in sq_common.items()}
-        pooled["common_shares"] = {reg: c / max(counts["whole"], 1.0) for reg, c in counts.items()}
-        pooled["sharpness"] = median_table(sharp)
+        shown = [reg for reg, c in counts.items() if c > 0]
+        pooled["common"] = {reg: {name: {k: _db(*v.sum(0)) for k, v in sq_common[reg][name].items()} for name in sources}
+                            for reg in shown}
+        pooled["common_shares"] = {reg: counts[reg] / max(counts["whole"], 1.0) for reg in shown}
+        pooled["sharpness"] = {reg: t for reg, t in median_table(sharp).items() if reg in shown}
     per_frame = {"index": pick, "psnr": {name: np.array([_db(*r) for r in d_[k0]]) for name, d_ in sq.items()}}
     return pooled, per_frame, grid
 
 
 def _db(sum_sq: float, count: float) -> float:
-    """PSNR (peak 255) of a summed squared error over ``count`` values."""
-    return float(10 * np.log10(255.0**2 / (sum_sq / max(count, 1)))) if sum_sq > 0 else float("inf")
+    """PSNR (peak 255) of a summed squared error over ``count`` values (NaN for none: a part
+    that no evaluated frame shows, e.g. the mouth interior of a clip whose mouth stays closed)."""
+    if count <= 0:
+        return float("nan")
+    return float(10 * np.log10(255.0**2 / (sum_sq / count))) if sum_sq > 0 else float("inf")

@@ -2,7 +2,8 @@
 ``psnr_frame_common_regions`` and ``psnr_frame_common_shares`` of ``metrics.json``.
 
 The common region's parts (``eyes``, ``mouth_interior``, ``lips``, ``brows``, ``rest``;
-runs measured before lips and brows were split off hold the first, second and last only)
+runs measured before lips and brows were split off hold the first, second and last only,
+and a run whose evaluated frames never open the mouth has no ``mouth_interior``)
 partition it (:mod:`facesynth.eval.common_region`), so its mean squared error is the pixel-share weighted
 mean of theirs. With s_r the shares and p_r the parts' PSNR (dB, peak 255)::
 
@@ -25,7 +26,9 @@ import math
 from facesynth.errors import FacesynthError
 from facesynth.landmarks import FACE_REGIONS
 
-PARTS = ("eyes", "mouth_interior", "rest")  # the parts every run has; lips and brows when measured
+# the parts every run has; lips and brows when measured, the mouth interior when an evaluated
+# frame opens the mouth (a closed mouth has none, facesynth.landmarks.face_region_masks)
+PARTS = ("eyes", "rest")
 
 
 def _parts(table: dict) -> list[str]:

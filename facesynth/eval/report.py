@@ -11,6 +11,7 @@ import numpy as np
 from facesynth.eval import plots as P
 from facesynth.eval.document import Document
 from facesynth.eval.strip import write_strip
+from facesynth.landmarks import FACE_REGIONS
 
 # What each row and column of the tables (and of the console summary) means.
 ROWS = {
@@ -140,9 +141,13 @@ def write_report(metrics: dict, out_dir: str | os.PathLike, plots: list[str], he
     if "psnr_frame" in metrics:
         doc.heading("Test PSNR in the original frame (dB, whole pipeline, face region)")
         _table(doc, metrics["psnr_frame"])
-    for region, table in metrics.get("psnr_frame_common_regions", {}).items():
+    common = metrics.get("psnr_frame_common_regions", {})
+    for region, table in common.items():
         doc.heading(f"Test PSNR in the original frame over the common region, {region} (dB; dlib hull 0-26 eroded 3 px)")
         _table(doc, table)
+    unseen = [p.replace("_", " ") for p in FACE_REGIONS if common and p not in common]
+    if unseen:
+        doc.para(f"Not in any evaluated frame, so not measured: {', '.join(unseen)} (a closed mouth has no interior).")
     face_detail_sections(doc, metrics)
     head = metrics.get("talking_head")
     if head:

@@ -21,7 +21,8 @@
   frames evaluated, sigma 0 (:mod:`facesynth.eval.sharpness`; 1 = as detailed as the real
   frame).
 * ``psnr_ref_regions``: {part: {row: {noise: dB}}}: ``psnr_ref`` per face part of the
-  reference frame (:func:`facesynth.sadm.regions.reference_regions`), rows ``sadm`` and
+  reference frame, each test frame's (:func:`facesynth.sadm.regions.frame_regions`: a closed
+  mouth's interior counts as lips), rows ``sadm`` and
   ``mean_texture``; ``region_shrink``: the SADM's per-part weights towards the mean texture
   and their validation-slice figures (None: no shrinkage).
 * ``ncc``: per-component normalised cross-correlation of predicted vs true b_g on the
@@ -44,7 +45,7 @@ from facesynth.eval.strip import strip_rows, strip_tiles
 from facesynth.landmarks import get_scheme
 from facesynth.metrics import ncc, psnr
 from facesynth.sadm.fit import SADM
-from facesynth.sadm.regions import reference_regions
+from facesynth.sadm.regions import frame_regions, masked_psnr01
 
 
 @dataclass
@@ -151,16 +152,15 @@ def evaluate_sadm(
     psnr_ref = {"sadm": {}, "mean_texture": {}, "oracle": {}}
     pred0 = None
     mean_db, oracle_db = _psnr01(mean_tex, tex_te), _psnr01(oracle, tex_te)  # landmark noise does not change them
-    parts = reference_regions(model)
-    cols = {name: np.tile(m, model.n_channels) for name, m in parts.items()}
-    ref_regions = {name: {"sadm": {}, "mean_texture": dict.fromkeys(keys, _psnr01(mean_tex[:, c], tex_te[:, c]))}
-                   for name, c in cols.items()}
+    parts = frame_regions(model, lm_te)  # per test frame: a closed mouth's interior is lips
+    ref_regions = {name: {"sadm": {}, "mean_texture": dict.fromkeys(keys, masked_psnr01(mean_tex, tex_te, m, model.n_channels))}
+                   for name, m in parts.items()}
     for s, k in zip(cfg.noise, keys, strict=True):
         pred = _predict(syn, noisy(lm_te, s, seed), cfg.batch_size)
         pred0 = pred if s == 0 else pred0
         psnr_ref["sadm"][k] = _psnr01(pred, tex_te)
-        for name, c in cols.items():
-            ref_regions[name]["sadm"][k] = _psnr01(pred[:, c], tex_te[:, c])
+        for name, m in parts.items():
+            ref_regions[name]["sadm"][k] = masked_psnr01(pred, tex_te, m, model.n_channels)
         psnr_ref["mean_texture"][k] = mean_db
         psnr_ref["oracle"][k] = oracle_db
     if pred0 is None:

@@ -52,9 +52,8 @@ class FaceModelConfig:
     # projected on that PCA first (FaceModel.denoise); 1 = off; None = the scheme's default
     denoise_variance: float | None = None
     # the reference frame's mouth opening, as a quantile of the training shapes' (the mean
-    # shape opened along the data: reference.open_mouth); 0 = the mean's own; None = the
-    # scheme's default
-    reference_mouth_quantile: float | None = None
+    # shape opened along the data: reference.open_mouth), for every scheme; 0 = the mean's own
+    reference_mouth_quantile: float = 0.9
     # points the denoiser leaves as given: "eyes" (the eye contours and irises: a driver's
     # blinks and wide eyes outside the avatar's training range stay, as retarget.ShapeSpace
     # keeps them; it doubles the sigma 2 loss, docs/sadm.md) or "none"; None = the scheme's default
@@ -73,8 +72,8 @@ class FaceModelConfig:
 # the avatar's own range, retarget.ShapeSpace, where a projection on the training shapes would pull them back).
 # Figures: docs/sadm.md.
 SCHEME_DEFAULTS = {
-    "dense": {"denoise_variance": 0.999, "reference_mouth_quantile": 0.9, "denoise_free": "none"},
-    "sparse": {"denoise_variance": 1.0, "reference_mouth_quantile": 0.0, "denoise_free": "none"},
+    "dense": {"denoise_variance": 0.999, "denoise_free": "none"},
+    "sparse": {"denoise_variance": 1.0, "denoise_free": "none"},
 }
 DENOISE_FREE = {"eyes": ("eyes", "irises"), "none": ()}  # config value -> the scheme regions left free
 WARP_POINTS = ("mesh", "sparse")
@@ -120,7 +119,7 @@ class FaceModel:
         Over flattened (P * 2,) Procrustes-aligned shapes (unit-norm scale), P the
         scheme's point count.
     reference : ReferenceFrame
-        Mean shape (its mouth opened to ``reference_mouth_quantile``, when set) at
+        Mean shape (its mouth opened to ``reference_mouth_quantile``, unless 0) at
         ``reference_width`` pixels, triangulated (the scheme's fixed triangulation, the
         triangles folded on it turned and placed last, or Delaunay).
     appearance_pca : PCAModel
@@ -168,7 +167,7 @@ class FaceModel:
         lm = seq.landmarks[rows].astype(np.float64)
         cfg = replace(cfg, reference_width=reference_width(cfg.reference_width, lm))  # "auto" resolved: the model records px
         denoise_variance = float(resolved(cfg, scheme.name, "denoise_variance"))
-        mouth_q = float(resolved(cfg, scheme.name, "reference_mouth_quantile"))
+        mouth_q = float(cfg.reference_mouth_quantile)
         free = resolved(cfg, scheme.name, "denoise_free")
         if free not in DENOISE_FREE:
             raise FacesynthError(f"model.denoise_free must be one of {sorted(DENOISE_FREE)}, got {free!r}")

@@ -33,19 +33,44 @@ import numpy as np
 import torch
 
 from facesynth.errors import FacesynthError
-from facesynth.landmarks import FACE_REGIONS, face_region_masks, get_scheme, ibug68_view
+from facesynth.landmarks import FACE_REGIONS, MOUTH_CLOSED, face_region_masks, get_scheme, ibug68_view, mouth_open
 
 
 def reference_regions(model) -> dict[str, np.ndarray]:
     """bool (M,) masks over ``model``'s reference-frame mask pixels, one per part of
-    :data:`FACE_REGIONS` (disjoint, covering all M)."""
+    :data:`FACE_REGIONS` that has pixels there (disjoint, covering all M; a reference shape
+    with a closed mouth has no ``mouth_interior``)."""
     h, w = model.reference.size
     index = model.sampler().mask_index.numpy()
     inside = np.zeros(h * w, bool)
     inside[index] = True
     pts = ibug68_view(np.asarray(model.reference.points, np.float64))
     masks = face_region_masks(pts, (h, w), within=inside.reshape(h, w))
-    return {name: m.reshape(-1)[index] for name, m in masks.items()}
+    return {name: m.reshape(-1)[index] for name, m in masks.items() if m.any()}
+
+
+def frame_regions(model, landmarks: np.ndarray) -> dict[str, np.ndarray]:
+    """bool (N, M) per part, for N frames' textures in ``model``'s reference frame: the parts of
+    :func:`reference_regions`, but in a frame whose mouth is closed (its (N, P, 2) ``landmarks``'
+    :func:`~facesynth.landmarks.mouth_open` at most ``MOUTH_CLOSED``) the mouth interior's pixels
+    count as lips, as :func:`~facesynth.landmarks.face_region_masks` cuts that frame itself.
+    Parts with no pixel in any frame are left out."""
+    parts = reference_regions(model)
+    n = len(landmarks)
+    out = {name: np.repeat(m[None], n, 0) for name, m in parts.items()}
+    if "mouth_interior" in parts:
+        closed = mouth_open(ibug68_view(np.asarray(landmarks, np.float64))) <= MOUTH_CLOSED
+        out.setdefault("lips", np.zeros_like(out["mouth_interior"]))[closed] |= parts["mouth_interior"]
+        out["mouth_interior"][closed] = False
+    return {name: m for name, m in out.items() if m.any()}
+
+
+def masked_psnr01(a: np.ndarray, b: np.ndarray, mask: np.ndarray, n_channels: int) -> float:
+    """PSNR (dB, peak 255) of (N, C M) textures in [0, 1] (clipped) over the pixels of a bool
+    (N, M) ``mask``, every channel."""
+    d = (np.clip(a, 0, 1) - np.clip(b, 0, 1)).reshape(len(a), n_channels, -1)
+    mse = float((d * d).sum(1)[mask].sum()) / (n_channels * int(mask.sum()))
+    return float(10 * np.log10(1.0 / max(mse, 1e-20)))
 
 
 def column_weights(model, weights: dict[str, float]) -> np.ndarray:
@@ -76,7 +101,8 @@ def _ls_weight(d: np.ndarray, t: np.ndarray) -> float:
     return float(np.clip((d * t).sum() / den, 0.0, 1.0)) if den > 0 else 1.0
 
 
-def fit_weights(model, predicted: np.ndarray, true: np.ndarray, groups: np.ndarray | None = None) -> dict:
+def fit_weights(model, predicted: np.ndarray, true: np.ndarray, groups: np.ndarray | None = None,
+                landmarks: np.ndarray | None = None) -> dict:
     """Per part, the least-squares shrinkage weight in [0, 1] (module docstring) of the
     ``predicted`` (N, C M) textures towards the mean given the ``true`` ones, and the PSNR
     (dB, peak 255) over those frames of the prediction, of the mean and of the shrunk prediction.
@@ -84,10 +110,15 @@ def fit_weights(model, predicted: np.ndarray, true: np.ndarray, groups: np.ndarr
     ``groups`` (N,) int: the held-out block of each frame; then a part's weight is the largest
     of the blocks' own least-squares weights (``fold_weights``): a part is shrunk only as far
     as every block agrees, so one block unlike the others (e.g. the only closed-mouth one)
-    cannot shrink a part that the rest predict well.
+    cannot shrink a part that the rest predict well. ``landmarks`` (N, P, 2): the frames'
+    own; the mouth interior's weight then comes from the frames with an open mouth only
+    (those where it is the interior, :func:`frame_regions`; a closed mouth's interior pixels
+    are not counted with the lips either, whose weight those columns do not take). A block
+    with no open mouth has no interior weight, and with none at all the part keeps weight 1
+    (left out of the result).
 
     Returns {"weights": {part: w}, "psnr": {part: {"sadm", "mean_texture", "shrunk"}}[,
-    "fold_weights": {part: [w per block]}]}."""
+    "fold_weights": {part: [w per block that shows it]}]}."""
     mean = np.clip(model.appearance_pca.mean, 0, 1).astype(np.float64)
     n, c = len(true), model.n_channels
     d = (np.clip(predicted, 0, 1) - mean).reshape(n, c, -1)
@@ -97,12 +128,20 @@ def fit_weights(model, predicted: np.ndarray, true: np.ndarray, groups: np.ndarr
     def db(e):
         return float(10 * np.log10(1.0 / max(float((e * e).mean()), 1e-20)))
 
-    for name, m in reference_regions(model).items():
-        dm, tm = d[:, :, m], t[:, :, m]
+    # per part: (frames (N,), pixels (M,)) where it is weighed
+    parts = {name: (np.ones(n, bool), m) for name, m in reference_regions(model).items()}
+    if landmarks is not None and "mouth_interior" in parts:
+        parts["mouth_interior"] = (mouth_open(ibug68_view(np.asarray(landmarks, np.float64))) > MOUTH_CLOSED,
+                                   parts["mouth_interior"][1])
+    for name, (rows, m) in parts.items():
+        if not rows.any():
+            continue
+        dm, tm = d[rows][:, :, m], t[rows][:, :, m]
         if groups is None:
             w = _ls_weight(dm, tm)
         else:
-            per_fold[name] = [_ls_weight(dm[groups == g], tm[groups == g]) for g in np.unique(groups)]
+            per_fold[name] = [_ls_weight(d[rows & (groups == g)][:, :, m], t[rows & (groups == g)][:, :, m])
+                              for g in np.unique(groups) if (rows & (groups == g)).any()]
             w = max(per_fold[name])
         weights[name] = w
         table[name] = {"sadm": db(dm - tm), "mean_texture": db(tm), "shrunk": db(w * dm - tm)}
@@ -134,7 +173,7 @@ def fit_region_shrink(fit, model, landmarks: np.ndarray, textures: np.ndarray, f
         with torch.no_grad():
             t = syn.texture(torch.from_numpy(np.ascontiguousarray(landmarks[out], np.float32)))
         pred[np.searchsorted(scored, np.flatnonzero(out))] = t.reshape(int(out.sum()), -1).numpy()
-    result = fit_weights(model, pred, textures[scored], blocks if folds >= 2 else None)
+    result = fit_weights(model, pred, textures[scored], blocks if folds >= 2 else None, landmarks[scored])
     result.update(folds=int(folds) if folds >= 2 else 0, val_frames=int(len(scored)))
     return result
 
@@ -153,5 +192,5 @@ def check_shrink(value, where) -> dict | None:
     return dict(value)
 
 
-__all__ = ["FACE_REGIONS", "reference_regions", "column_weights", "fit_weights", "fit_region_shrink", "check_shrink",
-           "shrink_appearance"]
+__all__ = ["FACE_REGIONS", "reference_regions", "frame_regions", "masked_psnr01", "column_weights",
+           "fit_weights", "fit_region_shrink", "check_shrink", "shrink_appearance"]
