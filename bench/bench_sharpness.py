@@ -38,9 +38,8 @@ from facesynth.eval.common_region import common_landmarks, hull_box, region_mask
 from facesynth.eval.frame_level import subset  # noqa: E402
 from facesynth.eval.sadm_eval import EvalConfig, evaluate_sadm  # noqa: E402
 from facesynth.eval.sharpness import sharpness  # noqa: E402
-from facesynth.imaging import crop_rgb  # noqa: E402
 from facesynth.runs.rundir import read_config, run_data  # noqa: E402
-from facesynth.runtime.blend import blend_face  # noqa: E402
+from facesynth.runtime.blend import blend_rendered  # noqa: E402
 from facesynth.runtime.renderer import Renderer  # noqa: E402
 from facesynth.sadm.fit import load_sadm  # noqa: E402
 
@@ -51,7 +50,7 @@ def exported_stage(model_path: Path, seq, rows: np.ndarray, common: np.ndarray) 
     scores, sq, count = [], 0.0, 0
     for j, frame in enumerate(seq.iter_frames(rows)):
         crops, masks, places = rend.render(seq.landmarks[rows[j : j + 1]], copy=True)
-        shown = blend_face(crop_rgb(crops), masks[0, 0], places[0].astype(np.float64), frame)
+        shown = blend_rendered(crops, masks, places, frame)
         box = hull_box(common[j], frame.shape[:2], 8)
         y0, y1, x0, x1 = box
         m = region_masks(common[j], box)["whole"]

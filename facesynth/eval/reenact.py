@@ -20,12 +20,11 @@ import time
 import cv2
 import numpy as np
 
-from facesynth.imaging import crop_rgb
 from facesynth.landmarks import ibug68_view
 from facesynth.metrics import psnr
 from facesynth.neutral import mouth_open, select_neutral
 from facesynth.retarget import Retargeter, eye_open
-from facesynth.runtime.blend import blend_face
+from facesynth.runtime.blend import blend_rendered
 from facesynth.runtime.reenact import Reenactor
 
 
@@ -74,7 +73,7 @@ def drive(model_path, driver: np.ndarray, motion: str = "relative", neutral: np.
         cov[i] = (placed_mask(masks[0, 0], place[0], sz) & hull).sum() / max(1, hull.sum())
         if i in sheet_rows:
             bg = re.frame_warp(a) if re.full_frame else re.background
-            shown[i] = blend_face(crop_rgb(crops), masks[0, 0], place[0], bg, re.feather, re.match_colour)
+            shown[i] = blend_rendered(crops, masks, place, bg, 0, re.feather, re.match_colour)
     return {"landmarks": out_lm, "coverage": cov, "frames": shown}
 
 

@@ -14,9 +14,8 @@ import numpy as np
 import torch
 
 from facesynth.errors import FacesynthError
-from facesynth.imaging import crop_rgb
 from facesynth.io import write_bytes
-from facesynth.runtime.blend import blend_face
+from facesynth.runtime.blend import blend_rendered
 
 
 def strip_rows(n_test: int, n: int = 8, stride: int = 3) -> np.ndarray:
@@ -41,7 +40,7 @@ def strip_tiles(syn, seq, rows: np.ndarray, height: int = 128, margin: float = 0
         crops, masks, places = (t.numpy() for t in syn(torch.from_numpy(lm)))
     tiles = []
     for j, frame in enumerate(seq.iter_frames(rows)):
-        shown = blend_face(crop_rgb(crops, j), masks[j, 0], places[j].astype(np.float64), frame)
+        shown = blend_rendered(crops, masks, places, frame, j)
         tiles.append(box_tile(int(rows[j]), frame, shown, lo - pad, hi + pad, height))
     return tiles
 

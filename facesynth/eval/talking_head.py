@@ -20,12 +20,11 @@ import numpy as np
 import torch
 
 from facesynth.eval.strip import box_tile
-from facesynth.imaging import crop_rgb
 from facesynth.landmarks import ibug68_view
 from facesynth.metrics import psnr, ssim
 from facesynth.onnx.avatar import avatar_metadata
 from facesynth.retarget import RETARGET_SCHEMES, Retargeter
-from facesynth.runtime.blend import blend_face
+from facesynth.runtime.blend import blend_rendered
 from facesynth.runtime.fullframe import FrameWarp, head_region
 from facesynth.runtime.reenact import Avatar
 
@@ -58,7 +57,7 @@ def talking_head_figures(syn, seq, train_rows: np.ndarray, test_rows: np.ndarray
         with torch.no_grad():
             crop, mask, place = (t.numpy() for t in syn(torch.from_numpy(a[None])))
         bg = warp(a)
-        full = blend_face(crop_rgb(crop), mask[0, 0], place[0].astype(np.float64), bg)
+        full = blend_rendered(crop, mask, place, bg)
         head = head_region(ibug68_view(seq.landmarks[row]), (real.shape[1], real.shape[0]))
         for name, img in zip(RENDERERS, (avatar.background, bg, full), strict=True):
             for key, value in zip(MEASURES, (psnr(img, real, head), ssim(img, real, head), psnr(img, real),

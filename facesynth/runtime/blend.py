@@ -18,6 +18,8 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from facesynth.imaging import crop_rgb
+
 MIN_BAND = 20.0  # frame pixels of seam band below which the colour is not matched
 
 
@@ -87,3 +89,12 @@ def blend_face(crop: np.ndarray, mask: np.ndarray, placement: np.ndarray, backgr
     blended = face + (1.0 - a) * bg
     out[y0:y1, x0:x1] = np.clip(np.floor(blended * 255.0 + 0.5), 0, 255).astype(np.uint8)
     return out
+
+
+def blend_rendered(crops: np.ndarray, masks: np.ndarray, placements: np.ndarray, background: np.ndarray, i: int = 0,
+                   feather: float | None = None, match_colour: bool = True) -> np.ndarray:
+    """Face ``i`` of a renderer's batch (``Renderer.render`` / ``FaceModel.render`` outputs:
+    crops (B, C, H_c, W_c), masks (B, 1, H_c, W_c), placements (B, 2, 3)) pasted into
+    ``background`` with :func:`blend_face` -> uint8 (H, W, 3)."""
+    return blend_face(crop_rgb(crops, i), masks[i, 0], np.asarray(placements[i], np.float64), background, feather,
+                      match_colour)

@@ -23,10 +23,9 @@ import cv2
 import numpy as np
 
 from facesynth.errors import FacesynthError
-from facesynth.imaging import crop_rgb
 from facesynth.neutral import select_neutral
 from facesynth.retarget import MOTIONS, Retargeter, ShapeSpace, retarget_scheme
-from facesynth.runtime.blend import blend_face
+from facesynth.runtime.blend import blend_rendered
 from facesynth.runtime.fullframe import FrameWarp
 from facesynth.runtime.renderer import Renderer
 
@@ -153,7 +152,7 @@ class Reenactor:
         if bg is None:
             w, h = (int(np.ceil(v)) + 32 for v in avatar_lm.max(0))
             bg = self.background = np.full((h, w, 3), GREY, np.uint8)
-        frame = blend_face(crop_rgb(crops), masks[0, 0], placements[0], bg, self.feather, self.match_colour)
+        frame = blend_rendered(crops, masks, placements, bg, 0, self.feather, self.match_colour)
         return frame, avatar_lm
 
 
