@@ -183,3 +183,22 @@ def test_torch_similarity_matches_numpy(rng):
     np.testing.assert_allclose(m_t, similarity_fit(src, dst[None]), atol=1e-9)
     back = apply_affine_t(apply_affine_t(torch.from_numpy(src), torch.from_numpy(m_t)), invert_affine_t(torch.from_numpy(m_t)))
     np.testing.assert_allclose(back.numpy(), src, atol=1e-9)
+
+
+def test_a_span_margin_keeps_a_small_triangle_that_moves_a_few_pixels(ref):
+    """A small triangle (an eye's: a few pixels wide) widened by 3 px beyond the shapes the
+    spans were sized on: the factor alone (1.3 of ~10 px) misses it and leaves columns
+    uncovered (clipped_triangles); a margin in pixels covers it, and the spans are the factor's
+    plus the margin."""
+    p = ref.points.astype(np.float64)
+    tri = ref.triangles
+    width = np.ptp(p[tri][:, :, 0], axis=1)
+    t = int(np.argmin(np.where(width > 4, width, np.inf)))  # the narrowest real triangle
+    target = p.copy()
+    right = tri[t][np.argmax(p[tri[t], 0])]
+    target[right, 0] += 0.5 * width[t] + 3.0  # its rightmost vertex moved out: wider by half + 3 px
+    plain, margin = candidate_spans(ref, p[None]), candidate_spans(ref, p[None], margin=6)
+    np.testing.assert_array_equal(margin, plain + 6)
+    t_target = torch.from_numpy(target[None].astype(np.float32))
+    assert ToTarget(ref, plain).clipped_triangles(t_target)[0, t]
+    assert not ToTarget(ref, margin).clipped_triangles(t_target)[0].any()

@@ -46,6 +46,7 @@ class FaceModelConfig:
     antialias: bool = True  # Gaussian prefilter sigma = scale / 2 when the face is larger than the reference
     clamp_k: float = 3.0
     span_safety: float = 1.3
+    span_margin: int = 6  # px added to every triangle's span after the factor (warp.candidate_spans)
     batch_size: int = 32
     # fraction of the aligned training shapes' variance the landmark denoiser keeps: every
     # landmark set the model synthesises from (the regressor's input and the warp target) is
@@ -197,7 +198,7 @@ class FaceModel:
                      "turned and placed last", seq.name, len(folded), scheme.name, folded)
         canvas_shapes = model.to_canvas(seq.landmarks[rows])[0]
         extremes = model._shape_extremes()
-        model.span = candidate_spans(ref, np.concatenate([canvas_shapes, extremes]), cfg.span_safety)
+        model.span = candidate_spans(ref, np.concatenate([canvas_shapes, extremes]), cfg.span_safety, cfg.span_margin)
         t1 = time.perf_counter()
         textures = model.sample_textures(seq, rows, progress=progress)
         t2 = time.perf_counter()

@@ -113,7 +113,7 @@ def invert_affine_t(m: torch.Tensor) -> torch.Tensor:
     return torch.cat([inv, t], 2)
 
 
-def candidate_spans(ref: ReferenceFrame, shapes: np.ndarray, safety: float = 1.3) -> np.ndarray:
+def candidate_spans(ref: ReferenceFrame, shapes: np.ndarray, safety: float = 1.3, margin: int = 0) -> np.ndarray:
     """Candidate block size of each triangle for :class:`ToTarget`.
 
     Parameters
@@ -124,6 +124,10 @@ def candidate_spans(ref: ReferenceFrame, shapes: np.ndarray, safety: float = 1.3
         aligned to the reference frame, and their +-3 sigma extremes).
     safety : float
         Factor on the largest observed bounding box of each triangle.
+    margin : int
+        Pixels added after the factor: a triangle a few pixels wide (an eyelid, a lip
+        corner) varies by more than a share of its width when a driver's eyelid or lip
+        moves it by a pixel or two.
 
     Returns
     -------
@@ -133,4 +137,4 @@ def candidate_spans(ref: ReferenceFrame, shapes: np.ndarray, safety: float = 1.3
     pts = np.concatenate([np.asarray(shapes, np.float64).reshape(-1, len(ref.points), 2), ref.points[None]], 0)
     corners = pts[:, ref.triangles]  # (N, T, 3, 2)
     span = np.floor(corners.max(2) - corners.min(2)).max(0) + 2  # largest bbox + rounding
-    return np.ceil(span * safety).astype(np.int64)
+    return (np.ceil(span * safety) + int(margin)).astype(np.int64)

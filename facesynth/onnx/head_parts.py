@@ -327,13 +327,14 @@ class SeamGraph(nn.Module):
 
     @staticmethod
     def _erode(x: torch.Tensor, r: int) -> torch.Tensor:
-        """Square (2r + 1) erosion of a {0, 1} (B, 1, h, w) map; the border does not erode
-        (OpenCV's default): no hole (0) within r pixels, counted by running sums (CumSum),
-        whose cost does not grow with r as MaxPool's does."""
+        """Square (2r + 1) erosion of a {0, 1} (B, 1, h, w) map, the outside of the map
+        counted as 0 (:func:`facesynth.runtime.blend.seam_layers`): no hole (0) within r
+        pixels, counted by running sums (CumSum), whose cost does not grow with r as
+        MaxPool's does."""
         k = 2 * r + 1
-        c = torch.cumsum(F.pad(1.0 - x, (r + 1, r)), 3)
+        c = torch.cumsum(F.pad(1.0 - x, (r + 1, r), value=1.0), 3)
         holes = c[..., k:] - c[..., :-k]
-        c = torch.cumsum(F.pad(holes, (0, 0, r + 1, r)), 2)
+        c = torch.cumsum(F.pad(holes, (0, 0, r + 1, r), value=float(k)), 2)
         return ((c[:, :, k:] - c[:, :, :-k]) < 0.5).to(x.dtype)
 
     def layers(self, crop: torch.Tensor, mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

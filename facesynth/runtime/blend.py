@@ -38,18 +38,25 @@ def gaussian_kernel(sigma: float) -> np.ndarray:
     return cv2.getGaussianKernel(k, sigma, cv2.CV_32F).reshape(-1)
 
 
+def _erode(hard: np.ndarray, r: int) -> np.ndarray:
+    """Square (2r + 1) erosion of a uint8 {0, 1} map, the outside of the map counted as 0."""
+    return cv2.erode(hard, np.ones((2 * r + 1, 2 * r + 1), np.uint8), borderType=cv2.BORDER_CONSTANT, borderValue=0)
+
+
 def seam_layers(mask: np.ndarray, feather: float) -> tuple[np.ndarray, np.ndarray]:
     """The seam in the crop's pixels: float32 (H_c, W_c) alpha and band.
 
     alpha: the mask (> 0.5) eroded by ``ceil(feather)`` pixels (a square), blurred by a
     Gaussian of sigma ``feather / 2`` and cut to the mask; band: the mask less its erosion by
-    twice that (where the colours are compared)."""
+    twice that (where the colours are compared). Outside the crop counts as outside the
+    mask: a face that reaches the crop's edge (a head turned far) fades out there too, where
+    it used to end in a hard line."""
     hard = (np.asarray(mask) > 0.5).astype(np.uint8)
     r = max(1, int(np.ceil(feather)))
-    inner = cv2.erode(hard, np.ones((2 * r + 1, 2 * r + 1), np.uint8)).astype(np.float32)
+    inner = _erode(hard, r).astype(np.float32)
     g = gaussian_kernel(feather / 2.0)
     alpha = cv2.sepFilter2D(inner, cv2.CV_32F, g, g, borderType=cv2.BORDER_REFLECT_101) * hard
-    band = hard & (cv2.erode(hard, np.ones((4 * r + 1, 4 * r + 1), np.uint8)) == 0)
+    band = hard & (_erode(hard, 2 * r) == 0)
     return alpha, band.astype(np.float32)
 
 
