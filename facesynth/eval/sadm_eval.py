@@ -45,7 +45,7 @@ from facesynth.eval.strip import strip_rows, strip_tiles
 from facesynth.landmarks import get_scheme
 from facesynth.metrics import ncc, psnr
 from facesynth.sadm.fit import SADM
-from facesynth.sadm.regions import frame_regions, masked_psnr01
+from facesynth.sadm.regions import frame_regions, masked_psnr01, pixel_errors
 
 
 @dataclass
@@ -153,14 +153,16 @@ def evaluate_sadm(
     pred0 = None
     mean_db, oracle_db = _psnr01(mean_tex, tex_te), _psnr01(oracle, tex_te)  # landmark noise does not change them
     parts = frame_regions(model, lm_te)  # per test frame: a closed mouth's interior is lips
-    ref_regions = {name: {"sadm": {}, "mean_texture": dict.fromkeys(keys, masked_psnr01(mean_tex, tex_te, m, model.n_channels))}
-                   for name, m in parts.items()}
+    c = model.n_channels
+    err = pixel_errors(mean_tex, tex_te, c)
+    ref_regions = {name: {"sadm": {}, "mean_texture": dict.fromkeys(keys, masked_psnr01(err, m, c))} for name, m in parts.items()}
     for s, k in zip(cfg.noise, keys, strict=True):
         pred = _predict(syn, noisy(lm_te, s, seed), cfg.batch_size)
         pred0 = pred if s == 0 else pred0
         psnr_ref["sadm"][k] = _psnr01(pred, tex_te)
+        err = pixel_errors(pred, tex_te, c)
         for name, m in parts.items():
-            ref_regions[name]["sadm"][k] = masked_psnr01(pred, tex_te, m, model.n_channels)
+            ref_regions[name]["sadm"][k] = masked_psnr01(err, m, c)
         psnr_ref["mean_texture"][k] = mean_db
         psnr_ref["oracle"][k] = oracle_db
     if pred0 is None:

@@ -68,9 +68,9 @@ class FaceModelConfig:
 
 # The settings whose default depends on the landmark scheme (config None): a dense mesh (a
 # scheme with a fixed triangulation: hundreds of points, each with its own jitter, on small
-# triangles, and fixed triangles closing the mouth) against a sparse scheme (68 points,
-# Delaunay on the mean, whose inner-lip points stay apart; its reenactment drives eyelids past
-# the avatar's own range, retarget.ShapeSpace, where a projection on the training shapes would pull them back).
+# triangles) against a sparse scheme (68 points, Delaunay on the mean; its reenactment drives
+# eyelids past the avatar's own range, retarget.ShapeSpace, where a projection on the training
+# shapes would pull them back).
 # Figures: docs/sadm.md.
 SCHEME_DEFAULTS = {
     "dense": {"denoise_variance": 0.999, "denoise_free": "none"},

@@ -65,11 +65,17 @@ def frame_regions(model, landmarks: np.ndarray) -> dict[str, np.ndarray]:
     return {name: m for name, m in out.items() if m.any()}
 
 
-def masked_psnr01(a: np.ndarray, b: np.ndarray, mask: np.ndarray, n_channels: int) -> float:
-    """PSNR (dB, peak 255) of (N, C M) textures in [0, 1] (clipped) over the pixels of a bool
-    (N, M) ``mask``, every channel."""
-    d = (np.clip(a, 0, 1) - np.clip(b, 0, 1)).reshape(len(a), n_channels, -1)
-    mse = float((d * d).sum(1)[mask].sum()) / (n_channels * int(mask.sum()))
+def pixel_errors(a: np.ndarray, b: np.ndarray, n_channels: int) -> np.ndarray:
+    """float64 (N, M): squared differences of (N, C M) textures in [0, 1] (clipped), summed
+    over the C channels of each pixel."""
+    d = (np.clip(a, 0, 1) - np.clip(b, 0, 1)).astype(np.float64).reshape(len(a), n_channels, -1)
+    return (d * d).sum(1)
+
+
+def masked_psnr01(errors: np.ndarray, mask: np.ndarray, n_channels: int) -> float:
+    """PSNR (dB, peak 255 on [0, 1] textures) over the pixels of a bool (N, M) ``mask`` of
+    :func:`pixel_errors`' (N, M) ``errors``."""
+    mse = float(errors[mask].sum()) / (n_channels * int(mask.sum()))
     return float(10 * np.log10(1.0 / max(mse, 1e-20)))
 
 
@@ -192,5 +198,5 @@ def check_shrink(value, where) -> dict | None:
     return dict(value)
 
 
-__all__ = ["FACE_REGIONS", "reference_regions", "frame_regions", "masked_psnr01", "column_weights",
+__all__ = ["FACE_REGIONS", "reference_regions", "frame_regions", "pixel_errors", "masked_psnr01", "column_weights",
            "fit_weights", "fit_region_shrink", "check_shrink", "shrink_appearance"]
