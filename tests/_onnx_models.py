@@ -17,12 +17,11 @@ from facesynth.regressors import REGISTRY
 from facesynth.sadm.synthesis import GlobalAppearance, Synthesizer
 
 
-@lru_cache(maxsize=2)
-def synthetic_model(mouth_quantile: float = FaceModelConfig.reference_mouth_quantile):
+@lru_cache(maxsize=1)
+def synthetic_model():
     frames, lm = face_sequence_arrays(n=24, seed=1)
     seq = FaceSequence.from_arrays(lm, ArrayFrames(frames), name="unit")
-    cfg = FaceModelConfig(reference_width=64, appearance_variance=0.95, reference_mouth_quantile=mouth_quantile)
-    model = FaceModel.fit(seq, cfg, progress=False)
+    model = FaceModel.fit(seq, FaceModelConfig(reference_width=64, appearance_variance=0.95), progress=False)
     x = model.shape_params(lm, clamp=True)
     y = model.appearance_params(model.sample_textures(seq))
     return model, lm, x, y
@@ -37,19 +36,19 @@ def fit_synthesizer(name: str, model, x, y) -> Synthesizer:
 
 
 @lru_cache(maxsize=None)
-def synthetic_synthesizer(name: str = "linear", mouth_quantile: float = FaceModelConfig.reference_mouth_quantile) -> Synthesizer:
-    model, _, x, y = synthetic_model(mouth_quantile)
+def synthetic_synthesizer(name: str = "linear") -> Synthesizer:
+    model, _, x, y = synthetic_model()
     return fit_synthesizer(name, model, x, y)
 
 
-def exported(name: str, directory: Path, mouth_quantile: float = FaceModelConfig.reference_mouth_quantile) -> Path:
+def exported(name: str, directory: Path) -> Path:
     """The ONNX file of :func:`synthetic_synthesizer` (exported once per directory)."""
     from facesynth.onnx.synthesis import export_synthesizer
 
-    path = Path(directory) / f"synthetic_{name}_{mouth_quantile:g}.onnx"
+    path = Path(directory) / f"synthetic_{name}.onnx"
     if not path.is_file():
-        model = synthetic_model(mouth_quantile)[0]
-        export_synthesizer(synthetic_synthesizer(name, mouth_quantile), path, {"data_fingerprint": model.fingerprint})
+        model = synthetic_model()[0]
+        export_synthesizer(synthetic_synthesizer(name), path, {"data_fingerprint": model.fingerprint})
     return path
 
 

@@ -52,9 +52,7 @@ def _flipped(points, triangles):
 
 @pytest.fixture(scope="module")
 def folded():
-    # the folds are drawn on the mean shape's own mouth (the default reference opens it, and the
-    # swapped lips and the pushed jaw then leave the warp's spans: no longer a fold test)
-    syn = synthetic_synthesizer("linear", mouth_quantile=0.0)
+    syn = synthetic_synthesizer("linear")
     return syn, _folded_sets(syn)
 
 
@@ -81,7 +79,7 @@ def test_folds_leave_no_hole_in_torch(folded):
 
 def test_folds_parity_in_onnx_runtime(folded, tmp_path):
     syn, lm = folded
-    r = Renderer(exported("linear", tmp_path, mouth_quantile=0.0))
+    r = Renderer(exported("linear", tmp_path))
     crop, mask, _ = r.render(lm, copy=True)
     with torch.no_grad():
         t_crop, t_mask, _ = (t.numpy() for t in syn(torch.from_numpy(lm)))
