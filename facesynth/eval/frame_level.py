@@ -167,8 +167,5 @@ def frame_level(model, predict, seq, rows, tex_te, oracle, cfg, seed, keys, nois
 
 
 def _db(sum_sq: float, count: float) -> float:
-    """PSNR (peak 255) of a summed squared error over ``count`` values (NaN for none: a part
-    that no evaluated frame shows, e.g. the mouth interior of a clip whose mouth stays closed)."""
-    if count <= 0:
-        return float("nan")
-    return float(10 * np.log10(255.0**2 / (sum_sq / count))) if sum_sq > 0 else float("inf")
+    """PSNR (peak 255) of a summed squared error over ``count`` values."""
+    return float(10 * np.log10(255.0**2 / (sum_sq / max(count, 1)))) if sum_sq > 0 else float("inf")

@@ -49,6 +49,12 @@ def reference_regions(model) -> dict[str, np.ndarray]:
     return {name: m.reshape(-1)[index] for name, m in masks.items() if m.any()}
 
 
+def closed_mouths(landmarks: np.ndarray) -> np.ndarray:
+    """bool (N,): which of (N, P, 2) landmark sets (any registered scheme) have a closed mouth
+    (:func:`~facesynth.landmarks.mouth_open` of their iBUG-68 view at most ``MOUTH_CLOSED``)."""
+    return mouth_open(ibug68_view(np.asarray(landmarks, np.float64))) <= MOUTH_CLOSED
+
+
 def frame_regions(model, landmarks: np.ndarray) -> dict[str, np.ndarray]:
     """bool (N, M) per part, for N frames' textures in ``model``'s reference frame: the parts of
     :func:`reference_regions`, but in a frame whose mouth is closed (its (N, P, 2) ``landmarks``'
@@ -59,7 +65,7 @@ def frame_regions(model, landmarks: np.ndarray) -> dict[str, np.ndarray]:
     n = len(landmarks)
     out = {name: np.repeat(m[None], n, 0) for name, m in parts.items()}
     if "mouth_interior" in parts:
-        closed = mouth_open(ibug68_view(np.asarray(landmarks, np.float64))) <= MOUTH_CLOSED
+        closed = closed_mouths(landmarks)
         out.setdefault("lips", np.zeros_like(out["mouth_interior"]))[closed] |= parts["mouth_interior"]
         out["mouth_interior"][closed] = False
     return {name: m for name, m in out.items() if m.any()}
@@ -137,17 +143,17 @@ def fit_weights(model, predicted: np.ndarray, true: np.ndarray, groups: np.ndarr
     # per part: (frames (N,), pixels (M,)) where it is weighed
     parts = {name: (np.ones(n, bool), m) for name, m in reference_regions(model).items()}
     if landmarks is not None and "mouth_interior" in parts:
-        parts["mouth_interior"] = (mouth_open(ibug68_view(np.asarray(landmarks, np.float64))) > MOUTH_CLOSED,
-                                   parts["mouth_interior"][1])
+        parts["mouth_interior"] = (~closed_mouths(landmarks), parts["mouth_interior"][1])
     for name, (rows, m) in parts.items():
         if not rows.any():
             continue
-        dm, tm = d[rows][:, :, m], t[rows][:, :, m]
-        if groups is None:
+        dm, tm, gr = d[:, :, m], t[:, :, m], groups  # the part's columns
+        if not rows.all():  # weighed on some frames only: those
+            dm, tm, gr = dm[rows], tm[rows], None if groups is None else groups[rows]
+        if gr is None:
             w = _ls_weight(dm, tm)
         else:
-            per_fold[name] = [_ls_weight(d[rows & (groups == g)][:, :, m], t[rows & (groups == g)][:, :, m])
-                              for g in np.unique(groups) if (rows & (groups == g)).any()]
+            per_fold[name] = [_ls_weight(dm[gr == g], tm[gr == g]) for g in np.unique(gr)]
             w = max(per_fold[name])
         weights[name] = w
         table[name] = {"sadm": db(dm - tm), "mean_texture": db(tm), "shrunk": db(w * dm - tm)}
@@ -198,5 +204,5 @@ def check_shrink(value, where) -> dict | None:
     return dict(value)
 
 
-__all__ = ["FACE_REGIONS", "reference_regions", "frame_regions", "pixel_errors", "masked_psnr01", "column_weights",
+__all__ = ["FACE_REGIONS", "reference_regions", "closed_mouths", "frame_regions", "pixel_errors", "masked_psnr01", "column_weights",
            "fit_weights", "fit_region_shrink", "check_shrink", "shrink_appearance"]
