@@ -13,7 +13,10 @@ default; default export):
 * ``full``: :class:`facesynth.runtime.Reenactor` (retargeting, synthesis, full-frame warp,
   feathered colour-matched compositing);
 * ``paste`` (cross pairs, detection measures only): the face composited into the still
-  neutral frame (``full_frame=False``, the behaviour before the full-frame warp).
+  neutral frame (``full_frame=False``, the behaviour before the full-frame warp);
+* ``oracle`` (self-reenactment, PSNR and SSIM only): the real frame composited into *warp*
+  with the alpha of *full*'s face (:func:`placed_alpha`): what a perfect synthesised face
+  would give, so the bound on *full* - *warp* that the compositing region leaves.
 
 Measures:
 
@@ -73,6 +76,7 @@ from facesynth.metrics import psnr, ssim  # noqa: E402
 from facesynth.neutral import select_neutral  # noqa: E402
 from facesynth.runs.rundir import read_config, run_data  # noqa: E402
 from facesynth.runtime import Reenactor  # noqa: E402
+from facesynth.runtime.blend import placed_alpha  # noqa: E402
 from facesynth.runtime.fullframe import head_region  # noqa: E402
 
 CLIPS = ("lp_d3", "lp_d20", "lp_d11", "sadtalker_aoc", "vrt_face1", "vrt_face2", "vrt_face4", "vrt_face5")
@@ -298,7 +302,8 @@ def drive(info: dict, dl: Dlib, driver_lm: np.ndarray, neutral=None, real_rows=N
     # the still frame is one image: its detection figures are the avatar's (avatar_info)
     static_frame = full.avatar.background
     eyes = StillEyes(static_frame, full.avatar.neutral)
-    tracks = {k: Track(None if k == "static" else dl, info["ref"], None if k == "static" else eyes) for k in renderers}
+    still = ("static", "oracle")  # the still frame and the real face: no detector figures
+    tracks = {k: Track(None if k in still else dl, info["ref"], None if k in still else eyes) for k in renderers}
     shown = {}
     for i, lm in enumerate(driver_lm):
         out, a = full.step(lm)
@@ -311,6 +316,10 @@ def drive(info: dict, dl: Dlib, driver_lm: np.ndarray, neutral=None, real_rows=N
         if real_rows is not None:
             real = np.asarray(info["seq"].frame(int(real_rows[i])))
             real_lm = info["seq"].landmarks[real_rows[i]]
+        if "oracle" in renderers:
+            _, masks, places = full.renderer.render(a[None])
+            alpha = placed_alpha(masks[0, 0], places[0], real.shape[1::-1], full.feather)[..., None]
+            frames["oracle"] = np.floor(alpha * real + (1.0 - alpha) * frames["warp"] + 0.5).astype(np.uint8)
         for k in renderers:
             tracks[k].add(frames[k], a, real, real_lm)
         if i in sheet_rows:
@@ -343,7 +352,8 @@ def main() -> None:
         held = np.asarray(info["seq"].landmarks[test], np.float32)
         neutral = Reenactor(info["path"]).avatar.neutral
         rows = set(top_turns(held)) if (clip, clip) in sheet_for else set()
-        figs, shown = drive(info, dl, held, neutral, real_rows=test, sheet_rows=rows)
+        figs, shown = drive(info, dl, held, neutral, real_rows=test, sheet_rows=rows,
+                            renderers=("static", "warp", "full", "oracle"))
         figs.update({k: info[k] for k in ("own_heldout_identity_median", "static_faces", "static_identity")})
         figs["frames"] = int(len(test))
         out["self"][clip] = figs

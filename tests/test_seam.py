@@ -1,6 +1,7 @@
 """The seam of the composite (runtime.blend.seam_layers) against an independent erosion
-(scipy), the talking-head graph's tensor form (onnx.head_parts.SeamGraph) against it, and a
-face that reaches the crop's edge fading out there instead of ending in a line."""
+(scipy), the talking-head graph's tensor form (onnx.head_parts.SeamGraph) against it, a
+face that reaches the crop's edge fading out there instead of ending in a line, and the
+placed alpha (runtime.blend.placed_alpha) as the weight blend_face gives the face."""
 
 from __future__ import annotations
 
@@ -13,7 +14,7 @@ import torch
 from scipy.ndimage import minimum_filter
 
 from facesynth.onnx.head_parts import SeamGraph
-from facesynth.runtime.blend import gaussian_kernel, seam_layers
+from facesynth.runtime.blend import blend_face, gaussian_kernel, placed_alpha, seam_layers
 
 
 def _masks() -> list[np.ndarray]:
@@ -78,3 +79,20 @@ def test_the_graphs_seam_layers_match_numpy(feather):
         np.testing.assert_allclose(layers[i, :3].numpy(), crop[i] * alpha, atol=1e-5)
         want = (crop[i] * band).sum((1, 2)) / max(band.sum(), 1.0)
         np.testing.assert_allclose(face_mean[i].numpy(), want, atol=1e-5)
+
+
+@pytest.mark.parametrize("feather", [None, 3.4])
+def test_placed_alpha_is_the_weight_blend_face_gives_the_face(feather):
+    """A white face on a black frame, colour matching off: blend_face's output is 255 x the
+    placed alpha (rounded), for a rotated, scaled placement partly outside the frame."""
+    mask = _masks()[1]
+    h, w = mask.shape
+    a, b = 1.7 * math.cos(0.3), 1.7 * math.sin(0.3)
+    placement = np.array([[a, -b, 40.0], [b, a, -12.0]])
+    size = (120, 90)
+    alpha = placed_alpha(mask, placement, size, feather)
+    assert alpha.shape == (90, 120) and alpha.dtype == np.float32
+    assert alpha.max() == pytest.approx(1.0, abs=1e-3) and alpha.min() == 0.0
+    white = np.ones((h, w, 3), np.float32)
+    out = blend_face(white, mask, placement, np.zeros((90, 120, 3), np.uint8), feather, match_colour=False)
+    np.testing.assert_array_equal(out[..., 0], np.clip(np.floor(alpha * 255.0 + 0.5), 0, 255))

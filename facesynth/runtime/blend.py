@@ -98,6 +98,15 @@ def blend_face(crop: np.ndarray, mask: np.ndarray, placement: np.ndarray, backgr
     return out
 
 
+def placed_alpha(mask: np.ndarray, placement: np.ndarray, size: tuple[int, int], feather: float | None = None) -> np.ndarray:
+    """float32 (H, W) the alpha with which :func:`blend_face` composites a face of ``mask``
+    (H_c, W_c) placed by ``placement`` (2, 3) into a frame of ``size`` (W, H): where, and how
+    much, the rendered face replaces the frame (e.g. to composite another image with it)."""
+    f = float(feather) if feather is not None else seam_width(mask)
+    alpha, _ = seam_layers(mask, f)
+    return cv2.warpAffine(alpha, np.asarray(placement, np.float64), tuple(int(v) for v in size), flags=cv2.INTER_LINEAR)
+
+
 def blend_rendered(crops: np.ndarray, masks: np.ndarray, placements: np.ndarray, background: np.ndarray, i: int = 0,
                    feather: float | None = None, match_colour: bool = True) -> np.ndarray:
     """Face ``i`` of a renderer's batch (``Renderer.render`` / ``FaceModel.render`` outputs:
