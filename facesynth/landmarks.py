@@ -334,6 +334,30 @@ def mouth_open(landmarks: np.ndarray) -> np.ndarray:
     return gap / inter_ocular(lm)
 
 
+def eye_lids(scheme: LandmarkScheme | None = None) -> tuple:
+    """Per eye (right, left) of ``scheme`` (default iBUG-68): its facing eyelid points (upper,
+    lower), :func:`facing_pairs` of the eye's contour."""
+    scheme = IBUG68 if scheme is None else scheme
+    return tuple(facing_pairs(scheme.region(f"{side}_eye")) for side in ("right", "left"))
+
+
+def eye_openings(landmarks: np.ndarray, scheme: LandmarkScheme | None = None) -> np.ndarray:
+    """Each eye's opening: the mean gap of its facing eyelid points (:func:`eye_lids`) across
+    the line through its two corners, over the corners' distance: (N, P, 2) or (P, 2) ->
+    (N, 2) or (2,) (right eye, left eye; of ``scheme``'s eye regions, default iBUG-68)."""
+    lm = np.asarray(landmarks, np.float64)
+    scheme = IBUG68 if scheme is None else scheme
+    c = scheme.region("eye_corners")
+    out = []
+    for (c0, c1), (up, lo) in zip((c[:2], c[2:]), eye_lids(scheme), strict=True):
+        axis = lm[..., c1, :] - lm[..., c0, :]
+        width = np.maximum(np.linalg.norm(axis, axis=-1), 1e-12)
+        normal = np.stack([-axis[..., 1], axis[..., 0]], -1) / width[..., None]
+        gap = np.abs(((lm[..., up, :] - lm[..., lo, :]) * normal[..., None, :]).sum(-1)).mean(-1)
+        out.append(gap / width)
+    return np.stack(out, -1)
+
+
 def inter_ocular(landmarks: np.ndarray) -> np.ndarray:
     """Outer-eye-corner distance of (..., 68, 2) landmarks -> (...)."""
     lm = np.asarray(landmarks, np.float64)

@@ -38,6 +38,14 @@ P = 478; the FAP units and face axes are measured on their iBUG-68 view,
    motion changes no proportion of the face, and the fold-free warp renders any of it. The
    clamped shape can cross the inner lips again (a mouth the PCA does not reach): they are
    uncrossed once more as in step 3, along the avatar's down axis moved with the head.
+   Each eye's opening is then capped at the widest the avatar's own training frames open
+   that eye (``ShapeSpace.eye_open_max``, :func:`facesynth.landmarks.eye_openings`): the
+   eye, lids and iris, is squashed towards the line through its corners until it is no
+   wider. A driver whose
+   neutral has narrower eyes than its usual ones (or wider eyes than the avatar's, scaled
+   up by the FAP units) otherwise stares through every frame with lids stretched past any
+   the avatar made, which the synthesis renders as smeared lids (docs/reenact.md, "Eyes no
+   wider than the avatar's own"); blinks and half-shut eyes pass unchanged.
 
 ``motion="absolute"`` returns the driver's landmarks unchanged (the behaviour before
 retargeting; for self-driving and tests).
@@ -52,7 +60,16 @@ import numpy as np
 from facesynth.errors import FacesynthError
 from facesynth.faps import FAPU_NAMES, RIGID_POINTS, face_axes, fapu
 from facesynth.geometry import similarity_fit
-from facesynth.landmarks import IBUG68, LandmarkScheme, facing_pairs, get_scheme, ibug68_view, inter_ocular
+from facesynth.landmarks import (
+    IBUG68,
+    LandmarkScheme,
+    eye_lids,
+    eye_openings,
+    facing_pairs,
+    get_scheme,
+    ibug68_view,
+    inter_ocular,
+)
 
 MOTIONS = ("relative", "absolute")
 RETARGET_SCHEMES = ("ibug68", "mediapipe478")  # schemes whose every point is a face-model point
@@ -101,10 +118,11 @@ def eye_patches(scheme: LandmarkScheme) -> tuple:
 
 
 def eyelid_pairs(scheme: LandmarkScheme) -> tuple[np.ndarray, np.ndarray]:
-    """(upper, lower) facing eyelid points of both eyes: each eye's contour is a ring from one
-    corner over the upper lid to the other corner (index n / 2) and back, so point k faces n - k."""
-    right, left = facing_pairs(scheme.region("right_eye")), facing_pairs(scheme.region("left_eye"))
-    return np.concatenate([right[0], left[0]]), np.concatenate([right[1], left[1]])
+    """(upper, lower) facing eyelid points of both eyes (:func:`facesynth.landmarks.eye_lids`:
+    each eye's contour is a ring from one corner over the upper lid to the other corner
+    (index n / 2) and back, so point k faces n - k)."""
+    (ru, rl), (lu, ll) = eye_lids(scheme)
+    return np.concatenate([ru, lu]), np.concatenate([rl, ll])
 
 
 def closing_pairs(scheme: LandmarkScheme) -> tuple[np.ndarray, np.ndarray]:
@@ -152,6 +170,9 @@ class ShapeSpace:
     keep_eyes : after clamping, restore each eye's contour relative to its two corners
         (module docstring, step 5); False clamps the eyelids with the rest.
     scheme : the landmark scheme (P from it; its eye regions for ``keep_eyes``)
+    eye_open_max : (2,) or None: the widest opening of each eye (right, left;
+        :func:`facesynth.landmarks.eye_openings`) that a projected shape keeps (module
+        docstring, step 5); None: no cap (models exported without it)
     """
 
     mean: np.ndarray
@@ -159,18 +180,24 @@ class ShapeSpace:
     limit: np.ndarray
     keep_eyes: bool = True
     scheme: str = "ibug68"
+    eye_open_max: np.ndarray | None = None
 
     @classmethod
     def from_dict(cls, d: dict, scheme: str = "ibug68") -> "ShapeSpace":
         """From the exported model's ``shape_pca`` metadata: {mean, components, limit}, of ``scheme``."""
         try:
-            out = cls(*(np.asarray(d[k], np.float64) for k in ("mean", "components", "limit")), scheme=scheme)
-        except (KeyError, TypeError, ValueError) as exc:
+            cap = d.get("eye_open_max")
+            out = cls(*(np.asarray(d[k], np.float64) for k in ("mean", "components", "limit")), scheme=scheme,
+                      eye_open_max=None if cap is None else np.asarray(cap, np.float64))
+        except (AttributeError, KeyError, TypeError, ValueError) as exc:
             raise FacesynthError(f"shape_pca metadata: expected mean, components and limit ({exc})") from None
         return out
 
     def to_dict(self) -> dict:
-        return {k: np.round(getattr(self, k), 7).tolist() for k in ("mean", "components", "limit")}
+        out = {k: np.round(getattr(self, k), 7).tolist() for k in ("mean", "components", "limit")}
+        if self.eye_open_max is not None:
+            out["eye_open_max"] = np.round(self.eye_open_max, 7).tolist()
+        return out
 
     def __post_init__(self):
         sch = retarget_scheme(self.scheme)
@@ -179,7 +206,13 @@ class ShapeSpace:
         if self.mean.shape != (2 * n,) or self.components.shape != (k, 2 * n):
             raise FacesynthError(f"shape_pca metadata: mean {self.mean.shape}, components {self.components.shape}, limit ({k},) "
                                  f"do not form a shape PCA of {self.scheme} ({n} points)")
+        if self.eye_open_max is not None:
+            cap = np.asarray(self.eye_open_max, np.float64)
+            if cap.shape != (2,) or not np.all(np.isfinite(cap) & (cap > 0)):
+                raise FacesynthError(f"shape_pca metadata: eye_open_max must be two positive numbers, got {self.eye_open_max}")
+            self.eye_open_max = cap
         self._n = n
+        self._scheme = sch
         self._eyes = eye_patches(sch)
         mean = self.mean.reshape(n, 2)
         self._mu = mean.mean(0)
@@ -209,6 +242,8 @@ class ShapeSpace:
         rec = aligned - (excess @ self.components).reshape(self._n, 2)
         if self.keep_eyes:
             _restore_local(rec, aligned, self._eyes)
+        if self.eye_open_max is not None:
+            _cap_eyes(rec, self._scheme, self._eyes, self.eye_open_max)
         n = ca * ca + sa * sa
         inv = np.array([[ca, sa], [-sa, ca]]) / n
         return (rec - self._mu) @ inv.T + mo
@@ -332,6 +367,21 @@ def _restore_local(rec: np.ndarray, before: np.ndarray, patches: tuple) -> None:
         k = (d1 - d0) / (s1 - s0)
         z = (before[idx, 0] - s0.real + 1j * (before[idx, 1] - s0.imag)) * k + d0
         rec[idx, 0], rec[idx, 1] = z.real, z.imag
+
+
+def _cap_eyes(rec: np.ndarray, scheme: LandmarkScheme, patches: tuple, cap: np.ndarray) -> None:
+    """Squash each eye of ``rec`` (P, 2) whose opening (:func:`eye_openings`) exceeds ``cap``
+    (2,) towards the line through its corners until it equals the cap, in place: the eye's
+    points (contour and iris, ``patches``: :func:`eye_patches`) keep their position along
+    the corner line and their distance across it is scaled by cap / opening (an affine
+    squash: no triangle of the eye turns over)."""
+    for (idx, c0, c1), opening, m in zip(patches, eye_openings(rec, scheme), cap, strict=True):
+        if opening <= m:
+            continue
+        axis = rec[c1] - rec[c0]
+        normal = np.array([-axis[1], axis[0]]) / np.hypot(*axis)
+        h = (rec[idx] - rec[c0]) @ normal
+        rec[idx] -= np.outer((1.0 - m / opening) * h, normal)
 
 
 def _one_face(x, where: str, n: int) -> np.ndarray:

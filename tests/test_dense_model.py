@@ -331,7 +331,13 @@ def test_478_point_avatar_is_reenacted_from_its_metadata(dense, tmp_path):
     path = export_synthesizer(syn, tmp_path / "avatar.onnx", meta)
     neutral = np.asarray(meta["avatar_neutral"], np.float32)
     re = Reenactor(path, driver_neutral=neutral)
-    space = shape_space(syn)
+    space = shape_space(syn, seq.landmarks)
+    # each eye capped at the widest its training frames open it, on the 478-point eye contours
+    from facesynth.landmarks import eye_openings, get_scheme
+
+    widest = eye_openings(seq.landmarks, get_scheme("mediapipe478")).max(0)
+    np.testing.assert_allclose(meta["shape_pca"]["eye_open_max"], widest, atol=1e-6)
+    np.testing.assert_allclose(re._retarget.shape_space.eye_open_max, widest, atol=1e-6)
     for i in (3, 17, 30):
         frame, got = re.step(seq.landmarks[i])
         np.testing.assert_allclose(got, space.project(seq.landmarks[i].astype(np.float64)), atol=2e-3)

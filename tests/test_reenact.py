@@ -267,7 +267,7 @@ def test_the_graph_uncrosses_the_lips_as_numpy_does():
     mouth, head turned, through a shape clamp that moves the mouth (step 5 uncrosses again)."""
     import torch
 
-    from facesynth.onnx.head_parts import RetargetGraph
+    from facesynth.onnx.retarget_graph import RetargetGraph
     from facesynth.retarget import Retargeter, ShapeSpace
 
     driver_n, avatar, frame, rot, up, lo = _mouth_closing_case(0.3)
@@ -288,6 +288,90 @@ def test_the_graph_uncrosses_the_lips_as_numpy_does():
     r.shape_space = None
     clamped = space.project(r(frame[None])[0].astype(np.float64))
     assert ((clamped[lo] - clamped[up]) @ down).max() < -1.0  # the clamp alone crosses them
+    g = RetargetGraph(avatar, space).eval()
+    with torch.no_grad():
+        got = g(torch.from_numpy(frame[None].astype(np.float32)), torch.from_numpy(driver_n.astype(np.float32)))[0].numpy()
+    np.testing.assert_allclose(got, want, atol=0.02)
+
+
+def _eye_case(turn: float = 0.3):
+    """A shape space around face 0, and that face (turned by ``turn`` rad, scaled, moved) with
+    its right eye opened to twice its gap and its left eye half-shut."""
+    from facesynth.landmarks import RIGHT_EYE
+
+    rng = np.random.default_rng(3)
+    face = _faces()[0]
+    mean = face - face.mean(0)
+    mean = (mean / np.linalg.norm(mean)).reshape(-1)
+    comps = np.linalg.qr(rng.normal(size=(136, 3)))[0].T
+    comps -= np.outer(comps @ mean, mean)
+    comps = np.linalg.qr(comps.T)[0].T
+    shape = face.copy()
+    mid = shape[list(RIGHT_EYE)].mean(0)
+    shape[list(RIGHT_EYE), 1] = mid[1] + 2.0 * (shape[list(RIGHT_EYE), 1] - mid[1])  # right eye opened
+    lmid = shape[[42, 45]].mean(0)
+    shape[[43, 44, 46, 47], 1] = lmid[1] + 0.3 * (shape[[43, 44, 46, 47], 1] - lmid[1])  # left eye half-shut
+    rot = 1.4 * np.array([[np.cos(turn), -np.sin(turn)], [np.sin(turn), np.cos(turn)]])
+    shape = shape @ rot.T + np.array([40.0, -25.0])
+    return mean, comps, np.array([1.0, 1.0, 1.0]), shape  # wide limits: the clamp moves nothing
+
+
+def test_an_eye_wider_than_the_avatars_widest_is_capped_there():
+    """ShapeSpace.eye_open_max: an eye opened past its cap comes out exactly at the cap, its
+    corners, its position along the corner line and the rest of the face unchanged; an eye
+    below its cap (a half-shut one) is left alone."""
+    from facesynth.landmarks import LEFT_EYE, RIGHT_EYE, eye_openings
+    from facesynth.retarget import ShapeSpace
+
+    mean, comps, limit, shape = _eye_case()
+    free = ShapeSpace(mean, comps, limit).project(shape)
+    np.testing.assert_allclose(free, shape, atol=1e-9)
+    before = eye_openings(shape)
+    cap = np.array([0.6 * before[0], 2.0 * before[1]])
+    out = ShapeSpace(mean, comps, limit, eye_open_max=cap).project(shape)
+    np.testing.assert_allclose(eye_openings(out), [cap[0], before[1]], rtol=1e-9)
+    others = [i for i in range(68) if i not in RIGHT_EYE]
+    np.testing.assert_allclose(out[others], shape[others], atol=1e-9)  # the left eye too (below its cap)
+    axis = shape[39] - shape[36]
+    axis /= np.linalg.norm(axis)
+    np.testing.assert_allclose(out[list(RIGHT_EYE)] @ axis, shape[list(RIGHT_EYE)] @ axis, atol=1e-9)
+    moved = np.linalg.norm(out - shape, axis=1)
+    assert moved[[36, 39]].max() < 1e-9 and moved[list(RIGHT_EYE)].max() > 1.0
+    assert set(LEFT_EYE).isdisjoint(np.flatnonzero(moved > 1e-9))
+
+
+def test_the_eye_cap_round_trips_the_metadata_and_refuses_bad_values():
+    from facesynth.errors import FacesynthError
+    from facesynth.retarget import ShapeSpace
+
+    mean, comps, limit, _ = _eye_case()
+    space = ShapeSpace(mean, comps, limit, eye_open_max=np.array([0.31, 0.29]))
+    back = ShapeSpace.from_dict(space.to_dict())
+    np.testing.assert_allclose(back.eye_open_max, [0.31, 0.29])
+    old = {k: v for k, v in space.to_dict().items() if k != "eye_open_max"}  # a file exported before the cap
+    assert ShapeSpace.from_dict(old).eye_open_max is None
+    for bad in ([0.3], [0.3, -1.0], [0.3, float("nan")]):
+        with pytest.raises(FacesynthError, match="eye_open_max"):
+            ShapeSpace.from_dict({**space.to_dict(), "eye_open_max": bad})
+
+
+def test_the_graph_caps_the_eyes_as_numpy_does():
+    """RetargetGraph with a capped shape space against Retargeter, the driver's right eye
+    opened past the avatar's widest and its head turned."""
+    import torch
+
+    from facesynth.landmarks import eye_openings
+    from facesynth.onnx.retarget_graph import RetargetGraph
+    from facesynth.retarget import Retargeter, ShapeSpace
+
+    mean, comps, limit, frame = _eye_case()
+    avatar, driver_n = _faces()[1], _faces()[0] @ (1.4 * np.eye(2)) + np.array([40.0, -25.0])
+    cap = 0.8 * eye_openings(avatar)
+    space = ShapeSpace(mean, comps, limit, eye_open_max=cap)
+    want = Retargeter(avatar, driver_n, shape_space=space)(frame[None])[0].astype(np.float64)
+    uncapped = Retargeter(avatar, driver_n, shape_space=ShapeSpace(mean, comps, limit))(frame[None])[0]
+    assert eye_openings(uncapped)[0] > 1.5 * cap[0]  # the driver's wide eye, unclamped
+    np.testing.assert_allclose(eye_openings(want)[0], cap[0], rtol=1e-4)
     g = RetargetGraph(avatar, space).eval()
     with torch.no_grad():
         got = g(torch.from_numpy(frame[None].astype(np.float32)), torch.from_numpy(driver_n.astype(np.float32)))[0].numpy()

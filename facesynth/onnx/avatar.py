@@ -6,7 +6,9 @@ into its ONNX metadata at export time (torch-side; the runtime reads it with
   among the training frames by ERI's rule (:func:`facesynth.neutral.select_neutral`),
   and ``avatar_neutral_row`` (the frame's index in the clip);
 * ``shape_pca``: the model's shape PCA (mean, orthonormal components, clamp limits
-  k sqrt(lambda)) for :class:`facesynth.retarget.ShapeSpace`;
+  k sqrt(lambda)) and the widest opening of each eye over the training frames
+  (``eye_open_max``, :func:`facesynth.retarget.eye_openings`) for
+  :class:`facesynth.retarget.ShapeSpace`;
 * ``background_jpeg``: that neutral frame, JPEG (quality 90) in base64, the avatar's own
   frame the app composites into, and ``frame_size`` [W, H].
 """
@@ -20,8 +22,9 @@ import cv2
 import numpy as np
 
 from facesynth.errors import FacesynthError
+from facesynth.landmarks import eye_openings
 from facesynth.neutral import select_neutral
-from facesynth.retarget import RETARGET_SCHEMES, ShapeSpace
+from facesynth.retarget import RETARGET_SCHEMES, ShapeSpace, retarget_scheme
 
 log = logging.getLogger(__name__)
 JPEG_QUALITY = 90
@@ -35,11 +38,15 @@ def encode_jpeg(image: np.ndarray) -> str:
     return base64.b64encode(buf.tobytes()).decode("ascii")
 
 
-def shape_space(syn) -> ShapeSpace:
-    """The synthesizer's shape PCA (its :class:`ShapeEncoder` buffers) as a ShapeSpace."""
+def shape_space(syn, landmarks: np.ndarray | None = None) -> ShapeSpace:
+    """The synthesizer's shape PCA (its :class:`ShapeEncoder` buffers) as a ShapeSpace; with
+    the training frames' ``landmarks`` (N, P, 2), each eye's opening capped at the widest of
+    them (``eye_open_max``)."""
     enc = syn.encoder
+    scheme = getattr(syn, "scheme", "ibug68")
+    cap = None if landmarks is None else np.nanmax(eye_openings(landmarks, retarget_scheme(scheme)), 0)
     return ShapeSpace(enc.mean.double().numpy(), enc.components.double().numpy(), enc.limit.double().numpy(),
-                      scheme=getattr(syn, "scheme", "ibug68"))
+                      scheme=scheme, eye_open_max=cap)
 
 
 def avatar_metadata(syn, landmarks: np.ndarray, rows: np.ndarray | None = None, sequence=None) -> dict:
@@ -50,7 +57,7 @@ def avatar_metadata(syn, landmarks: np.ndarray, rows: np.ndarray | None = None, 
     idx, info = select_neutral(lm)
     row = int(rows[idx]) if rows is not None else idx
     meta = {"avatar_neutral": np.round(lm[idx].astype(np.float64), 3).tolist(), "avatar_neutral_row": row,
-            "avatar_neutral_rule": info["rule"], "shape_pca": shape_space(syn).to_dict()}
+            "avatar_neutral_rule": info["rule"], "shape_pca": shape_space(syn, lm).to_dict()}
     if sequence is not None and sequence.has_frames:
         frame = np.asarray(sequence.frame(row))
         meta["background_jpeg"] = encode_jpeg(frame)

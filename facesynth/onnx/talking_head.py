@@ -33,8 +33,9 @@ from facesynth.contract import OPSET, TALKING_HEAD_FORMAT, TALKING_HEAD_INPUTS, 
 from facesynth.errors import FacesynthError
 from facesynth.io import atomic_path
 from facesynth.landmarks import get_scheme
-from facesynth.onnx.head_parts import FrameWarpGraph, RetargetGraph, SeamGraph
+from facesynth.onnx.head_parts import FrameWarpGraph, SeamGraph
 from facesynth.onnx.passes import int32_indices
+from facesynth.onnx.retarget_graph import RetargetGraph
 from facesynth.onnx.synthesis import SynthesisGraph
 from facesynth.retarget import RETARGET_SCHEMES
 from facesynth.runtime.blend import seam_width
