@@ -29,31 +29,28 @@ P = 478; the FAP units and face axes are measured on their iBUG-68 view,
 4. head motion (``motion="relative"``): ``C P C^-1`` applied to the result, with ``C`` the
    similarity from ``D_n`` to ``A_n`` (rigid points): the driver's rotation, scale change
    and translation (in avatar pixels) around the avatar's own neutral placement;
-5. the shape is projected onto the avatar's shape PCA (similarity-aligned to its mean) and
-   its parameters clamped to +-k sqrt(lambda) (:class:`ShapeSpace`), so that it stays a face
-   the model was trained on. The eyelids are then put back as they were relative to their
-   eye corners (the corners stay clamped): a clip's shape PCA spends its few components on
-   head turns and the mouth, so the clamp would otherwise cut a driver's blinks and wide
-   eyes (docs/reenact.md measures the eye-opening correlation with and without). Eyelid
-   motion changes no proportion of the face, and the fold-free warp renders any of it. The
+5. the shape is projected onto the avatar's shape PCA (similarity-aligned to its mean), its
+   parameters clamped to +-k sqrt(lambda) and its part outside the components scaled down
+   to the largest the avatar's own training frames have (:class:`ShapeSpace`), so that it
+   stays a face the model was trained on (a driver's head turn on an avatar that never
+   turned, a mouth shape it never made: docs/reenact.md, "Shapes no further from the
+   avatar's own"). The eyelids are then put back as they were relative to their eye
+   corners (the corners stay clamped): a clip's shape PCA spends its few components on head
+   turns and the mouth, so the clamp would otherwise cut a driver's blinks and wide eyes
+   (docs/reenact.md measures the eye-opening correlation with and without). Each eye's
+   opening is then capped at the widest the avatar's own training frames open that eye
+   (``ShapeSpace.eye_open_max``): the eye, lids and iris, is squashed towards the line
+   through its corners until it is no wider, so that a driver whose neutral has narrower
+   eyes than its usual ones does not leave the avatar staring with stretched lids
+   (docs/reenact.md, "Eyes no wider than the avatar's own"); blinks pass unchanged. The
    clamped shape can cross the inner lips again (a mouth the PCA does not reach): they are
    uncrossed once more as in step 3, along the avatar's down axis moved with the head.
-   Each eye's opening is then capped at the widest the avatar's own training frames open
-   that eye (``ShapeSpace.eye_open_max``, :func:`facesynth.landmarks.eye_openings`): the
-   eye, lids and iris, is squashed towards the line through its corners until it is no
-   wider. A driver whose
-   neutral has narrower eyes than its usual ones (or wider eyes than the avatar's, scaled
-   up by the FAP units) otherwise stares through every frame with lids stretched past any
-   the avatar made, which the synthesis renders as smeared lids (docs/reenact.md, "Eyes no
-   wider than the avatar's own"); blinks and half-shut eyes pass unchanged.
 
 ``motion="absolute"`` returns the driver's landmarks unchanged (the behaviour before
 retargeting; for self-driving and tests).
 """
 
 from __future__ import annotations
-
-from dataclasses import dataclass
 
 import numpy as np
 
@@ -64,15 +61,13 @@ from facesynth.landmarks import (
     IBUG68,
     LandmarkScheme,
     eye_lids,
-    eye_openings,
     facing_pairs,
-    get_scheme,
     ibug68_view,
     inter_ocular,
 )
+from facesynth.shape_space import RETARGET_SCHEMES, ShapeSpace, eye_patches, retarget_scheme  # noqa: F401  (re-exported)
 
 MOTIONS = ("relative", "absolute")
-RETARGET_SCHEMES = ("ibug68", "mediapipe478")  # schemes whose every point is a face-model point
 # regions -> the FAP units of their (x, down) motion
 _REGION_UNITS = (("jaw", "MW", "MNS"), ("mouth", "MW", "MNS"), ("eyes", "ES", "IRISD"), ("irises", "ES", "IRISD"),
                  ("brows", "ES", "ENS"), ("nose", "ES", "ENS"))
@@ -105,18 +100,6 @@ def rigid_points(scheme: LandmarkScheme) -> list[int]:
     return [p for i in RIGID_POINTS for p in scheme.ibug68[i]]
 
 
-def eye_patches(scheme: LandmarkScheme) -> tuple:
-    """Per eye: (contour points (the iris too, when the scheme has one), corner, corner)."""
-    c = scheme.region("eye_corners")
-    out = []
-    for side, corners in (("right", c[:2]), ("left", c[2:])):
-        idx = scheme.region(f"{side}_eye")
-        if f"{side}_iris" in scheme.regions:
-            idx = np.concatenate([idx, scheme.region(f"{side}_iris")])
-        out.append((idx, int(corners[0]), int(corners[1])))
-    return tuple(out)
-
-
 def eyelid_pairs(scheme: LandmarkScheme) -> tuple[np.ndarray, np.ndarray]:
     """(upper, lower) facing eyelid points of both eyes (:func:`facesynth.landmarks.eye_lids`:
     each eye's contour is a ring from one corner over the upper lid to the other corner
@@ -145,13 +128,6 @@ def iris_diameter(scheme: LandmarkScheme, face: np.ndarray) -> float:
     return float(np.mean(out))
 
 
-def retarget_scheme(name: str) -> LandmarkScheme:
-    """The registered scheme ``name`` if retargeting supports it, else FacesynthError."""
-    if name not in RETARGET_SCHEMES:
-        raise FacesynthError(f"retargeting takes {' or '.join(RETARGET_SCHEMES)} landmarks, not {name!r}")
-    return get_scheme(name)
-
-
 def eye_open(landmarks: np.ndarray) -> np.ndarray:
     """Mean eyelid gap (the facing eyelid points of both eyes, :func:`eyelid_pairs`: 37-41,
     38-40, 43-47, 44-46) / inter-ocular distance: (N, 68, 2) -> (N,)."""
@@ -159,94 +135,6 @@ def eye_open(landmarks: np.ndarray) -> np.ndarray:
     up, lo = eyelid_pairs(IBUG68)
     gap = np.linalg.norm(lm[..., up, :] - lm[..., lo, :], axis=-1).mean(-1)
     return gap / inter_ocular(lm)
-
-
-@dataclass
-class ShapeSpace:
-    """An avatar's shape PCA (the face model's, in its normalised frame): project shapes onto
-    it and clamp their parameters to +-``limit``.
-
-    mean : (2P,) float64, components : (K, 2P) orthonormal rows, limit : (K,) (k sqrt(lambda)).
-    keep_eyes : after clamping, restore each eye's contour relative to its two corners
-        (module docstring, step 5); False clamps the eyelids with the rest.
-    scheme : the landmark scheme (P from it; its eye regions for ``keep_eyes``)
-    eye_open_max : (2,) or None: the widest opening of each eye (right, left;
-        :func:`facesynth.landmarks.eye_openings`) that a projected shape keeps (module
-        docstring, step 5); None: no cap (models exported without it)
-    """
-
-    mean: np.ndarray
-    components: np.ndarray
-    limit: np.ndarray
-    keep_eyes: bool = True
-    scheme: str = "ibug68"
-    eye_open_max: np.ndarray | None = None
-
-    @classmethod
-    def from_dict(cls, d: dict, scheme: str = "ibug68") -> "ShapeSpace":
-        """From the exported model's ``shape_pca`` metadata: {mean, components, limit}, of ``scheme``."""
-        try:
-            cap = d.get("eye_open_max")
-            out = cls(*(np.asarray(d[k], np.float64) for k in ("mean", "components", "limit")), scheme=scheme,
-                      eye_open_max=None if cap is None else np.asarray(cap, np.float64))
-        except (AttributeError, KeyError, TypeError, ValueError) as exc:
-            raise FacesynthError(f"shape_pca metadata: expected mean, components and limit ({exc})") from None
-        return out
-
-    def to_dict(self) -> dict:
-        out = {k: np.round(getattr(self, k), 7).tolist() for k in ("mean", "components", "limit")}
-        if self.eye_open_max is not None:
-            out["eye_open_max"] = np.round(self.eye_open_max, 7).tolist()
-        return out
-
-    def __post_init__(self):
-        sch = retarget_scheme(self.scheme)
-        n = sch.n_points
-        k = len(self.limit)
-        if self.mean.shape != (2 * n,) or self.components.shape != (k, 2 * n):
-            raise FacesynthError(f"shape_pca metadata: mean {self.mean.shape}, components {self.components.shape}, limit ({k},) "
-                                 f"do not form a shape PCA of {self.scheme} ({n} points)")
-        if self.eye_open_max is not None:
-            cap = np.asarray(self.eye_open_max, np.float64)
-            if cap.shape != (2,) or not np.all(np.isfinite(cap) & (cap > 0)):
-                raise FacesynthError(f"shape_pca metadata: eye_open_max must be two positive numbers, got {self.eye_open_max}")
-            self.eye_open_max = cap
-        self._n = n
-        self._scheme = sch
-        self._eyes = eye_patches(sch)
-        mean = self.mean.reshape(n, 2)
-        self._mu = mean.mean(0)
-        mc = mean - self._mu
-        # similarity fit of a shape onto the mean: [a, b] = shape.ravel() @ w / var(shape)
-        self._w = np.stack([mc.reshape(-1), np.stack([mc[:, 1], -mc[:, 0]], 1).reshape(-1)], 1)  # (2P, 2)
-        self._ct = np.ascontiguousarray(self.components.T)
-        self._off = self.mean @ self._ct
-        self._avg = np.full(n, 1.0 / n)  # mean as a matmul (faster than .mean at this size)
-
-    def project(self, shapes: np.ndarray) -> np.ndarray:
-        """(N, P, 2) or (P, 2) frame-pixel shapes -> the nearest model shapes with clamped
-        parameters, in the same frame (float64, same shape)."""
-        x = np.asarray(shapes, np.float64)
-        if x.ndim == 3:
-            return np.stack([self.project(f) for f in x])
-        mo = self._avg @ x
-        xc = x - mo
-        var = float(np.vdot(xc, xc)) or 1.0
-        ca, sa = (xc.reshape(-1) @ self._w) / var  # shape -> mean: [[ca, -sa], [sa, ca]] (x - mo) + mu
-        lin = np.array([[ca, -sa], [sa, ca]])
-        aligned = xc @ lin.T + self._mu
-        b = aligned.reshape(-1) @ self._ct - self._off
-        # move the shape back inside the box along the model's components only: what the
-        # components do not span (e.g. eye motion in a model of a head-turning clip) is kept
-        excess = np.maximum(b - self.limit, 0.0) + np.minimum(b + self.limit, 0.0)
-        rec = aligned - (excess @ self.components).reshape(self._n, 2)
-        if self.keep_eyes:
-            _restore_local(rec, aligned, self._eyes)
-        if self.eye_open_max is not None:
-            _cap_eyes(rec, self._scheme, self._eyes, self.eye_open_max)
-        n = ca * ca + sa * sa
-        inv = np.array([[ca, sa], [-sa, ca]]) / n
-        return (rec - self._mu) @ inv.T + mo
 
 
 class Retargeter:
@@ -354,34 +242,6 @@ class Retargeter:
         if self.motion == "absolute":
             return d.astype(np.float32)
         return np.stack([self.one(f) for f in d]).astype(np.float32)
-
-
-def _restore_local(rec: np.ndarray, before: np.ndarray, patches: tuple) -> None:
-    """Put each eye contour of ``before`` (P, 2) onto ``rec``'s (P, 2) corners, in place
-    (``patches``: :func:`eye_patches`): the similarity taking the eye's two corners in
-    ``before`` to those in ``rec`` (complex arithmetic: z -> a + k z) moves its contour."""
-    for idx, c0, c1 in patches:
-        s0, s1, d0, d1 = (complex(*p) for p in (before[c0], before[c1], rec[c0], rec[c1]))
-        if s1 == s0:
-            continue
-        k = (d1 - d0) / (s1 - s0)
-        z = (before[idx, 0] - s0.real + 1j * (before[idx, 1] - s0.imag)) * k + d0
-        rec[idx, 0], rec[idx, 1] = z.real, z.imag
-
-
-def _cap_eyes(rec: np.ndarray, scheme: LandmarkScheme, patches: tuple, cap: np.ndarray) -> None:
-    """Squash each eye of ``rec`` (P, 2) whose opening (:func:`eye_openings`) exceeds ``cap``
-    (2,) towards the line through its corners until it equals the cap, in place: the eye's
-    points (contour and iris, ``patches``: :func:`eye_patches`) keep their position along
-    the corner line and their distance across it is scaled by cap / opening (an affine
-    squash: no triangle of the eye turns over)."""
-    for (idx, c0, c1), opening, m in zip(patches, eye_openings(rec, scheme), cap, strict=True):
-        if opening <= m:
-            continue
-        axis = rec[c1] - rec[c0]
-        normal = np.array([-axis[1], axis[0]]) / np.hypot(*axis)
-        h = (rec[idx] - rec[c0]) @ normal
-        rec[idx] -= np.outer((1.0 - m / opening) * h, normal)
 
 
 def _one_face(x, where: str, n: int) -> np.ndarray:

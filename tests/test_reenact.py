@@ -376,3 +376,86 @@ def test_the_graph_caps_the_eyes_as_numpy_does():
     with torch.no_grad():
         got = g(torch.from_numpy(frame[None].astype(np.float32)), torch.from_numpy(driver_n.astype(np.float32)))[0].numpy()
     np.testing.assert_allclose(got, want, atol=0.02)
+
+
+def _residual_case():
+    """A shape space around face 0 (three components, wide limits) and face 0 moved along a
+    component and, across the span, along a smooth direction the components do not hold."""
+    mean, comps, limit, _ = _eye_case()
+    rng = np.random.default_rng(5)
+    off = rng.normal(size=136)
+    off -= comps.T @ (comps @ off)
+    off -= mean * (mean @ off)
+    off /= np.linalg.norm(off)
+    return mean, comps, limit, off
+
+
+def test_the_part_outside_the_components_is_scaled_down_to_residual_max():
+    """ShapeSpace.residual_max: a shape whose out-of-span part is within it is projected as
+    without it; one far beyond comes out with that part's norm at the cap (the residual of
+    the result, re-aligned) and its in-span parameters unchanged; 0 puts it in the span."""
+    from facesynth.retarget import ShapeSpace
+
+    mean, comps, limit, off = _residual_case()
+    frame = np.array([[1.3, -0.4, 60.0], [0.4, 1.3, 30.0]])
+    free = ShapeSpace(mean, comps, limit, keep_eyes=False)
+    inside = apply_affine((mean + 0.02 * comps[0] + 0.002 * off).reshape(68, 2), frame)
+    small = free.residual_norms(inside[None])[0]
+    capped = ShapeSpace(mean, comps, limit, keep_eyes=False, residual_max=1.5 * small)
+    np.testing.assert_allclose(capped.project(inside), free.project(inside), atol=1e-12)
+    far = apply_affine((mean + 0.02 * comps[0] + 0.03 * off).reshape(68, 2), frame)
+    big = free.residual_norms(far[None])[0]
+    assert big > 8 * small
+    out = capped.project(far)
+    # in the input's normalised frame (its similarity to the mean), the output keeps the input's
+    # in-span parameters and its out-of-span part is the input's scaled to the cap
+    mo, ca, sa, aligned, b, rest = capped._align(far)
+    lin = np.array([[ca, -sa], [sa, ca]])
+    back = ((out - mo) @ lin.T + capped._mu).reshape(-1)
+    b_out = back @ comps.T - mean @ comps.T
+    np.testing.assert_allclose(b_out, b, atol=1e-12)
+    rest_out = back - mean - b_out @ comps
+    np.testing.assert_allclose(rest_out, rest.reshape(-1) * (1.5 * small / big), atol=1e-12)
+    flat = ShapeSpace(mean, comps, limit, keep_eyes=False, residual_max=0.0).project(far)
+    back = ((flat - mo) @ lin.T + capped._mu).reshape(-1)
+    np.testing.assert_allclose(back, mean + b @ comps, atol=1e-12)  # 0: in the span
+
+
+def test_residual_max_round_trips_the_metadata_and_refuses_bad_values():
+    from facesynth.errors import FacesynthError
+    from facesynth.retarget import ShapeSpace
+
+    mean, comps, limit, _ = _residual_case()
+    space = ShapeSpace(mean, comps, limit, residual_max=0.0123)
+    assert ShapeSpace.from_dict(space.to_dict()).residual_max == pytest.approx(0.0123)
+    assert ShapeSpace.from_dict({k: v for k, v in space.to_dict().items() if k != "residual_max"}).residual_max is None
+    for bad in (-1.0, float("inf")):
+        with pytest.raises(FacesynthError, match="residual_max"):
+            ShapeSpace.from_dict({**space.to_dict(), "residual_max": bad})
+
+
+def test_the_graph_scales_the_residual_as_numpy_does():
+    """RetargetGraph with residual_max (and the eye cap) against Retargeter: a driver whose
+    face moves across the avatar's span, head turned."""
+    import torch
+
+    from facesynth.onnx.retarget_graph import RetargetGraph
+    from facesynth.retarget import Retargeter, ShapeSpace
+
+    mean, comps, limit, off = _residual_case()
+    avatar = _faces()[1]
+    driver_n = _faces()[0] * 1.4 + np.array([40.0, -25.0])
+    frame = driver_n + 30.0 * off.reshape(68, 2)
+    c = frame.mean(0)
+    rot = np.array([[np.cos(0.2), -np.sin(0.2)], [np.sin(0.2), np.cos(0.2)]])
+    frame = (frame - c) @ rot.T + c
+    plain = ShapeSpace(mean, comps, limit)
+    raw = Retargeter(avatar, driver_n, shape_space=plain)(frame[None])[0].astype(np.float64)
+    rmax = 0.3 * plain.residual_norms(raw[None])[0]
+    space = ShapeSpace(mean, comps, limit, eye_open_max=np.array([0.5, 0.5]), residual_max=rmax)
+    want = Retargeter(avatar, driver_n, shape_space=space)(frame[None])[0].astype(np.float64)
+    assert np.abs(want - raw).max() > 1.0  # the cap moves the face
+    g = RetargetGraph(avatar, space).eval()
+    with torch.no_grad():
+        got = g(torch.from_numpy(frame[None].astype(np.float32)), torch.from_numpy(driver_n.astype(np.float32)))[0].numpy()
+    np.testing.assert_allclose(got, want, atol=0.02)

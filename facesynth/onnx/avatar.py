@@ -6,9 +6,10 @@ into its ONNX metadata at export time (torch-side; the runtime reads it with
   among the training frames by ERI's rule (:func:`facesynth.neutral.select_neutral`),
   and ``avatar_neutral_row`` (the frame's index in the clip);
 * ``shape_pca``: the model's shape PCA (mean, orthonormal components, clamp limits
-  k sqrt(lambda)) and the widest opening of each eye over the training frames
-  (``eye_open_max``, :func:`facesynth.retarget.eye_openings`) for
-  :class:`facesynth.retarget.ShapeSpace`;
+  k sqrt(lambda)), the widest opening of each eye over the training frames
+  (``eye_open_max``, :func:`facesynth.landmarks.eye_openings`) and the largest norm of
+  their part outside the components (``residual_max``), for
+  :class:`facesynth.shape_space.ShapeSpace`;
 * ``background_jpeg``: that neutral frame, JPEG (quality 90) in base64, the avatar's own
   frame the app composites into, and ``frame_size`` [W, H].
 """
@@ -16,6 +17,7 @@ into its ONNX metadata at export time (torch-side; the runtime reads it with
 from __future__ import annotations
 
 import base64
+import dataclasses
 import logging
 
 import cv2
@@ -41,12 +43,18 @@ def encode_jpeg(image: np.ndarray) -> str:
 def shape_space(syn, landmarks: np.ndarray | None = None) -> ShapeSpace:
     """The synthesizer's shape PCA (its :class:`ShapeEncoder` buffers) as a ShapeSpace; with
     the training frames' ``landmarks`` (N, P, 2), each eye's opening capped at the widest of
-    them (``eye_open_max``)."""
+    them (``eye_open_max``) and the part of a shape the components do not span at the
+    largest of theirs (``residual_max``)."""
     enc = syn.encoder
     scheme = getattr(syn, "scheme", "ibug68")
-    cap = None if landmarks is None else np.nanmax(eye_openings(landmarks, retarget_scheme(scheme)), 0)
-    return ShapeSpace(enc.mean.double().numpy(), enc.components.double().numpy(), enc.limit.double().numpy(),
-                      scheme=scheme, eye_open_max=cap)
+    space = ShapeSpace(enc.mean.double().numpy(), enc.components.double().numpy(), enc.limit.double().numpy(),
+                       scheme=scheme)
+    if landmarks is None:
+        return space
+    lm = np.asarray(landmarks, np.float64)
+    lm = lm[np.isfinite(lm).all((1, 2))]
+    return dataclasses.replace(space, eye_open_max=eye_openings(lm, retarget_scheme(scheme)).max(0),
+                               residual_max=float(space.residual_norms(lm).max()))
 
 
 def avatar_metadata(syn, landmarks: np.ndarray, rows: np.ndarray | None = None, sequence=None) -> dict:

@@ -97,6 +97,10 @@ class RetargetGraph(nn.Module):
             self.register_buffer("off", _const(s._off))
             self.register_buffer("limit", _const(s.limit))
             self.register_buffer("comp", _const(s.components))
+            self.register_buffer("mean_flat", _const(s.mean))
+            self.cap_rest = s.residual_max is not None
+            if self.cap_rest:
+                self.register_buffer("rest_max", _const(s.residual_max))
             self.eyes = [([int(i) for i in idx], int(c0), int(c1)) for idx, c0, c1 in eye_patches(scheme)]
             for k, (idx, _, _) in enumerate(self.eyes):
                 self.register_buffer(f"put_eye{k}", _scatter(idx, len(an)))
@@ -187,6 +191,11 @@ class RetargetGraph(nn.Module):
         b = torch.matmul(aligned.flatten(1), self.ct) - self.off
         excess = torch.clamp(b - self.limit, min=0.0) + torch.clamp(b + self.limit, max=0.0)
         rec = aligned - torch.matmul(excess, self.comp).reshape(-1, n, 2)
+        if self.cap_rest:  # what the components do not span, scaled down to rest_max (ShapeSpace.project)
+            rest = aligned.flatten(1) - self.mean_flat - torch.matmul(b, self.comp)  # (B, 2P)
+            norm = torch.sqrt((rest * rest).sum(-1, keepdim=True))
+            shrink = torch.clamp(1.0 - self.rest_max / torch.clamp(norm, min=1e-30), min=0.0)
+            rec = rec - (shrink * rest).reshape(-1, n, 2)
         if self.keep_eyes:
             rec = self._restore_eyes(rec, aligned)
         if self.cap_eyes:
