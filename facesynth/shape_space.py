@@ -42,11 +42,11 @@ class ShapeSpace:
 
     mean : (2P,) float64, components : (K, 2P) orthonormal rows, limit : (K,) (k sqrt(lambda)).
     keep_eyes : after clamping, restore each eye's contour relative to its two corners
-        (module docstring, step 5); False clamps the eyelids with the rest.
+        (:mod:`facesynth.retarget`, step 5); False clamps the eyelids with the rest.
     scheme : the landmark scheme (P from it; its eye regions for ``keep_eyes``)
     eye_open_max : (2,) or None: the widest opening of each eye (right, left;
-        :func:`facesynth.landmarks.eye_openings`) that a projected shape keeps (module
-        docstring, step 5); None: no cap (models exported without it)
+        :func:`facesynth.landmarks.eye_openings`) that a projected shape keeps
+        (:mod:`facesynth.retarget`, step 5); None: no cap (models exported without it)
     residual_max : float or None: the largest norm (normalised frame) of a shape's part that
         the components do not span, kept as it is below it and scaled down to it above
         (the largest of the avatar's own training frames, :meth:`residual_norms`); None: kept

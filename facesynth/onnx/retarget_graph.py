@@ -1,6 +1,6 @@
 """The talking head's retargeting as tensor ops, for :mod:`facesynth.onnx.talking_head`:
 :class:`RetargetGraph` is :class:`facesynth.retarget.Retargeter` (relative motion) and
-:meth:`facesynth.retarget.ShapeSpace.project`, with the driver's neutral a graph input (its
+:meth:`facesynth.shape_space.ShapeSpace.project`, with the driver's neutral a graph input (its
 FAP units, face axes and rigid-point fits are computed in the graph), for the landmarks of
 :data:`facesynth.retarget.RETARGET_SCHEMES`; and the small tensor helpers the other parts
 (:mod:`facesynth.onnx.head_parts`) share.
@@ -50,7 +50,8 @@ def _similarity(ca: torch.Tensor, sa: torch.Tensor) -> torch.Tensor:
 class RetargetGraph(nn.Module):
     """Driver landmarks (B, P, 2) and the driver's neutral (P, 2) -> avatar landmarks
     (B, P, 2): the steps of :class:`facesynth.retarget.Retargeter` (relative motion, head
-    motion on) and the shape clamp of ``shape_space`` (eyelids kept), for a scheme of
+    motion on) and the shape clamp of ``shape_space`` (eyelids kept, then the part outside the
+    components and each eye's opening capped when the space has those bounds), for a scheme of
     :data:`facesynth.retarget.RETARGET_SCHEMES` (FAP units and face axes on its iBUG-68
     view; with irises, IRISD from the iris diameters)."""
 
@@ -97,9 +98,9 @@ class RetargetGraph(nn.Module):
             self.register_buffer("off", _const(s._off))
             self.register_buffer("limit", _const(s.limit))
             self.register_buffer("comp", _const(s.components))
-            self.register_buffer("mean_flat", _const(s.mean))
             self.cap_rest = s.residual_max is not None
             if self.cap_rest:
+                self.register_buffer("mean_flat", _const(s.mean))
                 self.register_buffer("rest_max", _const(s.residual_max))
             self.eyes = [([int(i) for i in idx], int(c0), int(c1)) for idx, c0, c1 in eye_patches(scheme)]
             for k, (idx, _, _) in enumerate(self.eyes):
@@ -205,7 +206,7 @@ class RetargetGraph(nn.Module):
         return torch.matmul(rec - self.mu, inv.transpose(1, 2)) + mo
 
     def _restore_eyes(self, rec: torch.Tensor, before: torch.Tensor) -> torch.Tensor:
-        """Each eye's contour of ``before`` onto ``rec``'s corners (retarget._restore_local)."""
+        """Each eye's contour of ``before`` onto ``rec``'s corners (shape_space._restore_local)."""
         out = rec
         for k, (idx, c0, c1) in enumerate(self.eyes):
             s0, s1, d0, d1 = before[:, c0], before[:, c1], rec[:, c0], rec[:, c1]
@@ -218,7 +219,7 @@ class RetargetGraph(nn.Module):
         return out
 
     def _cap_eyes(self, rec: torch.Tensor) -> torch.Tensor:
-        """Each eye wider than its cap squashed towards its corner line (retarget._cap_eyes),
+        """Each eye wider than its cap squashed towards its corner line (shape_space._cap_eyes),
         both eyes in one pass."""
         c0 = rec[:, self.eye_c0]  # (B, 2 eyes, 2)
         axis = rec[:, self.eye_c1] - c0

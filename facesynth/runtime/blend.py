@@ -32,6 +32,11 @@ def seam_width(mask: np.ndarray) -> float:
     return max(2.0, 0.04 * float(max(np.ptp(ys), np.ptp(xs))))
 
 
+def _feather(mask: np.ndarray, feather: float | None) -> float:
+    """The feather in crop pixels: ``feather`` if given, else :func:`seam_width` of the mask."""
+    return float(feather) if feather is not None else seam_width(mask)
+
+
 def gaussian_kernel(sigma: float) -> np.ndarray:
     """float32 (k,) OpenCV's Gaussian kernel for ``sigma`` (its float32 size rule, ksize 0)."""
     k = int(round(sigma * 8 + 1)) | 1
@@ -80,8 +85,7 @@ def blend_face(crop: np.ndarray, mask: np.ndarray, placement: np.ndarray, backgr
     x1, y1 = np.minimum(np.ceil(corners.max(0)).astype(int) + 2, [w, h])
     if x1 <= x0 or y1 <= y0:
         return out
-    f = float(feather) if feather is not None else seam_width(mask)
-    alpha, band = seam_layers(mask, f)
+    alpha, band = seam_layers(mask, _feather(mask, feather))
     crop = np.asarray(crop, np.float32)
     m = np.asarray(placement, np.float64).copy()
     m[:, 2] -= (x0, y0)
@@ -102,8 +106,7 @@ def placed_alpha(mask: np.ndarray, placement: np.ndarray, size: tuple[int, int],
     """float32 (H, W) the alpha with which :func:`blend_face` composites a face of ``mask``
     (H_c, W_c) placed by ``placement`` (2, 3) into a frame of ``size`` (W, H): where, and how
     much, the rendered face replaces the frame (e.g. to composite another image with it)."""
-    f = float(feather) if feather is not None else seam_width(mask)
-    alpha, _ = seam_layers(mask, f)
+    alpha, _ = seam_layers(mask, _feather(mask, feather))
     return cv2.warpAffine(alpha, np.asarray(placement, np.float64), tuple(int(v) for v in size), flags=cv2.INTER_LINEAR)
 
 
