@@ -65,7 +65,7 @@ from facesynth.landmarks import (
     ibug68_view,
     inter_ocular,
 )
-from facesynth.shape_space import RETARGET_SCHEMES, ShapeSpace, eye_patches, retarget_scheme  # noqa: F401  (re-exported)
+from facesynth.shape_space import RETARGET_SCHEMES, ShapeSpace, retarget_scheme
 
 MOTIONS = ("relative", "absolute")
 # regions -> the FAP units of their (x, down) motion

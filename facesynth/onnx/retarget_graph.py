@@ -15,15 +15,8 @@ from torch import nn
 from facesynth.faps import FAPU_NAMES, FEATURE_POINTS, face_axes, fapu
 from facesynth.landmarks import IBUG68, LandmarkScheme, eye_lids, ibug68_view
 from facesynth.model.warp import similarity_to
-from facesynth.retarget import (
-    POINT_UNITS,
-    ShapeSpace,
-    closing_pairs,
-    eye_patches,
-    iris_diameter,
-    point_units,
-    rigid_points,
-)
+from facesynth.retarget import POINT_UNITS, closing_pairs, iris_diameter, point_units, rigid_points
+from facesynth.shape_space import ShapeSpace, eye_patches
 
 
 def _const(x) -> torch.Tensor:
