@@ -7,7 +7,7 @@ import pytest
 
 from facesynth.errors import FacesynthError
 from facesynth.geometry import apply_affine
-from facesynth.runtime.fullframe import FrameWarp, head_points, head_region, thin_plate
+from facesynth.runtime.fullframe import PARALLAX, FrameWarp, head_points, head_region, nose_offset, thin_plate
 from tests._faces import face_template, smooth_image
 
 SIZE = 320
@@ -76,6 +76,25 @@ def test_the_border_stays_still_away_from_the_head(scene):
     # the weights fall off: 1 on the head's ring, less on the outer ring, 0 at the corners
     _, w = head_points(face, (SIZE, SIZE))
     assert w.max() == 1.0 and w.min() == 0.0
+
+
+def test_a_head_turn_moves_the_outline_less_than_the_face(scene):
+    """Only the nose tip moves (a turn: the face's front shifts, the similarity fitted on the
+    eyes, nose bridge and jaw tops stays the identity): each control point off the face moves
+    by its share of minus PARALLAX times the nose's shift (closed form), the still ones not at
+    all; under a similarity of the whole face the parallax term is 0 (the rigid test above)."""
+    frame, face = scene
+    fw = FrameWarp(frame, face)
+    turned = face.copy()
+    turned[30] += (9.0, -4.0)
+    got = fw.control_points(turned)[fw.n_face:] - fw.src[fw.n_face:]
+    want = fw.shares()[1] * -np.array([9.0, -4.0])
+    np.testing.assert_allclose(fw.motion[:, 1], PARALLAX * fw.weights)
+    np.testing.assert_allclose(got, want, atol=1e-9)
+    assert np.abs(got[fw.weights == 1.0]).max() > 8.0  # the head's ring takes the whole term
+    assert fw.folds(turned, outside_face=True) == 0
+    m = similarity(10.0, 1.05, (4.0, 3.0), face.mean(0))
+    np.testing.assert_allclose(nose_offset(apply_affine(face, m)), m[:, :2] @ nose_offset(face), atol=1e-9)
 
 
 @pytest.mark.parametrize("seed", range(6))

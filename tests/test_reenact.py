@@ -158,6 +158,21 @@ def test_full_frame_moves_the_avatars_own_head(avatar):
     assert np.abs(moved.astype(int) - shifted)[band].max() <= 2
 
 
+def test_the_export_carries_the_warps_learned_motion(avatar):
+    """The model's metadata holds the motion learned from its training frames (one (share,
+    parallax) pair per control point besides the landmarks), and the runtime's warp uses it."""
+    from facesynth.runtime import Reenactor
+    from facesynth.runtime.renderer import read_metadata
+
+    path, *_ = avatar
+    entry = read_metadata(path)["frame_motion"]
+    warp = Reenactor(path).frame_warp
+    assert entry["frames"] == 60 and entry["points_fitted"] > 20
+    np.testing.assert_array_equal(warp.motion, np.asarray(entry["coefficients"]))
+    assert warp.motion.shape == (len(warp.src) - warp.n_face, 2)
+    assert not np.allclose(warp.motion, warp.prior())  # learned, not the prior
+
+
 def test_app_writes_the_rendered_landmarks(avatar, shared_clip_dir, tmp_path):
     path, *_ = avatar
     clip = shared_clip_dir("lp_d13")

@@ -11,7 +11,11 @@ into its ONNX metadata at export time (torch-side; the runtime reads it with
   their part outside the components (``residual_max``), for
   :class:`facesynth.shape_space.ShapeSpace`;
 * ``background_jpeg``: that neutral frame, JPEG (quality 90) in base64, the avatar's own
-  frame the app composites into, and ``frame_size`` [W, H].
+  frame the app composites into, and ``frame_size`` [W, H];
+* ``frame_motion``: how the full-frame warp's control points besides the landmarks follow
+  the face, learned from up to ``headmotion.FRAMES`` training frames
+  (:func:`facesynth.runtime.headmotion.fit_motion`: ``coefficients`` (K - 68, 2), ``frames``,
+  ``lambda``, ``points_fitted``).
 """
 
 from __future__ import annotations
@@ -27,6 +31,8 @@ from facesynth.errors import FacesynthError
 from facesynth.landmarks import eye_openings
 from facesynth.neutral import select_neutral
 from facesynth.retarget import RETARGET_SCHEMES, ShapeSpace, retarget_scheme
+from facesynth.runtime.fullframe import FrameWarp
+from facesynth.runtime.headmotion import FRAMES, fit_motion
 
 log = logging.getLogger(__name__)
 JPEG_QUALITY = 90
@@ -70,7 +76,19 @@ def avatar_metadata(syn, landmarks: np.ndarray, rows: np.ndarray | None = None, 
         frame = np.asarray(sequence.frame(row))
         meta["background_jpeg"] = encode_jpeg(frame)
         meta["frame_size"] = [int(frame.shape[1]), int(frame.shape[0])]
+        meta["frame_motion"] = frame_motion(frame, lm[idx], lm, rows, sequence)
     return meta
+
+
+def frame_motion(frame: np.ndarray, neutral: np.ndarray, landmarks: np.ndarray, rows, sequence) -> dict:
+    """The ``frame_motion`` entry: :func:`fit_motion` of the warp of ``frame`` (the neutral
+    frame, landmarks ``neutral`` (P, 2)) on up to ``FRAMES`` of the training frames
+    (``landmarks`` (N, P, 2), ``rows`` their indices in ``sequence``), evenly spaced."""
+    pick = np.unique(np.linspace(0, len(landmarks) - 1, min(FRAMES, len(landmarks))).round().astype(int))
+    seq_rows = [int(rows[i]) if rows is not None else int(i) for i in pick]
+    coef, info = fit_motion(FrameWarp(frame, neutral), (np.asarray(f) for f in sequence.iter_frames(seq_rows)),
+                            landmarks[pick])
+    return {"coefficients": np.round(coef, 4).tolist(), **info}
 
 
 def run_avatar_metadata(run_dir, syn) -> dict:

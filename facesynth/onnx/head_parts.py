@@ -27,7 +27,7 @@ from facesynth.model.warp_target import ToTarget
 from facesynth.onnx.retarget_graph import _apply, _const
 from facesynth.ops import pad_by_tensor, slice_by_tensor
 from facesynth.runtime.blend import MIN_BAND, gaussian_kernel
-from facesynth.runtime.fullframe import HEAD_POINTS, FrameWarp
+from facesynth.runtime.fullframe import EYE_CORNERS, HEAD_POINTS, NOSE_TIP, FrameWarp, nose_offset
 
 
 class _Mesh:
@@ -62,9 +62,12 @@ class FrameWarpGraph(ToTarget):
         self.view = None if scheme is IBUG68 else _const(scheme.ibug68_matrix())
         self.frame_size = (h, w)
         self.register_buffer("neutral68", _const(fw.neutral68[HEAD_POINTS]))
+        self.register_buffer("neutral_nose", _const(nose_offset(fw.neutral68)[:, None]))  # (2, 1)
         extra = fw.src[fw.n_face:]
         self.register_buffer("extra", _const(extra))
-        self.register_buffer("share", _const(fw._share))
+        share, parallax = fw.shares()
+        self.register_buffer("share", _const(share))
+        self.register_buffer("parallax", _const(parallax))
         ring = fw._ring.astype(np.float32)[:, None]
         big = 1e9
         self.register_buffer("lo_clip", _const(np.where(ring > 0, [[1.0, -big]], [[-big, -big]])))
@@ -89,7 +92,10 @@ class FrameWarpGraph(ToTarget):
         if self.view is not None:
             face = torch.matmul(self.view, face)  # the iBUG-68 view of a denser scheme
         s = similarity_to(self.neutral68.unsqueeze(0).expand(face.shape[0], -1, -1), face[:, HEAD_POINTS])
+        nose = face[:, NOSE_TIP] - 0.5 * (face[:, EYE_CORNERS[0]] + face[:, EYE_CORNERS[1]])  # (B, 2)
+        d = torch.matmul(s[:, :, :2], self.neutral_nose)[:, :, 0] - nose  # (B, 2) FrameWarp's parallax term
         moved = self.extra + self.share * (_apply(self.extra.unsqueeze(0), s[:, :, :2], s[:, :, 2]) - self.extra)
+        moved = moved + self.parallax * d.unsqueeze(1)
         moved = torch.minimum(torch.maximum(moved, self.lo_clip), self.hi_clip)
         return torch.cat([face, moved], 1)
 

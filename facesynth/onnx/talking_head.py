@@ -67,7 +67,7 @@ class TalkingHeadGraph(nn.Module):
                                  "metadata (re-export the model)")
         self.synthesis = SynthesisGraph(syn.eval()).eval()
         self.retarget = RetargetGraph(avatar.neutral, avatar.shape_space, get_scheme(scheme))
-        self.frame_warp = FrameWarpGraph(FrameWarp(frame, avatar.neutral))
+        self.frame_warp = FrameWarpGraph(FrameWarp(frame, avatar.neutral, motion=avatar.frame_motion))
         self.feather = float(default_feather(self.synthesis, avatar.neutral) if feather is None else feather)
         self.seam = SeamGraph(self.feather, (frame.shape[1], frame.shape[0]), tuple(syn.warp.canvas))
 

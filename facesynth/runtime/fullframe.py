@@ -9,21 +9,29 @@ Control points, all placed on the avatar's neutral face (its iBUG-68 view; :func
   distance, the face's axes);
 * anchors along the frame border.
 
-Each point but the landmarks follows a share ``w`` of the head's motion ``S`` (it goes to
-``p + w (S(p) - p)``): ``S`` is the similarity fitted from the neutral's eye corners, top of
-the nose bridge and top jaw points (by the ears) to the frame's, and ``w`` is 1 on the
-head's ring, falls off linearly outside it, more so below the chin, and is 0 at the
-shoulders and on the frame's border away from the head (:func:`motion_weight`). Anchors
-on the left, right and bottom sides only slide along them (the bottom corners stay): where a
-chin or shoulder reaches the bottom, the edge follows the head along it, never across it, as
-an edge replicated inward shows as streaks over a body. Anchors on the top side also move
-down with the head: hair cut by the frame's top then continues above it as the top row
-replicated (held on the top edge instead, the hair was pulled into a peak there), and the
-ring's points above the frame are kept, so that the hair there moves with the head. Ring
-points on the border band or outside the frame elsewhere are dropped, on the neutral: the
-triangulation is fixed per avatar. A still guard ring ``GUARD`` times the frame's size
-outside it closes the triangulation round the frame, so that every pixel lies in a
-triangle however the anchors move (the band above top anchors that moved down stretches
+Each point ``p`` but the landmarks goes to ``p + a (S(p) - p) + b d``: ``S`` is the
+similarity fitted from the neutral's eye corners, top of the nose bridge and top jaw points
+(by the ears) to the frame's, and ``d`` takes out the parallax of a head turn: turning (yaw)
+or nodding (pitch) shifts the face's front, where the landmarks are, further than the head's
+outline, so ``d`` is minus the nose tip's offset from where ``S`` puts the neutral's (the
+nose tip relative to the outer eye corners' midpoint; 0 under any similarity of the face, so
+a rigid 2D motion of the face moves the whole head exactly). The shares ``(a, b)`` are the
+warp's ``motion``: by default ``w`` and ``PARALLAX w`` (:meth:`FrameWarp.prior`), where
+``w`` is 1 on the head's ring, falls off linearly outside it, more so below the chin, and is
+0 at the shoulders and on the frame's border away from the head (:func:`motion_weight`); an
+exported model carries its own, learned from the avatar's video
+(:mod:`facesynth.runtime.headmotion`).
+
+Anchors on the left, right and bottom sides only slide along them (the bottom corners stay):
+where a chin or shoulder reaches the bottom, the edge follows the head along it, never
+across it, as an edge replicated inward shows as streaks over a body. Anchors on the top
+side also move down with the head: hair cut by the frame's top then continues above it as
+the top row replicated (held on the top edge instead, the hair was pulled into a peak
+there), and the ring's points above the frame are kept, so that the hair there moves with
+the head. Ring points on the border band or outside the frame elsewhere are dropped, on the
+neutral: the triangulation is fixed per avatar. A still guard ring ``GUARD`` times the
+frame's size outside it closes the triangulation round the frame, so that every pixel lies
+in a triangle however the anchors move (the band above top anchors that moved down stretches
 from them to the guards, where it would otherwise keep its own pixels: a tear along the
 frame's top).
 
@@ -66,6 +74,10 @@ HEAD_RING_DEG = np.arange(160.0, 381.0, 20.0)  # its points from one ear over th
 OUTER_RING_DEG = np.arange(0.0, 360.0, 30.0)
 OUTER_SCALE = 1.6  # a ring at 1.6 x the head's ellipse, at part of its motion
 FALLOFF = 2.2  # the head's motion falls off linearly from its ellipse (1) to 2.2 x it (0)
+# the head's outline moves by the face's similarity less this times the nose tip's parallax
+# (module docstring; docs/reenact.md "The head's outline turns less than the face")
+PARALLAX = 1.0
+NOSE_TIP, EYE_CORNERS = 30, (36, 45)
 CHIN, SHOULDERS = 1.5, 3.0  # below the chin it falls off further, to nothing at the shoulders
 NECK = ((-0.6, 1.6), (0.6, 1.6), (0.0, 2.05))
 BORDER_STEPS = 8  # anchors per frame side (corners included)
@@ -85,6 +97,13 @@ def face_frame(face68: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
     distance, pixels) of a (68, 2) face."""
     f = np.asarray(face68, np.float64)
     return f[36:48].mean(0), face_axes(f), float(inter_ocular(f))
+
+
+def nose_offset(face68: np.ndarray) -> np.ndarray:
+    """(2,) the nose tip's offset from the outer eye corners' midpoint of a (68, 2) face, in
+    pixels: it grows with a head turn or nod (module docstring, ``PARALLAX``)."""
+    f = np.asarray(face68, np.float64)
+    return f[NOSE_TIP] - 0.5 * (f[EYE_CORNERS[0]] + f[EYE_CORNERS[1]])
 
 
 def motion_weight(face_xy: np.ndarray) -> np.ndarray:
@@ -146,12 +165,17 @@ class FrameWarp:
     around it following, the frame's border still.
 
     frame : uint8 (H, W, 3) the avatar's neutral frame; neutral : (P, 2) its landmarks
-    (any registered scheme; the iBUG-68 view is used); method : "affine" (default) or "tps".
+    (any registered scheme; the iBUG-68 view is used); method : "affine" (default) or "tps";
+    motion : float (K - 68, 2) per control point besides the landmarks, the share of the
+    head's motion ``S`` and of the parallax term ``d`` it follows (default :meth:`prior`,
+    ``w`` and ``PARALLAX w``; :mod:`facesynth.runtime.headmotion` learns them from the
+    avatar's video).
 
     ``__call__(landmarks)``: (P, 2) avatar landmarks in the frame -> uint8 (H, W, 3).
     """
 
-    def __init__(self, frame: np.ndarray, neutral: np.ndarray, method: str = "affine"):
+    def __init__(self, frame: np.ndarray, neutral: np.ndarray, method: str = "affine",
+                 motion: np.ndarray | None = None):
         if method not in METHODS:
             raise FacesynthError(f"full-frame warp: method must be one of {METHODS}, got {method!r}")
         frame = np.asarray(frame)
@@ -167,22 +191,24 @@ class FrameWarp:
         extra, self.weights = head_points(self.neutral68, self.size)
         self.src = np.concatenate([self.neutral68, extra])  # (K, 2) control points in the neutral frame
         self.n_face = len(self.neutral68)
-        # (K - 68, 2) share of the head's motion per point and axis: an anchor on the left, right
-        # or bottom side keeps the coordinate that puts it there (module docstring)
+        # (K - 68, 2) the axes a point moves along: an anchor on the left, right or bottom side
+        # keeps the coordinate that puts it there (module docstring)
         held = np.stack([(extra[:, 0] == 0.0) | (extra[:, 0] == w - 1.0), extra[:, 1] == h - 1.0], 1)
-        self._share = self.weights[:, None] * ~held
+        self.free = ~held
+        self.motion = self.prior() if motion is None else _checked_motion(motion, len(extra))
         g = GUARD * max(w, h)
-        guard = (extra[:, 0] <= -g) | (extra[:, 0] >= w - 1 + g) | (extra[:, 1] <= -g) | (extra[:, 1] >= h - 1 + g)
-        self._ring = ~(held.any(1) | (extra[:, 1] == 0.0) | guard)
+        self.guard = (extra[:, 0] <= -g) | (extra[:, 0] >= w - 1 + g) | (extra[:, 1] <= -g) | (extra[:, 1] >= h - 1 + g)
+        self._ring = ~(held.any(1) | (extra[:, 1] == 0.0) | self.guard)
         self.triangles = Delaunay(self.src).simplices.astype(np.int64)
         self.nodes = grid_nodes(w), grid_nodes(h)  # (x, y) of the affine warp's grid
-        # the anchors on the right and bottom edges are pushed a thousandth of a node spacing
-        # out when nodes are located (not for the maps): the nodes on those edges then lie
-        # strictly inside the frame's triangles, never on a tie (the graph's scanline
-        # coverage is half-open there); in node units, (K, 2)
+        # the anchors on the frame's border are pushed a thousandth of a node spacing out when
+        # nodes are located (not for the maps): the nodes on the border then lie strictly
+        # inside the frame's triangles, never on a tie (the graph's scanline coverage is
+        # half-open on the right and bottom, and an anchor the head leaves still sits on a
+        # node of the top or left edge); in node units, (K, 2)
         push = np.zeros_like(self.src)
-        push[self.n_face:, 0] = np.where(extra[:, 0] == w - 1, 1e-3, 0.0)
-        push[self.n_face:, 1] = np.where(extra[:, 1] == h - 1, 1e-3, 0.0)
+        push[self.n_face:, 0] = np.where(extra[:, 0] == w - 1, 1e-3, np.where(extra[:, 0] == 0.0, -1e-3, 0.0))
+        push[self.n_face:, 1] = np.where(extra[:, 1] == h - 1, 1e-3, np.where(extra[:, 1] == 0.0, -1e-3, 0.0))
         self.locate_push = push
         self._up = interpolation_weights(w, len(self.nodes[0])), interpolation_weights(h, len(self.nodes[1]))
         self._grid = np.stack(np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32)), -1)
@@ -190,14 +216,24 @@ class FrameWarp:
     def control_points(self, landmarks: np.ndarray) -> np.ndarray:
         """float64 (K, 2): where the control points go for (P, 2) avatar landmarks."""
         face = ibug68_view(landmarks)
-        s = similarity_fit(self.neutral68[HEAD_POINTS], face[HEAD_POINTS])
-        extra = self.src[self.n_face:]
-        moved = extra + self._share * (apply_affine(extra, s) - extra)
+        move, d = motion_features(self, face)
+        share, parallax = self.shares()
+        moved = self.src[self.n_face:] + share * move + parallax * d
         # ring points stay strictly inside the held sides (past them they would fold over the anchors)
         r = self._ring
         moved[r, 0] = np.clip(moved[r, 0], 1.0, self.size[0] - 2.0)
         moved[r, 1] = np.minimum(moved[r, 1], self.size[1] - 2.0)
         return np.concatenate([face, moved])
+
+    def prior(self) -> np.ndarray:
+        """float64 (K - 68, 2) the geometric motion coefficients: ``w`` (:func:`motion_weight`)
+        of the head's motion and ``PARALLAX w`` of the parallax term."""
+        return np.stack([self.weights, PARALLAX * self.weights], 1)
+
+    def shares(self) -> tuple[np.ndarray, np.ndarray]:
+        """(K - 68, 2) each, per point and axis: the share of the head's motion and of the
+        parallax term it follows (``motion`` on the axes it is free to move along)."""
+        return self.motion[:, :1] * self.free, self.motion[:, 1:] * self.free
 
     def folds(self, landmarks: np.ndarray, outside_face: bool = False) -> int:
         """Number of triangles whose orientation the warp turns (0: no fold); ``outside_face``:
@@ -321,10 +357,29 @@ def thin_plate(ctrl: np.ndarray, values: np.ndarray, at: np.ndarray, smooth: flo
     return ka @ coef[:k] + np.concatenate([np.ones((len(an), 1)), an], 1) @ coef[k:]
 
 
+def motion_features(fw: FrameWarp, landmarks: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The two motions a control point besides the landmarks follows a share of, for (P, 2)
+    avatar landmarks: the head's motion ``S(p) - p`` (K - 68, 2) at each point and the
+    parallax term ``d`` (2,), pixels (module docstring)."""
+    face = ibug68_view(landmarks)
+    s = similarity_fit(fw.neutral68[HEAD_POINTS], face[HEAD_POINTS])
+    extra = fw.src[fw.n_face:]
+    return apply_affine(extra, s) - extra, s[:, :2] @ nose_offset(fw.neutral68) - nose_offset(face)
+
+
+def _checked_motion(motion, n: int) -> np.ndarray:
+    m = np.asarray(motion, np.float64)
+    if m.shape != (n, 2) or not np.isfinite(m).all():
+        raise FacesynthError(f"full-frame warp: frame_motion must be finite ({n}, 2) coefficients for this frame and "
+                             f"neutral, got shape {m.shape}")
+    return m
+
+
 def _signed_area(points: np.ndarray, tri: np.ndarray) -> np.ndarray:
     p = points[tri]
     e1, e2 = p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]
     return e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]
 
 
-__all__ = ["METHODS", "FrameWarp", "grid_nodes", "head_points", "head_region", "interpolation_weights", "thin_plate"]
+__all__ = ["METHODS", "FrameWarp", "grid_nodes", "head_points", "head_region", "interpolation_weights", "motion_features",
+           "nose_offset", "thin_plate"]

@@ -37,7 +37,8 @@ class Avatar:
     """What the model's metadata says about its own face (:mod:`facesynth.onnx.avatar`).
 
     neutral : float64 (P, 2) or None (P of the model's scheme); shape_space : ShapeSpace or None;
-    background : uint8 (H, W, 3) RGB or None (its neutral frame).
+    background : uint8 (H, W, 3) RGB or None (its neutral frame); frame_motion : float64
+    (K - 68, 2) or None, the full-frame warp's learned motion coefficients (:class:`FrameWarp`).
     """
 
     def __init__(self, metadata: dict, where: str = "model"):
@@ -53,6 +54,8 @@ class Avatar:
         self.shape_space = None if pca is None else ShapeSpace.from_dict(pca, self.scheme)
         self._jpeg = metadata.get("background_jpeg")
         self._background = None
+        motion = metadata.get("frame_motion")
+        self.frame_motion = None if motion is None else _frame_motion(motion, where)
 
     @property
     def background(self) -> np.ndarray | None:
@@ -69,6 +72,16 @@ class Avatar:
             raise FacesynthError(f"{self.where}: no avatar_neutral in the metadata (exported before reenactment "
                                  "support, or without the run's data): re-export it, or use --motion absolute")
         return self.neutral
+
+
+def _frame_motion(entry, where: str) -> np.ndarray:
+    try:
+        m = np.asarray(entry["coefficients"], np.float64)
+    except (TypeError, KeyError, ValueError) as exc:
+        raise FacesynthError(f"{where}: frame_motion metadata needs a list of [share, parallax] coefficients") from exc
+    if m.ndim != 2 or m.shape[1] != 2 or not np.isfinite(m).all():
+        raise FacesynthError(f"{where}: frame_motion.coefficients must be finite (K, 2), got shape {m.shape}")
+    return m
 
 
 class Reenactor:
@@ -119,7 +132,8 @@ class Reenactor:
             raise FacesynthError(f"{self.avatar.where}: a full-frame warp needs the avatar's neutral and frame in the "
                                  "metadata (re-export the model)")
         self.full_frame = bool(full_frame)
-        self.frame_warp = FrameWarp(self.avatar.background, self.avatar.neutral, warp) if self.full_frame else None
+        self.frame_warp = (FrameWarp(self.avatar.background, self.avatar.neutral, warp, self.avatar.frame_motion)
+                           if self.full_frame else None)
 
     def _set_neutral(self, neutral: np.ndarray) -> None:
         self.driver_neutral = np.asarray(neutral, np.float64)

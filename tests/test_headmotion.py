@@ -1,0 +1,136 @@
+"""The full-frame warp's motion learned from the avatar's video (facesynth.runtime.headmotion):
+a synthetic video made with known coefficients gives them back, the ridge leads to the
+prior, and the metadata entry is checked where it is read."""
+
+import cv2
+import numpy as np
+import pytest
+
+from facesynth.errors import FacesynthError
+from facesynth.geometry import apply_affine
+from facesynth.runtime.fullframe import FrameWarp
+from facesynth.runtime.headmotion import fit_motion
+from facesynth.runtime.reenact import Avatar
+from tests._faces import face_template, smooth_image
+from tests.test_fullframe import similarity
+
+SIZE = 320
+
+
+@pytest.fixture(scope="module")
+def video():
+    """A textured frame with a face (optical flow needs texture), the true coefficients
+    (every point off the head's ring and the still guard ring takes its own (a, b), below the
+    prior) and 24
+    frames warped with them: head motions of +-6 degrees, +-4 % scale, +-8 px, and the nose
+    tip moved by up to 10 px as by a turn."""
+    grain = np.random.default_rng(1).normal(0.0, 40.0, (SIZE, SIZE, 3))
+    grain = cv2.GaussianBlur(grain, (0, 0), 1.5)
+    frame = np.clip(smooth_image(SIZE, SIZE, seed=5) * 255 + grain, 0, 255).round().astype(np.uint8)
+    face = face_template(width=100.0, cx=160.0, cy=150.0).astype(np.float64)
+    fw = FrameWarp(frame, face)
+    rng = np.random.default_rng(0)
+    truth = fw.prior()
+    free = ~fw.guard & fw.free.any(1) & (fw.weights < 1.0 - 1e-6)
+    truth[free] *= rng.uniform(0.1, 0.9, (free.sum(), 2))  # the fit lets them follow less than the prior, never more
+    truth[fw.weights >= 1.0 - 1e-6, 1] = 0.6
+    gen = FrameWarp(frame, face, motion=truth)
+    landmarks, frames = [], []
+    for _ in range(24):
+        m = similarity(rng.uniform(-6, 6), rng.uniform(0.96, 1.04), rng.uniform(-8, 8, 2), face.mean(0))
+        lm = apply_affine(face, m)
+        lm[30] += rng.uniform(-10, 10, 2)  # the nose tip: a turn's parallax
+        landmarks.append(lm)
+        frames.append(gen(lm))
+    return fw, truth, np.stack(landmarks), frames
+
+
+def test_the_fit_is_least_squares_on_the_points_displacements(video, monkeypatch):
+    """With the flow replaced by each point's true displacement, the coefficients come back
+    exactly (but the ring's a, kept at 1, and the still guard ring's prior)."""
+    from facesynth.runtime import headmotion
+
+    fw, truth, landmarks, frames = video
+    gen = FrameWarp(fw.frame, fw.neutral68, motion=truth)
+    moves = iter([(gen.control_points(lm) - gen.src)[gen.n_face:] for lm in landmarks])
+    monkeypatch.setattr(headmotion, "flow_at", lambda grey0, grey, points: next(moves))
+    coef, info = fit_motion(fw, frames, landmarks, lam=0.0)
+    assert info["frames"] == 24 and info["points_fitted"] == int((~fw.guard & fw.free.any(1)).sum())
+    np.testing.assert_allclose(coef, truth, atol=1e-9)
+    np.testing.assert_allclose(coef[fw.weights >= 1.0 - 1e-6, 0], 1.0, atol=1e-6)  # the ring moves in full
+    # surroundings that followed the head further than the prior (a camera following the head)
+    # are held at the prior
+    ahead = FrameWarp(fw.frame, fw.neutral68, motion=np.minimum(1.5 * fw.prior(), 1.2))
+    moves = iter([(ahead.control_points(lm) - ahead.src)[ahead.n_face:] for lm in landmarks])
+    coef, _ = fit_motion(fw, frames, landmarks, lam=0.0)
+    off = ~fw.guard & fw.free.any(1) & (fw.weights < 1.0 - 1e-6)
+    np.testing.assert_allclose(coef[off], fw.prior()[off], atol=1e-9)
+
+
+def test_dis_flow_reads_the_video(video):
+    """The real optical flow: DIS reads about 5 % short and smooths across the mesh's kinks
+    (the neck under the jaw), so the coefficients of the points the frame sees come back
+    within 0.05 in the median and 0.4 at worst."""
+    fw, truth, landmarks, frames = video
+    coef, _ = fit_motion(fw, frames, landmarks, lam=0.0)
+    inside = (fw.src[fw.n_face:] >= 2).all(1) & (fw.src[fw.n_face:] <= SIZE - 3).all(1)
+    assert inside.sum() >= 20
+    err = np.abs(coef[inside] - truth[inside])
+    assert np.median(err) <= 0.05 and err.max() <= 0.4
+    np.testing.assert_array_equal(coef[fw.guard], fw.prior()[fw.guard])  # the guard ring stays still
+
+
+def test_the_ridge_leads_to_the_prior_and_no_frames_keep_it(video):
+    fw, _, landmarks, frames = video
+    strong, _ = fit_motion(fw, frames, landmarks, lam=1e9)
+    np.testing.assert_allclose(strong, fw.prior(), atol=1e-6)
+    none, info = fit_motion(fw, [], landmarks[:0])
+    assert info["frames"] == 0
+    np.testing.assert_array_equal(none, np.clip(fw.prior(), 0.0, 1.2))
+
+
+def test_bad_frames_and_metadata_are_refused(video):
+    fw, _, landmarks, frames = video
+    with pytest.raises(FacesynthError, match="frame of shape"):
+        fit_motion(fw, [frames[0][:100]], landmarks[:1])
+    with pytest.raises(FacesynthError, match="frame_motion"):
+        Avatar({"frame_motion": {"coefficients": [[0.5, 0.5, 0.5]]}}, "m.onnx")
+    with pytest.raises(FacesynthError, match="frame_motion"):
+        Avatar({"frame_motion": [1, 2]}, "m.onnx")
+    with pytest.raises(FacesynthError, match="frame_motion"):
+        FrameWarp(fw.frame, fw.neutral68, motion=np.zeros((3, 2)))
+
+
+
+def test_the_graph_reads_the_same_frame_as_numpy_off_by_float_noise(shared_clip_dir):
+    """vrt_face1 (700 x 700) with its learned motion: anchors of the frame's top edge that the
+    fit leaves (nearly) still sit on nodes of the warp's grid, where a millionth of a pixel
+    decides which triangle holds the node. The graph, fed each third frame's landmarks with
+    float32-sized noise (three draws), reads the frame numpy reads, within 2/255 (before the
+    border anchors were pushed out for locating the nodes, one draw read a node's map as
+    (0, 0): 88/255 along the top edge, as the talking-head graph did on one frame)."""
+    import torch
+
+    from facesynth.data import load_sequence, temporal_split
+    from facesynth.neutral import select_neutral
+    from facesynth.onnx.head_parts import FrameWarpGraph
+
+    seq = load_sequence(shared_clip_dir("vrt_face1"))
+    train, _ = temporal_split(len(seq))
+    lm = np.asarray(seq.landmarks, np.float64)
+    n = int(train[select_neutral(lm[train])[0]])
+    probe = FrameWarp(np.asarray(seq.frame(n)), lm[n])
+    rows = train[np.linspace(0, len(train) - 1, 60).round().astype(int)]
+    coef, _ = fit_motion(probe, seq.iter_frames(rows), lm[rows])
+    fw = FrameWarp(probe.frame, lm[n], motion=coef)
+    graph = FrameWarpGraph(fw).eval()
+    rng = np.random.default_rng(0)
+    worst = 0.0
+    for i in range(0, len(lm), 3):
+        want = fw(lm[i])
+        for _ in range(3):
+            noisy = (lm[i] + rng.normal(0.0, 3e-5, lm[i].shape)).astype(np.float32)
+            with torch.no_grad():
+                got = graph(torch.from_numpy(noisy[None]))[0].numpy().transpose(1, 2, 0)
+            worst = max(worst, float(np.abs(got - want).max()))
+    assert worst <= 2
