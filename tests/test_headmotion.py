@@ -1,6 +1,8 @@
 """The full-frame warp's motion learned from the avatar's video (facesynth.runtime.headmotion):
-a synthetic video made with known coefficients gives them back, the ridge leads to the
-prior, and the metadata entry is checked where it is read."""
+a synthetic video made with known coefficients gives them back (exactly from the true
+displacements, closely from DIS flow), the ridge leads to the prior, bad frames and metadata
+are refused, and the talking-head graph reads the frame numpy reads with a learned motion
+that leaves border anchors still on grid nodes."""
 
 import cv2
 import numpy as np
@@ -21,9 +23,8 @@ SIZE = 320
 def video():
     """A textured frame with a face (optical flow needs texture), the true coefficients
     (every point off the head's ring and the still guard ring takes its own (a, b), below the
-    prior) and 24
-    frames warped with them: head motions of +-6 degrees, +-4 % scale, +-8 px, and the nose
-    tip moved by up to 10 px as by a turn."""
+    prior) and 24 frames warped with them: head motions of +-6 degrees, +-4 % scale, +-8 px,
+    and the nose tip moved by up to 10 px as by a turn."""
     grain = np.random.default_rng(1).normal(0.0, 40.0, (SIZE, SIZE, 3))
     grain = cv2.GaussianBlur(grain, (0, 0), 1.5)
     frame = np.clip(smooth_image(SIZE, SIZE, seed=5) * 255 + grain, 0, 255).round().astype(np.uint8)
