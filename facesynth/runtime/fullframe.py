@@ -195,6 +195,9 @@ class FrameWarp:
         # keeps the coordinate that puts it there (module docstring)
         held = np.stack([(extra[:, 0] == 0.0) | (extra[:, 0] == w - 1.0), extra[:, 1] == h - 1.0], 1)
         self.free = ~held
+        # (K - 68,) the points that follow the head's motion in full: its ring and what lies inside
+        # it (w = 1 up to rounding: the ring's points sit on the ellipse)
+        self.on_ring = self.weights >= 1.0 - 1e-6
         self.motion = self.prior() if motion is None else _checked_motion(motion, len(extra))
         g = GUARD * max(w, h)
         self.guard = (extra[:, 0] <= -g) | (extra[:, 0] >= w - 1 + g) | (extra[:, 1] <= -g) | (extra[:, 1] >= h - 1 + g)

@@ -81,7 +81,7 @@ def fit_motion(fw: FrameWarp, frames, landmarks: np.ndarray, lam: float = LAMBDA
         # the head's ring moves with the face in full (a rigid skull): its fitted a is dropped,
         # not fixed before the fit, where it takes up the flow's shortfall on large motions
         # (DIS reads ~5 % short), which would otherwise bias b
-        ring = fw.weights >= 1.0 - 1e-6  # on the ring (the ellipse itself: 1 up to rounding)
+        ring = fw.on_ring
         fit[ring, 0] = prior[ring, 0]
         # off the ring, the surroundings may follow the head less than the prior, never more:
         # a camera that followed the head in the avatar's video is not replayed on another's
