@@ -1,4 +1,4 @@
-"""Array-level 2D geometry: least-squares similarity transforms and affine maps.
+"""Array-level 2D geometry: least-squares similarity transforms, affine maps and thin-plate splines.
 
 Upstream of every stage (numpy only, no torch): the data layer's synthetic subject, the
 face model's Procrustes analysis and the ERI feature points all use these.
@@ -100,3 +100,30 @@ def generalised_procrustes(
             break
     aligned = apply_affine(shapes, similarity_fit(shapes, mean[None]))
     return aligned, mean
+
+
+TPS_SMOOTH = 1e-6  # relative regularisation of the spline (coincident control points)
+
+
+def thin_plate(ctrl: np.ndarray, values: np.ndarray, at: np.ndarray, smooth: float = TPS_SMOOTH) -> np.ndarray:
+    """Thin-plate spline through ``values`` (K, 2) at ``ctrl`` (K, 2), evaluated at ``at``
+    (N, 2) -> (N, 2) (kernel r^2 log r, affine part; ``smooth`` x the mean kernel on the
+    diagonal keeps coincident control points solvable)."""
+    c = np.asarray(ctrl, np.float64)
+    k = len(c)
+    scale = float(np.ptp(c, 0).max()) or 1.0
+    cn, an = c / scale, np.asarray(at, np.float64) / scale
+
+    def kernel(r2):
+        return 0.5 * r2 * np.log(np.where(r2 > 0, r2, 1.0))
+
+    kk = kernel(((cn[:, None] - cn[None]) ** 2).sum(-1))
+    kk += np.eye(k) * smooth * (np.abs(kk).mean() or 1.0)
+    p = np.concatenate([np.ones((k, 1)), cn], 1)
+    a = np.zeros((k + 3, k + 3))
+    a[:k, :k], a[:k, k:], a[k:, :k] = kk, p, p.T
+    rhs = np.zeros((k + 3, 2))
+    rhs[:k] = values
+    coef = np.linalg.solve(a, rhs)
+    ka = kernel(((an[:, None] - cn[None]) ** 2).sum(-1))
+    return ka @ coef[:k] + np.concatenate([np.ones((len(an), 1)), an], 1) @ coef[k:]

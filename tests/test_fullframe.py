@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from facesynth.errors import FacesynthError
-from facesynth.geometry import apply_affine
-from facesynth.runtime.fullframe import PARALLAX, FrameWarp, head_points, head_region, nose_offset, thin_plate
+from facesynth.geometry import apply_affine, thin_plate
+from facesynth.runtime.fullframe import PARALLAX, FrameWarp, head_points, head_region, nose_offset
 from tests._faces import face_template, smooth_image
 
 SIZE = 320

@@ -11,7 +11,7 @@ import pytest
 from facesynth.errors import FacesynthError
 from facesynth.geometry import apply_affine
 from facesynth.runtime.fullframe import FrameWarp
-from facesynth.runtime.headmotion import fit_motion
+from facesynth.runtime.headmotion import fit_frame_motion, fit_motion, ring_clearance
 from facesynth.runtime.reenact import Avatar
 from tests._faces import face_template, smooth_image
 from tests.test_fullframe import similarity
@@ -100,6 +100,59 @@ def test_bad_frames_and_metadata_are_refused(video):
         Avatar({"frame_motion": [1, 2]}, "m.onnx")
     with pytest.raises(FacesynthError, match="frame_motion"):
         FrameWarp(fw.frame, fw.neutral68, motion=np.zeros((3, 2)))
+    with pytest.raises(FacesynthError, match="ring_scale"):
+        Avatar({"frame_motion": {"coefficients": [[0.5, 0.5]], "ring_scale": -1}}, "m.onnx")
+    with pytest.raises(FacesynthError, match="ring_scale"):
+        Avatar({"frame_motion": {"coefficients": [[0.5, 0.5]], "ring_scale": "wide"}}, "m.onnx")
+    with pytest.raises(FacesynthError, match="ring_scale"):
+        FrameWarp(fw.frame, fw.neutral68, ring_scale=float("nan"))
+
+
+def test_ring_clearance_agrees_with_matplotlib_on_which_rings_enter_the_face(video):
+    """A ring whose clearance is negative has a point inside the face's landmark hull, by
+    matplotlib's point-in-polygon test; one whose clearance is positive has none; and the
+    clearance grows with the ring."""
+    from matplotlib.path import Path as MplPath
+    from scipy.spatial import ConvexHull
+
+    from facesynth.runtime.fullframe import HEAD_RING_DEG, ellipse_points, face_frame
+
+    face = video[0].neutral68
+    o, axes, unit = face_frame(face)
+    xy = (face - o) @ axes.T / unit
+    hull = MplPath(xy[ConvexHull(xy).vertices])
+    scales = np.linspace(0.3, 1.5, 25)
+    clear = np.array([ring_clearance(face, s) for s in scales])
+    assert (np.diff(clear) > 0).all() and clear[0] < 0 < clear[-1]
+    for s, c in zip(scales, clear, strict=True):
+        inside = hull.contains_points(ellipse_points(HEAD_RING_DEG, s))
+        assert inside.any() == (c < 0), (s, c)
+
+
+def test_the_ring_size_that_renders_the_video_is_chosen(video, monkeypatch):
+    """Frames made by a warp whose ring is 0.9 times the default: of 0.9, 1.2 and 1.5, the fit
+    keeps 0.9 (it renders the held-apart frames best); a ring that enters the face is not
+    tried, and a size whose warp folds on more validation frames than another's is left out."""
+    fw = video[0]
+    gen = FrameWarp(fw.frame, fw.neutral68, ring_scale=0.9)
+    rng = np.random.default_rng(2)
+    landmarks = []
+    for _ in range(24):  # gentler turns than the fixture's, which fold a ring this small
+        lm = apply_affine(fw.neutral68, similarity(rng.uniform(-6, 6), rng.uniform(0.96, 1.04), rng.uniform(-8, 8, 2),
+                                                   fw.neutral68.mean(0)))
+        lm[30] += rng.uniform(-4, 4, 2)
+        landmarks.append(lm)
+    assert not any(gen.folds(lm, outside_face=True) for lm in landmarks)
+    frames = [gen(lm) for lm in landmarks]
+    args = (fw.frame, fw.neutral68, frames[:16], landmarks[:16], frames[16:], landmarks[16:])
+    warp, info = fit_frame_motion(*args, scales=(0.3, 0.9, 1.2, 1.5))
+    assert info["ring_scale"] == warp.ring_scale == 0.9 and info["validation_frames"] == 8
+    scores = info["ring_scores"]
+    assert scores["0.3"] is None and scores["0.9"] > max(scores["1.2"], scores["1.5"])
+    assert warp.motion.shape == (len(warp.src) - warp.n_face, 2)
+    monkeypatch.setattr(FrameWarp, "folds", lambda self, lm, outside_face=False: int(self.ring_scale == 0.9))
+    _, info = fit_frame_motion(*args, scales=(0.9, 1.2, 1.5))
+    assert info["ring_scores"]["0.9"] is None and info["ring_scale"] in (1.2, 1.5)
 
 
 

@@ -171,6 +171,9 @@ def test_the_export_carries_the_warps_learned_motion(avatar):
     np.testing.assert_array_equal(warp.motion, np.asarray(entry["coefficients"]))
     assert warp.motion.shape == (len(warp.src) - warp.n_face, 2)
     assert not np.allclose(warp.motion, warp.prior())  # learned, not the prior
+    # the ring's size chosen on 20 other training frames, among those that clear the face
+    assert entry["validation_frames"] == 20 and warp.ring_scale == entry["ring_scale"]
+    assert entry["ring_scores"][f"{warp.ring_scale:g}"] == max(v for v in entry["ring_scores"].values() if v is not None)
 
 
 def test_app_writes_the_rendered_landmarks(avatar, shared_clip_dir, tmp_path):

@@ -25,7 +25,7 @@ from facesynth.metrics import psnr, ssim
 from facesynth.onnx.avatar import avatar_metadata
 from facesynth.retarget import RETARGET_SCHEMES, Retargeter
 from facesynth.runtime.blend import blend_rendered
-from facesynth.runtime.fullframe import FrameWarp, head_region
+from facesynth.runtime.fullframe import head_region
 from facesynth.runtime.reenact import Avatar
 
 RENDERERS = ("static", "warp", "full")
@@ -46,7 +46,7 @@ def talking_head_figures(syn, seq, train_rows: np.ndarray, test_rows: np.ndarray
     meta = avatar_metadata(syn, seq.landmarks[train_rows], train_rows, seq)
     avatar = Avatar({**meta, "landmark_scheme": scheme}, seq.name)
     retarget = Retargeter(avatar.neutral, avatar.neutral, avatar.shape_space, "relative", scheme=scheme)
-    warp = FrameWarp(avatar.background, avatar.neutral, motion=avatar.frame_motion)
+    warp = avatar.frame_warp()
     rows = np.asarray(test_rows)[np.unique(np.linspace(0, len(test_rows) - 1, min(frames, len(test_rows))).round().astype(int))]
     shown = set(rows[np.unique(np.linspace(0, len(rows) - 1, min(strip, len(rows))).round().astype(int))].tolist())
     sums = {r: dict.fromkeys(MEASURES, 0.0) for r in RENDERERS}

@@ -13,9 +13,11 @@ into its ONNX metadata at export time (torch-side; the runtime reads it with
 * ``background_jpeg``: that neutral frame, JPEG (quality 90) in base64, the avatar's own
   frame the app composites into, and ``frame_size`` [W, H];
 * ``frame_motion``: how the full-frame warp's control points besides the landmarks follow
-  the face, learned from up to ``headmotion.FRAMES`` training frames
-  (:func:`facesynth.runtime.headmotion.fit_motion`: ``coefficients`` (K - 68, 2), ``frames``,
-  ``lambda``, ``points_fitted``).
+  the face, learned from up to ``headmotion.FRAMES`` training frames, and the size of the
+  head's ring, chosen on ``headmotion.VALIDATION`` others
+  (:func:`facesynth.runtime.headmotion.fit_frame_motion`: ``coefficients`` (K - 68, 2),
+  ``frames``, ``lambda``, ``points_fitted``, ``ring_scale``, ``ring_scores``,
+  ``validation_frames``).
 """
 
 from __future__ import annotations
@@ -31,8 +33,7 @@ from facesynth.errors import FacesynthError
 from facesynth.landmarks import eye_openings
 from facesynth.neutral import select_neutral
 from facesynth.retarget import RETARGET_SCHEMES, ShapeSpace, retarget_scheme
-from facesynth.runtime.fullframe import FrameWarp
-from facesynth.runtime.headmotion import FRAMES, fit_motion
+from facesynth.runtime.headmotion import FRAMES, VALIDATION, fit_frame_motion
 
 log = logging.getLogger(__name__)
 JPEG_QUALITY = 90
@@ -81,14 +82,24 @@ def avatar_metadata(syn, landmarks: np.ndarray, rows: np.ndarray | None = None, 
 
 
 def frame_motion(frame: np.ndarray, neutral: np.ndarray, landmarks: np.ndarray, rows, sequence) -> dict:
-    """The ``frame_motion`` entry: :func:`fit_motion` of the warp of ``frame`` (the neutral
-    frame, landmarks ``neutral`` (P, 2)) on up to ``FRAMES`` of the training frames
-    (``landmarks`` (N, P, 2), ``rows`` their indices in ``sequence``), evenly spaced."""
-    pick = np.unique(np.linspace(0, len(landmarks) - 1, min(FRAMES, len(landmarks))).round().astype(int))
-    seq_rows = [int(rows[i]) if rows is not None else int(i) for i in pick]
-    coef, info = fit_motion(FrameWarp(frame, neutral), (np.asarray(f) for f in sequence.iter_frames(seq_rows)),
-                            landmarks[pick])
-    return {"coefficients": np.round(coef, 4).tolist(), **info}
+    """The ``frame_motion`` entry: :func:`fit_frame_motion` of the warp of ``frame`` (the
+    neutral frame, landmarks ``neutral`` (P, 2)), its motion fitted on up to ``FRAMES`` of the
+    training frames (``landmarks`` (N, P, 2), ``rows`` their indices in ``sequence``), evenly
+    spaced, and its ring's size chosen on ``VALIDATION`` others, halfway between them (on
+    the fit's own frames when there are no others)."""
+    n = len(landmarks)
+    pick = np.unique(np.linspace(0, n - 1, min(FRAMES, n)).round().astype(int))
+    halves = (pick[:-1] + pick[1:]) // 2
+    halves = halves[halves > pick[:-1]]  # a training frame between two of the fit's
+    if not len(halves):  # a short clip: the fit has read every training frame
+        halves = pick
+    halves = halves[np.unique(np.linspace(0, len(halves) - 1, min(VALIDATION, len(halves))).round().astype(int))]
+
+    def frames(idx):
+        return (np.asarray(f) for f in sequence.iter_frames([int(rows[i]) if rows is not None else int(i) for i in idx]))
+
+    fw, info = fit_frame_motion(frame, neutral, frames(pick), landmarks[pick], frames(halves), landmarks[halves])
+    return {"coefficients": np.round(fw.motion, 4).tolist(), **info}
 
 
 def run_avatar_metadata(run_dir, syn) -> dict:

@@ -39,7 +39,6 @@ from facesynth.onnx.retarget_graph import RetargetGraph
 from facesynth.onnx.synthesis import SynthesisGraph
 from facesynth.retarget import RETARGET_SCHEMES
 from facesynth.runtime.blend import seam_width
-from facesynth.runtime.fullframe import FrameWarp
 from facesynth.runtime.reenact import Avatar
 
 INPUTS, OUTPUTS = TALKING_HEAD_INPUTS, TALKING_HEAD_OUTPUTS
@@ -67,7 +66,7 @@ class TalkingHeadGraph(nn.Module):
                                  "metadata (re-export the model)")
         self.synthesis = SynthesisGraph(syn.eval()).eval()
         self.retarget = RetargetGraph(avatar.neutral, avatar.shape_space, get_scheme(scheme))
-        self.frame_warp = FrameWarpGraph(FrameWarp(frame, avatar.neutral, motion=avatar.frame_motion))
+        self.frame_warp = FrameWarpGraph(avatar.frame_warp())
         self.feather = float(default_feather(self.synthesis, avatar.neutral) if feather is None else feather)
         self.seam = SeamGraph(self.feather, (frame.shape[1], frame.shape[0]), tuple(syn.warp.canvas))
 

@@ -6,7 +6,9 @@ Control points, all placed on the avatar's neutral face (its iBUG-68 view; :func
 * the face's 68 landmarks, which go where the avatar's landmarks of the frame are;
 * a ring round the head (ears, over the hair), neck points below the jaw and an outer
   ring, in the face's own units (origin between the eyes, unit the outer-eye-corner
-  distance, the face's axes);
+  distance, the face's axes); the rings' size is the warp's ``ring_scale`` times
+  ``HEAD_AXES``, per avatar (a slick bun and a mane differ: :mod:`facesynth.runtime.headmotion`
+  chooses it on the avatar's own video);
 * anchors along the frame border.
 
 Each point ``p`` but the landmarks goes to ``p + a (S(p) - p) + b d``: ``S`` is the
@@ -64,13 +66,14 @@ from scipy.spatial import Delaunay
 
 from facesynth.errors import FacesynthError
 from facesynth.faps import face_axes
-from facesynth.geometry import apply_affine, similarity_fit
+from facesynth.geometry import apply_affine, similarity_fit, thin_plate
 from facesynth.landmarks import ibug68_view, inter_ocular
 
 METHODS = ("affine", "tps")
 # (x, down) in face units (origin between the eyes, unit the outer-eye-corner distance)
 HEAD_CENTRE, HEAD_AXES = (0.0, 0.1), (1.15, 1.5)  # an ellipse round the head: ears, hair
 HEAD_RING_DEG = np.arange(160.0, 381.0, 20.0)  # its points from one ear over the top of the head to the other
+RING_SCALE = 1.0  # the ellipse's size, times HEAD_AXES, where the avatar has not chosen its own
 OUTER_RING_DEG = np.arange(0.0, 360.0, 30.0)
 OUTER_SCALE = 1.6  # a ring at 1.6 x the head's ellipse, at part of its motion
 FALLOFF = 2.2  # the head's motion falls off linearly from its ellipse (1) to 2.2 x it (0)
@@ -89,7 +92,6 @@ GUARD = 0.3  # a still guard ring this share of the frame's size outside it (mod
 HEAD_POINTS = [0, 1, 15, 16, 27, 36, 39, 42, 45]
 TPS_STEP = 8
 GRID_STEP = 8  # the affine warp's grid: exact at its nodes, bilinear between (module docstring)
-TPS_SMOOTH = 1e-6  # relative regularisation of the spline (coincident control points)
 
 
 def face_frame(face68: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
@@ -106,28 +108,35 @@ def nose_offset(face68: np.ndarray) -> np.ndarray:
     return f[NOSE_TIP] - 0.5 * (f[EYE_CORNERS[0]] + f[EYE_CORNERS[1]])
 
 
-def motion_weight(face_xy: np.ndarray) -> np.ndarray:
+def motion_weight(face_xy: np.ndarray, ring_scale: float = 1.0) -> np.ndarray:
     """(K,) share of the head's motion that points at (K, 2) face-unit (x, down) positions
-    follow: 1 on and inside the head's ellipse, falling off linearly to 0 at ``FALLOFF``
-    times it, and below the chin further, to 0 at the shoulders."""
+    follow: 1 on and inside the head's ellipse (its axes ``ring_scale`` x ``HEAD_AXES``),
+    falling off linearly to 0 at ``FALLOFF`` times it, and below the chin further, to 0 at
+    the shoulders."""
     xy = np.asarray(face_xy, np.float64)
-    r = np.hypot(xy[:, 0] / HEAD_AXES[0], (xy[:, 1] - HEAD_CENTRE[1]) / HEAD_AXES[1])
+    ax, ay = ring_scale * HEAD_AXES[0], ring_scale * HEAD_AXES[1]
+    r = np.hypot(xy[:, 0] / ax, (xy[:, 1] - HEAD_CENTRE[1]) / ay)
     w = np.clip(1.0 - (r - 1.0) / (FALLOFF - 1.0), 0.0, 1.0)
     return w * np.clip(1.0 - (xy[:, 1] - CHIN) / (SHOULDERS - CHIN), 0.0, 1.0)
 
 
-def _ellipse(degrees: np.ndarray, scale: float = 1.0) -> np.ndarray:
+def ellipse_points(degrees: np.ndarray, scale: float = 1.0) -> np.ndarray:
+    """(N, 2) face-unit (x, down) points of the head's ellipse, ``scale`` times ``HEAD_AXES``
+    round ``HEAD_CENTRE``, at ``degrees`` (N,) (0 to the face's right, 90 down)."""
     t = np.deg2rad(degrees)
     return np.stack([scale * HEAD_AXES[0] * np.cos(t), HEAD_CENTRE[1] + scale * HEAD_AXES[1] * np.sin(t)], 1)
 
 
-def head_points(neutral68: np.ndarray, size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+def head_points(neutral68: np.ndarray, size: tuple[int, int], ring_scale: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
     """Control points besides the face's landmarks, on a (68, 2) neutral face in a frame of
-    ``size`` (W, H): points (K, 2) float64 and the share of the head's motion each follows
-    (K,) (:func:`motion_weight`; module docstring)."""
+    ``size`` (W, H), the head's ellipse ``ring_scale`` times its default size: points (K, 2)
+    float64 and the share of the head's motion each follows (K,) (:func:`motion_weight`;
+    module docstring)."""
     w, h = size
     o, axes, unit = face_frame(neutral68)
-    pts = o + unit * np.concatenate([_ellipse(HEAD_RING_DEG), np.asarray(NECK), _ellipse(OUTER_RING_DEG, OUTER_SCALE)]) @ axes
+    rings = [ellipse_points(HEAD_RING_DEG, ring_scale), np.asarray(NECK),
+             ellipse_points(OUTER_RING_DEG, OUTER_SCALE * ring_scale)]
+    pts = o + unit * np.concatenate(rings) @ axes
     out, near = OUTSIDE * max(w, h), INSIDE * max(w, h)
     top = np.array([w - 1, h - 1])
     inner = np.all((pts > near) & (pts < top - near), 1)
@@ -144,7 +153,8 @@ def head_points(neutral68: np.ndarray, size: tuple[int, int]) -> tuple[np.ndarra
     guard = np.concatenate([np.stack([gx, np.full_like(gx, -g)], 1), np.stack([gx, np.full_like(gx, h - 1 + g)], 1),
                             np.stack([np.full_like(gy[1:-1], -g), gy[1:-1]], 1),
                             np.stack([np.full_like(gy[1:-1], w - 1 + g), gy[1:-1]], 1)])
-    weights = np.concatenate([motion_weight((np.concatenate([pts, border]) - o) @ axes.T / unit), np.zeros(len(guard))])
+    weights = np.concatenate([motion_weight((np.concatenate([pts, border]) - o) @ axes.T / unit, ring_scale),
+                              np.zeros(len(guard))])
     return np.concatenate([pts, border, guard]), weights
 
 
@@ -154,7 +164,7 @@ def head_region(face68: np.ndarray, size: tuple[int, int]) -> np.ndarray:
     clipped to the frame)."""
     w, h = size
     o, axes, unit = face_frame(face68)
-    pts = np.concatenate([np.asarray(face68, np.float64), o + unit * np.concatenate([_ellipse(HEAD_RING_DEG), NECK]) @ axes])
+    pts = np.concatenate([np.asarray(face68, np.float64), o + unit * np.concatenate([ellipse_points(HEAD_RING_DEG), NECK]) @ axes])
     mask = np.zeros((h, w), np.uint8)
     cv2.fillConvexPoly(mask, cv2.convexHull(np.round(pts * 16).astype(np.int32)), 1, cv2.LINE_8, 4)
     return mask.astype(bool)
@@ -169,13 +179,14 @@ class FrameWarp:
     motion : float (K - 68, 2) per control point besides the landmarks, the share of the
     head's motion ``S`` and of the parallax term ``d`` it follows (default :meth:`prior`,
     ``w`` and ``PARALLAX w``; :mod:`facesynth.runtime.headmotion` learns them from the
-    avatar's video).
+    avatar's video); ring_scale : the head's ellipse, ring and falloff, this times its
+    default size (:func:`head_points`; headmotion chooses it per avatar).
 
     ``__call__(landmarks)``: (P, 2) avatar landmarks in the frame -> uint8 (H, W, 3).
     """
 
     def __init__(self, frame: np.ndarray, neutral: np.ndarray, method: str = "affine",
-                 motion: np.ndarray | None = None):
+                 motion: np.ndarray | None = None, ring_scale: float = RING_SCALE):
         if method not in METHODS:
             raise FacesynthError(f"full-frame warp: method must be one of {METHODS}, got {method!r}")
         frame = np.asarray(frame)
@@ -188,7 +199,10 @@ class FrameWarp:
         self.neutral68 = ibug68_view(neutral)
         if not np.isfinite(self.neutral68).all():
             raise FacesynthError("full-frame warp: the avatar's neutral landmarks are not finite")
-        extra, self.weights = head_points(self.neutral68, self.size)
+        if not 0.0 < float(ring_scale) < 10.0:
+            raise FacesynthError(f"full-frame warp: ring_scale must be a positive factor of the head's ellipse, got {ring_scale}")
+        self.ring_scale = float(ring_scale)
+        extra, self.weights = head_points(self.neutral68, self.size, self.ring_scale)
         self.src = np.concatenate([self.neutral68, extra])  # (K, 2) control points in the neutral frame
         self.n_face = len(self.neutral68)
         # (K - 68, 2) the axes a point moves along: an anchor on the left, right or bottom side
@@ -336,30 +350,6 @@ def interpolation_weights(n: int, nodes: int) -> tuple[np.ndarray, np.ndarray]:
     return k, pos - k
 
 
-def thin_plate(ctrl: np.ndarray, values: np.ndarray, at: np.ndarray, smooth: float = TPS_SMOOTH) -> np.ndarray:
-    """Thin-plate spline through ``values`` (K, 2) at ``ctrl`` (K, 2), evaluated at ``at``
-    (N, 2) -> (N, 2) (kernel r^2 log r, affine part; ``smooth`` x the mean kernel on the
-    diagonal keeps coincident control points solvable)."""
-    c = np.asarray(ctrl, np.float64)
-    k = len(c)
-    scale = float(np.ptp(c, 0).max()) or 1.0
-    cn, an = c / scale, np.asarray(at, np.float64) / scale
-
-    def kernel(r2):
-        return 0.5 * r2 * np.log(np.where(r2 > 0, r2, 1.0))
-
-    kk = kernel(((cn[:, None] - cn[None]) ** 2).sum(-1))
-    kk += np.eye(k) * smooth * (np.abs(kk).mean() or 1.0)
-    p = np.concatenate([np.ones((k, 1)), cn], 1)
-    a = np.zeros((k + 3, k + 3))
-    a[:k, :k], a[:k, k:], a[k:, :k] = kk, p, p.T
-    rhs = np.zeros((k + 3, 2))
-    rhs[:k] = values
-    coef = np.linalg.solve(a, rhs)
-    ka = kernel(((an[:, None] - cn[None]) ** 2).sum(-1))
-    return ka @ coef[:k] + np.concatenate([np.ones((len(an), 1)), an], 1) @ coef[k:]
-
-
 def motion_features(fw: FrameWarp, landmarks: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The two motions a control point besides the landmarks follows a share of, for (P, 2)
     avatar landmarks: the head's motion ``S(p) - p`` (K - 68, 2) at each point and the
@@ -384,5 +374,5 @@ def _signed_area(points: np.ndarray, tri: np.ndarray) -> np.ndarray:
     return e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]
 
 
-__all__ = ["METHODS", "FrameWarp", "grid_nodes", "head_points", "head_region", "interpolation_weights", "motion_features",
-           "nose_offset", "thin_plate"]
+__all__ = ["METHODS", "FrameWarp", "ellipse_points", "grid_nodes", "head_points", "head_region", "interpolation_weights",
+           "motion_features", "nose_offset"]

@@ -20,8 +20,19 @@ prior by a ridge of ``LAMBDA`` times the mean of the point's two feature energie
 clipped to ``SHARE_RANGE`` / ``PARALLAX_RANGE``. The ring's points above the frame read the
 flow of its top row (the flow is border-replicated), like the top anchors beside them; the
 still guard ring round the frame and the frame's bottom corners keep their prior (still).
-The coefficients are written to the model's metadata at export (``frame_motion``;
-:mod:`facesynth.onnx.avatar`) and read back by the runtime and the talking-head graph.
+The head's ring has one size in face units for every avatar by default, about right for a
+mane and too wide for slick hair: its points then lie on the background beside the head
+and drag it along. :func:`fit_frame_motion` fits the motion for each ring size of
+``RING_SCALES`` that stays outside the face, and keeps the one whose warp best renders other
+training frames (``VALIDATION`` of them, between those of the fit: PSNR of the pooled error
+over the head region, warped to each frame's own landmarks; a size whose warp folds on more
+of them than another's is left out). It is never wider than the default: a wider ring only
+takes in more background, which the avatar's own video rewards when its camera follows the
+head, and another driver then drags.
+
+The coefficients and the ring's size are written to the model's metadata at export
+(``frame_motion``; :mod:`facesynth.onnx.avatar`) and read back by the runtime and the
+talking-head graph.
 
 The measurements behind it are in docs/reenact.md, "The avatar's video teaches the warp".
 """
@@ -32,9 +43,15 @@ import cv2
 import numpy as np
 
 from facesynth.errors import FacesynthError
-from facesynth.runtime.fullframe import FrameWarp, motion_features
+from facesynth.landmarks import ibug68_view
+from facesynth.runtime.fullframe import HEAD_RING_DEG, RING_SCALE, FrameWarp, ellipse_points, face_frame, head_region, motion_features
 
 FRAMES = 60  # training frames the fit reads, evenly spaced
+VALIDATION = 20  # training frames between those that choose the ring's size
+# the head ring's sizes tried (times fullframe.HEAD_AXES), and how far (face units) it must
+# stay outside the neutral face's landmarks (inside, its points fold the warp across the face)
+RING_SCALES = (0.7, 0.8, 0.9, 1.0)  # never wider than the default: a wider ring only takes in background
+RING_CLEARANCE = 0.1  # at 0.05, a ring by the jaw folded a cheek under a strong turn (docs/reenact.md)
 LAMBDA = 1.0  # the ridge towards the prior, relative to the mean feature energy of the point
 SHARE_RANGE = (0.0, 1.2)
 PARALLAX_RANGE = (0.0, 1.5)
@@ -54,24 +71,38 @@ def fit_motion(fw: FrameWarp, frames, landmarks: np.ndarray, lam: float = LAMBDA
     """Per-point motion coefficients (K - 68, 2) ``(a, b)`` for ``fw`` (the avatar's neutral
     frame and landmarks) from its training ``frames`` (iterable of uint8 (H, W, 3) RGB) and
     their ``landmarks`` (N, P, 2), and a summary {"frames", "lambda", "points_fitted"}."""
+    return fit_motions([fw], frames, landmarks, lam)[0]
+
+
+def fit_motions(warps: list[FrameWarp], frames, landmarks: np.ndarray, lam: float = LAMBDA) -> list[tuple[np.ndarray, dict]]:
+    """:func:`fit_motion` of several warps of one neutral frame (their rings of different
+    sizes), the frames read and their flow computed once."""
     lm = np.asarray(landmarks, np.float64)
-    extra = fw.src[fw.n_face:]
-    grey0 = cv2.cvtColor(fw.frame, cv2.COLOR_RGB2GRAY)
-    xtx = np.zeros((len(extra), 2, 2))
-    xtu = np.zeros((len(extra), 2))
+    frame0 = warps[0].frame
+    extras = [fw.src[fw.n_face:] for fw in warps]
+    splits = np.cumsum([len(e) for e in extras])[:-1]
+    grey0 = cv2.cvtColor(frame0, cv2.COLOR_RGB2GRAY)
+    xtx = [np.zeros((len(e), 2, 2)) for e in extras]
+    xtu = [np.zeros((len(e), 2)) for e in extras]
     n = 0
     for frame, row in zip(frames, lm, strict=True):
         if not np.isfinite(row).all():
             continue
         frame = np.asarray(frame)
-        if frame.shape != fw.frame.shape:
-            raise FacesynthError(f"head motion fit: frame of shape {frame.shape}, the neutral frame's is {fw.frame.shape}")
-        u = flow_at(grey0, cv2.cvtColor(frame, cv2.COLOR_RGB2GRAY), extra)  # (K', 2) observed displacements
-        move, d = motion_features(fw, row)
-        x = np.stack([move, np.broadcast_to(d, move.shape)], -1) * fw.free[:, :, None]  # (K', 2 axes, 2 features)
-        xtx += np.einsum("kcf,kcg->kfg", x, x)
-        xtu += np.einsum("kcf,kc->kf", x, u * fw.free)
+        if frame.shape != frame0.shape:
+            raise FacesynthError(f"head motion fit: frame of shape {frame.shape}, the neutral frame's is {frame0.shape}")
+        flow = np.split(flow_at(grey0, cv2.cvtColor(frame, cv2.COLOR_RGB2GRAY), np.concatenate(extras)), splits)
+        for k, (fw, u) in enumerate(zip(warps, flow, strict=True)):  # u (K', 2): the observed displacements
+            move, d = motion_features(fw, row)
+            x = np.stack([move, np.broadcast_to(d, move.shape)], -1) * fw.free[:, :, None]  # (K', 2 axes, 2 features)
+            xtx[k] += np.einsum("kcf,kcg->kfg", x, x)
+            xtu[k] += np.einsum("kcf,kc->kf", x, u * fw.free)
         n += 1
+    return [_solve(fw, a, b, n, lam) for fw, a, b in zip(warps, xtx, xtu, strict=True)]
+
+
+def _solve(fw: FrameWarp, xtx: np.ndarray, xtu: np.ndarray, n: int, lam: float) -> tuple[np.ndarray, dict]:
+    """The ridge least squares of :func:`fit_motion` from its normal equations (K', 2, 2), (K', 2)."""
     prior = fw.prior()
     coef = prior.copy()
     fitted = ~fw.guard & fw.free.any(1)  # the guard ring and the bottom corners stay still
@@ -92,4 +123,52 @@ def fit_motion(fw: FrameWarp, frames, landmarks: np.ndarray, lam: float = LAMBDA
     return coef, {"frames": n, "lambda": float(lam), "points_fitted": int(fitted.sum()) if n else 0}
 
 
-__all__ = ["FRAMES", "LAMBDA", "PARALLAX_RANGE", "SHARE_RANGE", "fit_motion", "flow_at"]
+def ring_clearance(neutral: np.ndarray, ring_scale: float) -> float:
+    """How far (face units: outer-eye-corner distances) the head's ring at ``ring_scale``
+    stays outside the hull of the (P, 2) neutral face's landmarks; negative when a ring point
+    lies inside the face."""
+    o, axes, unit = face_frame(ibug68_view(neutral))
+    hull = cv2.convexHull(((ibug68_view(neutral) - o) @ axes.T / unit).astype(np.float32))
+    ring = ellipse_points(HEAD_RING_DEG, ring_scale)
+    return -max(cv2.pointPolygonTest(hull, (float(x), float(y)), True) for x, y in ring)
+
+
+def fit_frame_motion(frame: np.ndarray, neutral: np.ndarray, fit_frames, fit_landmarks: np.ndarray, val_frames,
+                     val_landmarks: np.ndarray, scales=RING_SCALES) -> tuple[FrameWarp, dict]:
+    """The avatar's warp: for each ring size of ``scales`` whose ring clears the neutral face
+    by ``RING_CLEARANCE`` (:func:`ring_clearance`), the motion fitted on ``fit_frames``
+    (:func:`fit_motions`); then the size whose warp best renders the validation frames
+    (other training frames, ``val_frames`` with their ``val_landmarks``: PSNR of the error
+    pooled over :func:`head_region`, the warp driven by each frame's own landmarks), any that
+    folds the frame (:meth:`FrameWarp.folds` outside the face) on more of them than another
+    left out. ``frame`` uint8 (H, W, 3) and ``neutral`` (P, 2): the avatar's neutral. Returns
+    the warp and the summary of :func:`fit_motion` with ``ring_scale``, ``validation_frames``
+    and ``ring_scores`` ({scale: dB}, None where the ring enters the face or the warp folds
+    more; without validation frames all None and the size nearest ``RING_SCALE``)."""
+    allowed = [float(s) for s in scales if ring_clearance(neutral, s) >= RING_CLEARANCE] or [float(max(scales))]
+    fits = fit_motions([FrameWarp(frame, neutral, ring_scale=s) for s in allowed], fit_frames, fit_landmarks)
+    warps = [FrameWarp(frame, neutral, motion=coef, ring_scale=s) for s, (coef, _) in zip(allowed, fits, strict=True)]
+    sse, folded, pixels, n = np.zeros(len(warps)), np.zeros(len(warps), int), 0, 0
+    for real, lm in zip(val_frames, np.asarray(val_landmarks, np.float64), strict=True):
+        if not np.isfinite(lm).all():
+            continue
+        real = np.asarray(real)
+        mask = head_region(ibug68_view(lm), real.shape[1::-1])
+        for k, fw in enumerate(warps):
+            sse[k] += float(((fw(lm)[mask].astype(np.float64) - real[mask]) ** 2).sum())
+            folded[k] += fw.folds(lm, outside_face=True) > 0
+        pixels += int(mask.sum()) * real.shape[2]
+        n += 1
+    # PSNR of the pooled error (a frame the warp renders exactly, the neutral's, weighs as any);
+    # a size that folds more of the frames than another does is left out
+    ok = folded == folded.min()
+    db = 10.0 * np.log10(255.0 ** 2 * max(pixels, 1) / np.maximum(sse, 1e-12))
+    scores = {s: round(float(v), 3) if (good and n) else None for s, v, good in zip(allowed, db, ok, strict=True)}
+    best = int(np.argmax(np.where(ok, db, -np.inf))) if n else int(np.argmin(np.abs(np.asarray(allowed) - RING_SCALE)))
+    info = {**fits[best][1], "ring_scale": allowed[best], "validation_frames": n,
+            "ring_scores": {f"{s:g}": scores.get(float(s)) for s in scales}}
+    return warps[best], info
+
+
+__all__ = ["FRAMES", "LAMBDA", "PARALLAX_RANGE", "RING_CLEARANCE", "RING_SCALES", "SHARE_RANGE", "VALIDATION",
+           "fit_frame_motion", "fit_motion", "fit_motions", "flow_at", "ring_clearance"]

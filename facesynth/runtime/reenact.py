@@ -26,7 +26,7 @@ from facesynth.errors import FacesynthError
 from facesynth.neutral import select_neutral
 from facesynth.retarget import MOTIONS, Retargeter, ShapeSpace, retarget_scheme
 from facesynth.runtime.blend import blend_rendered
-from facesynth.runtime.fullframe import FrameWarp
+from facesynth.runtime.fullframe import RING_SCALE, FrameWarp
 from facesynth.runtime.renderer import Renderer
 
 GREY = 128
@@ -38,7 +38,8 @@ class Avatar:
 
     neutral : float64 (P, 2) or None (P of the model's scheme); shape_space : ShapeSpace or None;
     background : uint8 (H, W, 3) RGB or None (its neutral frame); frame_motion : float64
-    (K - 68, 2) or None, the full-frame warp's learned motion coefficients (:class:`FrameWarp`).
+    (K - 68, 2) or None, the full-frame warp's learned motion coefficients, and ring_scale,
+    the size of its head ring (:class:`FrameWarp`; ``RING_SCALE`` without ``frame_motion``).
     """
 
     def __init__(self, metadata: dict, where: str = "model"):
@@ -56,6 +57,7 @@ class Avatar:
         self._background = None
         motion = metadata.get("frame_motion")
         self.frame_motion = None if motion is None else _frame_motion(motion, where)
+        self.ring_scale = RING_SCALE if motion is None else _ring_scale(motion, where)
 
     @property
     def background(self) -> np.ndarray | None:
@@ -67,11 +69,27 @@ class Avatar:
             self._background = cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
         return self._background
 
+    def frame_warp(self, method: str = "affine") -> FrameWarp:
+        """The full-frame warp of the avatar's neutral frame with its learned motion and ring
+        size (:class:`FrameWarp`; the prior where the metadata has none)."""
+        return FrameWarp(self.background, self.require_neutral(), method, self.frame_motion, self.ring_scale)
+
     def require_neutral(self) -> np.ndarray:
         if self.neutral is None:
             raise FacesynthError(f"{self.where}: no avatar_neutral in the metadata (exported before reenactment "
                                  "support, or without the run's data): re-export it, or use --motion absolute")
         return self.neutral
+
+
+def _ring_scale(entry, where: str) -> float:
+    """``frame_motion.ring_scale`` (``RING_SCALE`` in models exported before it was chosen per avatar)."""
+    try:
+        v = float(entry.get("ring_scale", RING_SCALE))
+    except (AttributeError, TypeError, ValueError) as exc:
+        raise FacesynthError(f"{where}: frame_motion.ring_scale must be a number") from exc
+    if not 0.0 < v < 10.0:
+        raise FacesynthError(f"{where}: frame_motion.ring_scale must be a positive factor of the head's ellipse, got {v}")
+    return v
 
 
 def _frame_motion(entry, where: str) -> np.ndarray:
@@ -132,8 +150,7 @@ class Reenactor:
             raise FacesynthError(f"{self.avatar.where}: a full-frame warp needs the avatar's neutral and frame in the "
                                  "metadata (re-export the model)")
         self.full_frame = bool(full_frame)
-        self.frame_warp = (FrameWarp(self.avatar.background, self.avatar.neutral, warp, self.avatar.frame_motion)
-                           if self.full_frame else None)
+        self.frame_warp = self.avatar.frame_warp(warp) if self.full_frame else None
 
     def _set_neutral(self, neutral: np.ndarray) -> None:
         self.driver_neutral = np.asarray(neutral, np.float64)
