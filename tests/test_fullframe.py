@@ -114,6 +114,37 @@ def test_head_motions_fold_nothing(scene, seed):
     assert np.isfinite(mx).all() and np.isfinite(my).all()
 
 
+def test_a_chin_leaving_the_frame_pushes_the_bottom_out_and_folds_nothing():
+    """A face near the frame's bottom moved down past it (turned +-10 degrees, slid sideways):
+    the bottom side's anchors go a margin below the lowest landmark (closed form: the margin is
+    the neutral's gap, capped at CHIN_MARGIN face units), nothing folds outside the face
+    (without the push, 29 of these 40 motions fold the band between chin and anchors), and the
+    talking-head graph's warp reads the same frame as numpy's."""
+    import torch
+
+    from facesynth.onnx.head_parts import FrameWarpGraph
+    from facesynth.runtime.fullframe import CHIN_MARGIN, face_frame
+
+    frame = (smooth_image(SIZE, SIZE, seed=3) * 255).round().astype(np.uint8)
+    face = face_template(width=100.0, cx=160.0, cy=230.0).astype(np.float64)
+    fw = FrameWarp(frame, face)
+    assert fw.chin_margin == min(SIZE - 1 - face[:, 1].max(), CHIN_MARGIN * face_frame(face)[2])
+    graph = FrameWarpGraph(fw).eval()
+    rng = np.random.default_rng(0)
+    for k in range(40):
+        m = similarity(rng.uniform(-10, 10), rng.uniform(0.97, 1.05), (rng.uniform(-25, 25), rng.uniform(25, 45)),
+                       face.mean(0))
+        lm = apply_affine(face, m)
+        dst = fw.control_points(lm)[fw.n_face:]
+        want = max(SIZE - 1.0, lm[:, 1].max() + fw.chin_margin)
+        np.testing.assert_allclose(dst[fw.bottom, 1], want)
+        assert fw.folds(lm, outside_face=True) == 0
+        if k % 8 == 0:
+            with torch.no_grad():
+                got = graph(torch.from_numpy(lm.astype(np.float32)[None]))[0].numpy().transpose(1, 2, 0)
+            assert np.abs(got - fw(lm)).max() <= 2
+
+
 def test_a_fold_inside_the_face_is_told_apart(scene):
     """Inner lips pushed past each other fold triangles among the landmarks only: counted by
     folds(), not by folds(outside_face=True) (the composited face covers them)."""

@@ -72,6 +72,8 @@ class FrameWarpGraph(ToTarget):
         big = 1e9
         self.register_buffer("lo_clip", _const(np.where(ring > 0, [[1.0, -big]], [[-big, -big]])))
         self.register_buffer("hi_clip", _const(np.where(ring > 0, [[w - 2.0, h - 2.0]], [[big, big]])))
+        self.register_buffer("bottom", _const(np.stack([np.zeros(len(extra)), fw.bottom], 1)))  # (K', 2) y of the bottom side
+        self.register_buffer("frame_bottom", torch.tensor(float(h - 1) - fw.chin_margin))
         self.register_buffer("to_node", _const([[(wn - 1) / (w - 1), (hn - 1) / (h - 1)]]))  # frame px -> node units
         self.register_buffer("node_x", _const(nx))
         self.register_buffer("node_y", _const(ny[:, None]))
@@ -97,6 +99,8 @@ class FrameWarpGraph(ToTarget):
         moved = self.extra + self.share * (_apply(self.extra.unsqueeze(0), s[:, :, :2], s[:, :, 2]) - self.extra)
         moved = moved + self.parallax * d.unsqueeze(1)
         moved = torch.minimum(torch.maximum(moved, self.lo_clip), self.hi_clip)
+        below = torch.clamp(face[:, :, 1].amax(1) - self.frame_bottom, min=0.0)  # (B,) a chin near the frame's bottom
+        moved = moved + self.bottom * below[:, None, None]
         return torch.cat([face, moved], 1)
 
     def node_maps(self, face: torch.Tensor) -> torch.Tensor:

@@ -26,7 +26,11 @@ exported model carries its own, learned from the avatar's video
 
 Anchors on the left, right and bottom sides only slide along them (the bottom corners stay):
 where a chin or shoulder reaches the bottom, the edge follows the head along it, never
-across it, as an edge replicated inward shows as streaks over a body. Anchors on the top
+across it, as an edge replicated inward shows as streaks over a body. A chin that comes
+closer to the bottom than ``CHIN_MARGIN`` face units (or than it is on the neutral, if
+closer) pushes the bottom side's anchors out below the frame by as much, where it would
+otherwise pass them, or the jaw's slope would, and fold the band between (dark specks and a
+jagged jaw line at the frame's bottom). Anchors on the top
 side also move down with the head: hair cut by the frame's top then continues above it as
 the top row replicated (held on the top edge instead, the hair was pulled into a peak
 there), and the ring's points above the frame are kept, so that the hair there moves with
@@ -83,6 +87,7 @@ PARALLAX = 1.0
 NOSE_TIP, EYE_CORNERS = 30, (36, 45)
 CHIN, SHOULDERS = 1.5, 3.0  # below the chin it falls off further, to nothing at the shoulders
 NECK = ((-0.6, 1.6), (0.6, 1.6), (0.0, 2.05))
+CHIN_MARGIN = 0.25  # the bottom anchors keep the lowest landmark this far (face units) above them
 BORDER_STEPS = 8  # anchors per frame side (corners included)
 INSIDE = 0.02  # ring points closer to the frame's border than this share of its size are dropped,
 OUTSIDE = 0.25  # and so are those outside it, but for those above it by less than this share
@@ -216,6 +221,9 @@ class FrameWarp:
         g = GUARD * max(w, h)
         self.guard = (extra[:, 0] <= -g) | (extra[:, 0] >= w - 1 + g) | (extra[:, 1] <= -g) | (extra[:, 1] >= h - 1 + g)
         self._ring = ~(held.any(1) | (extra[:, 1] == 0.0) | self.guard)
+        self.bottom = extra[:, 1] == h - 1.0  # (K - 68,) the bottom side's anchors, corners too
+        # how far above the bottom anchors the lowest landmark stays (px; module docstring)
+        self.chin_margin = float(min(h - 1.0 - self.neutral68[:, 1].max(), CHIN_MARGIN * face_frame(self.neutral68)[2]))
         self.triangles = Delaunay(self.src).simplices.astype(np.int64)
         self.nodes = grid_nodes(w), grid_nodes(h)  # (x, y) of the affine warp's grid
         # the anchors on the frame's border are pushed a thousandth of a node spacing out when
@@ -240,6 +248,7 @@ class FrameWarp:
         r = self._ring
         moved[r, 0] = np.clip(moved[r, 0], 1.0, self.size[0] - 2.0)
         moved[r, 1] = np.minimum(moved[r, 1], self.size[1] - 2.0)
+        moved[self.bottom, 1] += max(0.0, face[:, 1].max() + self.chin_margin - (self.size[1] - 1.0))
         return np.concatenate([face, moved])
 
     def prior(self) -> np.ndarray:
