@@ -41,7 +41,9 @@ Measures:
   ``DOUBLE_NCC`` (the still frame's eyes left showing beside the rendered ones: the
   one-face rate misses them, dlib finds one face where two overlap);
 * flicker: mean absolute frame-to-frame change (0-255) outside the head region and inside the
-  face's landmark hull.
+  face's landmark hull;
+* ``ring_scale``: the size of the warp's head ring each avatar chose at export
+  (:func:`facesynth.runtime.headmotion.fit_frame_motion`).
 
 Cross pairs (avatar <- driver): the drivers are the clips with head motion, in full.
 ``--sheets DIR``: ``talking_head_AVATAR_by_DRIVER.jpg``: per row, the driver frame with one of
@@ -291,6 +293,7 @@ def avatar_info(clip: str, work: Path, dl: Dlib, regressor: str) -> dict:
     f = dl.faces(still.background, box_of(still.neutral))
     return {"path": path, "seq": seq, "train": train, "test": test, "ref": ref,
             "static_faces": f["n"], "static_identity": round(float(np.linalg.norm(f["descriptor"] - ref)), 3),
+            "ring_scale": still.ring_scale,
             "own_heldout_identity_median": round(float(np.median(own)), 3), "own_heldout_identity_max": round(max(own), 3)}
 
 
@@ -354,7 +357,7 @@ def main() -> None:
         rows = set(top_turns(held)) if (clip, clip) in sheet_for else set()
         figs, shown = drive(info, dl, held, neutral, real_rows=test, sheet_rows=rows,
                             renderers=("static", "warp", "full", "oracle"))
-        figs.update({k: info[k] for k in ("own_heldout_identity_median", "static_faces", "static_identity")})
+        figs.update({k: info[k] for k in ("own_heldout_identity_median", "static_faces", "static_identity", "ring_scale")})
         figs["frames"] = int(len(test))
         out["self"][clip] = figs
         if args.sheets and shown:
@@ -368,7 +371,8 @@ def main() -> None:
         lm = np.asarray(drv.landmarks, np.float32)[:: args.stride]
         rows = set(top_turns(lm)) if (avatar, driver) in sheet_for else set()
         figs, shown = drive(infos[avatar], dl, lm, renderers=("static", "warp", "full", "paste"), sheet_rows=rows)
-        figs.update({k: infos[avatar][k] for k in ("own_heldout_identity_median", "static_faces", "static_identity")})
+        figs.update({k: infos[avatar][k] for k in ("own_heldout_identity_median", "static_faces", "static_identity",
+                                                   "ring_scale")})
         out["cross"][f"{avatar}<-{driver}"] = figs
         if args.sheets and shown:
             img = sheet_image([[np.asarray(drv.frame(int(i * args.stride))), shown[i]["paste"], shown[i]["warp"],

@@ -163,7 +163,9 @@ def test_the_reports_talking_head_figures():
     train, test = temporal_split(len(seq))
     figures, tiles = talking_head_figures(syn, seq, train, test, frames=4, strip=3)
     assert figures["frames"] == 4 and figures["neutral_row"] in train
-    background = Avatar(avatar_metadata(syn, lm[train], train, seq)).background
+    avatar = Avatar(avatar_metadata(syn, lm[train], train, seq))
+    background = avatar.background
+    assert figures["ring_scale"] == avatar.ring_scale  # the warp the export carries
     rows = test[np.unique(np.linspace(0, len(test) - 1, 4).round().astype(int))]
     want = np.mean([psnr(background, frames[r], head_region(ibug68_view(lm[r]), frames[r].shape[1::-1])) for r in rows])
     assert figures["static"]["psnr_head_db"] == pytest.approx(want, abs=0.01)

@@ -155,7 +155,9 @@ def write_report(metrics: dict, out_dir: str | os.PathLike, plots: list[str], he
                     f"neutral = training frame {head['neutral_row']})")
         doc.para("static: the avatar's neutral frame unchanged; warp: that frame warped with the landmarks, no "
                  "synthesised face; full: the synthesised face composited into the warped frame (what the exported "
-                 "talking head renders). Head region: the real landmarks' hull grown to hair and neck.")
+                 "talking head renders). Head region: the real landmarks' hull grown to hair and neck."
+                 + (f" The warp's head ring: {head['ring_scale']:g} x the default size, chosen on the training frames."
+                    if "ring_scale" in head else ""))
         doc.table(["renderer", "head PSNR (dB)", "head SSIM", "frame PSNR (dB)", "frame SSIM"],
                   [[r] + [f"{head[r][k]:.2f}" if k.startswith("psnr") else f"{head[r][k]:.3f}"
                           for k in ("psnr_head_db", "ssim_head", "psnr_frame_db", "ssim_frame")]

@@ -37,7 +37,8 @@ def talking_head_figures(syn, seq, train_rows: np.ndarray, test_rows: np.ndarray
     """(figures, strip tiles) of the run's avatar driving itself (module docstring), or ({}, [])
     when the clip has no frames or its scheme cannot be retargeted.
 
-    figures: {"frames": n, "neutral_row": row, RENDERER: {MEASURE: mean}}; strip tiles: the
+    figures: {"frames": n, "neutral_row": row, "ring_scale": the warp's head ring (chosen on the
+    training frames, :mod:`facesynth.runtime.headmotion`), RENDERER: {MEASURE: mean}}; strip tiles: the
     :mod:`facesynth.eval.strip` tiles ({"frame", "real", "synth"}: the real held-out frame and
     *full*) of ``strip`` of those frames, one frame box for all, ``height`` px high."""
     scheme = str(getattr(syn, "scheme", "ibug68"))
@@ -65,7 +66,7 @@ def talking_head_figures(syn, seq, train_rows: np.ndarray, test_rows: np.ndarray
                 sums[name][key] += float(value)
         if int(row) in shown:
             pairs.append((int(row), real, full, ibug68_view(seq.landmarks[row])))
-    figures = {"frames": len(rows), "neutral_row": int(meta["avatar_neutral_row"])}
+    figures = {"frames": len(rows), "neutral_row": int(meta["avatar_neutral_row"]), "ring_scale": warp.ring_scale}
     figures.update({r: {k: round(v / len(rows), 4 if k.startswith("ssim") else 2) for k, v in m.items()}
                     for r, m in sums.items()})
     return figures, _tiles(pairs, height)
