@@ -176,6 +176,29 @@ def test_the_export_carries_the_warps_learned_motion(avatar):
     assert entry["ring_scores"][f"{warp.ring_scale:g}"] == max(v for v in entry["ring_scores"].values() if v is not None)
 
 
+def test_app_says_when_a_model_predates_the_learned_warp(avatar, shared_clip_dir, tmp_path):
+    """A model whose metadata has no frame_motion (exported before it) still renders the whole
+    head, with the geometric rule, and the app says so in one line; the current export does not."""
+    import onnx
+
+    path, *_ = avatar
+    old = onnx.load(str(path))
+    keep = [(p.key, p.value) for p in old.metadata_props if p.key != "frame_motion"]
+    del old.metadata_props[:]
+    for k, v in keep:
+        entry = old.metadata_props.add()
+        entry.key, entry.value = k, v
+    older = tmp_path / "older.onnx"
+    onnx.save(old, str(older))
+    clip = shared_clip_dir("lp_d13")
+    for model, warned in ((path, False), (older, True)):
+        out = tmp_path / f"{model.stem}.mp4"
+        res = subprocess.run([sys.executable, "-m", "facesynth", "app", "--model", str(model), "--landmarks", str(clip),
+                              "--out", str(out), "--max-frames", "3", "--no-progress"], capture_output=True, text=True, cwd=ROOT)
+        assert res.returncode == 0, res.stderr
+        assert ("re-export it with this version for the learned warp" in res.stderr) == warned, res.stderr
+
+
 def test_app_writes_the_rendered_landmarks(avatar, shared_clip_dir, tmp_path):
     path, *_ = avatar
     clip = shared_clip_dir("lp_d13")
