@@ -113,7 +113,7 @@ def nose_offset(face68: np.ndarray) -> np.ndarray:
     return f[NOSE_TIP] - 0.5 * (f[EYE_CORNERS[0]] + f[EYE_CORNERS[1]])
 
 
-def motion_weight(face_xy: np.ndarray, ring_scale: float = 1.0) -> np.ndarray:
+def motion_weight(face_xy: np.ndarray, ring_scale: float = RING_SCALE) -> np.ndarray:
     """(K,) share of the head's motion that points at (K, 2) face-unit (x, down) positions
     follow: 1 on and inside the head's ellipse (its axes ``ring_scale`` x ``HEAD_AXES``),
     falling off linearly to 0 at ``FALLOFF`` times it, and below the chin further, to 0 at
@@ -132,7 +132,7 @@ def ellipse_points(degrees: np.ndarray, scale: float = 1.0) -> np.ndarray:
     return np.stack([scale * HEAD_AXES[0] * np.cos(t), HEAD_CENTRE[1] + scale * HEAD_AXES[1] * np.sin(t)], 1)
 
 
-def head_points(neutral68: np.ndarray, size: tuple[int, int], ring_scale: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+def head_points(neutral68: np.ndarray, size: tuple[int, int], ring_scale: float = RING_SCALE) -> tuple[np.ndarray, np.ndarray]:
     """Control points besides the face's landmarks, on a (68, 2) neutral face in a frame of
     ``size`` (W, H), the head's ellipse ``ring_scale`` times its default size: points (K, 2)
     float64 and the share of the head's motion each follows (K,) (:func:`motion_weight`;

@@ -127,8 +127,9 @@ def ring_clearance(neutral: np.ndarray, ring_scale: float) -> float:
     """How far (face units: outer-eye-corner distances) the head's ring at ``ring_scale``
     stays outside the hull of the (P, 2) neutral face's landmarks; negative when a ring point
     lies inside the face."""
-    o, axes, unit = face_frame(ibug68_view(neutral))
-    hull = cv2.convexHull(((ibug68_view(neutral) - o) @ axes.T / unit).astype(np.float32))
+    face = ibug68_view(neutral)
+    o, axes, unit = face_frame(face)
+    hull = cv2.convexHull(((face - o) @ axes.T / unit).astype(np.float32))
     ring = ellipse_points(HEAD_RING_DEG, ring_scale)
     return -max(cv2.pointPolygonTest(hull, (float(x), float(y)), True) for x, y in ring)
 
@@ -136,7 +137,8 @@ def ring_clearance(neutral: np.ndarray, ring_scale: float) -> float:
 def fit_frame_motion(frame: np.ndarray, neutral: np.ndarray, fit_frames, fit_landmarks: np.ndarray, val_frames,
                      val_landmarks: np.ndarray, scales=RING_SCALES) -> tuple[FrameWarp, dict]:
     """The avatar's warp: for each ring size of ``scales`` whose ring clears the neutral face
-    by ``RING_CLEARANCE`` (:func:`ring_clearance`), the motion fitted on ``fit_frames``
+    by ``RING_CLEARANCE`` (:func:`ring_clearance`; the largest size when none does), the
+    motion fitted on ``fit_frames``
     (:func:`fit_motions`); then the size whose warp best renders the validation frames
     (other training frames, ``val_frames`` with their ``val_landmarks``: PSNR of the error
     pooled over :func:`head_region`, the warp driven by each frame's own landmarks), any that
