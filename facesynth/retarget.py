@@ -28,7 +28,13 @@ P = 478; the FAP units and face axes are measured on their iBUG-68 view,
    is closed (docs/reenact.md), and a blink on nearly shut eyes the eyelids;
 4. head motion (``motion="relative"``): ``C P C^-1`` applied to the result, with ``C`` the
    similarity from ``D_n`` to ``A_n`` (rigid points): the driver's rotation, scale change
-   and translation (in avatar pixels) around the avatar's own neutral placement;
+   and translation (in avatar pixels) around the avatar's own neutral placement. How far it
+   moves the head (the rigid points' centroid) is bounded, when the shape space has the
+   avatar's own range (``ShapeSpace.shift_range``, :func:`head_shifts`), to that range
+   widened by ``SHIFT_WIDEN`` times its width on each side and at least ``SHIFT_FLOOR``
+   outer-eye-corner distances each way (:func:`shift_bounds`): the avatar's frame has
+   nothing beyond its own head's travel, and a driver that wanders far would otherwise
+   stretch a neck out of the frame's bottom rows (docs/reenact.md);
 5. the shape is projected onto the avatar's shape PCA (similarity-aligned to its mean), its
    parameters clamped to +-k sqrt(lambda) and its part outside the components scaled down
    to the largest the avatar's own training frames have (:class:`ShapeSpace`), so that it
@@ -68,6 +74,8 @@ from facesynth.landmarks import (
 from facesynth.shape_space import RETARGET_SCHEMES, ShapeSpace, retarget_scheme
 
 MOTIONS = ("relative", "absolute")
+SHIFT_WIDEN = 0.5  # the head's travel bound: the avatar's own range widened by this times its width,
+SHIFT_FLOOR = 0.3  # and at least this many outer-eye-corner distances each way (module docstring, step 4)
 # regions -> the FAP units of their (x, down) motion
 _REGION_UNITS = (("jaw", "MW", "MNS"), ("mouth", "MW", "MNS"), ("eyes", "ES", "IRISD"), ("irises", "ES", "IRISD"),
                  ("brows", "ES", "ENS"), ("nose", "ES", "ENS"))
@@ -126,6 +134,23 @@ def iris_diameter(scheme: LandmarkScheme, face: np.ndarray) -> float:
         idx = scheme.region(side)
         out.append(2.0 * np.linalg.norm(face[idx[1:]] - face[idx[0]], axis=-1).mean())
     return float(np.mean(out))
+
+
+def head_shifts(scheme: LandmarkScheme, neutral: np.ndarray, frames: np.ndarray) -> np.ndarray:
+    """(N, 2) how far (frame pixels) (N, P, 2) ``frames`` move the head from the (P, 2)
+    ``neutral``: their rigid points' centroid less the neutral's."""
+    rigid = rigid_points(scheme)
+    return np.asarray(frames, np.float64)[:, rigid].mean(1) - np.asarray(neutral, np.float64)[rigid].mean(0)
+
+
+def shift_bounds(space: ShapeSpace | None, neutral: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """(lo, hi) (2,) each: the bound on how far the head moves from the avatar's (P, 2)
+    ``neutral`` (module docstring, step 4), or None when ``space`` has no ``shift_range``."""
+    if space is None or space.shift_range is None:
+        return None
+    lo, hi = space.shift_range
+    floor = SHIFT_FLOOR * float(inter_ocular(ibug68_view(neutral)))
+    return np.minimum(lo - SHIFT_WIDEN * (hi - lo), -floor), np.maximum(hi + SHIFT_WIDEN * (hi - lo), floor)
 
 
 def eye_open(landmarks: np.ndarray) -> np.ndarray:
@@ -191,6 +216,8 @@ class Retargeter:
         c = similarity_fit(self.driver_neutral[rigid], self.avatar_neutral[rigid])  # driver -> avatar
         self._c_lin, self._c_t = c[:, :2], c[:, 2]
         self._c_inv_lin = np.linalg.inv(self._c_lin)
+        self._centre = self.avatar_neutral[rigid].mean(0)
+        self.shift_bounds = shift_bounds(shape_space, self.avatar_neutral)  # (lo, hi) or None
 
     def _uncrossed(self, expr: np.ndarray, down: np.ndarray) -> np.ndarray:
         """Eyelids and inner lips (:func:`closing_pairs`) that would cross (an upper point
@@ -226,6 +253,9 @@ class Retargeter:
         # head motion C P C^-1 around the avatar's neutral placement
         m_lin = self._c_lin @ lin @ self._c_inv_lin
         m_t = self._c_lin @ (t - lin @ (self._c_inv_lin @ self._c_t)) + self._c_t
+        if self.shift_bounds is not None:  # the head's travel, bounded (module docstring, step 4)
+            shift = m_lin @ self._centre + m_t - self._centre
+            m_t = m_t + np.clip(shift, *self.shift_bounds) - shift
         out = expr @ m_lin.T + m_t
         if self.shape_space is None:
             return out
@@ -251,4 +281,5 @@ def _one_face(x, where: str, n: int) -> np.ndarray:
     return a
 
 
-__all__ = ["MOTIONS", "POINT_UNITS", "RETARGET_SCHEMES", "Retargeter", "ShapeSpace", "eye_open", "point_units"]
+__all__ = ["MOTIONS", "POINT_UNITS", "RETARGET_SCHEMES", "SHIFT_FLOOR", "SHIFT_WIDEN", "Retargeter", "ShapeSpace", "eye_open",
+           "head_shifts", "point_units", "shift_bounds"]

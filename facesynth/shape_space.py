@@ -51,6 +51,10 @@ class ShapeSpace:
         the components do not span, kept as it is below it and scaled down to it above
         (the largest of the avatar's own training frames, :meth:`residual_norms`); None: kept
         whole (models exported without it)
+    shift_range : (2, 2) or None: rows lo, hi of how far (x, y frame pixels) the avatar's own
+        training frames move its head from the neutral (the rigid points' centroid), which
+        :class:`facesynth.retarget.Retargeter` widens into the bound of a driver's head motion;
+        None: no bound (models exported without it)
     """
 
     mean: np.ndarray
@@ -60,15 +64,17 @@ class ShapeSpace:
     scheme: str = "ibug68"
     eye_open_max: np.ndarray | None = None
     residual_max: float | None = None
+    shift_range: np.ndarray | None = None
 
     @classmethod
     def from_dict(cls, d: dict, scheme: str = "ibug68") -> "ShapeSpace":
         """From the exported model's ``shape_pca`` metadata: {mean, components, limit}, of ``scheme``."""
         try:
-            cap, rmax = d.get("eye_open_max"), d.get("residual_max")
+            cap, rmax, shift = d.get("eye_open_max"), d.get("residual_max"), d.get("shift_range")
             out = cls(*(np.asarray(d[k], np.float64) for k in ("mean", "components", "limit")), scheme=scheme,
                       eye_open_max=None if cap is None else np.asarray(cap, np.float64),
-                      residual_max=None if rmax is None else float(rmax))
+                      residual_max=None if rmax is None else float(rmax),
+                      shift_range=None if shift is None else np.asarray(shift, np.float64))
         except (AttributeError, KeyError, TypeError, ValueError) as exc:
             raise FacesynthError(f"shape_pca metadata: expected mean, components and limit ({exc})") from None
         return out
@@ -79,6 +85,8 @@ class ShapeSpace:
             out["eye_open_max"] = np.round(self.eye_open_max, 7).tolist()
         if self.residual_max is not None:
             out["residual_max"] = round(float(self.residual_max), 9)
+        if self.shift_range is not None:
+            out["shift_range"] = np.round(self.shift_range, 4).tolist()
         return out
 
     def __post_init__(self):
@@ -95,6 +103,12 @@ class ShapeSpace:
             self.eye_open_max = cap
         if self.residual_max is not None and not (np.isfinite(self.residual_max) and self.residual_max >= 0):
             raise FacesynthError(f"shape_pca metadata: residual_max must be a number >= 0, got {self.residual_max}")
+        if self.shift_range is not None:
+            r = np.asarray(self.shift_range, np.float64)
+            if r.shape != (2, 2) or not np.isfinite(r).all() or (r[0] > r[1]).any():
+                raise FacesynthError(f"shape_pca metadata: shift_range must be finite rows lo <= hi of (x, y), got "
+                                     f"{self.shift_range}")
+            self.shift_range = r
         self._n = n
         self._scheme = sch
         self._eyes = eye_patches(sch)

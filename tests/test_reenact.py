@@ -500,3 +500,49 @@ def test_the_graph_scales_the_residual_as_numpy_does():
     with torch.no_grad():
         got = g(torch.from_numpy(frame[None].astype(np.float32)), torch.from_numpy(driver_n.astype(np.float32)))[0].numpy()
     np.testing.assert_allclose(got, want, atol=0.02)
+
+
+def test_the_heads_travel_is_bounded_by_the_avatars_own_widened():
+    """ShapeSpace.shift_range: a driver moving its head less than the bound is retargeted as
+    without it; one moving it far gets the head's shift (the rigid points' centroid, under the
+    head motion) clipped to the avatar's range widened by SHIFT_WIDEN of its width, at least
+    SHIFT_FLOOR IOD each way (closed form), the expression untouched; the graph agrees; the
+    metadata round-trips and bad ranges are refused."""
+    import torch
+
+    from facesynth.errors import FacesynthError
+    from facesynth.landmarks import IBUG68, inter_ocular
+    from facesynth.onnx.retarget_graph import RetargetGraph
+    from facesynth.retarget import SHIFT_FLOOR, SHIFT_WIDEN, Retargeter, ShapeSpace, head_shifts, rigid_points
+
+    mean, comps, limit, _ = _residual_case()
+    avatar = _faces()[1]
+    driver_n = _faces()[0] * 1.4 + np.array([40.0, -25.0])
+    rng_ = np.array([[-6.0, -4.0], [10.0, 2.0]])
+    space = ShapeSpace(mean, comps, limit, shift_range=rng_)
+    free = ShapeSpace(mean, comps, limit)
+    iod = float(inter_ocular(avatar))
+    lo = np.minimum(rng_[0] - SHIFT_WIDEN * (rng_[1] - rng_[0]), -SHIFT_FLOOR * iod)
+    hi = np.maximum(rng_[1] + SHIFT_WIDEN * (rng_[1] - rng_[0]), SHIFT_FLOOR * iod)
+    rigid = rigid_points(IBUG68)
+    small = driver_n + np.array([3.0, -2.0])
+    np.testing.assert_allclose(Retargeter(avatar, driver_n, space).one(small), Retargeter(avatar, driver_n, free).one(small),
+                               atol=1e-9)
+    far = driver_n + np.array([-900.0, 700.0])  # far left and down, in driver pixels
+    got = Retargeter(avatar, driver_n, space).one(far)
+    unbounded = Retargeter(avatar, driver_n, free).one(far)
+    shift = head_shifts(IBUG68, avatar, got[None])[0]
+    np.testing.assert_allclose(shift, [lo[0], hi[1]], atol=1e-6)
+    np.testing.assert_allclose(got - got[rigid].mean(0), unbounded - unbounded[rigid].mean(0), atol=1e-9)  # a pure shift
+    g = RetargetGraph(avatar, space).eval()
+    frames = np.stack([small, far, driver_n + np.array([0.0, -500.0])]).astype(np.float32)
+    with torch.no_grad():
+        out = g(torch.from_numpy(frames), torch.from_numpy(driver_n.astype(np.float32))).numpy()
+    want = Retargeter(avatar, driver_n, space)(frames)
+    np.testing.assert_allclose(out, want, atol=0.02)
+    back = ShapeSpace.from_dict(space.to_dict())
+    np.testing.assert_array_equal(back.shift_range, rng_)
+    assert ShapeSpace.from_dict(free.to_dict()).shift_range is None
+    for bad in ([[1.0, 0.0], [0.0, 1.0]], [[0.0, 0.0]], [[0.0, float("nan")], [1.0, 1.0]]):
+        with pytest.raises(FacesynthError, match="shift_range"):
+            ShapeSpace.from_dict({**space.to_dict(), "shift_range": bad})

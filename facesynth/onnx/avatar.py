@@ -32,7 +32,7 @@ import numpy as np
 from facesynth.errors import FacesynthError
 from facesynth.landmarks import eye_openings
 from facesynth.neutral import select_neutral
-from facesynth.retarget import RETARGET_SCHEMES, ShapeSpace, retarget_scheme
+from facesynth.retarget import RETARGET_SCHEMES, ShapeSpace, head_shifts, retarget_scheme
 from facesynth.runtime.headmotion import FRAMES, VALIDATION, fit_frame_motion
 
 log = logging.getLogger(__name__)
@@ -47,11 +47,12 @@ def encode_jpeg(image: np.ndarray) -> str:
     return base64.b64encode(buf.tobytes()).decode("ascii")
 
 
-def shape_space(syn, landmarks: np.ndarray | None = None) -> ShapeSpace:
+def shape_space(syn, landmarks: np.ndarray | None = None, neutral: np.ndarray | None = None) -> ShapeSpace:
     """The synthesizer's shape PCA (its :class:`ShapeEncoder` buffers) as a ShapeSpace; with
     the training frames' ``landmarks`` (N, P, 2), each eye's opening capped at the widest of
     them (``eye_open_max``) and the part of a shape the components do not span at the
-    largest of theirs (``residual_max``)."""
+    largest of theirs (``residual_max``); with the avatar's ``neutral`` (P, 2) too, how far
+    they move the head from it (``shift_range``, :func:`facesynth.retarget.head_shifts`)."""
     enc = syn.encoder
     scheme = getattr(syn, "scheme", "ibug68")
     space = ShapeSpace(enc.mean.double().numpy(), enc.components.double().numpy(), enc.limit.double().numpy(),
@@ -60,8 +61,10 @@ def shape_space(syn, landmarks: np.ndarray | None = None) -> ShapeSpace:
         return space
     lm = np.asarray(landmarks, np.float64)
     lm = lm[np.isfinite(lm).all((1, 2))]
+    shifts = None if neutral is None else head_shifts(retarget_scheme(scheme), neutral, lm)
     return dataclasses.replace(space, eye_open_max=eye_openings(lm, retarget_scheme(scheme)).max(0),
-                               residual_max=float(space.residual_norms(lm).max()))
+                               residual_max=float(space.residual_norms(lm).max()),
+                               shift_range=None if shifts is None else np.stack([shifts.min(0), shifts.max(0)]))
 
 
 def avatar_metadata(syn, landmarks: np.ndarray, rows: np.ndarray | None = None, sequence=None) -> dict:
@@ -72,7 +75,7 @@ def avatar_metadata(syn, landmarks: np.ndarray, rows: np.ndarray | None = None, 
     idx, info = select_neutral(lm)
     row = int(rows[idx]) if rows is not None else idx
     meta = {"avatar_neutral": np.round(lm[idx].astype(np.float64), 3).tolist(), "avatar_neutral_row": row,
-            "avatar_neutral_rule": info["rule"], "shape_pca": shape_space(syn, lm).to_dict()}
+            "avatar_neutral_rule": info["rule"], "shape_pca": shape_space(syn, lm, lm[idx]).to_dict()}
     if sequence is not None and sequence.has_frames:
         frame = np.asarray(sequence.frame(row))
         meta["background_jpeg"] = encode_jpeg(frame)

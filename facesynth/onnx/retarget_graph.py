@@ -15,7 +15,7 @@ from torch import nn
 from facesynth.faps import FAPU_NAMES, FEATURE_POINTS, face_axes, fapu
 from facesynth.landmarks import IBUG68, LandmarkScheme, eye_lids, ibug68_view
 from facesynth.model.warp import similarity_to
-from facesynth.retarget import POINT_UNITS, closing_pairs, iris_diameter, point_units, rigid_points
+from facesynth.retarget import POINT_UNITS, closing_pairs, iris_diameter, point_units, rigid_points, shift_bounds
 from facesynth.shape_space import ShapeSpace, eye_patches
 
 
@@ -78,6 +78,12 @@ class RetargetGraph(nn.Module):
         self.register_buffer("units", _const(onehot))
         self.rigid = rigid_points(scheme)
         self.register_buffer("an_rigid", _const(an[self.rigid]))
+        bounds = shift_bounds(shape_space, an)  # the head's travel (Retargeter, step 4); none: unbounded
+        self.bounded = bounds is not None
+        if self.bounded:
+            self.register_buffer("centre", _const(an[self.rigid].mean(0)))
+            self.register_buffer("shift_lo", _const(bounds[0]))
+            self.register_buffer("shift_hi", _const(bounds[1]))
         up, lo = closing_pairs(scheme)
         self.shut_up, self.shut_lo = [int(i) for i in up], [int(i) for i in lo]
         self.register_buffer("put_up", _scatter(self.shut_up, len(an)))
@@ -158,6 +164,9 @@ class RetargetGraph(nn.Module):
         c_inv = torch.stack([torch.stack([c_lin[1, 1], -c_lin[0, 1]]), torch.stack([-c_lin[1, 0], c_lin[0, 0]])]) / det
         m_lin = torch.matmul(torch.matmul(c_lin, lin), c_inv)
         m_t = torch.matmul(c_lin, (t - torch.matmul(lin, torch.matmul(c_inv, c_t))).unsqueeze(-1))[..., 0] + c_t
+        if self.bounded:  # the head's travel (Retargeter, step 4)
+            shift = torch.matmul(m_lin, self.centre) + m_t - self.centre  # (B, 2)
+            m_t = m_t + torch.minimum(torch.maximum(shift, self.shift_lo), self.shift_hi) - shift
         out = _apply(expr, m_lin, m_t)
         if self.space is None:
             return out
