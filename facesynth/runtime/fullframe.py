@@ -78,6 +78,7 @@ METHODS = ("affine", "tps")
 HEAD_CENTRE, HEAD_AXES = (0.0, 0.1), (1.15, 1.5)  # an ellipse round the head: ears, hair
 HEAD_RING_DEG = np.arange(160.0, 381.0, 20.0)  # its points from one ear over the top of the head to the other
 RING_SCALE = 1.0  # the ellipse's size, times HEAD_AXES, where the avatar has not chosen its own
+RING_SCALE_MAX = 10.0  # a ring_scale read from metadata or given must be below it
 OUTER_RING_DEG = np.arange(0.0, 360.0, 30.0)
 OUTER_SCALE = 1.6  # a ring at 1.6 x the head's ellipse, at part of its motion
 FALLOFF = 2.2  # the head's motion falls off linearly from its ellipse (1) to 2.2 x it (0)
@@ -204,9 +205,7 @@ class FrameWarp:
         self.neutral68 = ibug68_view(neutral)
         if not np.isfinite(self.neutral68).all():
             raise FacesynthError("full-frame warp: the avatar's neutral landmarks are not finite")
-        if not 0.0 < float(ring_scale) < 10.0:
-            raise FacesynthError(f"full-frame warp: ring_scale must be a positive factor of the head's ellipse, got {ring_scale}")
-        self.ring_scale = float(ring_scale)
+        self.ring_scale = checked_ring_scale(ring_scale)
         extra, self.weights = head_points(self.neutral68, self.size, self.ring_scale)
         self.src = np.concatenate([self.neutral68, extra])  # (K, 2) control points in the neutral frame
         self.n_face = len(self.neutral68)
@@ -221,7 +220,7 @@ class FrameWarp:
         g = GUARD * max(w, h)
         self.guard = (extra[:, 0] <= -g) | (extra[:, 0] >= w - 1 + g) | (extra[:, 1] <= -g) | (extra[:, 1] >= h - 1 + g)
         self._ring = ~(held.any(1) | (extra[:, 1] == 0.0) | self.guard)
-        self.bottom = extra[:, 1] == h - 1.0  # (K - 68,) the bottom side's anchors, corners too
+        self.bottom = held[:, 1]  # (K - 68,) the bottom side's anchors, corners too
         # how far above the bottom anchors the lowest landmark stays (px; module docstring)
         self.chin_margin = float(min(h - 1.0 - self.neutral68[:, 1].max(), CHIN_MARGIN * face_frame(self.neutral68)[2]))
         self.triangles = Delaunay(self.src).simplices.astype(np.int64)
@@ -359,6 +358,18 @@ def interpolation_weights(n: int, nodes: int) -> tuple[np.ndarray, np.ndarray]:
     return k, pos - k
 
 
+def checked_ring_scale(value, name: str = "full-frame warp: ring_scale") -> float:
+    """``value`` as a float, or FacesynthError naming ``name`` unless it is a number in
+    (0, ``RING_SCALE_MAX``)."""
+    try:
+        v = float(value)
+    except (TypeError, ValueError) as exc:
+        raise FacesynthError(f"{name} must be a number, got {value!r}") from exc
+    if not 0.0 < v < RING_SCALE_MAX:
+        raise FacesynthError(f"{name} must be a positive factor of the head's ellipse below {RING_SCALE_MAX:g}, got {v}")
+    return v
+
+
 def motion_features(fw: FrameWarp, landmarks: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The two motions a control point besides the landmarks follows a share of, for (P, 2)
     avatar landmarks: the head's motion ``S(p) - p`` (K - 68, 2) at each point and the
@@ -383,5 +394,5 @@ def _signed_area(points: np.ndarray, tri: np.ndarray) -> np.ndarray:
     return e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]
 
 
-__all__ = ["METHODS", "FrameWarp", "ellipse_points", "grid_nodes", "head_points", "head_region", "interpolation_weights",
-           "motion_features", "nose_offset"]
+__all__ = ["METHODS", "FrameWarp", "checked_ring_scale", "ellipse_points", "grid_nodes", "head_points", "head_region",
+           "interpolation_weights", "motion_features", "nose_offset"]

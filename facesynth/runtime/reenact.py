@@ -26,7 +26,7 @@ from facesynth.errors import FacesynthError
 from facesynth.neutral import select_neutral
 from facesynth.retarget import MOTIONS, Retargeter, ShapeSpace, retarget_scheme
 from facesynth.runtime.blend import blend_rendered
-from facesynth.runtime.fullframe import RING_SCALE, FrameWarp
+from facesynth.runtime.fullframe import RING_SCALE, FrameWarp, checked_ring_scale
 from facesynth.runtime.renderer import Renderer
 
 GREY = 128
@@ -57,7 +57,9 @@ class Avatar:
         self._background = None
         motion = metadata.get("frame_motion")
         self.frame_motion = None if motion is None else _frame_motion(motion, where)
-        self.ring_scale = RING_SCALE if motion is None else _ring_scale(motion, where)
+        # frame_motion.ring_scale: RING_SCALE in models exported before it was chosen per avatar
+        self.ring_scale = RING_SCALE if motion is None else \
+            checked_ring_scale(motion.get("ring_scale", RING_SCALE), f"{where}: frame_motion.ring_scale")
 
     @property
     def background(self) -> np.ndarray | None:
@@ -79,17 +81,6 @@ class Avatar:
             raise FacesynthError(f"{self.where}: no avatar_neutral in the metadata (exported before reenactment "
                                  "support, or without the run's data): re-export it, or use --motion absolute")
         return self.neutral
-
-
-def _ring_scale(entry, where: str) -> float:
-    """``frame_motion.ring_scale`` (``RING_SCALE`` in models exported before it was chosen per avatar)."""
-    try:
-        v = float(entry.get("ring_scale", RING_SCALE))
-    except (AttributeError, TypeError, ValueError) as exc:
-        raise FacesynthError(f"{where}: frame_motion.ring_scale must be a number") from exc
-    if not 0.0 < v < 10.0:
-        raise FacesynthError(f"{where}: frame_motion.ring_scale must be a positive factor of the head's ellipse, got {v}")
-    return v
 
 
 def _frame_motion(entry, where: str) -> np.ndarray:
