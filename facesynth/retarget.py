@@ -36,8 +36,9 @@ P = 478; the FAP units and face axes are measured on their iBUG-68 view,
    nothing beyond its own head's travel, and a driver that wanders far would otherwise
    stretch a neck out of the frame's bottom rows (docs/reenact.md);
 5. the shape is projected onto the avatar's shape PCA (similarity-aligned to its mean), its
-   parameters clamped to +-k sqrt(lambda) and its part outside the components scaled down
-   to the largest the avatar's own training frames have (:class:`ShapeSpace`), so that it
+   parameters clamped to +-k sqrt(lambda) and then scaled down, as a vector, to the largest
+   norm (in units of those limits) the avatar's own training frames have, and its part
+   outside the components scaled down to the largest they have (:class:`ShapeSpace`), so that it
    stays a face the model was trained on (a driver's head turn on an avatar that never
    turned, a mouth shape it never made: docs/reenact.md, "Shapes no further from the
    avatar's own"). The eyelids are then put back as they were relative to their eye

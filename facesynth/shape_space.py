@@ -37,8 +37,9 @@ def eye_patches(scheme: LandmarkScheme) -> tuple:
 @dataclass
 class ShapeSpace:
     """An avatar's shape PCA (the face model's, in its normalised frame): project shapes onto
-    it, clamp their parameters to +-``limit`` and the rest of them (what the components do
-    not span) to the norm ``residual_max``.
+    it, clamp their parameters to +-``limit`` and then into the ellipsoid of norm
+    ``param_norm_max``, and the rest of them (what the components do not span) to the norm
+    ``residual_max``.
 
     mean : (2P,) float64, components : (K, 2P) orthonormal rows, limit : (K,) (k sqrt(lambda)).
     keep_eyes : after clamping, restore each eye's contour relative to its two corners
@@ -51,6 +52,12 @@ class ShapeSpace:
         the components do not span, kept as it is below it and scaled down to it above
         (the largest of the avatar's own training frames, :meth:`residual_norms`); None: kept
         whole (models exported without it)
+    param_norm_max : float or None: the largest norm of the clamped parameters in units of
+        their limits (``|clip(b, -limit, limit) / limit|``, a Mahalanobis distance over k) that
+        a projected shape keeps: beyond it they are scaled down to it, so that the
+        components' combination is no further from the mean than the avatar's own most
+        extreme training frame (:meth:`param_norms`; Cootes' D_max bound inside the box); None:
+        the box alone (models exported without it)
     shift_range : (2, 2) or None: rows lo, hi of how far (x, y frame pixels) the avatar's own
         training frames move its head from the neutral (the rigid points' centroid), which
         :class:`facesynth.retarget.Retargeter` widens into the bound of a driver's head motion;
@@ -65,19 +72,24 @@ class ShapeSpace:
     eye_open_max: np.ndarray | None = None
     residual_max: float | None = None
     shift_range: np.ndarray | None = None
+    param_norm_max: float | None = None
 
     @classmethod
     def from_dict(cls, d: dict, scheme: str = "ibug68") -> "ShapeSpace":
         """From the exported model's ``shape_pca`` metadata: {mean, components, limit}, of ``scheme``."""
         try:
-            cap, rmax, shift = d.get("eye_open_max"), d.get("residual_max"), d.get("shift_range")
-            out = cls(*(np.asarray(d[k], np.float64) for k in ("mean", "components", "limit")), scheme=scheme,
-                      eye_open_max=None if cap is None else np.asarray(cap, np.float64),
-                      residual_max=None if rmax is None else float(rmax),
-                      shift_range=None if shift is None else np.asarray(shift, np.float64))
+            pca = [np.asarray(d[k], np.float64) for k in ("mean", "components", "limit")]
         except (AttributeError, KeyError, TypeError, ValueError) as exc:
             raise FacesynthError(f"shape_pca metadata: expected mean, components and limit ({exc})") from None
-        return out
+        extra = {}
+        for key, scalar in (("eye_open_max", False), ("residual_max", True), ("shift_range", False),
+                            ("param_norm_max", True)):  # optional: None when absent (older exports)
+            if d.get(key) is not None:
+                try:
+                    extra[key] = float(d[key]) if scalar else np.asarray(d[key], np.float64)
+                except (TypeError, ValueError):
+                    raise FacesynthError(f"shape_pca metadata: {key} must be numeric, got {d[key]!r}") from None
+        return cls(*pca, scheme=scheme, **extra)
 
     def to_dict(self) -> dict:
         out = {k: np.round(getattr(self, k), 7).tolist() for k in ("mean", "components", "limit")}
@@ -87,6 +99,8 @@ class ShapeSpace:
             out["residual_max"] = round(float(self.residual_max), 9)
         if self.shift_range is not None:
             out["shift_range"] = np.round(self.shift_range, 4).tolist()
+        if self.param_norm_max is not None:
+            out["param_norm_max"] = round(float(self.param_norm_max), 9)
         return out
 
     def __post_init__(self):
@@ -103,6 +117,10 @@ class ShapeSpace:
             self.eye_open_max = cap
         if self.residual_max is not None and not (np.isfinite(self.residual_max) and self.residual_max >= 0):
             raise FacesynthError(f"shape_pca metadata: residual_max must be a number >= 0, got {self.residual_max}")
+        if self.param_norm_max is not None and not np.all(self.limit > 0):
+            raise FacesynthError(f"shape_pca metadata: param_norm_max needs limits > 0, got {np.round(self.limit, 6).tolist()}")
+        if self.param_norm_max is not None and not (np.isfinite(self.param_norm_max) and self.param_norm_max >= 0):
+            raise FacesynthError(f"shape_pca metadata: param_norm_max must be a number >= 0, got {self.param_norm_max}")
         if self.shift_range is not None:
             r = np.asarray(self.shift_range, np.float64)
             if r.shape != (2, 2) or not np.isfinite(r).all() or (r[0] > r[1]).any():
@@ -138,6 +156,22 @@ class ShapeSpace:
         span, in the normalised frame (the quantity ``residual_max`` bounds)."""
         return np.array([np.linalg.norm(self._align(f)[5]) for f in np.asarray(shapes, np.float64)])
 
+    def _clamped(self, b: np.ndarray) -> np.ndarray:
+        """(K,) parameters -> clamped to +-limit, then scaled into the ellipsoid of norm
+        ``param_norm_max`` (in units of the limits)."""
+        c = np.clip(b, -self.limit, self.limit)
+        if self.param_norm_max is not None:
+            norm = float(np.linalg.norm(c / self.limit))
+            if norm > self.param_norm_max:
+                c = c * (self.param_norm_max / norm)
+        return c
+
+    def param_norms(self, shapes: np.ndarray) -> np.ndarray:
+        """(N,) norms of the box-clamped parameters of (N, P, 2) frame-pixel shapes in units of
+        the limits (the quantity ``param_norm_max`` bounds)."""
+        b = np.array([self._align(f)[4] for f in np.asarray(shapes, np.float64)]).reshape(-1, len(self.limit))
+        return np.linalg.norm(np.clip(b, -self.limit, self.limit) / self.limit, axis=1)
+
     def project(self, shapes: np.ndarray) -> np.ndarray:
         """(N, P, 2) or (P, 2) frame-pixel shapes -> the nearest model shapes with clamped
         parameters, in the same frame (float64, same shape)."""
@@ -145,11 +179,10 @@ class ShapeSpace:
         if x.ndim == 3:
             return np.stack([self.project(f) for f in x])
         mo, ca, sa, aligned, b, rest = self._align(x)
-        # move the shape back inside the box along the model's components, and scale what they
-        # do not span down to residual_max (what the avatar's own frames have: a driver's head
-        # turn on an avatar that never turned, expressions it never made)
-        excess = np.maximum(b - self.limit, 0.0) + np.minimum(b + self.limit, 0.0)
-        rec = aligned - (excess @ self.components).reshape(self._n, 2)
+        # move the shape back inside the box and the ellipsoid along the model's components, and
+        # scale what they do not span down to residual_max (what the avatar's own frames have:
+        # a driver's head turn on an avatar that never turned, expressions it never made)
+        rec = aligned - ((b - self._clamped(b)) @ self.components).reshape(self._n, 2)
         norm = float(np.linalg.norm(rest))
         if self.residual_max is not None and norm > self.residual_max:
             rec -= (1.0 - self.residual_max / norm) * rest

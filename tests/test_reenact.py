@@ -502,6 +502,67 @@ def test_the_graph_scales_the_residual_as_numpy_does():
     np.testing.assert_allclose(got, want, atol=0.02)
 
 
+def test_the_components_parameters_are_scaled_into_the_avatars_ellipsoid():
+    """ShapeSpace.param_norm_max: a shape whose clamped parameters (in units of the limits)
+    are within the norm is projected as without it; one inside the box but beyond the norm
+    comes out with its parameters scaled to that norm along their own direction (closed form)
+    and its out-of-span part untouched; the box clamps first; param_norms measures it; the
+    graph agrees; the metadata round-trips and bad values are refused."""
+    import torch
+
+    from facesynth.errors import FacesynthError
+    from facesynth.onnx.retarget_graph import RetargetGraph
+    from facesynth.retarget import ShapeSpace
+
+    mean, comps, _, off = _residual_case()
+    limit = np.array([0.05, 0.03, 0.02])
+    frame = np.array([[390.0, -120.0, 260.0], [120.0, 390.0, 230.0]])  # a face about 400 px wide
+    free = ShapeSpace(mean, comps, limit, keep_eyes=False)
+    space = ShapeSpace(mean, comps, limit, keep_eyes=False, param_norm_max=1.0)
+
+    def shape(b, rest=0.0):
+        return apply_affine((mean + b @ comps + rest * off).reshape(68, 2), frame)
+
+    inside = shape(np.array([0.6, 0.5, 0.4]) * limit, 0.002)  # norm about 0.88
+    b_in = space._align(inside)[4]
+    assert space.param_norms(inside[None])[0] == pytest.approx(np.linalg.norm(b_in / limit), rel=1e-12)
+    assert np.linalg.norm(b_in / limit) < 0.9
+    np.testing.assert_allclose(space.project(inside), free.project(inside), atol=1e-9)
+    b = np.array([0.9, -0.8, 0.7]) * limit  # inside the box, norm 1.39
+    far = shape(b, 0.002)
+    np.testing.assert_allclose(free.project(far), far, atol=1e-9)  # the box alone keeps it
+    out = space.project(far)
+    mo, ca, sa, _, b_in, rest = space._align(far)
+    lin = np.array([[ca, -sa], [sa, ca]])
+    back = ((out - mo) @ lin.T + space._mu).reshape(-1)
+    b_out = back @ comps.T - mean @ comps.T
+    np.testing.assert_allclose(b_out, b_in / np.linalg.norm(b_in / limit), atol=1e-9)
+    np.testing.assert_allclose(back - mean - b_out @ comps, rest.reshape(-1), atol=1e-9)  # out of span: as it was
+    # measured again, the output is at the norm up to its re-alignment to the mean
+    assert space.param_norms(out[None])[0] == pytest.approx(1.0, abs=0.01)
+    # beyond the box: clamped to it first (norm sqrt(3)), then scaled to the norm
+    wild = shape(np.array([3.0, 0.5, -2.0]) * limit)
+    mo, ca, sa, _, b_w, _ = space._align(wild)
+    back = ((space.project(wild) - mo) @ np.array([[ca, -sa], [sa, ca]]).T + space._mu).reshape(-1)
+    box = np.clip(b_w, -limit, limit)
+    assert np.abs(b_w).max() > 2 * limit[0] and np.linalg.norm(box / limit) > 1.4
+    np.testing.assert_allclose(back @ comps.T - mean @ comps.T, box / np.linalg.norm(box / limit), atol=1e-9)
+    # the graph, a driver retargeted through both
+    avatar = apply_affine(mean.reshape(68, 2), frame)
+    g = RetargetGraph(avatar, space).eval()
+    want = Retargeter(avatar, avatar, shape_space=space).one(far)
+    assert np.abs(want - Retargeter(avatar, avatar, shape_space=free).one(far)).max() > 0.5  # the bound moves the face
+    with torch.no_grad():
+        got = g(torch.from_numpy(far[None].astype(np.float32)), torch.from_numpy(avatar.astype(np.float32)))[0].numpy()
+    np.testing.assert_allclose(got, want, atol=0.02)
+    # metadata
+    assert ShapeSpace.from_dict(space.to_dict()).param_norm_max == pytest.approx(1.0)
+    assert ShapeSpace.from_dict({k: v for k, v in space.to_dict().items() if k != "param_norm_max"}).param_norm_max is None
+    for bad in (-1.0, float("nan"), "wide"):
+        with pytest.raises(FacesynthError, match="param_norm_max"):
+            ShapeSpace.from_dict({**space.to_dict(), "param_norm_max": bad})
+
+
 def test_the_heads_travel_is_bounded_by_the_avatars_own_widened():
     """ShapeSpace.shift_range: a driver moving its head less than the bound is retargeted as
     without it; one moving it far gets the head's shift (the rigid points' centroid, under the

@@ -7,8 +7,9 @@ into its ONNX metadata at export time (torch-side; the runtime reads it with
   and ``avatar_neutral_row`` (the frame's index in the clip);
 * ``shape_pca``: the model's shape PCA (mean, orthonormal components, clamp limits
   k sqrt(lambda)), the widest opening of each eye over the training frames
-  (``eye_open_max``, :func:`facesynth.landmarks.eye_openings`) and the largest norm of
-  their part outside the components (``residual_max``), for
+  (``eye_open_max``, :func:`facesynth.landmarks.eye_openings`), the largest norm of
+  their part outside the components (``residual_max``) and of their clamped parameters in
+  units of the limits (``param_norm_max``), for
   :class:`facesynth.shape_space.ShapeSpace`;
 * ``background_jpeg``: that neutral frame, JPEG (quality 90) in base64, the avatar's own
   frame the app composites into, and ``frame_size`` [W, H];
@@ -51,7 +52,8 @@ def shape_space(syn, landmarks: np.ndarray | None = None, neutral: np.ndarray | 
     """The synthesizer's shape PCA (its :class:`ShapeEncoder` buffers) as a ShapeSpace; with
     the training frames' ``landmarks`` (N, P, 2), each eye's opening capped at the widest of
     them (``eye_open_max``) and the part of a shape the components do not span at the
-    largest of theirs (``residual_max``); with the avatar's ``neutral`` (P, 2) too, how far
+    largest of theirs (``residual_max``), and the components' parameters within the largest
+    norm of theirs (``param_norm_max``); with the avatar's ``neutral`` (P, 2) too, how far
     they move the head from it (``shift_range``, :func:`facesynth.retarget.head_shifts`)."""
     enc = syn.encoder
     scheme = getattr(syn, "scheme", "ibug68")
@@ -64,6 +66,7 @@ def shape_space(syn, landmarks: np.ndarray | None = None, neutral: np.ndarray | 
     shifts = None if neutral is None else head_shifts(retarget_scheme(scheme), neutral, lm)
     return dataclasses.replace(space, eye_open_max=eye_openings(lm, retarget_scheme(scheme)).max(0),
                                residual_max=float(space.residual_norms(lm).max()),
+                               param_norm_max=float(space.param_norms(lm).max()),
                                shift_range=None if shifts is None else np.stack([shifts.min(0), shifts.max(0)]))
 
 

@@ -97,6 +97,9 @@ class RetargetGraph(nn.Module):
             self.register_buffer("off", _const(s._off))
             self.register_buffer("limit", _const(s.limit))
             self.register_buffer("comp", _const(s.components))
+            self.cap_norm = s.param_norm_max is not None
+            if self.cap_norm:
+                self.register_buffer("norm_max", _const(s.param_norm_max))
             self.cap_rest = s.residual_max is not None
             if self.cap_rest:
                 self.register_buffer("mean_flat", _const(s.mean))
@@ -192,8 +195,11 @@ class RetargetGraph(nn.Module):
         ca, sa = ab[:, 0], ab[:, 1]
         aligned = _apply(xc, _similarity(ca, sa), self.mu.expand_as(ab))
         b = torch.matmul(aligned.flatten(1), self.ct) - self.off
-        excess = torch.clamp(b - self.limit, min=0.0) + torch.clamp(b + self.limit, max=0.0)
-        rec = aligned - torch.matmul(excess, self.comp).reshape(-1, n, 2)
+        c = torch.minimum(torch.maximum(b, -self.limit), self.limit)
+        if self.cap_norm:  # into the ellipsoid of norm norm_max (ShapeSpace._clamped)
+            norm = torch.sqrt(((c / self.limit) ** 2).sum(-1, keepdim=True))
+            c = c * torch.clamp(self.norm_max / torch.clamp(norm, min=1e-30), max=1.0)
+        rec = aligned - torch.matmul(b - c, self.comp).reshape(-1, n, 2)
         if self.cap_rest:  # what the components do not span, scaled down to rest_max (ShapeSpace.project)
             rest = aligned.flatten(1) - self.mean_flat - torch.matmul(b, self.comp)  # (B, 2P)
             norm = torch.sqrt((rest * rest).sum(-1, keepdim=True))
