@@ -176,27 +176,42 @@ def test_the_export_carries_the_warps_learned_motion(avatar):
     assert entry["ring_scores"][f"{warp.ring_scale:g}"] == max(v for v in entry["ring_scores"].values() if v is not None)
 
 
-def test_app_says_when_a_model_predates_the_learned_warp(avatar, shared_clip_dir, tmp_path):
-    """A model whose metadata has no frame_motion (exported before it) still renders the whole
-    head, with the geometric rule, and the app says so in one line; the current export does not."""
+def test_app_says_when_a_model_predates_the_learned_warp_or_a_bound(avatar, shared_clip_dir, tmp_path):
+    """A model whose metadata has no frame_motion, or whose shape_pca has no param_norm_max
+    (exported before them), still renders the whole head (with the geometric rule, or without
+    that bound), and the app names what is missing in one line; the current export warns of
+    nothing."""
     import onnx
 
     path, *_ = avatar
-    old = onnx.load(str(path))
-    keep = [(p.key, p.value) for p in old.metadata_props if p.key != "frame_motion"]
-    del old.metadata_props[:]
-    for k, v in keep:
-        entry = old.metadata_props.add()
-        entry.key, entry.value = k, v
-    older = tmp_path / "older.onnx"
-    onnx.save(old, str(older))
+    meta = {p.key: p.value for p in onnx.load(str(path)).metadata_props}
+    pca = json.loads(meta["shape_pca"])
+    assert pca["param_norm_max"] > 0
+
+    def older(name, change):
+        m = onnx.load(str(path))
+        props = change(dict(meta))
+        del m.metadata_props[:]
+        for k, v in props.items():
+            entry = m.metadata_props.add()
+            entry.key, entry.value = k, v
+        out = tmp_path / f"{name}.onnx"
+        onnx.save(m, str(out))
+        return out
+
+    no_motion = older("no_motion", lambda d: {k: v for k, v in d.items() if k != "frame_motion"})
+    no_bound = older("no_bound", lambda d: {**d, "shape_pca": json.dumps({k: v for k, v in pca.items() if k != "param_norm_max"})})
     clip = shared_clip_dir("lp_d13")
-    for model, warned in ((path, False), (older, True)):
+    for model, missing in ((path, None), (no_motion, "the learned full-frame warp"), (no_bound, "the expressions' bound")):
         out = tmp_path / f"{model.stem}.mp4"
         res = subprocess.run([sys.executable, "-m", "facesynth", "app", "--model", str(model), "--landmarks", str(clip),
                               "--out", str(out), "--max-frames", "3", "--no-progress"], capture_output=True, text=True, cwd=ROOT)
         assert res.returncode == 0, res.stderr
-        assert ("re-export it with this version for the learned warp" in res.stderr) == warned, res.stderr
+        warnings = [line for line in res.stderr.splitlines() if "exported by an older version" in line]
+        if missing is None:
+            assert not warnings, res.stderr
+        else:
+            assert len(warnings) == 1 and f"without {missing}: re-export it" in warnings[0], res.stderr
 
 
 def test_app_writes_the_rendered_landmarks(avatar, shared_clip_dir, tmp_path):

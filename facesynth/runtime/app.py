@@ -208,9 +208,10 @@ def open_pipeline(args: argparse.Namespace):
     elif args.motion is None and pipeline.motion == "absolute":
         log.warning("%s has no avatar metadata (%s): --motion absolute", args.model, "an older export"
                     if pipeline.scheme in RETARGET_SCHEMES else f"retargeting does not take {pipeline.scheme} landmarks")
-    if pipeline.full_frame and pipeline.avatar.frame_motion is None:
-        log.warning("%s was exported before the full-frame warp learned from the avatar's video: the head's "
-                    "surroundings follow a geometric rule (re-export it with this version for the learned warp)", args.model)
+    missing = pipeline.avatar.missing(pipeline.motion, pipeline.full_frame)
+    if missing:
+        log.warning("%s was exported by an older version, without %s: re-export it with this version", args.model,
+                    ", ".join(missing))
     args.motion = pipeline.motion
     return pipeline
 

@@ -76,6 +76,22 @@ class Avatar:
         size (:class:`FrameWarp`; the prior where the metadata has none)."""
         return FrameWarp(self.background, self.require_neutral(), method, self.frame_motion, self.ring_scale)
 
+    def missing(self, motion: str, full_frame: bool) -> list[str]:
+        """What a file exported by an older version lacks for rendering with ``motion``
+        ("relative": the retargeting's bounds) and ``full_frame`` (the learned warp): names
+        for the app's one-line warning, [] for a current export."""
+        out = []
+        space = self.shape_space
+        if motion == "relative" and space is not None:
+            for value, name in ((space.eye_open_max, "the eye cap"), (space.residual_max, "the residual cap"),
+                                (space.shift_range, "the head's travel bound"),
+                                (space.param_norm_max, "the expressions' bound")):
+                if value is None:
+                    out.append(name)
+        if full_frame and self.frame_motion is None:
+            out.append("the learned full-frame warp")
+        return out
+
     def require_neutral(self) -> np.ndarray:
         if self.neutral is None:
             raise FacesynthError(f"{self.where}: no avatar_neutral in the metadata (exported before reenactment "
