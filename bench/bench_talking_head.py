@@ -17,6 +17,10 @@ default; default export):
 * ``oracle`` (self-reenactment, PSNR and SSIM only): the real frame composited into *warp*
   with the alpha of *full*'s face (:func:`placed_alpha`): what a perfect synthesised face
   would give, so the bound on *full* - *warp* that the compositing region leaves.
+* ``warp_own`` (self-reenactment, PSNR and SSIM only): the frame warped to the held-out
+  frame's own landmarks as they are (no retargeting, ``--motion absolute``): *warp* -
+  *warp_own* is what the retargeting's caps and bounds cost the warp where the avatar's
+  held-out frames leave its training repertoire.
 
 Measures:
 
@@ -305,7 +309,7 @@ def drive(info: dict, dl: Dlib, driver_lm: np.ndarray, neutral=None, real_rows=N
     # the still frame is one image: its detection figures are the avatar's (avatar_info)
     static_frame = full.avatar.background
     eyes = StillEyes(static_frame, full.avatar.neutral)
-    still = ("static", "oracle")  # the still frame and the real face: no detector figures
+    still = ("static", "oracle", "warp_own")  # no detector figures: the still frame, the real face, the warp's bound
     tracks = {k: Track(None if k in still else dl, info["ref"], None if k in still else eyes) for k in renderers}
     shown = {}
     for i, lm in enumerate(driver_lm):
@@ -313,6 +317,8 @@ def drive(info: dict, dl: Dlib, driver_lm: np.ndarray, neutral=None, real_rows=N
         frames = {"full": out, "static": static_frame}
         if "warp" in renderers:
             frames["warp"] = full.frame_warp(a)
+        if "warp_own" in renderers:
+            frames["warp_own"] = full.frame_warp(lm)
         if paste is not None:
             frames["paste"] = paste.step(lm)[0]
         real = real_lm = None
@@ -324,7 +330,7 @@ def drive(info: dict, dl: Dlib, driver_lm: np.ndarray, neutral=None, real_rows=N
             alpha = placed_alpha(masks[0, 0], places[0], real.shape[1::-1], full.feather)[..., None]
             frames["oracle"] = np.floor(alpha * real + (1.0 - alpha) * frames["warp"] + 0.5).astype(np.uint8)
         for k in renderers:
-            tracks[k].add(frames[k], a, real, real_lm)
+            tracks[k].add(frames[k], lm if k == "warp_own" else a, real, real_lm)
         if i in sheet_rows:
             shown[i] = frames
     return {k: t.summary() for k, t in tracks.items()}, shown
@@ -356,7 +362,7 @@ def main() -> None:
         neutral = Reenactor(info["path"]).avatar.neutral
         rows = set(top_turns(held)) if (clip, clip) in sheet_for else set()
         figs, shown = drive(info, dl, held, neutral, real_rows=test, sheet_rows=rows,
-                            renderers=("static", "warp", "full", "oracle"))
+                            renderers=("static", "warp", "full", "oracle", "warp_own"))
         figs.update({k: info[k] for k in ("own_heldout_identity_median", "static_faces", "static_identity", "ring_scale")})
         figs["frames"] = int(len(test))
         out["self"][clip] = figs
