@@ -168,7 +168,7 @@ class ShapeSpace:
 
     def param_norms(self, shapes: np.ndarray) -> np.ndarray:
         """(N,) norms of the box-clamped parameters of (N, P, 2) frame-pixel shapes in units of
-        the limits (the quantity ``param_norm_max`` bounds)."""
+        the limits (the quantity ``param_norm_max`` bounds; :meth:`_clamped` without it)."""
         b = np.array([self._align(f)[4] for f in np.asarray(shapes, np.float64)]).reshape(-1, len(self.limit))
         return np.linalg.norm(np.clip(b, -self.limit, self.limit) / self.limit, axis=1)
 
