@@ -90,6 +90,18 @@ def test_the_ridge_leads_to_the_prior_and_no_frames_keep_it(video):
     np.testing.assert_array_equal(none, np.clip(fw.prior(), 0.0, 1.2))
 
 
+def test_the_chosen_warp_renders_as_one_built_with_its_motion(video):
+    """fit_frame_motion's warp (a ring size's candidate given its fitted motion) against a warp
+    constructed with that motion and ring size: the same control points and frame."""
+    fw, _, landmarks, frames = video
+    got, info = fit_frame_motion(fw.frame, fw.neutral68, frames[:12], landmarks[:12], frames[12:16], landmarks[12:16])
+    built = FrameWarp(fw.frame, fw.neutral68, motion=got.motion, ring_scale=info["ring_scale"])
+    assert got.ring_scale == info["ring_scale"]
+    for lm in landmarks[16:19]:
+        np.testing.assert_array_equal(got.control_points(lm), built.control_points(lm))
+        np.testing.assert_array_equal(got(lm), built(lm))
+
+
 def test_bad_frames_and_metadata_are_refused(video):
     fw, _, landmarks, frames = video
     with pytest.raises(FacesynthError, match="frame of shape"):

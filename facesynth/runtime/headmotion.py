@@ -39,6 +39,8 @@ The measurements behind it are in docs/reenact.md, "The avatar's video teaches t
 
 from __future__ import annotations
 
+import copy
+
 import cv2
 import numpy as np
 
@@ -123,6 +125,14 @@ def _solve(fw: FrameWarp, xtx: np.ndarray, xtu: np.ndarray, n: int, lam: float) 
     return coef, {"frames": n, "lambda": float(lam), "points_fitted": int(fitted.sum()) if n else 0}
 
 
+def _with_motion(fw: FrameWarp, coef: np.ndarray) -> FrameWarp:
+    """``fw`` with the fitted ``coef`` (K - 68, 2) as its motion: a copy sharing its control
+    points, triangulation and grid, which do not depend on the motion."""
+    out = copy.copy(fw)
+    out.motion = coef
+    return out
+
+
 def ring_clearance(neutral: np.ndarray, ring_scale: float) -> float:
     """How far (face units: outer-eye-corner distances) the head's ring at ``ring_scale``
     stays outside the hull of the (P, 2) neutral face's landmarks; negative when a ring point
@@ -148,8 +158,9 @@ def fit_frame_motion(frame: np.ndarray, neutral: np.ndarray, fit_frames, fit_lan
     and ``ring_scores`` ({scale: dB}, None where the ring enters the face or the warp folds
     more; without validation frames all None and the size nearest ``RING_SCALE``)."""
     allowed = [float(s) for s in scales if ring_clearance(neutral, s) >= RING_CLEARANCE] or [float(max(scales))]
-    fits = fit_motions([FrameWarp(frame, neutral, ring_scale=s) for s in allowed], fit_frames, fit_landmarks)
-    warps = [FrameWarp(frame, neutral, motion=coef, ring_scale=s) for s, (coef, _) in zip(allowed, fits, strict=True)]
+    priors = [FrameWarp(frame, neutral, ring_scale=s) for s in allowed]
+    fits = fit_motions(priors, fit_frames, fit_landmarks)
+    warps = [_with_motion(fw, coef) for fw, (coef, _) in zip(priors, fits, strict=True)]
     sse, folded, pixels, n = np.zeros(len(warps)), np.zeros(len(warps), int), 0, 0
     for real, lm in zip(val_frames, np.asarray(val_landmarks, np.float64), strict=True):
         if not np.isfinite(lm).all():
