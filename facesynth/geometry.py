@@ -127,3 +127,9 @@ def thin_plate(ctrl: np.ndarray, values: np.ndarray, at: np.ndarray, smooth: flo
     coef = np.linalg.solve(a, rhs)
     ka = kernel(((an[:, None] - cn[None]) ** 2).sum(-1))
     return ka @ coef[:k] + np.concatenate([np.ones((len(an), 1)), an], 1) @ coef[k:]
+
+
+def mirror(x: np.ndarray, hi) -> np.ndarray:
+    """``x`` reflected into [0, hi] about 0 and ``hi`` (one reflection each way: exact for x in
+    [-hi, 2 hi]; the ``BORDER_REFLECT_101`` of a pixel coordinate, hi the last pixel)."""
+    return hi - np.abs(hi - np.abs(x))

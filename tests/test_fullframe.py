@@ -145,6 +145,40 @@ def test_a_chin_leaving_the_frame_pushes_the_bottom_out_and_folds_nothing():
             assert np.abs(got - fw(lm)).max() <= 2
 
 
+def test_what_lies_beyond_the_top_edge_reads_the_frame_mirrored():
+    """A head near the frame's top moved down: the top anchors follow it, so the band above
+    them reads beyond the frame. It reads the frame reflected about its first row (the grid
+    nodes' maps reflected, upsampled by np.interp and read by cv2.remap with no border
+    mode at work), not its top row repeated (stripes: every row of the band the same), and
+    the talking-head graph reads the same."""
+    import torch
+
+    from facesynth.onnx.head_parts import FrameWarpGraph
+
+    frame = (smooth_image(SIZE, SIZE, seed=5) * 255).round().astype(np.uint8)
+    face = face_template(width=100.0, cx=160.0, cy=120.0).astype(np.float64)
+    fw = FrameWarp(frame, face)
+    lm = apply_affine(face, similarity(3.0, 1.0, (4.0, 40.0), face.mean(0)))
+    nodes = fw.node_maps(fw.control_points(lm))  # (2, Hn, Wn), unreflected
+    assert nodes[1].min() < -8.0 and nodes.min() > -(SIZE - 1) and nodes.max() <= SIZE - 1  # beyond the top only
+    (nx, ny), pix = fw.nodes, np.arange(SIZE, dtype=np.float64)
+
+    def up(m):  # bilinear between the nodes: along x, then along y
+        m = np.stack([np.interp(pix, nx, row) for row in m])
+        return np.stack([np.interp(pix, ny, col) for col in m.T], 1).astype(np.float32)
+
+    ref = cv2.remap(frame, up(np.abs(nodes[0])), up(np.abs(nodes[1])), cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
+    out = fw(lm)
+    assert np.abs(out.astype(int) - ref).max() <= 1
+    band = up(nodes[1]) < -4.0  # output pixels whose map reads 4 px or more above the frame
+    assert band[:3, 100:220].all()
+    rows = np.abs(np.diff(out.astype(int), axis=0)).mean(-1)[band[1:]]
+    assert rows.mean() > 0.25 * np.abs(np.diff(frame[:12].astype(int), axis=0)).mean()
+    with torch.no_grad():
+        got = FrameWarpGraph(fw).eval()(torch.from_numpy(lm.astype(np.float32)[None]))[0].numpy().transpose(1, 2, 0)
+    assert np.abs(got - out).max() <= 2
+
+
 def test_a_fold_inside_the_face_is_told_apart(scene):
     """Inner lips pushed past each other fold triangles among the landmarks only: counted by
     folds(), not by folds(outside_face=True) (the composited face covers them)."""

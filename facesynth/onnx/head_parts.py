@@ -50,7 +50,8 @@ class FrameWarpGraph(ToTarget):
     control points scaled to it); a node covered once takes its triangle's affine map
     (output -> neutral-frame pixels), any other (a fold's gap or overlap) its own position.
     The node maps are upsampled bilinearly to every pixel (Resize, ``align_corners``), and
-    the neutral frame is read there bilinearly, its border replicated (as ``cv2.remap``)."""
+    the neutral frame is read there bilinearly, mirrored beyond its border (the nodes' maps
+    reflected about the first and last pixel, as FrameWarp's)."""
 
     def __init__(self, fw: FrameWarp):
         w, h = fw.size
@@ -116,8 +117,11 @@ class FrameWarpGraph(ToTarget):
         return torch.cat([torch.where(single, u, self.node_x + u * 0.0), torch.where(single, v, self.node_y + v * 0.0)], 1)
 
     def forward(self, face: torch.Tensor) -> torch.Tensor:  # noqa: D102  (a different signature from ToTarget's)
-        uv = F.interpolate(self.node_maps(face), size=self.frame_size, mode="bilinear", align_corners=True)
-        uv = torch.minimum(torch.clamp(uv, min=0.0), self.uv_max)  # border replicated
+        # the border mirrored at the nodes, as FrameWarp does (facesynth.geometry.mirror); between
+        # them the maps stay inside the frame but for rounding, which the clamp takes out
+        m = self.node_maps(face)
+        m = self.uv_max - torch.abs(self.uv_max - torch.abs(m))
+        uv = torch.clamp(F.interpolate(m, size=self.frame_size, mode="bilinear", align_corners=True), min=0.0)
         fl = torch.floor(uv)
         fx, fy = uv[:, 0:1] - fl[:, 0:1], uv[:, 1:2] - fl[:, 1:2]  # (B, 1, H, W)
         # the index in float (exact below 2^24), then one Cast: an index chain the export's

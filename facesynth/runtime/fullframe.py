@@ -26,13 +26,13 @@ exported model carries its own, learned from the avatar's video
 
 Anchors on the left, right and bottom sides only slide along them (the bottom corners stay):
 where a chin or shoulder reaches the bottom, the edge follows the head along it, never
-across it, as an edge replicated inward shows as streaks over a body. A chin that comes
+across it, as an edge carried inward shows as streaks over a body. A chin that comes
 closer to the bottom than ``CHIN_MARGIN`` face units (or than it is on the neutral, if
 closer) pushes the bottom side's anchors out below the frame by as much, where it would
 otherwise pass them, or the jaw's slope would, and fold the band between (dark specks and a
 jagged jaw line at the frame's bottom). Anchors on the top
 side also move down with the head: hair cut by the frame's top then continues above it as
-the top row replicated (held on the top edge instead, the hair was pulled into a peak
+the top rows mirrored (held on the top edge instead, the hair was pulled into a peak
 there), and the ring's points above the frame are kept, so that the hair there moves with
 the head. Ring points on the border band or outside the frame elsewhere are dropped, on the
 neutral: the triangulation is fixed per avatar. A still guard ring ``GUARD`` times the
@@ -59,7 +59,9 @@ Two interpolants of the control points' motion (``method``):
   pixels, bilinearly upsampled; smooth, but its bending can overshoot between control
   points that move differently (eyelids under still brows).
 
-The inverse map is sampled with ``cv2.remap`` (bilinear, border replicated).
+The inverse map is sampled with ``cv2.remap`` (bilinear). Beyond the frame's edge the frame is
+mirrored (``BORDER_REFLECT_101``; for "affine" the grid nodes' maps are reflected into the frame
+before the upsampling): a replicated edge showed as stripes above a head that moved down.
 """
 
 from __future__ import annotations
@@ -70,7 +72,7 @@ from scipy.spatial import Delaunay
 
 from facesynth.errors import FacesynthError
 from facesynth.faps import face_axes
-from facesynth.geometry import apply_affine, similarity_fit, thin_plate
+from facesynth.geometry import apply_affine, mirror, similarity_fit, thin_plate
 from facesynth.landmarks import ibug68_view, inter_ocular
 
 METHODS = ("affine", "tps")
@@ -277,11 +279,11 @@ class FrameWarp:
 
     def __call__(self, landmarks: np.ndarray) -> np.ndarray:
         mx, my = self.maps(landmarks)
-        return cv2.remap(self.frame, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        return cv2.remap(self.frame, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT_101)
 
     def _affine_maps(self, dst: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         (kx, fx), (ky, fy) = self._up
-        m = self.node_maps(dst)
+        m = mirror(self.node_maps(dst), np.array([self.size[0] - 1.0, self.size[1] - 1.0])[:, None, None])
         m = m[:, :, kx] * (1.0 - fx) + m[:, :, kx + 1] * fx  # along x: (2, Hn, W)
         m = m[:, ky] * (1.0 - fy)[:, None] + m[:, ky + 1] * fy[:, None]  # along y: (2, H, W)
         return np.ascontiguousarray(m[0], np.float32), np.ascontiguousarray(m[1], np.float32)
