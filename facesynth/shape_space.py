@@ -50,13 +50,13 @@ class ShapeSpace:
         (:mod:`facesynth.retarget`, step 5); None: no cap (models exported without it)
     residual_max : float or None: the largest norm (normalised frame) of a shape's part that
         the components do not span, kept as it is below it and scaled down to it above
-        (the largest of the avatar's own training frames, :meth:`residual_norms`); None: kept
+        (the largest of the avatar's own training frames, :meth:`norms`); None: kept
         whole (models exported without it)
     param_norm_max : float or None: the largest norm of the clamped parameters in units of
         their limits (``|clip(b, -limit, limit) / limit|``, a Mahalanobis distance over k) that
         a projected shape keeps: beyond it they are scaled down to it, so that the
         components' combination is no further from the mean than the avatar's own most
-        extreme training frame (:meth:`param_norms`; Cootes' D_max bound inside the box); None:
+        extreme training frame (:meth:`norms`; Cootes' D_max bound inside the box); None:
         the box alone (models exported without it)
     shift_range : (2, 2) or None: rows lo, hi of how far (x, y frame pixels) the avatar's own
         training frames move its head from the neutral (the rigid points' centroid), which
@@ -151,11 +151,6 @@ class ShapeSpace:
         rest = aligned - (self.mean + b @ self.components).reshape(self._n, 2)
         return mo, ca, sa, aligned, b, rest
 
-    def residual_norms(self, shapes: np.ndarray) -> np.ndarray:
-        """(N,) norms of the parts of (N, P, 2) frame-pixel shapes that the components do not
-        span, in the normalised frame (the quantity ``residual_max`` bounds)."""
-        return np.array([np.linalg.norm(self._align(f)[5]) for f in np.asarray(shapes, np.float64)])
-
     def _clamped(self, b: np.ndarray) -> np.ndarray:
         """(K,) parameters -> clamped to +-limit, then scaled into the ellipsoid of norm
         ``param_norm_max`` (in units of the limits)."""
@@ -166,11 +161,15 @@ class ShapeSpace:
                 c = c * (self.param_norm_max / norm)
         return c
 
-    def param_norms(self, shapes: np.ndarray) -> np.ndarray:
-        """(N,) norms of the box-clamped parameters of (N, P, 2) frame-pixel shapes in units of
-        the limits (the quantity ``param_norm_max`` bounds; :meth:`_clamped` without it)."""
-        b = np.array([self._align(f)[4] for f in np.asarray(shapes, np.float64)]).reshape(-1, len(self.limit))
-        return np.linalg.norm(np.clip(b, -self.limit, self.limit) / self.limit, axis=1)
+    def norms(self, shapes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(N,) each, for (N, P, 2) frame-pixel shapes aligned once: the norm of the part the
+        components do not span, in the normalised frame (the quantity ``residual_max``
+        bounds), and of the box-clamped parameters in units of the limits (the quantity
+        ``param_norm_max`` bounds; :meth:`_clamped` without it)."""
+        aligned = [self._align(f) for f in np.asarray(shapes, np.float64)]
+        rest = np.array([np.linalg.norm(a[5]) for a in aligned])
+        b = np.array([a[4] for a in aligned]).reshape(-1, len(self.limit))
+        return rest, np.linalg.norm(np.clip(b, -self.limit, self.limit) / self.limit, axis=1)
 
     def project(self, shapes: np.ndarray) -> np.ndarray:
         """(N, P, 2) or (P, 2) frame-pixel shapes -> the nearest model shapes with clamped

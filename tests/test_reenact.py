@@ -456,11 +456,11 @@ def test_the_part_outside_the_components_is_scaled_down_to_residual_max():
     frame = np.array([[1.3, -0.4, 60.0], [0.4, 1.3, 30.0]])
     free = ShapeSpace(mean, comps, limit, keep_eyes=False)
     inside = apply_affine((mean + 0.02 * comps[0] + 0.002 * off).reshape(68, 2), frame)
-    small = free.residual_norms(inside[None])[0]
+    small = free.norms(inside[None])[0][0]
     capped = ShapeSpace(mean, comps, limit, keep_eyes=False, residual_max=1.5 * small)
     np.testing.assert_allclose(capped.project(inside), free.project(inside), atol=1e-12)
     far = apply_affine((mean + 0.02 * comps[0] + 0.03 * off).reshape(68, 2), frame)
-    big = free.residual_norms(far[None])[0]
+    big = free.norms(far[None])[0][0]
     assert big > 8 * small
     out = capped.project(far)
     # in the input's normalised frame (its similarity to the mean), the output keeps the input's
@@ -507,7 +507,7 @@ def test_the_graph_scales_the_residual_as_numpy_does():
     frame = (frame - c) @ rot.T + c
     plain = ShapeSpace(mean, comps, limit)
     raw = Retargeter(avatar, driver_n, shape_space=plain)(frame[None])[0].astype(np.float64)
-    rmax = 0.3 * plain.residual_norms(raw[None])[0]
+    rmax = 0.3 * plain.norms(raw[None])[0][0]
     space = ShapeSpace(mean, comps, limit, eye_open_max=np.array([0.5, 0.5]), residual_max=rmax)
     want = Retargeter(avatar, driver_n, shape_space=space)(frame[None])[0].astype(np.float64)
     assert np.abs(want - raw).max() > 1.0  # the cap moves the face
@@ -521,7 +521,7 @@ def test_the_components_parameters_are_scaled_into_the_avatars_ellipsoid():
     """ShapeSpace.param_norm_max: a shape whose clamped parameters (in units of the limits)
     are within the norm is projected as without it; one inside the box but beyond the norm
     comes out with its parameters scaled to that norm along their own direction (closed form)
-    and its out-of-span part untouched; the box clamps first; param_norms measures it; the
+    and its out-of-span part untouched; the box clamps first; norms measures it; the
     graph agrees; the metadata round-trips and bad values are refused."""
     import torch
 
@@ -540,7 +540,7 @@ def test_the_components_parameters_are_scaled_into_the_avatars_ellipsoid():
 
     inside = shape(np.array([0.6, 0.5, 0.4]) * limit, 0.002)  # norm about 0.88
     b_in = space._align(inside)[4]
-    assert space.param_norms(inside[None])[0] == pytest.approx(np.linalg.norm(b_in / limit), rel=1e-12)
+    assert space.norms(inside[None])[1][0] == pytest.approx(np.linalg.norm(b_in / limit), rel=1e-12)
     assert np.linalg.norm(b_in / limit) < 0.9
     np.testing.assert_allclose(space.project(inside), free.project(inside), atol=1e-9)
     b = np.array([0.9, -0.8, 0.7]) * limit  # inside the box, norm 1.39
@@ -554,7 +554,7 @@ def test_the_components_parameters_are_scaled_into_the_avatars_ellipsoid():
     np.testing.assert_allclose(b_out, b_in / np.linalg.norm(b_in / limit), atol=1e-9)
     np.testing.assert_allclose(back - mean - b_out @ comps, rest.reshape(-1), atol=1e-9)  # out of span: as it was
     # measured again, the output is at the norm up to its re-alignment to the mean
-    assert space.param_norms(out[None])[0] == pytest.approx(1.0, abs=0.01)
+    assert space.norms(out[None])[1][0] == pytest.approx(1.0, abs=0.01)
     # beyond the box: clamped to it first (norm sqrt(3)), then scaled to the norm
     wild = shape(np.array([3.0, 0.5, -2.0]) * limit)
     mo, ca, sa, _, b_w, _ = space._align(wild)

@@ -64,9 +64,9 @@ def shape_space(syn, landmarks: np.ndarray | None = None, neutral: np.ndarray | 
     lm = np.asarray(landmarks, np.float64)
     lm = lm[np.isfinite(lm).all((1, 2))]
     shifts = None if neutral is None else head_shifts(retarget_scheme(scheme), neutral, lm)
+    residual, params = space.norms(lm)
     return dataclasses.replace(space, eye_open_max=eye_openings(lm, retarget_scheme(scheme)).max(0),
-                               residual_max=float(space.residual_norms(lm).max()),
-                               param_norm_max=float(space.param_norms(lm).max()),
+                               residual_max=float(residual.max()), param_norm_max=float(params.max()),
                                shift_range=None if shifts is None else np.stack([shifts.min(0), shifts.max(0)]))
 
 
