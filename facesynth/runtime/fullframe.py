@@ -26,7 +26,7 @@ exported model carries its own, learned from the avatar's video
 
 Anchors on the left, right and bottom sides only slide along them (the bottom corners stay):
 where a chin or shoulder reaches the bottom, the edge follows the head along it, never
-across it, as an edge carried inward shows as streaks over a body. A chin that comes
+across it: an edge moved inward shows what lies beyond it (streaks, or a mirrored body). A chin that comes
 closer to the bottom than ``CHIN_MARGIN`` face units (or than it is on the neutral, if
 closer) pushes the bottom side's anchors out below the frame by as much, where it would
 otherwise pass them, or the jaw's slope would, and fold the band between (dark specks and a
