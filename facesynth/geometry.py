@@ -129,7 +129,8 @@ def thin_plate(ctrl: np.ndarray, values: np.ndarray, at: np.ndarray, smooth: flo
     return ka @ coef[:k] + np.concatenate([np.ones((len(an), 1)), an], 1) @ coef[k:]
 
 
-def mirror(x: np.ndarray, hi) -> np.ndarray:
+def mirror(x, hi):
     """``x`` reflected into [0, hi] about 0 and ``hi`` (one reflection each way: exact for x in
-    [-hi, 2 hi]; the ``BORDER_REFLECT_101`` of a pixel coordinate, hi the last pixel)."""
-    return hi - np.abs(hi - np.abs(x))
+    [-hi, 2 hi]; the ``BORDER_REFLECT_101`` of a pixel coordinate, hi the last pixel). numpy
+    arrays or torch tensors alike (the full-frame warp and its graph share it)."""
+    return hi - abs(hi - abs(x))

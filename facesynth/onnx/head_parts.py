@@ -21,6 +21,7 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
+from facesynth.geometry import mirror
 from facesynth.landmarks import IBUG68, scheme_for_points
 from facesynth.model.warp import invert_affine_t, similarity_to
 from facesynth.model.warp_target import ToTarget
@@ -117,10 +118,9 @@ class FrameWarpGraph(ToTarget):
         return torch.cat([torch.where(single, u, self.node_x + u * 0.0), torch.where(single, v, self.node_y + v * 0.0)], 1)
 
     def forward(self, face: torch.Tensor) -> torch.Tensor:  # noqa: D102  (a different signature from ToTarget's)
-        # the border mirrored at the nodes, as FrameWarp does (facesynth.geometry.mirror); between
-        # them the maps stay inside the frame but for rounding, which the clamp takes out
-        m = self.node_maps(face)
-        m = self.uv_max - torch.abs(self.uv_max - torch.abs(m))
+        # the border mirrored at the nodes, as FrameWarp does; between them the maps stay inside
+        # the frame but for rounding, which the clamp takes out
+        m = mirror(self.node_maps(face), self.uv_max)
         uv = torch.clamp(F.interpolate(m, size=self.frame_size, mode="bilinear", align_corners=True), min=0.0)
         fl = torch.floor(uv)
         fx, fy = uv[:, 0:1] - fl[:, 0:1], uv[:, 1:2] - fl[:, 1:2]  # (B, 1, H, W)
