@@ -73,6 +73,21 @@ LEGACY_CODE_LEVELS = 127
 CODE_LEVELS_KEY = "appearance_code_levels"
 
 
+# The int8 parity contract: what torch and ONNX Runtime may disagree on, for a file with the int8
+# basis (facesynth.onnx.int8check.tie_allowance computes it; the export checks and every parity test
+# use it). Both compute the scaled coefficients x_k = b_k * COEF_LEVELS / limit_k with float sums in
+# different orders (and in ONNX Runtime, in an order that depends on the CPU's kernels), so they agree
+# on x only to float noise. Where x lies on a rounding tie (an integer + 1/2), one side may round up
+# and the other down: that code differs by one step, which moves texel n by exactly |q_kn| s_n. So:
+# * a code may differ by one step only, and only where the two values of x lie within
+#   INT8_TIE_TOL (code units) of each other, i.e. both on the tie between them;
+# * a crop (texture units, [0, 1]) may differ by FLOAT_PARITY_TOL plus, per frame, the largest sum
+#   over texels of one step of each code that differs (0 when no code differs).
+# Anything else is a wrong file.
+FLOAT_PARITY_TOL = 1e-4
+INT8_TIE_TOL = 0.05
+
+
 def pair_sum_bound(code_levels: int) -> int:
     """Largest |u8 x s8 + u8 x s8| of the int8 appearance matmul with weight codes in
     [-code_levels, code_levels] and activations in [0, 255]; int16-safe when <= INT16_MAX."""

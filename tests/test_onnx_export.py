@@ -16,7 +16,7 @@ import torch
 from _onnx_models import driving_landmarks, exported, real_linear_synthesizer, synthetic_model, synthetic_synthesizer
 
 from facesynth.errors import FacesynthError
-from facesynth.onnx.synthesis import METADATA_KEYS, SynthesisGraph, export_run, export_synthesizer
+from facesynth.onnx.synthesis import METADATA_KEYS, SynthesisGraph, export_run, export_synthesizer, torch_reference
 from facesynth.regressors import REGISTRY
 from facesynth.runs.rundir import load_synthesizer, save_run_synthesizer
 from facesynth.sadm.quantize import quantize_synthesizer
@@ -35,27 +35,28 @@ def _ort(path):
     return ort.InferenceSession(str(path), so, providers=["CPUExecutionProvider"])
 
 
-def _assert_parity(sess, syn, lm, tol=1e-4):
-    crop, mask, place = sess.run(None, {"landmarks": lm})
-    with torch.no_grad():
-        t_crop, t_mask, t_place = (t.numpy() for t in syn(torch.from_numpy(lm)))
+def _assert_parity(path, syn, lm):
+    """ONNX Runtime (one thread) against torch, by the int8 parity contract (float noise, plus
+    one code step on each coefficient that the two round differently on a tie)."""
+    crop, mask, place = _ort(path).run(None, {"landmarks": lm})
+    (t_crop, t_mask, t_place), tol = torch_reference(syn, syn.appearance, path, {"landmarks": lm})
     assert crop.shape == t_crop.shape and mask.shape == t_mask.shape and place.shape == (len(lm), 2, 3)
     # masks may differ only where a pixel centre lies within float rounding of the face outline
     flips = (mask != t_mask)
     assert flips.mean() < 1e-4, f"{int(flips.sum())} mask pixels differ"
-    both = mask * t_mask
-    assert np.abs((crop - t_crop) * both).max() <= tol
+    per_frame = np.abs((crop - t_crop) * mask * t_mask).reshape(len(lm), -1).max(1)
+    assert (per_frame <= tol).all(), (per_frame, tol)
     assert np.abs(place - t_place).max() <= 1e-3 * max(1.0, np.abs(t_place).max())
-    return np.abs((crop - t_crop) * both).max()
+    return per_frame.max()
 
 
 @pytest.mark.parametrize("name", sorted(REGISTRY))
 def test_every_regressor_matches_torch(name, onnx_dir):
     syn = synthetic_synthesizer(name)
-    sess = _ort(exported(name, onnx_dir))
+    path = exported(name, onnx_dir)
     lm = driving_landmarks(seed=3, n=5)
-    _assert_parity(sess, syn, lm)
-    _assert_parity(sess, syn, lm[:1])  # dynamic batch
+    _assert_parity(path, syn, lm)
+    _assert_parity(path, syn, lm[:1])  # dynamic batch
 
 
 def test_export_graph_equals_synthesizer():
@@ -96,7 +97,7 @@ def test_real_landmarks_match_torch(basis, shared_clip_dir, tmp_path):
         syn = quantize_synthesizer(syn)[0]
     path = export_synthesizer(syn, tmp_path / "lp_d6.onnx")
     test_rows = np.arange(3, len(seq), 16)  # ~63 frames across the whole clip
-    _assert_parity(_ort(path), syn, seq.landmarks[test_rows])
+    _assert_parity(path, syn, seq.landmarks[test_rows])
 
 
 def test_run_round_trip_cli_and_errors(tmp_path):
@@ -109,11 +110,11 @@ def test_run_round_trip_cli_and_errors(tmp_path):
     lm = driving_landmarks(seed=5, n=3)
     path, exported_syn, meta = export_run(run, tmp_path / "a.onnx")  # the default export: int8 basis
     assert meta["appearance_basis"] == "int8" and exported_syn.appearance.basis is not None
-    _assert_parity(_ort(path), exported_syn, lm)
+    _assert_parity(path, exported_syn, lm)
     assert main(["export", str(run), "--out", str(tmp_path / "b.onnx")]) == 0
-    _assert_parity(_ort(tmp_path / "b.onnx"), quantize_synthesizer(loaded)[0], lm)
+    _assert_parity(tmp_path / "b.onnx", quantize_synthesizer(loaded)[0], lm)
     assert main(["export", str(run), "--out", str(tmp_path / "f.onnx"), "--basis", "float32"]) == 0
-    _assert_parity(_ort(tmp_path / "f.onnx"), loaded, lm)
+    _assert_parity(tmp_path / "f.onnx", loaded, lm)
     assert "MatMulInteger" not in {n.op_type for n in onnx.load(str(tmp_path / "f.onnx")).graph.node}
     with pytest.raises(FacesynthError, match="not found"):
         load_synthesizer(tmp_path / "nope")
@@ -135,9 +136,10 @@ def test_hydra_entry_point(tmp_path):
                          capture_output=True, text=True, cwd=tmp_path, timeout=300)
     assert res.returncode == 0, res.stderr[-2000:]
     summary = json.loads(res.stdout.strip().splitlines()[-1])
-    assert summary["regressor"] == "linear" and summary["max_abs_diff_vs_torch"] <= 1e-4
+    # the figure the export's own check (the int8 parity contract) measured and passed
+    assert summary["regressor"] == "linear" and 0 <= summary["max_abs_diff_vs_torch"] < 1e-2
     assert summary["appearance_basis"] == "int8"
-    _assert_parity(_ort(out), quantize_synthesizer(syn)[0], driving_landmarks(seed=6, n=2))
+    _assert_parity(out, quantize_synthesizer(syn)[0], driving_landmarks(seed=6, n=2))
 
 
 @pytest.mark.parametrize("features", ["landmarks", "landmarks_rigid"])
@@ -150,7 +152,7 @@ def test_landmark_feature_kinds_export_with_parity(features, tmp_path):
     reg = KRRRegressor.fit(ShapeFeatures.numpy(model, lm, features), y)
     syn = Synthesizer(model, GlobalAppearance(model, reg, features)).eval()
     path = export_synthesizer(syn, tmp_path / f"{features}.onnx")
-    _assert_parity(_ort(path), syn, driving_landmarks(seed=5, n=5))
+    _assert_parity(path, syn, driving_landmarks(seed=5, n=5))
 
 
 def test_printed_summary_describes_the_bulky_avatar_metadata():

@@ -174,6 +174,27 @@ def test_serve_prints_the_url_and_serves_the_page(tmp_path):
     assert list((tmp_path / "tmp").glob("facesynth-web-*")) == []
 
 
+def readme_paths(args: list[str], folder, clip: str) -> list[str]:
+    """README's step-4 arguments with the paths that README writes moved: an argument that is,
+    or a ``key=`` value that is, a path under ``/tmp/`` goes into ``folder``, and the shared clip
+    becomes ``clip``. Nothing else is rewritten: a checkout (and so ``clip``) under /tmp stays."""
+    import re
+
+    return [re.sub(r"(^|=)/tmp/", lambda m: f"{m.group(1)}{folder}/", a).replace("../shared/data/faces/lp_d6/video.mp4", clip)
+            for a in args]
+
+
+def test_readme_paths_leave_a_checkout_under_tmp_alone():
+    """The README test from a checkout under /tmp: the clip's absolute path is /tmp/... too,
+    and must reach the command unchanged."""
+    clip = "/tmp/clone/../shared/data/faces/lp_d0/video.mp4"
+    args = ["facesynth", "ingest", "../shared/data/faces/lp_d6/video.mp4", "--out", "/tmp/lp_d6", "data.path=/tmp/lp_d6",
+            "hydra.run.dir=/tmp/lp_d6_run", "/tmp/lp_d6.onnx", "--note", "a/tmp/b"]
+    assert readme_paths(args, "/tmp/pytest-7/t0", clip) == [
+        "facesynth", "ingest", clip, "--out", "/tmp/pytest-7/t0/lp_d6", "data.path=/tmp/pytest-7/t0/lp_d6",
+        "hydra.run.dir=/tmp/pytest-7/t0/lp_d6_run", "/tmp/pytest-7/t0/lp_d6.onnx", "--note", "a/tmp/b"]
+
+
 def test_readme_live_page_path_runs_as_written(tmp_path, shared_clip_dir):
     """README's Getting started, step 4, command by command as written, on a shorter shared
     clip (lp_d0, 78 frames, in place of lp_d6) and in a temporary folder: MediaPipe ingest,
@@ -195,8 +216,8 @@ def test_readme_live_page_path_runs_as_written(tmp_path, shared_clip_dir):
     clip = str(shared_clip_dir("lp_d0") / "video.mp4")
     env = {**os.environ, "OMP_NUM_THREADS": "1", "XDG_CACHE_HOME": str(tmp_path / "cache")}
 
-    def local(args):  # the clip and /tmp paths moved into this test's folder
-        return [a.replace("../shared/data/faces/lp_d6/video.mp4", clip).replace("/tmp/", f"{tmp_path}/") for a in args]
+    def local(args):
+        return readme_paths(args, tmp_path, clip)
 
     for c in commands[:3]:
         proc = subprocess.run([sys.executable, "-m", "facesynth", *local(c)[1:]], env=env, capture_output=True,

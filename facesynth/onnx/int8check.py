@@ -12,6 +12,11 @@ Two checks, one CPU-independent and one of this CPU:
 
 ``facesynth export`` uses the second to name the cause when its parity check fails;
 ``tests/test_int8_cpus.py`` uses both, and the second under an emulated CPU without VNNI.
+
+And the int8 parity contract (:data:`facesynth.contract.FLOAT_PARITY_TOL`, stated there):
+:func:`scaled_coefficients` reads the coefficients a file rounds, and :func:`tie_allowance`
+checks that every code on which ONNX Runtime and torch disagree sits on a rounding tie and
+differs by one step, and returns what those steps may move each frame's crop by.
 """
 
 from __future__ import annotations
@@ -20,7 +25,7 @@ import os
 
 import numpy as np
 
-from facesynth.contract import COEF_LEVELS, U8_MAX, ZERO_POINT
+from facesynth.contract import COEF_LEVELS, INT8_TIE_TOL, U8_MAX, ZERO_POINT
 from facesynth.errors import FacesynthError
 
 
@@ -89,3 +94,59 @@ def matmul_errors(codes: np.ndarray, activations: np.ndarray | None = None) -> t
     got = sess.run(None, {"a": a})[0].astype(np.int64)
     err = np.abs(got - reference(codes, a))
     return int((err > 0).sum()), int(err.max()) if err.size else 0
+
+
+def _rounded_input(graph) -> str:
+    """Name of the tensor the int8 basis rounds: the input of the ``Round`` behind the one
+    ``MatMulInteger``'s activations (``Cast(Add(Round(x)))``)."""
+    producer = {o: n for n in graph.node for o in n.output}
+    node = producer.get(next(n for n in graph.node if n.op_type == "MatMulInteger").input[0])
+    while node is not None and node.op_type != "Round":
+        node = producer.get(node.input[0]) if node.op_type in ("Cast", "Add") else None
+    if node is None:
+        raise FacesynthError("the int8 basis's activations do not come from a Round")
+    return node.input[0]
+
+
+def scaled_coefficients(model_path: str | os.PathLike, feeds: dict) -> np.ndarray:
+    """(B, K) float64: the scaled coefficients ``b * COEF_LEVELS / limit`` that ONNX Runtime
+    rounds to codes in the file's int8 basis (one thread), for the inputs ``feeds``."""
+    import onnx
+    import onnxruntime as ort
+
+    model = onnx.load(str(model_path))
+    matmul_integer_codes(model_path)  # one MatMulInteger, or a FacesynthError naming the file
+    model.graph.output.append(onnx.helper.make_tensor_value_info(_rounded_input(model.graph), onnx.TensorProto.FLOAT, None))
+    so = ort.SessionOptions()
+    so.intra_op_num_threads = 1
+    sess = ort.InferenceSession(model.SerializeToString(), so, providers=["CPUExecutionProvider"])
+    return sess.run([model.graph.output[-1].name], feeds)[0].astype(np.float64)
+
+
+def tie_allowance(codes: np.ndarray, col_scale: np.ndarray, x_ort: np.ndarray, x_torch: np.ndarray) -> np.ndarray:
+    """The int8 parity contract (:data:`facesynth.contract.FLOAT_PARITY_TOL`) for one batch.
+
+    Parameters
+    ----------
+    codes : (K, D) int8 weight codes q; col_scale : (D,) their scales s
+    x_ort, x_torch : (B, K) the scaled coefficients each side rounded (:func:`scaled_coefficients`)
+
+    Returns
+    -------
+    (B,) float64: per frame, the largest sum over texels of ``|q_kn| s_n`` over the codes k that
+    the two sides rounded differently (0 for a frame where none differ): what those codes
+    may move a texel, and so the crop, by. Raises FacesynthError when a code differs by more
+    than one step, or where the two values are not within ``INT8_TIE_TOL`` of each other (not a
+    tie: a wrong file or a wrong kernel).
+    """
+    xo, xt = np.asarray(x_ort, np.float64), np.asarray(x_torch, np.float64)
+    if xo.shape != xt.shape or xo.ndim != 2 or xo.shape[1] != len(codes):
+        raise FacesynthError(f"int8 parity: coefficients {xo.shape} and {xt.shape} do not fit {len(codes)} codes")
+    step = np.rint(xo) - np.rint(xt)
+    bad = (np.abs(step) > 1) | ((step != 0) & ~(np.abs(xo - xt) <= INT8_TIE_TOL))
+    if bad.any():
+        b, k = np.argwhere(bad)[0]
+        raise FacesynthError(f"int8 parity: frame {b} coefficient {k} rounds to codes {np.rint(xo[b, k]):.0f} in ONNX Runtime "
+                             f"and {np.rint(xt[b, k]):.0f} in torch from {xo[b, k]:.6f} and {xt[b, k]:.6f}: not a rounding tie")
+    one_step = np.abs(np.asarray(codes, np.float64)) * np.asarray(col_scale, np.float64)[None]  # (K, D)
+    return ((step != 0).astype(np.float64) @ one_step).max(1) if one_step.size else np.zeros(len(xo))

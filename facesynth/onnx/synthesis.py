@@ -29,6 +29,7 @@ from torch import nn
 from facesynth import __version__
 from facesynth.contract import (
     CODE_LEVELS_KEY,
+    FLOAT_PARITY_TOL,
     OPSET,
     OUTPUT_NAMES,
     SYNTHESIS_FORMAT,
@@ -41,6 +42,7 @@ from facesynth.landmarks import get_scheme
 from facesynth.onnx.avatar import run_avatar_metadata
 from facesynth.onnx.common import SimilarityAlignment, check_parity, save_graph
 from facesynth.onnx.config import BASIS_KINDS, DEFAULT_BASIS, DEFAULT_COMPONENTS
+from facesynth.onnx.int8check import scaled_coefficients, tie_allowance
 from facesynth.runs.rundir import load_synthesizer, training_landmarks
 from facesynth.runtime.renderer import Renderer
 from facesynth.sadm.compress import compress_synthesizer
@@ -247,20 +249,51 @@ def prepare_run(run_dir: str | os.PathLike, components: int | None = DEFAULT_COM
     return syn, meta
 
 
-def check_export(syn: Synthesizer, path: str | os.PathLike, landmarks: np.ndarray | None = None, tol: float = 1e-4) -> float:
+def run_torch(module: nn.Module, appearance: nn.Module, feeds: dict) -> tuple[tuple[np.ndarray, ...], np.ndarray | None]:
+    """Run ``module`` on ``feeds`` (numpy, in its inputs' order): its outputs as numpy, and with
+    an int8 basis in ``appearance`` the (B, K) scaled coefficients that the basis rounded
+    (:meth:`facesynth.sadm.quantize.Int8Basis.scaled`; None without one)."""
+    basis = getattr(appearance, "basis", None)
+    scaled = []
+    hook = basis.register_forward_pre_hook(lambda m, args: scaled.append(m.scaled(args[0]))) if basis is not None else None
+    try:
+        with torch.no_grad():
+            out = module(*(torch.from_numpy(np.asarray(v)) for v in feeds.values()))
+    finally:
+        if hook is not None:
+            hook.remove()
+    out = tuple(t.numpy() for t in (out if isinstance(out, tuple) else (out,)))
+    return out, (torch.cat(scaled).double().numpy() if basis is not None else None)
+
+
+def torch_reference(module: nn.Module, appearance: nn.Module, path: str | os.PathLike, feeds: dict,
+                    tol: float = FLOAT_PARITY_TOL) -> tuple[tuple[np.ndarray, ...], np.ndarray | float]:
+    """Run ``module`` (the torch graph of the file ``path``) on ``feeds`` (numpy, in the file's
+    input order) and apply the int8 parity contract (:data:`facesynth.contract.FLOAT_PARITY_TOL`).
+
+    Returns the outputs as numpy, and the crop tolerance: ``tol``, or with an int8 basis in
+    ``appearance`` a (B,) array, ``tol`` plus what the codes that ONNX Runtime rounds the other
+    way on a tie may move each frame's crop by (:func:`facesynth.onnx.int8check.tie_allowance`,
+    which raises FacesynthError for any other disagreement of the codes).
+    """
+    out, x_torch = run_torch(module, appearance, feeds)
+    if x_torch is None:
+        return out, tol
+    basis = appearance.basis
+    return out, tol + tie_allowance(basis.codes.numpy(), basis.col_scale.numpy(), scaled_coefficients(path, feeds), x_torch)
+
+
+def check_export(syn: Synthesizer, path: str | os.PathLike, landmarks: np.ndarray | None = None,
+                 tol: float = FLOAT_PARITY_TOL) -> float:
     """Run ``path`` in ONNX Runtime and ``syn`` in torch on the same landmarks.
 
     Returns the largest absolute crop difference; raises FacesynthError above ``tol``, on
     NaN, or when the masks differ in more than 0.1% of pixels (:func:`check_parity`). With
-    an int8 basis the tolerance grows by one coefficient code step
-    (:meth:`facesynth.sadm.quantize.Int8Basis.max_step`): a coefficient on a rounding tie may
-    round either way in the two implementations.
+    an int8 basis, by the int8 parity contract (:func:`torch_reference`): a coefficient on a
+    rounding tie may round either way in the two implementations, which adds its one code
+    step to that frame's tolerance.
     """
-    basis = getattr(syn.appearance, "basis", None)
-    if basis is not None:
-        tol = tol + basis.max_step()
     x = _example_landmarks(syn) if landmarks is None else np.asarray(landmarks, np.float32)
     crop, mask, _ = Renderer(path).render(x)
-    with torch.no_grad():
-        t_crop, t_mask, _ = syn(torch.from_numpy(x))
-    return check_parity(path, (crop, mask), (t_crop.numpy(), t_mask.numpy()), tol)
+    (t_crop, t_mask, _), frame_tol = torch_reference(syn, syn.appearance, path, {SYNTHESIS_INPUT: x}, tol)
+    return check_parity(path, (crop, mask), (t_crop, t_mask), frame_tol)

@@ -84,15 +84,6 @@ class Int8Basis(nn.Module):
         """The largest |code| (the range the basis was quantized to is at least this)."""
         return int(self.codes.abs().max()) if self.codes.numel() else 0
 
-    def max_step(self) -> float:
-        """The largest change of one texel (texture units) when one coefficient code moves by
-        one: ``max_n max_k |q_kn| s_n``. Two correct implementations may round a coefficient
-        that falls on a tie differently (their regressors' float sums differ in the last bits),
-        so they agree to this plus their float tolerance."""
-        if not self.codes.numel():
-            return 0.0
-        return float((self.codes.abs().max(0).values.double() * self.col_scale.double()).max())
-
     @classmethod
     def from_basis(cls, components: np.ndarray, limit: np.ndarray, levels: int = CODE_LEVELS) -> "Int8Basis":
         """Quantize a (K, D) basis whose coefficients are clamped to +-``limit`` (K,) (finite,
@@ -103,6 +94,12 @@ class Int8Basis(nn.Module):
                                  "component (the model was built with clamping off); export with --basis float32")
         codes, scale = quantize_columns(np.asarray(components, np.float64) * (lim / COEF_LEVELS)[:, None], levels)
         return cls(torch.from_numpy((COEF_LEVELS / lim).astype(np.float32)), torch.from_numpy(codes), torch.from_numpy(scale))
+
+    def scaled(self, b: torch.Tensor) -> torch.Tensor:
+        """(B, K) the coefficients in code units, ``b * coef_scale``: what :meth:`forward` rounds
+        to codes (the int8 parity contract, :data:`facesynth.contract.FLOAT_PARITY_TOL`, is about
+        the values that lie on a rounding tie)."""
+        return b * self.coef_scale
 
     def dequantized(self) -> torch.Tensor:
         """(K, D) float64 basis this module applies to unrounded coefficients."""
