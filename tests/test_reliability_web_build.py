@@ -139,3 +139,17 @@ def test_builds_into_a_missing_an_empty_and_its_own_folder(head, tmp_path, capsy
             _no_hidden_temps(out.parent)
     finally:
         os.umask(umask)
+
+
+def test_atomic_dir_onto_a_file_leaves_no_hidden_folder(tmp_path):
+    """The writer under ``web build``: a folder written onto an existing file cannot move the
+    file aside; the error propagates, the file stays and no ``.NAME.facesynth-tmp-*`` folder
+    (the new one, or the ``-old-`` one made to hold the file) is left (was both)."""
+    from facesynth.io import atomic_dir
+
+    target = tmp_path / "page"
+    target.write_text("a file")
+    with pytest.raises(OSError), atomic_dir(target) as tmp:
+        (tmp / "index.html").write_text("<html>")
+    assert target.read_text() == "a file"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["page"]
