@@ -145,8 +145,9 @@ def test_export_out_ending_in_a_slash_is_a_folder_name(run_dir, tmp_path, capsys
 @pytest.mark.parametrize("config", ["malformed", "without_data", "a_list", "without_a_data_field"])
 def test_export_with_a_broken_config_is_one_line(run_dir, tmp_path, capsys, config):
     """RUN/config.yaml not YAML, without ``data``, a YAML list, or missing a ``data`` field:
-    ``export --talking-head`` exits 2 with one line naming the file (was a ParserError or
-    ConfigAttributeError traceback, exit 1), before any work: no output, no folder."""
+    ``export --talking-head``, and a plain export that compresses (it reads the training
+    landmarks the config names), exit 2 with one line naming the file (was a ParserError or
+    ConfigAttributeError traceback, exit 1): no output, no folder."""
     run = _copy_run(run_dir, tmp_path)
     text = (run / "config.yaml").read_text()
     (run / "config.yaml").write_text({
@@ -157,11 +158,12 @@ def test_export_with_a_broken_config_is_one_line(run_dir, tmp_path, capsys, conf
         "without_a_data_field": text.replace("  train_fraction: 0.75\n", ""),
     }[config])
     out = tmp_path / "new" / "head.onnx"
-    assert main(["export", str(run), "--talking-head", "--out", str(out), "--quiet"]) == 2
-    err = _one_error_line(capsys.readouterr().err, str(run / "config.yaml"))
-    if config == "without_a_data_field":
-        assert "data.train_fraction" in err
-    assert not (tmp_path / "new").exists()
+    for flags in (["--talking-head"], ["--components", "4"]):
+        assert main(["export", str(run), *flags, "--out", str(out), "--quiet"]) == 2
+        err = _one_error_line(capsys.readouterr().err, str(run / "config.yaml"))
+        if config == "without_a_data_field":
+            assert "data.train_fraction" in err
+        assert not (tmp_path / "new").exists()
 
 
 def test_a_refused_export_leaves_no_folders(run_dir, tmp_path, capsys):
