@@ -119,7 +119,9 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
+        logging.disable(logging.INFO)  # the last line: no library's exit-time info logs after it (torch's cache stats)
         return 130
     except Terminated as exc:
         print("terminated", file=sys.stderr)
+        logging.disable(logging.INFO)
         return int(exc.code)

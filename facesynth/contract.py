@@ -20,8 +20,20 @@ N_LANDMARKS = DEFAULT_SCHEME.n_points
 SYNTHESIS_INPUT = "landmarks"
 ERI_INPUT = "faps"
 OUTPUT_NAMES = ("crop", "mask", "placement")
-TALKING_HEAD_INPUTS = ("driver", "driver_neutral")
-TALKING_HEAD_OUTPUTS = ("frame", "avatar_landmarks")
+# a talking-head file's graph, checked before a file is accepted (facesynth.runtime.talking_head):
+# each input and output, in order: name -> (element type, rank); the batch axis B is dynamic,
+# P = the metadata's n_landmarks, (W, H) = its frame_size
+TALKING_HEAD_SIGNATURE = {
+    "inputs": {"driver": ("float32", 3), "driver_neutral": ("float32", 2)},  # (B, P, 2), (P, 2)
+    "outputs": {"frame": ("uint8", 4), "avatar_landmarks": ("float32", 3)},  # (B, H, W, 3), (B, P, 2)
+}
+TALKING_HEAD_METADATA_KEYS = (
+    "facesynth_version", "format", "landmark_scheme", "n_landmarks", "frame_size", "feather", "avatar_neutral",
+    "background_jpeg", "output_layout", "opset",
+)
+
+TALKING_HEAD_INPUTS = tuple(TALKING_HEAD_SIGNATURE["inputs"])  # ("driver", "driver_neutral")
+TALKING_HEAD_OUTPUTS = tuple(TALKING_HEAD_SIGNATURE["outputs"])  # ("frame", "avatar_landmarks")
 
 SYNTHESIS_OUTPUT_LAYOUT = (
     "crop: float32 (B, C, H, W) in [0, 1], zeros outside the face; mask: float32 (B, 1, H, W) in {0, 1}; "

@@ -110,6 +110,12 @@ def _umask() -> int:
     return umask
 
 
+def set_default_mode(path: str | os.PathLike) -> None:
+    """Give the file ``path`` the usual permissions (0666 & ~umask), whatever its writer created
+    it with (some write 0600)."""
+    os.chmod(path, 0o666 & ~_umask())
+
+
 @contextlib.contextmanager
 def atomic_path(path: str | os.PathLike, suffix: str | None = None) -> Iterator[Path]:
     """Yield a temporary path beside ``path``; rename it onto ``path`` on success.
@@ -129,12 +135,13 @@ def atomic_path(path: str | os.PathLike, suffix: str | None = None) -> Iterator[
     the usual permissions (0666 & ~umask) whatever the writer created it with.
     """
     path = Path(path)
-    _check_parent(path)
+    created = _check_parent(path)
     remove_stale_temps(path)
     try:
         fd, tmp = tempfile.mkstemp(prefix=f"{_tmp_prefix(path)}{os.getpid()}-",
                                    suffix=path.suffix if suffix is None else suffix, dir=path.parent)
     except OSError as exc:
+        _remove_empty(created)
         if is_disk_full(exc):
             raise _disk_full_error(path) from None
         raise
@@ -143,13 +150,14 @@ def atomic_path(path: str | os.PathLike, suffix: str | None = None) -> Iterator[
     try:
         yield tmp_path
         # some writers (safetensors) replace the file: set the mode on what was written
-        os.chmod(tmp_path, 0o666 & ~_umask())
+        set_default_mode(tmp_path)
         os.replace(tmp_path, path)
     except BaseException as exc:
         from facesynth.errors import DiskFullError
 
         with contextlib.suppress(FileNotFoundError):
             tmp_path.unlink()
+        _remove_empty(created)
         # a writer of the temporary file may itself write atomically: it names the temporary
         if is_disk_full(exc) or (isinstance(exc, DiskFullError) and str(exc.path) == str(tmp_path)):
             raise _disk_full_error(path) from None
@@ -166,20 +174,25 @@ def atomic_dir(path: str | os.PathLike) -> Iterator[Path]:
     folder is removed and ``path`` is untouched.
     """
     path = Path(path)
-    _check_parent(path)
+    created = _check_parent(path)
     remove_stale_temps(path)
     try:
         tmp = Path(tempfile.mkdtemp(prefix=f"{_tmp_prefix(path)}{os.getpid()}-", dir=path.parent))
     except OSError as exc:
+        _remove_empty(created)
         if is_disk_full(exc):
             raise _disk_full_error(path) from None
         raise
     os.chmod(tmp, 0o777 & ~_umask())
     try:
         yield tmp
-        if path.exists():
+        if path.exists() or path.is_symlink():
             old = Path(tempfile.mkdtemp(prefix=f"{_tmp_prefix(path)}{os.getpid()}-old-", dir=path.parent))
-            os.replace(path, old)
+            try:
+                os.replace(path, old)
+            except BaseException:
+                os.rmdir(old)  # path could not be moved aside (a file onto a folder): no hidden leftover
+                raise
             try:
                 os.replace(tmp, path)
             except BaseException:
@@ -192,6 +205,7 @@ def atomic_dir(path: str | os.PathLike) -> Iterator[Path]:
         from facesynth.errors import DiskFullError
 
         shutil.rmtree(tmp, ignore_errors=True)
+        _remove_empty(created)
         # name the file being written inside the folder (as it would be under ``path``) when known
         if is_disk_full(exc):
             raise _disk_full_error(_in_folder(exc.filename, tmp, path)) from None
@@ -208,32 +222,58 @@ def _in_folder(filename, tmp: Path, path: Path) -> Path:
     return path
 
 
-def _check_parent(path: Path) -> None:
-    """Create ``path``'s parent; FacesynthError when it cannot be (a file on the way, no permission)."""
+def _check_parent(path: Path) -> list[Path]:
+    """Create ``path``'s parent; FacesynthError when it cannot be (a file on the way, no
+    permission). Returns the folders it created, deepest last (removed again, when empty, by
+    a write that fails: a refused or failed run leaves no empty folders)."""
     from facesynth.errors import FacesynthError
 
+    missing = []
+    parent = path.parent
+    while not parent.exists() and not parent.is_symlink() and parent != parent.parent:
+        missing.append(parent)
+        parent = parent.parent
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
     except (FileExistsError, NotADirectoryError):
+        _remove_empty(missing[::-1])
         raise FacesynthError(f"{path}: cannot write here (a parent is a file, not a folder)") from None
     except PermissionError:
+        _remove_empty(missing[::-1])
         raise FacesynthError(f"{path}: cannot write here (permission denied creating {path.parent})") from None
     if not os.access(path.parent, os.W_OK | os.X_OK):
         raise FacesynthError(f"{path}: cannot write here ({path.parent} is not writable)")
+    return missing[::-1]
+
+
+def _remove_empty(created: list[Path]) -> None:
+    """Remove the folders :func:`_check_parent` created (deepest first) while they are empty."""
+    for folder in reversed(created):
+        try:
+            folder.rmdir()
+        except OSError:
+            return  # not empty (another output went there) or already gone: keep it and its parents
 
 
 def check_writable(path: str | os.PathLike, folder: bool = False) -> Path:
     """Check, before any work, that ``path`` can be written: the target is not a folder
-    (``folder=False``) or not a file (``folder=True``), and its nearest existing ancestor is
-    a writable folder (missing parents are created later, by the write itself, so a failed
+    (``folder=False``) or not a file (``folder=True``); a file name is not written with a
+    trailing ``/`` and is not an existing device, pipe or socket (``/dev/null`` is never
+    replaced); and its nearest existing ancestor is a writable folder (missing parents are created later, by the write itself, so a failed
     run leaves no empty folders). Raises FacesynthError naming ``path``."""
     from facesynth.errors import FacesynthError
 
+    text = os.fspath(path)
     path = Path(path)
     if folder and path.exists() and not path.is_dir():
         raise FacesynthError(f"{path}: output exists and is not a folder")
     if not folder and path.is_dir():
         raise FacesynthError(f"{path}: output is an existing folder, expected a file name")
+    if not folder and text.endswith(("/", os.sep)):
+        raise FacesynthError(f"{text}: output ends with '/', a folder name; expected a file name")
+    if not folder and path.exists() and not path.is_file():
+        raise FacesynthError(f"{path}: output exists and is not a regular file (a device, pipe or socket); "
+                             "it is never replaced: choose another name")
     parent = path.parent
     while not parent.exists() and parent != parent.parent:
         parent = parent.parent

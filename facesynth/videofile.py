@@ -43,6 +43,21 @@ def ffmpeg_silenced() -> Iterator[None]:
         os.close(saved)
 
 
+@contextlib.contextmanager
+def opencv_warnings_off() -> Iterator[None]:
+    """OpenCV's own log at errors only while a video is written: on a full disk its FFmpeg
+    writer warns once per frame it cannot write (``Failed to write frame``), and the check of
+    the file afterwards (:func:`check_video`) reports the problem in one line instead."""
+    import cv2
+
+    level = cv2.utils.logging.getLogLevel()
+    cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_ERROR)
+    try:
+        yield
+    finally:
+        cv2.utils.logging.setLogLevel(level)
+
+
 def free_bytes(path: str | os.PathLike) -> int | None:
     """Bytes free to an unprivileged user on the file system holding ``path`` (None if unknown)."""
     try:
@@ -107,8 +122,10 @@ class VideoOut:
         import cv2
 
         self.size = (int(size[0]), int(size[1]))
-        self._writer = cv2.VideoWriter(str(self.tmp), cv2.VideoWriter_fourcc(*"mp4v"), self.fps, self.size)
+        with opencv_warnings_off(), ffmpeg_silenced():
+            self._writer = cv2.VideoWriter(str(self.tmp), cv2.VideoWriter_fourcc(*"mp4v"), self.fps, self.size)
         if not self._writer.isOpened():
+            raise_unless_space(self.tmp, self.name)  # a full disk: said so, not put down to the name
             raise FacesynthError(f"{self.name}: OpenCV cannot write an mp4v video here (use a .mp4 or .avi name)")
 
     def write(self, rgb: np.ndarray) -> None:
@@ -120,12 +137,14 @@ class VideoOut:
             self._open((w, h))
         if (w, h) != self.size:
             raise FacesynthError(f"{self.name}: a {w}x{h} frame in a {self.size[0]}x{self.size[1]} video")
-        self._writer.write(cv2.cvtColor(np.ascontiguousarray(rgb), cv2.COLOR_RGB2BGR))
+        with opencv_warnings_off():
+            self._writer.write(cv2.cvtColor(np.ascontiguousarray(rgb), cv2.COLOR_RGB2BGR))
         self.frames += 1
 
     def release(self) -> None:
         if self._writer is not None:
-            self._writer.release()
+            with opencv_warnings_off(), ffmpeg_silenced():
+                self._writer.release()
 
     def finish(self) -> None:
         """Close the file and check it (:func:`check_video`); once."""

@@ -89,11 +89,14 @@ def load_landmarks(path: str | os.PathLike, scheme: str | None = None) -> np.nda
     if path.suffix.lower() != ".npy":
         return load_sequence(path, scheme).landmarks
     arr = _np_load(path)
-    stored = stored_scheme(read_ingest_meta(meta_file.parent) if meta_file is not None else {}, arr, str(path))
+    meta = read_ingest_meta(meta_file.parent) if meta_file is not None else {}
+    if meta_file is not None:  # an ingest folder: its landmarks must be the ones meta.json describes, as training's
+        _check_ingest_pair(meta_file.parent, arr, meta)
+    stored = stored_scheme(meta, arr, str(path))
     lm = validate_landmarks(arr, str(path), allow_nan_rows=True, scheme=stored)
     if scheme is None or scheme == stored:
         return lm
-    return FaceSequence(lm, np.arange(len(lm)), name=path.parent.name, scheme=stored).to_scheme(scheme).landmarks
+    return FaceSequence(lm, np.arange(len(lm)), name=str(path), scheme=stored).to_scheme(scheme).landmarks
 
 
 def stored_scheme(meta: dict, landmarks: np.ndarray, where: str) -> str:

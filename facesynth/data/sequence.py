@@ -40,8 +40,8 @@ def validate_landmarks(landmarks: np.ndarray, where: str, allow_nan_rows: bool =
     if lm.ndim != 3 or lm.shape[1:] != (sch.n_points, 2):
         raise FacesynthError(f"{where}: landmarks must have shape (N, {sch.n_points}, 2) ({sch.description}), "
                              f"got {lm.shape}{sch.mismatch_hint(lm.shape)}")
-    if not np.issubdtype(lm.dtype, np.number):
-        raise FacesynthError(f"{where}: landmarks must be numeric, got dtype {lm.dtype}")
+    if lm.dtype.kind not in "fiu":  # complex ones too: their imaginary part would be dropped
+        raise FacesynthError(f"{where}: landmarks must be real numbers, got dtype {lm.dtype}")
     lm = lm.astype(np.float32, copy=False)
     bad = ~np.isfinite(lm)
     if bad.any():

@@ -61,13 +61,21 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 SUPPORTED_OPSETS = range(17, 21)
 
 
-def check_args(out, opset: int) -> None:
-    """Refuse, before any work, an unsupported ``--opset`` or an ``--out`` that cannot be written."""
-    from facesynth.io import check_writable
+def check_args(out, opset: int, run_dir=None, inputs=()) -> None:
+    """Refuse, before any work, an unsupported ``--opset``, an ``--out`` that cannot be written
+    (a folder, a device, a name ending in ``/``: :func:`facesynth.io.check_writable`) or that
+    is one of the inputs: a file of the run ``run_dir`` or of its training data
+    (:func:`facesynth.runs.rundir.input_files`), or one of ``inputs``."""
+    from facesynth.io import check_writable, refuse_overwriting_inputs
 
     if opset not in SUPPORTED_OPSETS:
         raise FacesynthError(f"--opset: {opset} is not supported (choose {SUPPORTED_OPSETS.start}..{SUPPORTED_OPSETS.stop - 1})")
     check_writable(out)
+    if run_dir is not None:
+        from facesynth.runs.rundir import input_files  # lazy: keeps --help fast (torch)
+
+        inputs = [*input_files(run_dir), *inputs]
+    refuse_overwriting_inputs([out], inputs)
 
 
 def summary_json(summary: dict) -> str:
@@ -91,7 +99,8 @@ def _run_scheme(run_dir) -> str:
 def run(args: argparse.Namespace) -> int:
     from facesynth.data import load_landmarks  # lazy, as below: keeps --help fast (no torch)
 
-    check_args(args.out, args.opset)  # before reading --landmarks
+    # before reading --landmarks
+    check_args(args.out, args.opset, args.run, [args.landmarks, args.target, args.target_landmarks])
 
     if args.target and args.talking_head:
         raise FacesynthError("--talking-head and --target: a talking head is exported from a run's SADM model, not its ERI one")
@@ -116,7 +125,7 @@ def export_model(run_dir, out, opset: int = OPSET, components: int | None = DEFA
     from facesynth.onnx.synthesis import check_export, export_run  # lazy: keeps --help fast (torch)
     from facesynth.runs.rundir import is_eri_run
 
-    check_args(out, opset)
+    check_args(out, opset, run_dir)
     run_dir = Path(run_dir)
     if is_eri_run(run_dir):
         raise FacesynthError(f"{run_dir}: holds an ERI model only; pass --target IMAGE_OR_DIR to export it for a target face")
@@ -140,12 +149,13 @@ def export_talking_head_model(run_dir, out, opset: int = OPSET, components: int 
     when ``check``)."""
     from facesynth.onnx.synthesis import prepare_run  # lazy: keeps --help fast (torch)
     from facesynth.onnx.talking_head import check_talking_head, export_talking_head
-    from facesynth.runs.rundir import is_eri_run
+    from facesynth.runs.rundir import is_eri_run, read_config
 
-    check_args(out, opset)
+    check_args(out, opset, run_dir)
     run_dir = Path(run_dir)
     if is_eri_run(run_dir):
         raise FacesynthError(f"{run_dir}: holds an ERI model only; a talking head needs a SADM run")
+    read_config(run_dir, "the avatar's neutral and frame come from the run's data")  # named before any work
     with atomic_path(out) as tmp:
         with stage("ONNX export (talking head)"):
             syn, meta = prepare_run(run_dir, components, predicted_variance, landmarks, basis)
@@ -179,7 +189,7 @@ def export_eri_model(run_dir, out, target, target_landmarks=None, target_frame: 
     from facesynth.eri.cli import load_target  # lazy: keeps --help fast (torch)
     from facesynth.onnx.eri import check_eri_export, export_eri_run
 
-    check_args(out, opset)
+    check_args(out, opset, run_dir, [target, target_landmarks])
     image, landmarks, desc = load_target(target, target_landmarks, target_frame)
     with atomic_path(out) as tmp:  # renamed onto --out only once the check has passed
         with stage("ONNX export (ERI)"):

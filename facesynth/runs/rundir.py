@@ -14,15 +14,20 @@ split from ``config.yaml``, rebuilds its synthesizer, and prints its summary.
 from __future__ import annotations
 
 import os
+from dataclasses import fields
 from pathlib import Path
 
 import numpy as np
-from omegaconf import OmegaConf
+import yaml
+from omegaconf import DictConfig, OmegaConf
+from omegaconf.errors import OmegaConfBaseException
 
 from facesynth.data import FaceSequence, load_sequence, temporal_split
+from facesynth.data.readers import ingest_video
 from facesynth.data.synthetic import make_synthetic_sequence
 from facesynth.errors import FacesynthError
 from facesynth.eval.report import legend_lines
+from facesynth.runs.config import DataConf
 from facesynth.sadm.fit import SADM, SADMConfig, load_sadm, save_sadm
 from facesynth.sadm.synthesis import Synthesizer
 
@@ -62,11 +67,27 @@ def load_data(data_cfg, seed: int) -> FaceSequence:
 
 
 def read_config(run_dir: str | os.PathLike, hint: str = "not a train.py run directory"):
-    """The run's ``config.yaml`` (an OmegaConf node); FacesynthError with ``hint`` when absent."""
+    """The run's ``config.yaml`` (an OmegaConf node); FacesynthError with ``hint`` when absent,
+    and naming the file when it is not YAML, not a mapping, or lacks ``seed`` or one of the
+    ``data`` settings (:class:`facesynth.runs.config.DataConf`'s fields, which ``train.py``
+    writes whole)."""
     path = Path(run_dir) / CONFIG
     if not path.is_file():
         raise FacesynthError(f"{path}: not found ({hint})")
-    return OmegaConf.load(path)
+    try:
+        cfg = OmegaConf.load(path)
+    except (OSError, UnicodeDecodeError, yaml.YAMLError, OmegaConfBaseException) as exc:
+        first = " ".join(str(exc).split())[:160]
+        raise FacesynthError(f"{path}: not a readable YAML config ({type(exc).__name__}: {first})") from None
+    if not isinstance(cfg, DictConfig):
+        raise FacesynthError(f"{path}: expected a mapping of settings (train.py's config), got a {type(cfg).__name__}")
+    if not isinstance(cfg.get("data"), DictConfig):
+        raise FacesynthError(f"{path}: no 'data' settings (the run's data and split); not a train.py config?")
+    missing = [f"data.{f.name}" for f in fields(DataConf) if f.name not in cfg.data] + \
+        (["seed"] if "seed" not in cfg else [])
+    if missing:
+        raise FacesynthError(f"{path}: missing {', '.join(missing)} (train.py writes every setting)")
+    return cfg
 
 
 def run_data(cfg) -> tuple[FaceSequence, np.ndarray, np.ndarray]:
@@ -83,6 +104,31 @@ def training_landmarks(run_dir: str | os.PathLike) -> np.ndarray:
                                "(the training landmarks) or --components 0 (no appearance compression)")
     seq, rows, _ = run_data(cfg)
     return np.asarray(seq.landmarks[rows], np.float32)
+
+
+def input_files(run_dir: str | os.PathLike) -> list[Path]:
+    """Every file a run's export reads or that belongs to the run: the run folder's own files
+    and, as its ``config.yaml`` names them, its training data (an ingest folder's
+    ``landmarks.npy``, ``meta.json`` and video, or a landmark file). An output written onto
+    one of them would destroy the run (``io.refuse_overwriting_inputs``); a config that
+    cannot be read names no data (its own error comes when the data is loaded)."""
+    d = Path(run_dir)
+    files = [p for p in d.rglob("*") if p.is_file()] if d.is_dir() else []
+    try:
+        cfg = read_config(d)
+        data = Path(str(cfg.data.path)) if cfg.data.kind == "video" and cfg.data.path else None
+    except FacesynthError:
+        data = None
+    if data is not None and data.is_dir():
+        files += [data / "landmarks.npy", data / "meta.json"]
+        try:
+            video, _ = ingest_video(data)
+        except FacesynthError:
+            video = None
+        files += [video] if video is not None else []
+    elif data is not None:
+        files.append(data)
+    return files
 
 
 def is_eri_run(run_dir: str | os.PathLike) -> bool:

@@ -36,7 +36,7 @@ import numpy as np
 from facesynth.errors import FacesynthError
 from facesynth.io import atomic_path, check_writable, refuse_overwriting_inputs
 from facesynth.progress import bar, stage
-from facesynth.runtime.checks import check_coordinate_range, check_frame_size, check_in_frame
+from facesynth.runtime.checks import check_coordinate_range, check_face_extent, check_frame_size, check_in_frame
 from facesynth.runtime.video import (
     contact_sheet,
     detect_video_landmarks,
@@ -139,12 +139,14 @@ def check_options(args: argparse.Namespace) -> list[str]:
 
 
 def check_faces(landmarks: np.ndarray, where: str, max_frames: int | None) -> None:
-    """FacesynthError naming ``where`` when the driver has no frame, or no frame with a face."""
+    """FacesynthError naming ``where`` when the driver has no frame, no frame with a face, or a
+    face whose points all lie within 1 px."""
     if not len(landmarks):
         raise FacesynthError(f"{where}: holds no frames (0 landmark rows), nothing to render")
     if not np.isfinite(landmarks).all(axis=(1, 2)).any():
         rows = f"the first {len(landmarks)} rows (--max-frames)" if max_frames else f"all {len(landmarks)} rows"
         raise FacesynthError(f"{where}: no frame has a face ({rows} are NaN), nothing to render")
+    check_face_extent(landmarks, str(where))  # a face collapsed to a point cannot be aligned (NaN rows pass)
 
 
 def detect_with_progress(driver, max_frames: int | None, scheme: str, enabled: bool) -> np.ndarray:
@@ -164,6 +166,10 @@ def detect_with_progress(driver, max_frames: int | None, scheme: str, enabled: b
         raise FacesynthError(f"{driver.path}: no frames decoded, nothing to render")
     if not found:
         raise FacesynthError(f"{driver.path}: no face found in any of its {len(landmarks)} frames, nothing to render")
+    wanted = min(len(driver), max_frames or len(driver))
+    if len(landmarks) < wanted:  # a file cut short (a faststart mp4 keeps its whole index): say so, render what decodes
+        log.warning("%s: only %d of the %d frames its header declares decode (a truncated file?); rendering %d frames",
+                    driver.path, len(landmarks), len(driver), len(landmarks))
     return landmarks
 
 

@@ -32,6 +32,17 @@ def check_coordinate_range(landmarks: np.ndarray, field: str = "landmarks") -> N
                              "landmarks are frame pixels (x, y)")
 
 
+def check_face_extent(landmarks: np.ndarray, field: str = "landmarks") -> None:
+    """FacesynthError naming the rows of finite (B, P, 2) whose points all lie within 1 px (a
+    collapsed face: the models' similarity alignment divides by its size)."""
+    x = np.asarray(landmarks)
+    extent = (x.max(1) - x.min(1)).max(1)  # (B,) larger side of each face's bounding box
+    if (extent < 1.0).any():
+        bad = np.flatnonzero(extent < 1.0)
+        raise FacesynthError(f"{field}: degenerate faces (all {x.shape[1]} points within 1 px) in batch rows "
+                             f"{bad[:10].tolist()}")
+
+
 def check_in_frame(landmarks: np.ndarray, size: tuple[int, int], field: str = "landmarks") -> None:
     """FacesynthError naming the rows of (T, P, 2) (NaN rows skipped) with a point further
     than one frame size outside the frame of ``size`` (W, H)."""

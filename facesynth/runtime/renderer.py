@@ -20,7 +20,13 @@ from facesynth.contract import FORMAT_HINTS, OUTPUT_NAMES, SYNTHESIS_FORMAT, SYN
 from facesynth.errors import FacesynthError
 from facesynth.imaging import STILL_FEATHER, composite, crop_rgb
 from facesynth.landmarks import SCHEMES, scheme_for_points
-from facesynth.runtime.checks import as_array, check_coordinate_range, check_metadata_size, check_outputs
+from facesynth.runtime.checks import (
+    as_array,
+    check_coordinate_range,
+    check_face_extent,
+    check_metadata_size,
+    check_outputs,
+)
 from facesynth.runtime.cpu import check_int8_basis
 
 
@@ -157,10 +163,7 @@ class Renderer:
         x = check_batch(landmarks, "landmarks", (n, 2), "(x, y) pixels", f"{self.scheme.name} points, x y",
                         " (drop frames without a face)")
         check_coordinate_range(x)
-        extent = (x.max(1) - x.min(1)).max(1)  # (B,) larger side of each face's bounding box
-        if (extent < 1.0).any():
-            bad = np.flatnonzero(extent < 1.0)
-            raise FacesynthError(f"landmarks: degenerate faces (all {n} points within 1 px) in batch rows {bad[:10].tolist()}")
+        check_face_extent(x)
         return x
 
     # -------------------------------------------------------------- running

@@ -17,7 +17,7 @@ import tempfile
 from pathlib import Path
 
 from facesynth.errors import FacesynthError
-from facesynth.io import atomic_dir
+from facesynth.io import atomic_dir, check_writable, refuse_overwriting_inputs, set_default_mode
 
 PAGE = Path(__file__).resolve().parent / "page"  # the page and its npm manifest: package data
 PAGE_FILES = ("index.html", "main.js", "worker.js", "tracker.js", "neutral.js", "schemes.js", "onnxmeta.js",
@@ -27,6 +27,7 @@ ORT_FILES = ("ort.wasm.min.mjs", "ort-wasm-simd-threaded.mjs", "ort-wasm-simd-th
 HEADERS = {"Cross-Origin-Opener-Policy": "same-origin", "Cross-Origin-Embedder-Policy": "require-corp",
            "Cache-Control": "no-store"}
 AVATAR, AVATAR_DATA = "avatar.onnx", "avatar.onnx.data"  # the page's avatar: graph, weights
+SITE_MARK = ".facesynth-site"  # in every folder 'web build' writes: a rebuild may replace that folder, never another
 INSTALL_HINT = "run 'facesynth web setup' once (npm ci of the page's lockfile)"
 
 
@@ -90,6 +91,29 @@ def check_avatar(model: str | Path) -> dict:
     return meta
 
 
+def check_site_folder(out: str | Path, model: str | Path | None = None) -> Path:
+    """``web build``'s OUT, before any work: a missing folder, an empty one, or one an earlier
+    build wrote (it holds :data:`SITE_MARK`), since OUT is replaced as a whole. Refused, each
+    in one line naming OUT: an existing file (the model itself too), a symbolic link, the
+    current folder or one above it, the package's own page folder or one above it, the
+    model's own folder, and a folder holding anything else (the user's files are never
+    deleted)."""
+    path = Path(out)
+    if path.is_symlink():
+        raise FacesynthError(f"{out}: a symbolic link; name the folder itself (a link is never replaced)")
+    check_writable(path, folder=True)  # an existing file, the model file too, is refused here
+    real, cwd = Path(os.path.realpath(path)), Path.cwd().resolve()
+    if path.name in ("", ".", "..") or real == cwd or real in cwd.parents:
+        raise FacesynthError(f"{out}: the current folder or one above it; name a new folder for the page")
+    if real == PAGE or real in PAGE.parents or PAGE in real.parents:
+        raise FacesynthError(f"{out}: the package's own page folder ({PAGE}) or one holding it; name a new folder")
+    refuse_overwriting_inputs([path], [model])  # the model's own folder (it would be replaced as a whole)
+    if path.is_dir() and any(path.iterdir()) and not (path / SITE_MARK).is_file():
+        raise FacesynthError(f"{out}: the folder holds files that 'facesynth web build' did not write; it would be "
+                             "replaced as a whole: name a new or empty folder")
+    return path
+
+
 def schemes_json() -> dict:
     """Landmark tables for the page: each scheme's size and its (68, P) map to iBUG-68."""
     from facesynth.landmarks import get_scheme
@@ -135,16 +159,21 @@ def split_avatar(model: str | Path, out: Path) -> None:
     onnx.save_model(m, out / AVATAR, save_as_external_data=True, all_tensors_to_one_file=True,
                     location=AVATAR_DATA, size_threshold=1024)
     (out / AVATAR_DATA).touch()  # the page loads it: there even when no weight is large enough to move
+    for f in (AVATAR, AVATAR_DATA):  # onnx writes the weights 0600: a web server of another user could not read them
+        set_default_mode(out / f)
 
 
 def build_site(model: str | Path, out: str | Path) -> Path:
-    """Write the self-contained page folder ``out`` for ``model``; returns it."""
+    """Write the self-contained page folder ``out`` for ``model`` (``out`` as
+    :func:`check_site_folder` allows); returns it."""
     from facesynth.contract import SYNTHESIS_FORMAT, TALKING_HEAD_FORMAT
 
+    check_site_folder(out, model)
     meta = check_avatar(model)
     dist = ort_dist()
     models = tracker_dir()
     with atomic_dir(out) as tmp:
+        (tmp / SITE_MARK).write_text("written by 'facesynth web build': the folder is replaced by a rebuild\n")
         for f in PAGE_FILES:
             shutil.copy2(PAGE / f, tmp / f)
         (tmp / "ort").mkdir()
