@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import contextlib
 import shutil
-import threading
 from pathlib import Path
 from urllib.parse import urlparse
 
@@ -53,17 +52,14 @@ def write_y4m(video: str | Path, out: str | Path, max_frames: int = 150, size: t
 
 @contextlib.contextmanager
 def served(folder: str | Path):
-    """Serve ``folder`` on 127.0.0.1 in a thread; yields the base URL."""
-    from facesynth.web.site import make_server
+    """Serve ``folder`` on 127.0.0.1 in a thread, as ``facesynth serve`` serves its page (the same
+    app and checks, :mod:`facesynth.web.server`); yields the base URL."""
+    from facesynth.web import server
 
-    server = make_server(folder, 0)
-    t = threading.Thread(target=server.serve_forever, daemon=True)
-    t.start()
-    try:
-        yield f"http://127.0.0.1:{server.server_address[1]}/"
-    finally:
-        server.shutdown()
-        server.server_close()
+    sock = server.listen(0)
+    app = server.create_app(sock.getsockname()[1], app=server.folder_app(folder))
+    with server.running(app, sock) as url:
+        yield url
 
 
 @contextlib.contextmanager
