@@ -161,6 +161,7 @@ def _idle_sockets_closed(url: str, pid: int, n: int = 400) -> dict:
     socks = [socket.create_connection((host, int(port)), timeout=10) for _ in range(n)]
     try:
         t0 = time.monotonic()
+        opened = _threads_fds(pid)
         deadline = t0 + 10 * server.IDLE_S
         open_ = set(socks)
         while open_ and time.monotonic() < deadline:  # poll: each socket reads EOF when the server closes it
@@ -168,19 +169,19 @@ def _idle_sockets_closed(url: str, pid: int, n: int = 400) -> dict:
             for s in ready:
                 if s.recv(1) == b"":
                     open_.discard(s)
-        during = _threads_fds(pid)
         closed_s = time.monotonic() - t0
+        closed = _threads_fds(pid)
     finally:
         for s in socks:
             s.close()
-    return {"before": before, "during": during, "still_open": len(open_), "closed_after_s": closed_s}
+    return {"before": before, "opened": opened, "closed": closed, "still_open": len(open_), "closed_after_s": closed_s}
 
 
 def test_idle_sockets_are_closed(url):
     """400 idle sockets: no thread each, and the server closes them all (in this process, a thread's server)."""
     got = _idle_sockets_closed(url, os.getpid())
     assert got["still_open"] == 0, got
-    assert got["during"][0] <= got["before"][0] + 2, got  # no thread per socket
+    assert max(got["opened"][0], got["closed"][0]) <= got["before"][0] + 2, got  # no thread per socket
 
 
 def _serve(model: Path, tmp: Path, cache: Path):
@@ -237,11 +238,11 @@ def test_serve_process(tmp_path):
             assert 400 <= _get(url, path)[0] < 500, path
         got = _idle_sockets_closed(url, proc.pid)
         assert got["still_open"] == 0, got
-        assert got["during"][0] <= got["before"][0] + 2, got
+        assert max(got["opened"][0], got["closed"][0]) <= got["before"][0] + 2, got
         end = time.monotonic() + 30
-        while _threads_fds(proc.pid)[1] > got["before"][1] and time.monotonic() < end:
+        while _threads_fds(proc.pid)[1] > got["before"][1] + 4 and time.monotonic() < end:
             select.select([], [], [], 0.1)  # the server's fds of the closed sockets go as it sees them closed
-        assert _threads_fds(proc.pid)[1] <= got["before"][1], (got, _threads_fds(proc.pid))
+        assert _threads_fds(proc.pid)[1] <= got["before"][1] + 4, (got, _threads_fds(proc.pid))  # not one per socket
     finally:
         proc.kill()  # SIGKILL: nothing to clean up after it
         proc.wait(timeout=30)
