@@ -400,3 +400,62 @@ def test_a_corrupt_avatar_is_refused_and_the_current_one_runs_on(page_site, came
         frames = page.evaluate("window.facesynth.state.frames")
         page.wait_for_function(f"window.facesynth.state.frames >= {frames + 30}", timeout=30000)
     assert blocked == []
+
+
+def _fails_off_its_neutral(path: Path) -> bytes:
+    """``path``'s talking head with one more step on its landmarks output: a Reshape that fails
+    whenever the driver differs from the driver's neutral. It passes the page's check (a run at its
+    own neutral) and fails on the first live frame that moved."""
+    import onnx
+    from onnx import TensorProto, helper
+
+    m = onnx.load(str(path))
+    g = m.graph
+    for node in g.node:
+        node.output[:] = ["lm_raw" if o == "avatar_landmarks" else o for o in node.output]
+    g.initializer.extend([helper.make_tensor("zero1", TensorProto.FLOAT, [1], [0.0]),
+                          helper.make_tensor("one64", TensorProto.INT64, [1], [1])])
+    g.node.extend([
+        helper.make_node("Sub", ["driver", "driver_neutral"], ["moved"]),
+        helper.make_node("Abs", ["moved"], ["moved_abs"]),
+        helper.make_node("ReduceMax", ["moved_abs"], ["moved_max"], keepdims=0),
+        helper.make_node("Greater", ["moved_max", "zero1"], ["off"]),
+        helper.make_node("Cast", ["off"], ["off64"], to=TensorProto.INT64),
+        helper.make_node("Add", ["off64", "one64"], ["shape"]),  # [1] at the neutral, [2] off it
+        helper.make_node("Reshape", ["zero1", "shape"], ["pad"]),  # one value into two: fails
+        helper.make_node("Add", ["lm_raw", "pad"], ["avatar_landmarks"]),
+    ])
+    return m.SerializeToString()
+
+
+@pytest.mark.slow
+def test_an_avatar_failing_on_a_live_frame_is_reported_once_and_replaced_by_the_one_before(page_site, camera, avatar, tmp_path):
+    from facesynth.runtime.talking_head import TalkingHead
+
+    path, _ = avatar
+    data = _fails_off_its_neutral(path)
+    f = tmp_path / "fails_live.onnx"
+    f.write_bytes(data)
+    neutral = np.asarray(TalkingHead(path).metadata["avatar_neutral"], np.float32)
+    th = TalkingHead(f, driver_neutral=neutral)
+    th.run(neutral[None])  # runs at its own neutral
+    with pytest.raises(Exception, match="Reshape"):
+        th.run(neutral[None] + 1)  # fails off it
+    (page_site / f.name).write_bytes(data)
+    with browser.served(page_site) as url, browser.browser_page(camera) as (page, blocked):
+        page.goto(url + "?workers=1")
+        _wait(page, "window.facesynth && window.facesynth.state.frames >= 30")
+        name = page.inner_text("#avatarname")
+        n_msgs = len(page.evaluate("window.facesynth.state.messages"))
+        page.evaluate("async (f) => window.facesynth.loadFile(new File([await (await fetch(f)).arrayBuffer()], f))", f.name)
+        page.wait_for_function("window.facesynth.state.messages.some((m) => m.text.includes('failed on a live frame'))",
+                               timeout=60000)
+        page.wait_for_function(f"document.getElementById('avatarname').textContent === {name!r}", timeout=60000)
+        frames = page.evaluate("window.facesynth.state.frames")
+        page.wait_for_function(f"window.facesynth.state.frames >= {frames + 30}", timeout=30000)  # the one before draws
+        texts = [m["text"] for m in page.evaluate("window.facesynth.state.messages")[n_msgs:]]
+        failed = [t for t in texts if "failed on a live frame" in t]
+        assert texts[0] == "Loaded fails_live.onnx." and len(failed) == 1, texts
+        assert failed[0].startswith("fails_live.onnx failed on a live frame (") and failed[0].endswith(f"back to {name.split()[1]}.")
+        assert not [t for t in texts if t.startswith("Worker error")], texts
+    assert blocked == []
