@@ -73,10 +73,13 @@ async function loadAvatar(msg) {
 }
 
 // An error's text for a message: printable, one line, short. ONNX Runtime's messages can carry raw
-// bytes of its memory, which differ each time and would defeat the page's repeat check.
+// bytes of its memory, which differ each time and would defeat the page's repeat check; its call
+// prefix and source paths say nothing to the user, and the cause comes last, so a long text keeps its end.
 function clean(e, max = 160) {
-  const s = String((e && e.message) || e).replace(/[\x00-\x1f\x7f-\x9f\ufffd]+/g, ' ').replace(/\s+/g, ' ').trim();
-  return s.length > max ? s.slice(0, max) + '...' : s;
+  const s = String((e && e.message) || e).replace(/[\x00-\x1f\x7f-\x9f\ufffd]+/g, ' ')
+    .replace(/^failed to call OrtRun\(\)\. ERROR_CODE: \d+, ERROR_MESSAGE: /, '')
+    .replace(/\S*\/[\w.-]+\.(cc|cpp|h):\d+ /g, '').replace(/\s+/g, ' ').trim();
+  return s.length > max ? '...' + s.slice(-max) : s;
 }
 
 // What a file must pass before the page takes it: its graph takes and gives the contract's names, and
