@@ -127,7 +127,8 @@ function loadAvatar(files, name) {
 }
 
 async function swapInAvatar(files, name) {
-  const two = state.workers === 2, w = startWorker(!two);
+  const two = state.workers === 2, w = state.fresh ?? startWorker(!two);
+  state.fresh = null;
   let g;
   try {  // the file is read and checked while the worker starts (its messages wait for its start)
     [, g] = await Promise.all([w.ready, AvatarGraph.create(files, name, state.schemes, state.formats, w)]);
@@ -393,8 +394,10 @@ async function main() {
   setupDrop(); setupRecording();
   $('neutral').onclick = captureNeutral;
   $('showcam').onchange = (e) => { $('camera').style.display = e.target.checked ? '' : 'none'; };
-  // the tracker's worker is the avatar's too (made by loadAvatar), unless there are two from the start
+  // the tracker's worker is the avatar's too (made by loadAvatar), unless there are two from the start;
+  // the first avatar's is started now, while the page's files come
   if (WORKERS === '2') { state.worker = startWorker(true); state.workers = 2; }
+  state.fresh = startWorker(WORKERS !== '2');
   const site = await (await fetch('site.json')).json();
   state.schemes = await (await fetch('schemes.json')).json();
   state.formats = site.formats;
@@ -409,9 +412,10 @@ async function main() {
     }));
     return { graph, weights, weightsPath: site.avatar_data };
   };
+  const camera = startCamera().then(() => { state.camera = true; },  // the camera starts while the avatar loads
+    (e) => { message(e.message, true); window.facesynth.cameraError = e.message; });
   try { await loadAvatar(files, site.avatar_name); } catch (e) { message(`${e.message} Drop another avatar.`, true); }
-  try { await startCamera(); } catch (e) { message(e.message, true); window.facesynth.cameraError = e.message; return; }
-  state.camera = true;
+  await camera;
   await goLive();
 }
 
