@@ -51,41 +51,13 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from facesynth.runtime.cpu import cpu_flags  # noqa: E402
 from facesynth.web import browser, site  # noqa: E402
+from facesynth.web.browser import chromium_tree, memory_mb  # noqa: E402
 
 TICK = os.sysconf("SC_CLK_TCK")
 # the page's figures, and only them: serialising the whole state (the avatar's metadata, its
 # neutral frame as JPEG) made 25 MB of garbage in the page being measured
 STATS = """(({ frames, firstFrameMs, trackerMs, avatarMs, compositeMs, latencyMs, messages, workers }) =>
     ({ frames, firstFrameMs, trackerMs, avatarMs, compositeMs, latencyMs, messages, workers }))(window.facesynth.state)"""
-
-
-def _procs():
-    out = {}
-    for p in Path("/proc").iterdir():
-        if not p.name.isdigit():
-            continue
-        try:
-            stat = (p / "stat").read_text()
-            cmd = (p / "cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
-        except OSError:
-            continue
-        out[int(p.name)] = (int(stat[stat.rindex(")") + 2:].split()[1]), cmd)
-    return out
-
-
-def chromium_tree(marker: str) -> tuple[list[int], list[int]]:
-    """(pids of the Chromium launched with ``marker`` and its descendants, its renderers' pids)."""
-    procs = _procs()
-    roots = [pid for pid, (_, cmd) in procs.items() if marker in cmd and "--type=" not in cmd]
-    tree = set(roots)
-    grew = True
-    while grew:
-        grew = False
-        for pid, (ppid, _) in procs.items():
-            if ppid in tree and pid not in tree:
-                tree.add(pid)
-                grew = True
-    return sorted(tree), [p for p in tree if "--type=renderer" in procs[p][1]]
 
 
 def thread_cpu(pid: int) -> dict[str, float]:
@@ -112,16 +84,6 @@ def process_cpu(pids) -> float:
         v = f[f.rindex(")") + 2:].split()
         total += (int(v[11]) + int(v[12])) / TICK
     return total
-
-
-def memory_mb(pid: int) -> dict[str, float]:
-    """The process's resident memory: VmRSS (shared libraries included) and RssAnon (its own)."""
-    out = {}
-    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-        key = line.split(":")[0]
-        if key in ("VmRSS", "RssAnon"):
-            out[key] = round(int(line.split()[1]) / 1024, 1)
-    return out
 
 
 def python_avatar_ms(model: Path, n: int = 200) -> float:

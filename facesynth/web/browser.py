@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import contextlib
 import shutil
-import threading
 from pathlib import Path
 from urllib.parse import urlparse
 
@@ -53,17 +52,55 @@ def write_y4m(video: str | Path, out: str | Path, max_frames: int = 150, size: t
 
 @contextlib.contextmanager
 def served(folder: str | Path):
-    """Serve ``folder`` on 127.0.0.1 in a thread; yields the base URL."""
-    from facesynth.web.site import make_server
+    """Serve ``folder`` on 127.0.0.1 in a thread, as ``facesynth serve`` serves its page (the same
+    app and checks, :mod:`facesynth.web.server`); yields the base URL."""
+    from facesynth.web import server
 
-    server = make_server(folder, 0)
-    t = threading.Thread(target=server.serve_forever, daemon=True)
-    t.start()
-    try:
-        yield f"http://127.0.0.1:{server.server_address[1]}/"
-    finally:
-        server.shutdown()
-        server.server_close()
+    sock = server.listen(0)
+    app = server.create_app(sock.getsockname()[1], app=server.folder_app(folder))
+    with server.running(app, sock) as url:
+        yield url
+
+
+def _procs() -> dict[int, tuple[int, str]]:
+    """pid -> (parent pid, command line) of every process."""
+    out = {}
+    for p in Path("/proc").iterdir():
+        if not p.name.isdigit():
+            continue
+        try:
+            stat = (p / "stat").read_text()
+            cmd = (p / "cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
+        except OSError:
+            continue
+        out[int(p.name)] = (int(stat[stat.rindex(")") + 2:].split()[1]), cmd)
+    return out
+
+
+def chromium_tree(marker: str) -> tuple[list[int], list[int]]:
+    """(pids of the Chromium launched with ``marker`` among its switches and its descendants, its
+    renderers' pids); a page's dedicated workers are threads of its renderer."""
+    procs = _procs()
+    roots = [pid for pid, (_, cmd) in procs.items() if marker in cmd and "--type=" not in cmd]
+    tree = set(roots)
+    grew = True
+    while grew:
+        grew = False
+        for pid, (ppid, _) in procs.items():
+            if ppid in tree and pid not in tree:
+                tree.add(pid)
+                grew = True
+    return sorted(tree), [p for p in tree if "--type=renderer" in procs[p][1]]
+
+
+def memory_mb(pid: int) -> dict[str, float]:
+    """The process's resident memory: VmRSS (shared libraries included) and RssAnon (its own)."""
+    out = {}
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        key = line.split(":")[0]
+        if key in ("VmRSS", "RssAnon"):
+            out[key] = round(int(line.split()[1]) / 1024, 1)
+    return out
 
 
 @contextlib.contextmanager

@@ -1,14 +1,12 @@
 """The browser page as a folder: ``page/`` (the page, package data), onnxruntime-web's files (npm), the face
 tracker converted from the installed MediaPipe wheel, the avatar and the landmark tables the
 page needs. ``facesynth web build`` writes it; ``facesynth serve`` writes it to a temporary
-folder and serves it on 127.0.0.1 with the headers WebAssembly threads need.
+folder, reads it into memory and serves it on 127.0.0.1 (:mod:`facesynth.web.server`).
 """
 
 from __future__ import annotations
 
-import functools
 import hashlib
-import http.server
 import json
 import os
 import shutil
@@ -24,8 +22,6 @@ PAGE_FILES = ("index.html", "main.js", "worker.js", "tracker.js", "neutral.js", 
               "style.css")
 NPM_FILES = ("package.json", "package-lock.json")
 ORT_FILES = ("ort.wasm.min.mjs", "ort-wasm-simd-threaded.mjs", "ort-wasm-simd-threaded.wasm")
-HEADERS = {"Cross-Origin-Opener-Policy": "same-origin", "Cross-Origin-Embedder-Policy": "require-corp",
-           "Cache-Control": "no-store"}
 AVATAR, AVATAR_DATA = "avatar.onnx", "avatar.onnx.data"  # the page's avatar: graph, weights
 SITE_MARK = ".facesynth-site"  # in every folder 'web build' writes: a rebuild may replace that folder, never another
 INSTALL_HINT = "run 'facesynth web setup' once (npm ci of the page's lockfile)"
@@ -190,46 +186,46 @@ def build_site(model: str | Path, out: str | Path) -> Path:
     return Path(out)
 
 
-class _Handler(http.server.SimpleHTTPRequestHandler):
-    extensions_map = {**http.server.SimpleHTTPRequestHandler.extensions_map, ".mjs": "text/javascript",
-                      ".js": "text/javascript", ".wasm": "application/wasm", ".onnx": "application/octet-stream",
-                      ".data": "application/octet-stream"}
-
-    def end_headers(self):
-        for k, v in HEADERS.items():
-            self.send_header(k, v)
-        super().end_headers()
-
-    def log_message(self, *args):  # quiet: the page's own messages are what matter
-        pass
+STALE_PREFIX = "facesynth-web-"  # + PID + "-": the folder a serve builds its page in, before it reads it
 
 
-class _Server(http.server.ThreadingHTTPServer):
-    daemon_threads = True
-
-    def handle_error(self, request, client_address):
-        import sys
-
-        if not isinstance(sys.exc_info()[1], ConnectionError):  # a closed tab is no error
-            super().handle_error(request, client_address)
-
-
-def make_server(folder: str | Path, port: int = 0) -> http.server.ThreadingHTTPServer:
-    """An HTTP server on 127.0.0.1 (``port`` 0: a free one) serving ``folder``."""
-    handler = functools.partial(_Handler, directory=str(folder))
-    try:
-        return _Server(("127.0.0.1", port), handler)
-    except OSError as exc:
-        raise FacesynthError(f"cannot listen on 127.0.0.1:{port} ({exc.strerror})") from None
+def remove_stale_builds(root: str | Path | None = None) -> list[Path]:
+    """Remove the build folders in ``root`` (the temporary folder) left by a ``serve`` that was
+    killed while it built its page (its PID is gone); returns them. Folders of live processes and
+    folders of other names stay."""
+    removed = []
+    for d in Path(root or tempfile.gettempdir()).glob(STALE_PREFIX + "*-*"):
+        pid = d.name[len(STALE_PREFIX):].split("-", 1)[0]
+        if not pid.isdigit() or not d.is_dir() or d.is_symlink() or d.stat().st_uid != os.getuid():
+            continue
+        try:
+            os.kill(int(pid), 0)
+            continue  # alive (or another user's: PermissionError below is alive too)
+        except ProcessLookupError:
+            pass
+        except PermissionError:
+            continue
+        shutil.rmtree(d, ignore_errors=True)
+        removed.append(d)
+    return removed
 
 
 def serve(model: str | Path, port: int = 8000, ready=print) -> None:
-    """Build the page for ``model`` in a temporary folder and serve it until interrupted."""
-    with tempfile.TemporaryDirectory(prefix="facesynth-web-") as tmp:
-        site = build_site(model, Path(tmp) / "site")
-        server = make_server(site, port)
-        ready(f"http://127.0.0.1:{server.server_address[1]}/")
-        try:
-            server.serve_forever()
-        finally:
-            server.server_close()
+    """Serve the page for ``model`` on 127.0.0.1 until interrupted (:mod:`facesynth.web.server`).
+    The page is built in a temporary folder, read into memory and the folder removed before the
+    server starts: a killed server leaves nothing on disk."""
+    from facesynth.web import server
+
+    check_avatar(model)  # before any work
+    remove_stale_builds()
+    sock = server.listen(port)
+    try:
+        with tempfile.TemporaryDirectory(prefix=f"{STALE_PREFIX}{os.getpid()}-") as tmp:
+            files = server.Files.of_folder(build_site(model, Path(tmp) / "site"))
+        port = sock.getsockname()[1]
+        app = server.create_app(port, app=files)
+    except BaseException:
+        sock.close()
+        raise
+    ready(f"http://{server.HOST}:{port}/")
+    server.run(app, sock)

@@ -1,7 +1,8 @@
 // facesynth live: the webcam drives an avatar, on the CPU (WebAssembly), offline.
 // One worker (worker.js) tracks each camera frame and renders the avatar from it, in one ONNX
 // Runtime instance (each costs ~60 MB); this page captures the driver's neutral, draws the frames
-// and records them. Where that worker's stage (tracker + avatar) takes longer than a frame's
+// and records them. Each avatar is loaded into a new worker and checked there before it replaces
+// the current one (loadAvatar): a file that fails leaves with its worker, memory and all. Where that worker's stage (tracker + avatar) takes longer than a frame's
 // budget, the avatar moves to a second worker and renders beside the tracker (docs/web.md).
 // URL options: ?workers=1|2|auto (default auto) and ?stage_ms=N (auto's budget, default 30).
 import { selectNeutral } from './neutral.js';
@@ -16,7 +17,8 @@ const WORKERS = options.get('workers') ?? 'auto', STAGE_MS = Number(options.get(
 const $ = (id) => document.getElementById(id);
 const state = { frames: 0, trackerMs: [], avatarMs: [], compositeMs: [], latencyMs: [], messages: [], firstFrameMs: null,
   avatar: null, neutral: null, neutralSamples: [], neutralStart: null, noFace: 0, busy: false, ready: false,
-  calls: 0, pending: new Map(), workers: 1, latest: null, rendering: false };
+  calls: 0, pending: new Map(), workers: 1, latest: null, rendering: false, previous: null, loading: Promise.resolve(),
+  camera: false, live: false };
 window.facesynth = { state };
 
 function message(text, error = false) {
@@ -29,6 +31,10 @@ function message(text, error = false) {
 }
 
 const SCHEMES = ['ibug68', 'mediapipe478'];  // the avatars the tracker's 478 points drive
+// a talking head's input and output names: facesynth/contract.py's TALKING_HEAD_INPUTS and
+// TALKING_HEAD_OUTPUTS (tests/test_web_page.py checks they are the same)
+const CONTRACT = { inputs: ['driver', 'driver_neutral'], outputs: ['frame', 'avatar_landmarks'] };
+window.facesynth.contract = CONTRACT;
 
 // The avatar: one talking-head graph (facesynth export RUN --talking-head): driver landmarks (1, P, 2)
 // and the driver's neutral (P, 2) -> the avatar's whole frame (1, H, W, 3) uint8, its head warped
@@ -59,8 +65,16 @@ class AvatarGraph {
     g.bg = new Image();
     g.bg.src = 'data:image/jpeg;base64,' + meta.background_jpeg;
     try { await g.bg.decode(); } catch { throw new Error(`${name}: its neutral frame (background_jpeg) is not a JPEG (re-export it)`); }
-    await g.loadInto(worker, f);  // last: the worker swaps avatars only for one the page can show
     [g.width, g.height] = meta.frame_size;
+    if (g.bg.naturalWidth !== g.width || g.bg.naturalHeight !== g.height) {
+      throw new Error(`${name}: its neutral frame is ${g.bg.naturalWidth} x ${g.bg.naturalHeight}, its frame_size ${g.width} x ${g.height} (re-export it)`);
+    }
+    const c = new OffscreenCanvas(g.width, g.height).getContext('2d');
+    c.drawImage(g.bg, 0, 0);
+    // what the worker checks the file against before it takes it (worker.js: checkAvatar)
+    g.check = { ...CONTRACT, neutral: meta.avatar_neutral, background: c.getImageData(0, 0, g.width, g.height).data,
+      width: g.width, height: g.height };
+    await g.loadInto(worker, f);  // last: the worker takes the avatar only once it has passed the check
     g.rgba = new ImageData(g.width, g.height);
     return g;
   }
@@ -69,7 +83,7 @@ class AvatarGraph {
   async loadInto(worker, f) {
     f ??= await this.files();
     await call(worker, 'avatar', { graph: f.graph, weights: f.weights, weightsPath: f.weightsPath, name: this.name, n: this.n,
-      rows: this.rows }, [f.graph, f.weights].filter(Boolean));
+      rows: this.rows, check: this.check }, [f.graph, f.weights].filter(Boolean));
   }
 
   // driver points and the driver's neutral, both in the avatar's scheme (P x 2 flat) -> frame {data: uint8 H x W x 3, dims}
@@ -102,14 +116,51 @@ function release(...buffers) {
   if (state.worker && buffers.length) state.worker.postMessage({ type: 'spent', buffers }, buffers);
 }
 
-async function loadAvatar(files, name) {
-  const g = await AvatarGraph.create(files, name, state.schemes, state.formats, state.renderer);
+// An avatar into a new worker (with the tracker when there is one worker), checked there; only then
+// does it replace the current avatar and its worker. On failure the new worker is terminated: the
+// file's session and whatever memory it took go with it, and the current avatar runs on untouched.
+// One load at a time, in the order asked.
+function loadAvatar(files, name) {
+  const run = state.loading.then(() => swapInAvatar(files, name));
+  state.loading = run.catch(() => {});
+  return run;
+}
+
+async function swapInAvatar(files, name) {
+  const two = state.workers === 2, w = state.fresh ?? startWorker(!two);
+  state.fresh = null;
+  let g;
+  try {  // the file is read and checked while the worker starts (its messages wait for its start)
+    [, g] = await Promise.all([w.ready, AvatarGraph.create(files, name, state.schemes, state.formats, w)]);
+  } catch (e) {
+    w.terminate();
+    throw e;
+  }
+  const old = state.renderer;
+  if (state.neutral) w.postMessage({ type: 'neutral', points: state.neutral });
+  if (two) { state.renderer = w; state.rendering = false; }
+  else { state.worker = state.renderer = w; state.busy = false; }  // the frame the old worker had is dropped with it
+  if (old) old.terminate();
+  if (state.avatar) state.previous = state.avatar;
   state.avatar = g;
   const cv = $('avatar');
   cv.width = g.width; cv.height = g.height;
   state.ctx = cv.getContext('2d');
   state.ctx.drawImage(g.bg, 0, 0);
   $('avatarname').textContent = `avatar: ${name} (${g.scheme})`;
+  if (state.ready) sendFrame();
+}
+
+// The avatar failed on a live frame (its worker reports it once and stops running it): back to the
+// avatar before it, in a new worker, or none.
+async function onAvatarFailed(m, worker) {
+  if (worker !== state.renderer || !state.avatar) return;
+  const bad = state.avatar, prev = state.previous;
+  if (!prev) { message(`${bad.name} failed on a live frame (${m.message}). Drop another avatar.`, true); return; }
+  message(`${bad.name} failed on a live frame (${m.message}); back to ${prev.name}.`, true);
+  state.previous = null;
+  try { await loadAvatar(prev.files, prev.name); state.previous = null; }
+  catch (e) { message(`${e.message} Drop another avatar.`, true); }
 }
 
 // replay hook for tests and tools: driver points and the driver's neutral (P x 2 flat, the avatar's
@@ -249,11 +300,12 @@ function startWorker(tracker) {
     if (m.type === 'ready') w.started();
     else if (m.type === 'points') onPoints(m);
     else if (m.type === 'frame') onFrame(m, w);
+    else if (m.type === 'avatar-failed') onAvatarFailed(m, w);
     else if (p) { state.pending.delete(m.id); if (m.type === 'error') p.reject(new Error(m.message)); else p.resolve(m); }
     else if (m.type === 'error') {
-      state.busy = false;
+      if (w === state.worker) state.busy = false;
       if (w === state.renderer) state.rendering = false;
-      message(`Worker error: ${m.message}`, true);
+      if (w === state.worker || w === state.renderer) message(`Worker error: ${m.message}`, true);  // not from one let go
       w.failed(new Error(m.message));
     }
   };
@@ -330,8 +382,10 @@ function setupDrop() {
     if (f) await window.facesynth.loadFile(f);
   });
   window.facesynth.loadFile = async (file) => {
+    const had = state.avatar;
     try { await loadAvatar(async () => ({ graph: await file.arrayBuffer() }), file.name); message(`Loaded ${file.name}.`); }
-    catch (err) { message(`${err.message} The current avatar is kept.`, true); }
+    catch (err) { message(`${err.message} ${had ? 'The current avatar is kept.' : 'Drop another avatar.'}`, true); return; }
+    goLive();
   };
 }
 
@@ -340,8 +394,10 @@ async function main() {
   setupDrop(); setupRecording();
   $('neutral').onclick = captureNeutral;
   $('showcam').onchange = (e) => { $('camera').style.display = e.target.checked ? '' : 'none'; };
-  state.worker = state.renderer = startWorker(true);
-  if (WORKERS === '2') { state.renderer = startWorker(false); state.workers = 2; }  // the avatar never in the first
+  // the tracker's worker is the avatar's too (made by loadAvatar), unless there are two from the start;
+  // the first avatar's is started now, while the page's files come
+  if (WORKERS === '2') { state.worker = startWorker(true); state.workers = 2; }
+  state.fresh = startWorker(WORKERS !== '2');
   const site = await (await fetch('site.json')).json();
   state.schemes = await (await fetch('schemes.json')).json();
   state.formats = site.formats;
@@ -356,11 +412,19 @@ async function main() {
     }));
     return { graph, weights, weightsPath: site.avatar_data };
   };
-  try { await loadAvatar(files, site.avatar_name); } catch (e) { message(e.message, true); }
-  try { await startCamera(); } catch (e) { message(e.message, true); window.facesynth.cameraError = e.message; return; }
+  const camera = startCamera().then(() => { state.camera = true; },  // the camera starts while the avatar loads
+    (e) => { message(e.message, true); window.facesynth.cameraError = e.message; });
+  try { await loadAvatar(files, site.avatar_name); } catch (e) { message(`${e.message} Drop another avatar.`, true); }
+  await camera;
+  await goLive();
+}
+
+// Live once there are both a camera and an avatar (the page's own, or the first one dropped).
+async function goLive() {
+  if (!state.camera || !state.avatar || state.live) return;
+  state.live = true;
   await state.worker.ready;
   state.ready = true;
-  if (!state.avatar) return;
   captureNeutral();
   pump();
 }
