@@ -17,7 +17,7 @@ from pathlib import Path
 import pytest
 
 from facesynth.cli import main
-from facesynth.web import server
+from facesynth.web import server, site
 
 
 @pytest.fixture
@@ -134,12 +134,9 @@ def test_port_out_of_range_is_one_argparse_error(tmp_path, capsys):
 
 
 def test_port_in_use_is_one_line(tmp_path, capsys, monkeypatch):
-    from test_web_site import _tiny_onnx
+    from test_web_site import _site_avatar
 
-    from facesynth.contract import TALKING_HEAD_FORMAT
-
-    model = tmp_path / "a.onnx"
-    _tiny_onnx(model, {"format": TALKING_HEAD_FORMAT, "landmark_scheme": "ibug68"})
+    model = _site_avatar(tmp_path)  # a real talking head: serve checks it before it listens
     taken = server.listen(0)
     try:
         assert main(["serve", str(model), "--port", str(taken.getsockname()[1])]) == 2
@@ -233,7 +230,10 @@ def test_serve_process(tmp_path):
         status, _, body = _get(url, "/avatar.onnx.data", host="attacker.example")
         assert status == 403 and len(body) < 200
         status, _, body = _get(url, "/avatar.onnx.data")
-        assert status == 200 and len(body) == 2000 * 4  # the weights
+        split = tmp_path / "split"
+        split.mkdir()
+        site.split_avatar(model, split)
+        assert status == 200 and body == (split / "avatar.onnx.data").read_bytes()  # the avatar's weights
         for path in ("/%00", "/avatar.onnx%00", "/ort/", "/models/", "/../site.json"):
             assert 400 <= _get(url, path)[0] < 500, path
         got = _idle_sockets_closed(url, proc.pid)

@@ -29,17 +29,18 @@ def _tiny_onnx(path, metadata: dict) -> None:
 
 
 def _site_avatar(tmp_path):
-    """A stand-in avatar file for building the page; skips without what the page needs (the
-    tflite parser and MediaPipe for the tracker, onnxruntime-web from ``facesynth web setup``)."""
+    """A real talking-head file (the synthetic subject's, ~5 s: ``serve`` and ``web build`` check
+    it) for building the page; skips without what the page needs (the tflite parser and
+    MediaPipe for the tracker, onnxruntime-web from ``facesynth web setup``)."""
+    from _onnx_models import synthetic_talking_head
+
     pytest.importorskip("tflite")
     pytest.importorskip("mediapipe")
     try:
         site.ort_dist()
     except Exception as exc:
         pytest.skip(str(exc))
-    model = tmp_path / "avatar.onnx"
-    _tiny_onnx(model, {"format": TALKING_HEAD_FORMAT, "landmark_scheme": "ibug68"})
-    return model
+    return synthetic_talking_head(tmp_path)
 
 
 @pytest.mark.parametrize("command", [["web", "build"], ["serve"]])

@@ -214,9 +214,12 @@ def serve(model: str | Path, port: int = 8000, ready=print) -> None:
     """Serve the page for ``model`` on 127.0.0.1 until interrupted (:mod:`facesynth.web.server`).
     The page is built in a temporary folder, read into memory and the folder removed before the
     server starts: a killed server leaves nothing on disk."""
+    from facesynth.runtime.talking_head import check_talking_head_file
     from facesynth.web import server
 
     check_avatar(model)  # before any work
+    ort_dist()  # the page's npm packages
+    check_talking_head_file(model)  # its graph against the contract, a first run on its own neutral
     remove_stale_builds()
     sock = server.listen(port)
     try:
