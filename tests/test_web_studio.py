@@ -233,19 +233,19 @@ def run_flow(page, url: str, name: str, seconds: float, shots: Path | None = Non
     page.wait_for_function("!document.getElementById('train').disabled", timeout=300_000)
     t_recorded = page.evaluate("Date.now()")
     if shots:
-        page.screenshot(path=str(shots / "facesynth_studio_record.png"))
+        page.screenshot(path=str(shots / "facesynth_studio_record.png"), full_page=True)
     page.fill("#name", name)
     page.click("#train")
     page.wait_for_function("window.studio.state.job && (window.studio.state.job.percent > 20 || "
                            "['failed', 'cancelled'].includes(window.studio.state.job.state))", timeout=timeout_s * 1000)
     if shots:
-        page.screenshot(path=str(shots / "facesynth_studio_train.png"))
+        page.screenshot(path=str(shots / "facesynth_studio_train.png"), full_page=True)
     page.wait_for_function("window.studio.state.frames >= 10 || (window.studio.state.job && "
                            "['failed', 'cancelled'].includes(window.studio.state.job.state))", timeout=timeout_s * 1000)
     job = page.evaluate("window.studio.state.job")
     assert job["state"] == "done", job
     if shots:
-        page.screenshot(path=str(shots / "facesynth_studio_drive.png"))
+        page.screenshot(path=str(shots / "facesynth_studio_drive.png"), full_page=True)
     return {"record": t_record, "recorded": t_recorded, "train_pressed": page.evaluate("window.studio.state.trainPressedAt"),
             "first_frame": page.evaluate("window.studio.state.firstFrameAt"), "job": job,
             "coverage": page.evaluate("window.studio.state.coverage")}

@@ -141,8 +141,10 @@ class Studio:
                 msg = None
                 if not proc.is_alive():
                     break
-            if msg is None:
-                self._set(elapsed_s=time.time() - t0)
+            if msg is None:  # the estimate of the time left moves on between two reports too
+                elapsed = time.time() - t0
+                p = self.state.get("percent", 0.0) / 100
+                self._set(elapsed_s=elapsed, eta_s=elapsed * (1 - p) / p if p >= 0.03 else None)
                 continue
             if "stage" in msg:
                 stage = msg["stage"]

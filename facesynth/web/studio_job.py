@@ -97,6 +97,9 @@ def run_job(work: str, overrides: list[str], min_frames: int, min_face: float, q
             if text.startswith(name) and re.search(r" in \d+(\.\d+)? s$", text):  # a stage finished: the next one starts
                 report(names[min(k + 1, len(names) - 1)], 0.0)
                 return
+        if text.startswith("ONNX export") and re.search(r" in \d+(\.\d+)? s$", text):  # then the ONNX Runtime check
+            report("export", 0.7)
+            return
         m = BAR.search(text)
         if m and int(m.group(2)) > 0:
             report(current["stage"], int(m.group(1)) / int(m.group(2)))

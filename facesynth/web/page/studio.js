@@ -271,6 +271,7 @@ async function drive(name) {
     await call('avatar', { graph, name, n: state.schemes[scheme].n_points, rows: scheme === 'mediapipe478' ? null : state.schemes[scheme].to_ibug68 }, [graph]);
     const cv = $('avatar');
     cv.width = width; cv.height = height; cv.hidden = false;
+    $('view').classList.add('driving');
     const ctx = cv.getContext('2d'), bg = new Image();
     bg.src = 'data:image/jpeg;base64,' + meta.background_jpeg;
     await bg.decode();
