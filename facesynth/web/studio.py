@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import asyncio
 import json
-import multiprocessing
 import os
 import re
 import secrets
@@ -115,37 +114,52 @@ class Studio:
         return self.state["state"] in ("uploading", "running")
 
     def start(self, name: str, work: Path) -> None:
-        from facesynth.web import studio_job
+        import subprocess
+        import sys
 
-        ctx = multiprocessing.get_context("spawn")  # a fresh interpreter: no server threads or sockets in it
-        queue = ctx.Queue()
+        args = {"work": str(work), "overrides": self.overrides, "min_frames": self.min_frames, "min_face": self.min_face}
         self.cancelled = False
-        self.proc = ctx.Process(target=studio_job.run_job, daemon=True,
-                                args=(str(work), self.overrides, self.min_frames, self.min_face, queue))
-        self.proc.start()
+        self.proc = subprocess.Popen([sys.executable, "-m", "facesynth.web.studio_job", json.dumps(args)],
+                                     stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL)
         self._set(state="running", name=name, stage="decode", percent=0.0, eta_s=None, elapsed_s=0.0, message="",
                   started=time.time())
-        threading.Thread(target=self._watch, args=(self.proc, queue, name, work), daemon=True).start()
+        threading.Thread(target=self._watch, args=(self.proc, name, work), daemon=True).start()
 
-    def _watch(self, proc, queue, name: str, work: Path) -> None:
+    @staticmethod
+    def _read(proc, messages) -> None:
+        """The job's messages (its MARK lines on stdout) into ``messages``; None when it closes."""
+        from facesynth.web.studio_job import MARK
+
+        for line in proc.stdout:
+            text = line.decode(errors="replace")
+            if text.startswith(MARK):
+                try:
+                    messages.put(json.loads(text[len(MARK):]))
+                except ValueError:
+                    pass
+        messages.put(None)
+
+    def _watch(self, proc, name: str, work: Path) -> None:
+        import queue
+
         from facesynth.web.studio_job import STAGES
 
         weights = dict(STAGES)
         order = [s for s, _ in STAGES]
         t0 = time.time()
         result = None
+        messages: queue.Queue = queue.Queue()
+        threading.Thread(target=self._read, args=(proc, messages), daemon=True).start()
         while True:
             try:
-                msg = queue.get(timeout=0.25)
-            except Exception:  # noqa: BLE001 - queue.Empty, or the queue broken by a terminated process
-                msg = None
-                if not proc.is_alive():
-                    break
-            if msg is None:  # the estimate of the time left moves on between two reports too
+                msg = messages.get(timeout=0.25)
+            except queue.Empty:  # the estimate of the time left moves on between two reports too
                 elapsed = time.time() - t0
                 p = self.state.get("percent", 0.0) / 100
                 self._set(elapsed_s=elapsed, eta_s=elapsed * (1 - p) / p if p >= 0.03 else None)
                 continue
+            if msg is None:  # the job's stdout closed: it ended
+                break
             if "stage" in msg:
                 stage = msg["stage"]
                 done = sum(weights[s] for s in order[:order.index(stage)])
@@ -155,8 +169,7 @@ class Studio:
                 self._set(stage=stage, percent=round(100 * p, 1), eta_s=eta, elapsed_s=elapsed)
             else:
                 result = msg
-                break
-        proc.join()
+        proc.wait()
         if self.cancelled:
             shutil.rmtree(work, ignore_errors=True)
             self._set(state="cancelled", message="Training cancelled: nothing was added to the library.", eta_s=None)
@@ -174,12 +187,12 @@ class Studio:
                       message=f"{name} is ready.")
         else:
             shutil.rmtree(work, ignore_errors=True)
-            why = result["error"] if result else f"the training process stopped (exit status {proc.exitcode})"
+            why = result["error"] if result else f"the training process stopped (exit status {proc.returncode})"
             self._set(state="failed", message=f"Training failed: {why}", eta_s=None)
 
     def cancel(self) -> bool:
         proc = self.proc
-        if proc is None or not proc.is_alive() or self.state["state"] != "running":
+        if proc is None or proc.poll() is not None or self.state["state"] != "running":
             return False
         self.cancelled = True
         proc.terminate()  # SIGTERM: the job unwinds (install_sigterm_handler), its temporary files removed
@@ -189,7 +202,11 @@ class Studio:
         self.closing = True
         self.cancel()
         if self.proc is not None:
-            self.proc.join(30)
+            try:
+                self.proc.wait(30)
+            except Exception:  # noqa: BLE001 - subprocess.TimeoutExpired: it is killed
+                self.proc.kill()
+                self.proc.wait()
 
     # -- the library ----------------------------------------------------------------------
     def avatars(self) -> list[dict]:

@@ -4,9 +4,13 @@ the page's recorded frames (JPEG) -> one video -> ``facesynth ingest --landmarke
 each by the function its command calls, all inside one work folder (made by the server inside
 the library; renamed to the avatar's name by the server when the job succeeds).
 
-Progress goes to the server as dicts on a queue: ``{"stage", "fraction"}`` while a stage runs
-(the ``[facesynth]`` lines the commands print: their progress bars' ``n/total`` and their
-finished-stage lines), ``{"done": summary}`` or ``{"error": one line}`` at the end.
+    python -m facesynth.web.studio_job '{"work": DIR, "overrides": [...], "min_frames": N, "min_face": F}'
+
+Progress goes to the server as JSON lines on stdout, each after :data:`MARK`: ``{"stage",
+"fraction"}`` while a stage runs (the ``[facesynth]`` lines the commands print: their progress
+bars' ``n/total`` and their finished-stage lines), ``{"done": summary}`` or ``{"error": one
+line}`` at the end. A process of its own rather than a ``multiprocessing`` child: it does not
+import the server's ``__main__`` again, whichever way the server was started.
 """
 
 from __future__ import annotations
@@ -26,6 +30,7 @@ STAGES = (("decode", 0.04), ("ingest", 0.22), ("face model", 0.08), ("SADM fit",
 VIDEO = "recording.avi"  # the frames, in order: Motion JPEG, quality 95 (OpenCV writes it everywhere)
 UPLOAD = "upload.bin"  # the page's frames as received
 FPS = 30.0
+MARK = "@@facesynth-studio "  # starts each of the job's lines for the server (other output is ignored)
 BAR = re.compile(r": (\d+)/(\d+) ")  # a progress bar's line (facesynth.progress.bar)
 
 
@@ -161,3 +166,24 @@ def run_job(work: str, overrides: list[str], min_frames: int, min_face: float, q
             queue.put({"error": "the disk is full: free some space and train again"})
     except Exception as exc:  # noqa: BLE001 - any failure of the training is one line in the page
         queue.put({"error": f"training failed in {current['stage']}: {type(exc).__name__}: {exc}"})
+
+
+class _Messages:
+    """The server's end: each message one JSON line on the process's stdout, after MARK."""
+
+    def __init__(self, fd: int):
+        self.fd = fd
+
+    def put(self, msg: dict) -> None:
+        os.write(self.fd, (MARK + json.dumps(msg) + "\n").encode())
+
+
+def main(argv: list[str] | None = None) -> None:
+    args = json.loads((argv if argv is not None else sys.argv[1:])[0])
+    out = _Messages(os.dup(sys.stdout.fileno()))
+    sys.stdout = sys.__stderr__  # anything a library prints goes elsewhere than the messages
+    run_job(args["work"], args["overrides"], args["min_frames"], args["min_face"], out)
+
+
+if __name__ == "__main__":
+    main()
