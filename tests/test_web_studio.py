@@ -291,3 +291,30 @@ def test_page_shows_a_failed_training(tmp_path, camera):
         assert text.startswith("Training failed: the recording is too short") and "\n" not in text, text
         assert library_entries(lib) == []
     assert blocked == []
+
+
+def test_cli_serves_the_studio_and_refuses_a_file_as_library(tmp_path):
+    """``facesynth studio`` (``python -m facesynth``: the job's process must not start a second
+    server) answers on the port it prints; a file as the library is one line, exit 2."""
+    import signal
+    import subprocess
+    import sys
+
+    (tmp_path / "file").write_text("x")
+    done = subprocess.run([sys.executable, "-m", "facesynth", "studio", "--library", str(tmp_path / "file"), "--port", "0"],
+                          capture_output=True, text=True, timeout=120)
+    assert done.returncode == 2 and done.stderr.strip() == f"error: {tmp_path / 'file'}: the library must be a folder"
+    proc = subprocess.Popen([sys.executable, "-m", "facesynth", "studio", "--library", str(tmp_path / "lib"), "--port", "0"],
+                            stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+    try:
+        line = proc.stdout.readline()
+        assert line.startswith("open http://127.0.0.1:"), line
+        url = line.split()[1]
+        status, session = request(url, "GET", "/api/session")
+        assert status == 200 and len(session["token"]) >= 40 and session["library"] == str(tmp_path / "lib")
+        status, html = request(url, "GET", "/")
+        assert status == 200 and "facesynth studio" in html
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        proc.wait(60)
+    assert (tmp_path / "lib").is_dir() and library_entries(tmp_path / "lib") == []
