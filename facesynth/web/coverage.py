@@ -25,8 +25,10 @@ target, 0, 1)`` (the mean of the top 3 rather than the maximum: one mistracked f
 fill a direction). A prompt's coverage is the mean of its directions' coverage on its own frames
 (the neutral prompt: the share of its frames with a face); the recording's is the mean of every
 direction's coverage on all its frames. The targets are set by hand (a wide-open mouth opens by
-about a third of the eye-corner distance); how well the measure predicts held-out quality is
-not measured yet (docs/studio.md).
+about a third of the eye-corner distance). Across the shared clips the measure ranks clips
+opposite to their held-out PSNR (lively clips are both well covered and hard to render:
+``bench/coverage_heldout.py``, docs/studio.md): it says what a recording lacks, not how well its
+avatar will score.
 """
 
 from __future__ import annotations
