@@ -281,7 +281,7 @@ def test_page_shows_a_failed_training(tmp_path, camera):
     lib = tmp_path / "lib"
     with studio_served(lib, overrides=SMALL, min_frames=100000) as (url, studio), \
             browser.browser_page(camera) as (page, blocked):
-        page.goto(f"{url}?seconds=0.05")
+        page.goto(f"{url}?seconds=0.12")
         page.wait_for_function("!document.getElementById('record').disabled", timeout=120_000)
         page.click("#record")
         page.wait_for_function("!document.getElementById('train').disabled", timeout=120_000)

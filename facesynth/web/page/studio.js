@@ -175,7 +175,9 @@ async function record(list = PROMPTS) {
   step('record');
   try {
     for (const p of list) { await recordPrompt(p); updateCoverage(); }
-    message('Recorded. Redo any prompt whose meter is low, then train.');
+    const empty = PROMPTS.filter((p) => p.frames && !p.frames.length).map((p) => p.text);
+    if (empty.length) message(`No frame was recorded for: ${empty.join('; ')}. Redo it.`, true);
+    else message('Recorded. Redo any prompt whose meter is low, then train.');
   } catch (e) { message(e.message, true); }
   $('prompt').textContent = '';
   $('record').disabled = false;
