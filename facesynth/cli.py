@@ -29,6 +29,7 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "app": ("facesynth.runtime.app", "render a talking-head video from landmarks with ONNX Runtime"),
     "batch": ("facesynth.batch.cli", "many videos -> one trained, evaluated, exported subject each + summary (Ray)"),
     "serve": ("facesynth.web.serve_cli", "the live page: your webcam drives the avatar in a browser tab, on 127.0.0.1"),
+    "studio": ("facesynth.web.studio_cli", "record, train and drive your own avatar in one local page, on 127.0.0.1"),
     "web": ("facesynth.web.build_cli", "web build MODEL OUT: the live page as a self-contained static folder; "
                                        "web setup: its browser packages (npm), once"),
 }

@@ -1,0 +1,68 @@
+// The studio's coverage meter: how much of the expression space the avatar will be driven
+// through the recording covers, per prompt and overall. Step for step the Python reference
+// facesynth/web/coverage.py (its docstring gives the measure); tested against it on the same
+// points (tests/test_web_studio.py).
+import { toScheme } from './schemes.js';
+
+export const FEATURES = ['mouth_open', 'mouth_width', 'brow_height', 'brow_gap', 'eye_open', 'gaze_x', 'gaze_y', 'yaw'];
+export const DIRECTIONS = {  // name -> [feature, sign, target change from the neutral]
+  speech: ['mouth_open', 1, 0.12], smile: ['mouth_width', 1, 0.12], mouth_open: ['mouth_open', 1, 0.30],
+  oo: ['mouth_width', -1, 0.10], brows_up: ['brow_height', 1, 0.05], frown: ['brow_gap', -1, 0.04],
+  blink: ['eye_open', -1, 0.07], gaze_left: ['gaze_x', 1, 0.03], gaze_right: ['gaze_x', -1, 0.03],
+  gaze_up: ['gaze_y', -1, 0.02], gaze_down: ['gaze_y', 1, 0.02], turn_left: ['yaw', 1, 0.08], turn_right: ['yaw', -1, 0.08],
+};
+const TOP = 3, IRIS = [468, 473];
+
+// one frame's 478 points (flat) -> its features (FEATURES' order); rows: mediapipe478's to_ibug68
+export function features(points, rows) {
+  const f = toScheme(points, rows, Float64Array), P = (i) => [f[2 * i], f[2 * i + 1]];
+  const sub = (a, b) => [a[0] - b[0], a[1] - b[1]], dot = (a, b) => a[0] * b[0] + a[1] * b[1];
+  const norm = (a) => Math.hypot(a[0], a[1]), gap = (a, b) => norm(sub(P(a), P(b)));
+  const iod = gap(45, 36), d = sub(P(45), P(36)), u = [d[0] / iod, d[1] / iod], v = [-u[1], u[0]];
+  const mean = (idx) => { let x = 0, y = 0; for (const i of idx) { const p = P(i); x += p[0]; y += p[1]; } return [x / idx.length, y / idx.length]; };
+  const range = (a, b) => Array.from({ length: b - a }, (_, k) => a + k);
+  const eyes = mean(range(36, 48));
+  const iris = [(points[2 * IRIS[0]] + points[2 * IRIS[1]]) / 2, (points[2 * IRIS[0] + 1] + points[2 * IRIS[1] + 1]) / 2];
+  const mid = [(P(0)[0] + P(16)[0]) / 2, (P(0)[1] + P(16)[1]) / 2];
+  return [
+    (gap(61, 67) + gap(62, 66) + gap(63, 65)) / 3 / iod,
+    gap(48, 54) / iod,
+    range(17, 27).reduce((acc, i) => acc + dot(sub(eyes, P(i)), v), 0) / 10 / iod,
+    gap(21, 22) / iod,
+    (gap(37, 41) + gap(38, 40) + gap(43, 47) + gap(44, 46)) / 4 / iod,
+    dot(sub(iris, eyes), u) / iod,
+    dot(sub(iris, eyes), v) / iod,
+    dot(sub(P(30), mid), u) / gap(16, 0),
+  ];
+}
+
+const median = (xs) => { const s = [...xs].sort((a, b) => a - b), n = s.length; return n % 2 ? s[n >> 1] : (s[n / 2 - 1] + s[n / 2]) / 2; };
+const avg = (xs) => xs.reduce((a, b) => a + b, 0) / xs.length;
+
+// coverage in [0, 1] of a direction by frames' features against the neutral's
+export function directionCoverage(feats, neutral, direction) {
+  const [name, sign, target] = DIRECTIONS[direction], k = FEATURES.indexOf(name);
+  if (!feats.length) return 0;
+  const change = feats.map((f) => sign * (f[k] - neutral[k])).sort((a, b) => b - a).slice(0, TOP);
+  return Math.min(1, Math.max(0, avg(change) / target));
+}
+
+// prompts: [{id, directions, points: [flat 478 x 2 or null per frame]}] (the prompt without
+// directions is the neutral) -> {prompts: {id: coverage}, directions: {name: coverage}, overall}
+export function coverage(prompts, rows) {
+  const per = prompts.map((p) => [p, p.points.filter((x) => x).map((x) => features(x, rows))]);
+  const every = per.flatMap(([, f]) => f);
+  const n = per.find(([p, f]) => !p.directions.length && f.length);
+  const neutralFeats = n ? n[1] : every;
+  const dirNames = Object.keys(DIRECTIONS);
+  if (!neutralFeats.length) {
+    return { prompts: Object.fromEntries(prompts.map((p) => [p.id, 0])), directions: Object.fromEntries(dirNames.map((d) => [d, 0])), overall: 0 };
+  }
+  const neutral = FEATURES.map((_, k) => median(neutralFeats.map((f) => f[k])));
+  const out = {};
+  for (const [p, f] of per) {
+    out[p.id] = p.directions.length ? avg(p.directions.map((d) => directionCoverage(f, neutral, d))) : f.length / Math.max(1, p.points.length);
+  }
+  const dirs = Object.fromEntries(dirNames.map((d) => [d, directionCoverage(every, neutral, d)]));
+  return { prompts: out, directions: dirs, overall: avg(Object.values(dirs)) };
+}

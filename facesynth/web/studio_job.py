@@ -1,0 +1,189 @@
+"""The studio's training job, in a process of its own (so that cancelling it is terminating it):
+the page's recorded frames (JPEG) -> one video -> ``facesynth ingest --landmarker mediapipe --copy`` ->
+``facesynth train data=video`` (the default configuration) -> ``facesynth export --talking-head``,
+each by the function its command calls, all inside one work folder (made by the server inside
+the library; renamed to the avatar's name by the server when the job succeeds).
+
+    python -m facesynth.web.studio_job '{"work": DIR, "overrides": [...], "min_frames": N, "min_face": F}'
+
+Progress goes to the server as JSON lines on stdout, each after :data:`MARK`: ``{"stage",
+"fraction"}`` while a stage runs (the ``[facesynth]`` lines the commands print: their progress
+bars' ``n/total`` and their finished-stage lines), ``{"done": summary}`` or ``{"error": one
+line}`` at the end. A process of its own rather than a ``multiprocessing`` child: it does not
+import the server's ``__main__`` again, whichever way the server was started.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import os
+import re
+import sys
+import time
+from pathlib import Path
+
+# the stages in order, with their share of the percent shown (set from a default-config run of a
+# 40 s recording on 2 cores, docs/studio.md); a stage's progress bar moves inside its share
+STAGES = (("decode", 0.04), ("ingest", 0.22), ("face model", 0.08), ("SADM fit", 0.30), ("evaluation", 0.14),
+          ("talking head", 0.08), ("report", 0.03), ("export", 0.11))
+VIDEO = "recording.avi"  # the frames, in order: Motion JPEG, quality 95 (OpenCV writes it everywhere)
+UPLOAD = "upload.bin"  # the page's frames as received
+FPS = 30.0
+MARK = "@@facesynth-studio "  # starts each of the job's lines for the server (other output is ignored)
+BAR = re.compile(r": (\d+)/(\d+) ")  # a progress bar's line (facesynth.progress.bar)
+
+
+class _Lines(io.TextIOBase):
+    """stderr of the job: each ``[facesynth]`` line the commands print, to ``on_line``."""
+
+    def __init__(self, on_line):
+        self.on_line, self.buf = on_line, ""
+
+    def write(self, s: str) -> int:
+        self.buf += s
+        while "\n" in self.buf:
+            line, self.buf = self.buf.split("\n", 1)
+            self.on_line(line.strip())
+        return len(s)
+
+
+def decode_upload(upload: Path, out: Path, min_frames: int) -> dict:
+    """The page's upload (each frame a 4-byte big-endian length, then its JPEG) -> one video
+    ``out`` of the frames in order (Motion JPEG); FacesynthError for a body that is not such
+    frames, a frame that does not decode, or a recording shorter than ``min_frames`` frames."""
+    import cv2
+    import numpy as np
+
+    from facesynth.errors import FacesynthError
+
+    writer, n, size = None, 0, None
+    try:
+        with open(upload, "rb") as f:
+            while head := f.read(4):
+                length = int.from_bytes(head, "big")
+                data = f.read(length) if len(head) == 4 else b""
+                bgr = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR) if len(data) == length > 0 else None
+                if bgr is None:
+                    raise FacesynthError(f"the recording cannot be decoded (frame {n + 1} is not a JPEG image)")
+                if writer is None:
+                    size = (bgr.shape[1], bgr.shape[0])
+                    writer = cv2.VideoWriter(str(out), cv2.VideoWriter_fourcc(*"MJPG"), FPS, size)
+                    writer.set(cv2.VIDEOWRITER_PROP_QUALITY, 95)
+                if (bgr.shape[1], bgr.shape[0]) != size:
+                    raise FacesynthError(f"the recording cannot be decoded (frame {n + 1} is {bgr.shape[1]}x{bgr.shape[0]}, "
+                                         f"the first {size[0]}x{size[1]})")
+                writer.write(bgr)
+                n += 1
+    finally:
+        if writer is not None:
+            writer.release()
+    if n < min_frames:
+        raise FacesynthError(f"the recording is too short: {n} frames, at least {min_frames} are needed")
+    return {"frames": n}
+
+
+def run_job(work: str, overrides: list[str], min_frames: int, min_face: float, queue) -> None:
+    """The job's process: everything inside ``work``; reports on ``queue``."""
+    work_dir = Path(work)
+    os.chdir(work_dir)  # relative paths in the run's config (data.path=ingest): the folder can be renamed
+    current = {"stage": "decode"}
+
+    def report(stage: str, fraction: float) -> None:
+        current["stage"] = stage
+        queue.put({"stage": stage, "fraction": max(0.0, min(1.0, fraction))})
+
+    def on_line(line: str) -> None:
+        if not line.startswith("[facesynth]"):
+            return
+        text = line[len("[facesynth]"):].strip()
+        names = [n for n, _ in STAGES]
+        for k, name in enumerate(names):
+            if text.startswith(name) and re.search(r" in \d+(\.\d+)? s$", text):  # a stage finished: the next one starts
+                report(names[min(k + 1, len(names) - 1)], 0.0)
+                return
+        if text.startswith("ONNX export") and re.search(r" in \d+(\.\d+)? s$", text):  # then the ONNX Runtime check
+            report("export", 0.7)
+            return
+        m = BAR.search(text)
+        if m and int(m.group(2)) > 0:
+            report(current["stage"], int(m.group(1)) / int(m.group(2)))
+        elif any(text.startswith(n) for n in names):  # a stage's first line
+            report(next(n for n in names if text.startswith(n)), 0.0)
+
+    sys.stderr = _Lines(on_line)
+    from facesynth.errors import FacesynthError
+    from facesynth.io import install_sigterm_handler, is_disk_full
+
+    install_sigterm_handler()  # SIGTERM (cancel) unwinds: the commands remove their temporary files
+    timings = {}
+    try:
+        t0 = time.perf_counter()
+        report("decode", 0.0)
+        rec = decode_upload(work_dir / UPLOAD, work_dir / VIDEO, min_frames)
+        (work_dir / UPLOAD).unlink()
+        timings["decode"] = time.perf_counter() - t0
+
+        t = time.perf_counter()
+        report("ingest", 0.0)
+        from facesynth.data.ingest import ingest_video
+
+        seq = ingest_video(work_dir / VIDEO, work_dir / "ingest", landmarker="mediapipe", copy=True, progress=True)
+        (work_dir / VIDEO).unlink()  # the ingest folder holds its copy
+        rate = seq.meta["stats"]["detection_rate"]
+        if rate < min_face:
+            raise FacesynthError(f"no face in most frames: the tracker found one in {rate:.0%} of "
+                                 f"{rec['frames']} frames (at least {min_face:.0%} are needed): face the camera, in good light")
+        timings["ingest"] = time.perf_counter() - t
+
+        t = time.perf_counter()
+        report("face model", 0.0)
+        from facesynth.runs.config import compose_config
+        from facesynth.runs.training import run_training
+
+        cfg = compose_config(["data=video", "data.path=ingest", *overrides])
+        metrics = run_training(cfg, "run")
+        timings["train"] = time.perf_counter() - t
+
+        t = time.perf_counter()
+        report("export", 0.0)
+        from facesynth.onnx.cli import export_talking_head_model
+
+        export = export_talking_head_model("run", "avatar.onnx")
+        timings["export"] = time.perf_counter() - t
+        report("export", 1.0)
+        summary = {"frames": rec["frames"], "detection_rate": rate,
+                   "overrides": list(overrides), "seconds": {k: round(v, 2) for k, v in timings.items()},
+                   "psnr_ref": metrics.get("psnr_ref"), "onnx_bytes": export["bytes"]}
+        (work_dir / "studio.json").write_text(json.dumps(summary, indent=1))
+        queue.put({"done": summary})
+    except FacesynthError as exc:
+        queue.put({"error": str(exc)})
+    except OSError as exc:
+        if not is_disk_full(exc):
+            queue.put({"error": f"{type(exc).__name__}: {exc}"})
+        else:
+            queue.put({"error": "the disk is full: free some space and train again"})
+    except Exception as exc:  # noqa: BLE001 - any failure of the training is one line in the page
+        queue.put({"error": f"training failed in {current['stage']}: {type(exc).__name__}: {exc}"})
+
+
+class _Messages:
+    """The server's end: each message one JSON line on the process's stdout, after MARK."""
+
+    def __init__(self, fd: int):
+        self.fd = fd
+
+    def put(self, msg: dict) -> None:
+        os.write(self.fd, (MARK + json.dumps(msg) + "\n").encode())
+
+
+def main(argv: list[str] | None = None) -> None:
+    args = json.loads((argv if argv is not None else sys.argv[1:])[0])
+    out = _Messages(os.dup(sys.stdout.fileno()))
+    sys.stdout = sys.__stderr__  # anything a library prints goes elsewhere than the messages
+    run_job(args["work"], args["overrides"], args["min_frames"], args["min_face"], out)
+
+
+if __name__ == "__main__":
+    main()

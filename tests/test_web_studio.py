@@ -1,0 +1,320 @@
+"""``facesynth studio`` (facesynth.web.studio): the whole flow in headless system Chromium with a
+shared clip as the fake camera (record, train with a small configuration, drive the new avatar),
+the coverage meter of the page (coverage.js) against its Python reference on the same points,
+the checks a foreign page meets (Host, Origin, token), and each bad input's one-line message with
+nothing left in the library. Skips without chromium, playwright, MediaPipe or the page's npm
+packages (``facesynth web setup``)."""
+
+from __future__ import annotations
+
+import contextlib
+import http.client
+import json
+import os
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+pytest.importorskip("playwright")
+pytest.importorskip("tflite")
+pytest.importorskip("mediapipe")
+
+from facesynth.web import browser, coverage, server, site  # noqa: E402
+from facesynth.web.studio import Studio, create_studio_app  # noqa: E402
+
+if browser.chromium_path() is None:
+    pytest.skip("chromium is absent (apt-get install chromium)", allow_module_level=True)
+try:
+    site.ort_dist()
+except Exception as exc:  # FacesynthError naming the missing file
+    pytest.skip(str(exc), allow_module_level=True)
+
+SHOTS = Path(os.environ.get("FACESYNTH_WEB_SHOTS", "/tmp"))
+# a small training (the flow test stays short): the linear regressor, a 64 px reference, no
+# augmentation or region folds, the evaluation on clean landmarks only, no frame-level measures
+SMALL = ["regressor=linear", "model.reference_width=64", "sadm.augment_copies=0", "sadm.region_shrink=false",
+         "eval.noise=[0.0]", "eval.frame_level=false", "eval.train_level=false", "eval.talking_head=false"]
+
+
+@contextlib.contextmanager
+def studio_served(library: Path, **kwargs):
+    studio = Studio(library, **kwargs)
+    sock = server.listen(0)
+    try:
+        with server.running(create_studio_app(studio, sock.getsockname()[1]), sock) as url:
+            yield url, studio
+    finally:
+        studio.close()
+
+
+def request(url: str, method: str, path: str, body: bytes = b"", headers: dict | None = None, host: str | None = None):
+    """(status, JSON or text) of one request with the Host header as given (default: the server's)."""
+    netloc = url.split("/")[2]
+    conn = http.client.HTTPConnection(netloc, timeout=30)
+    try:
+        conn.putrequest(method, path, skip_host=True, skip_accept_encoding=True)
+        conn.putheader("Host", host or netloc)
+        for k, v in (headers or {}).items():
+            conn.putheader(k, v)
+        conn.putheader("Content-Length", str(len(body)))
+        conn.endheaders(body)
+        r = conn.getresponse()
+        data = r.read()
+    finally:
+        conn.close()
+    try:
+        return r.status, json.loads(data)
+    except ValueError:
+        return r.status, data.decode(errors="replace")
+
+
+def body_of(frames: list[np.ndarray]) -> bytes:
+    """BGR frames as the page uploads them: each a 4-byte big-endian length, then its JPEG."""
+    out = []
+    for f in frames:
+        jpeg = cv2.imencode(".jpg", f, [cv2.IMWRITE_JPEG_QUALITY, 92])[1].tobytes()
+        out += [len(jpeg).to_bytes(4, "big"), jpeg]
+    return b"".join(out)
+
+
+def upload(url: str, token: str, name: str, body: bytes, **headers):
+    return request(url, "POST", f"/api/train?name={name}", body, {"X-Facesynth-Token": token, **headers})
+
+
+def wait_state(studio: Studio, states: tuple, timeout_s: float = 600.0) -> dict:
+    t0 = time.monotonic()
+    while studio.state["state"] not in states:
+        assert time.monotonic() - t0 < timeout_s, f"still {studio.state} after {timeout_s} s"
+        time.sleep(0.1)
+    return studio.state
+
+
+def library_entries(library: Path) -> list[str]:
+    return sorted(p.name for p in library.iterdir())  # hidden work folders included
+
+
+def video_frames(video: Path, n: int) -> list[np.ndarray]:
+    cap = cv2.VideoCapture(str(video))
+    out = []
+    while len(out) < n:
+        ok, f = cap.read()
+        if not ok:
+            break
+        out.append(f)
+    cap.release()
+    return out
+
+
+@pytest.fixture(scope="module")
+def camera(shared_clip_dir, tmp_path_factory):
+    y4m = tmp_path_factory.mktemp("cam") / "cam.y4m"
+    browser.write_y4m(shared_clip_dir("lp_d6") / "video.mp4", y4m, 150, (640, 480))
+    return y4m
+
+
+# -- the checks a foreign page meets -----------------------------------------------------------
+def test_foreign_origin_host_and_missing_token_are_refused(tmp_path, shared_clip_dir):
+    lib = tmp_path / "lib"
+    body = body_of(video_frames(shared_clip_dir("lp_d6") / "video.mp4", 5))
+    with studio_served(lib) as (url, studio):
+        status, session = request(url, "GET", "/api/session")
+        assert status == 200 and session["token"] == studio.token and len(studio.token) >= 40
+        netloc = url.split("/")[2]
+        # a foreign Origin (a page on another site), with the right token
+        assert upload(url, studio.token, "a", body, Origin="http://evil.example")[0] == 403
+        # a foreign Host (DNS rebinding: evil.example resolved to 127.0.0.1), with the right token
+        assert request(url, "POST", "/api/train?name=a", body, {"X-Facesynth-Token": studio.token},
+                       host=f"evil.example:{netloc.split(':')[1]}")[0] == 403
+        assert request(url, "GET", "/api/session", host="evil.example")[0] == 403  # nor its token
+        # no token, a wrong one: refused, with the page's own Origin too
+        for headers in ({}, {"X-Facesynth-Token": "x" * 43}, {"X-Facesynth-Token": studio.token[:-1]}):
+            status, answer = request(url, "POST", "/api/train?name=a", body, {"Origin": f"http://{netloc}", **headers})
+            assert status == 403 and "token" in answer["error"]
+            assert request(url, "POST", "/api/cancel", b"", headers)[0] == 403
+        assert studio.state["state"] == "idle" and library_entries(lib) == []
+        # nothing but the page and the library's avatars (their .onnx and report) is served
+        for path in ("/library/../x", "/library/a/config.yaml", "/api/../../etc/passwd", "/library/.studio-work-1-a/avatar.onnx"):
+            assert request(url, "GET", path)[0] == 404
+
+
+# -- bad input: a one-line message, nothing in the library ----------------------------------------
+def test_bad_inputs_leave_nothing(tmp_path, shared_clip_dir):
+    lib = tmp_path / "lib"
+    frames = video_frames(shared_clip_dir("lp_d6") / "video.mp4", 300)
+    rng = np.random.default_rng(0)
+    noise = [rng.integers(0, 255, frames[0].shape, np.uint8) for _ in range(60)]
+    with studio_served(lib, min_frames=45, max_upload=50 * 2**20) as (url, studio):
+        tok = studio.token
+        # refused before anything is written
+        assert upload(url, tok, "../x", b"abc")[0] == 400
+        status, answer = request(url, "POST", "/api/train?name=big", b"x" * (50 * 2**20 + 1), {"X-Facesynth-Token": tok})
+        assert status == 413 and "too large" in answer["error"]
+        studio.disk_margin = 1 << 60  # a full disk: far more needed than free
+        status, answer = upload(url, tok, "full", b"abc")
+        assert status == 507 and "not enough free disk space" in answer["error"]
+        studio.disk_margin = 0
+        assert library_entries(lib) == []
+
+        cases = [
+            ("undecodable", os.urandom(5000), "the recording cannot be decoded (frame 1 is not a JPEG image)"),
+            ("truncated", body_of(frames[:50])[:-100], "the recording cannot be decoded (frame 50 is not a JPEG image)"),
+            ("short", body_of(frames[:20]), "the recording is too short: 20 frames, at least 45"),
+            ("noface", body_of(frames[:30] + noise), "no face in most frames"),
+        ]
+        for name, body, text in cases:
+            assert upload(url, tok, name, body)[0] == 202
+            st = wait_state(studio, ("failed", "done"))
+            assert st["state"] == "failed" and text in st["message"] and "\n" not in st["message"], st
+            assert library_entries(lib) == []
+
+        # a failed training (a bad configuration), then a cancelled one; a second job while one runs is refused
+        good = body_of(frames)
+        studio.overrides.append("regressor=nonexistent")
+        assert upload(url, tok, "failed", good)[0] == 202
+        st = wait_state(studio, ("failed", "done"))
+        assert st["state"] == "failed" and "regressor" in st["message"] and "\n" not in st["message"], st
+        studio.overrides.pop()
+        assert library_entries(lib) == []
+        assert upload(url, tok, "cancelled", good)[0] == 202
+        status, answer = upload(url, tok, "second", good)
+        assert status == 409 and "already running" in answer["error"]
+        t0 = time.monotonic()
+        while studio.state.get("stage") in ("upload", "decode") and time.monotonic() - t0 < 300:
+            time.sleep(0.1)
+        assert request(url, "POST", "/api/cancel", b"", {"X-Facesynth-Token": tok})[0] == 202
+        st = wait_state(studio, ("cancelled", "failed", "done"))
+        assert st["state"] == "cancelled" and "nothing was added" in st["message"]
+        assert library_entries(lib) == []
+        assert request(url, "POST", "/api/cancel", b"", {"X-Facesynth-Token": tok})[0] == 409
+
+
+# -- the coverage meter: the page's (coverage.js) against the Python reference --------------------
+def test_coverage_js_matches_python(tmp_path, shared_clip_dir):
+    from facesynth.data.ingest import ingest_video
+
+    seq = ingest_video(shared_clip_dir("lp_d6") / "video.mp4", tmp_path / "ing", landmarker="mediapipe", max_frames=240)
+    pts = seq.landmarks.astype(np.float32)
+    prompts, k = [], 0
+    for pid, dirs, n in [("neutral", [], 20), ("speech", ["speech"], 40), ("smile", ["smile"], 30), ("open", ["mouth_open"], 30),
+                         ("oo", ["oo"], 2), ("turn", ["turn_left", "turn_right"], 60), ("blink", ["blink"], 0)]:
+        frames = [p.ravel().tolist() for p in pts[k:k + n]]
+        if n > 5:
+            frames[3] = None  # a frame without a face
+        prompts.append({"id": pid, "directions": dirs, "points": frames})
+        k += n
+    want = coverage.coverage([{**p, "points": [None if x is None else np.asarray(x, np.float32).reshape(-1, 2)
+                                                for x in p["points"]]} for p in prompts])
+    assert 0 < want["overall"] < 1 and want["prompts"]["blink"] == 0.0
+    with studio_served(tmp_path / "lib") as (url, _), browser.browser_page(camera=False) as (page, blocked):
+        page.goto(url)
+        page.wait_for_function("window.studio && typeof window.studio.coverage === 'function'")
+        got = page.evaluate("(p) => window.studio.coverage(p)", prompts)
+        assert page.evaluate("window.studio.directions") == list(coverage.DIRECTIONS)
+    assert blocked == []
+    assert got["prompts"].keys() == want["prompts"].keys() and got["directions"].keys() == want["directions"].keys()
+    for key in want["prompts"]:
+        assert abs(got["prompts"][key] - want["prompts"][key]) < 1e-9, key
+    for key in want["directions"]:
+        assert abs(got["directions"][key] - want["directions"][key]) < 1e-9, key
+    assert abs(got["overall"] - want["overall"]) < 1e-9
+
+
+# -- the whole flow in the page ---------------------------------------------------------------
+def run_flow(page, url: str, name: str, seconds: float, shots: Path | None = None, timeout_s: float = 900) -> dict:
+    """Record (every prompt, ``seconds`` times its duration), train, wait for the first live frame
+    of the new avatar; the page's times (ms since the epoch) of each step."""
+    page.goto(f"{url}?seconds={seconds}")
+    page.wait_for_function("!document.getElementById('record').disabled", timeout=120_000)
+    t_record = page.evaluate("Date.now()")
+    page.click("#record")
+    page.wait_for_function("!document.getElementById('train').disabled", timeout=300_000)
+    t_recorded = page.evaluate("Date.now()")
+    if shots:
+        page.screenshot(path=str(shots / "facesynth_studio_record.png"), full_page=True)
+    page.fill("#name", name)
+    page.click("#train")
+    page.wait_for_function("window.studio.state.job && (window.studio.state.job.percent > 20 || "
+                           "['failed', 'cancelled'].includes(window.studio.state.job.state))", timeout=timeout_s * 1000)
+    if shots:
+        page.screenshot(path=str(shots / "facesynth_studio_train.png"), full_page=True)
+    page.wait_for_function("window.studio.state.frames >= 10 || (window.studio.state.job && "
+                           "['failed', 'cancelled'].includes(window.studio.state.job.state))", timeout=timeout_s * 1000)
+    job = page.evaluate("window.studio.state.job")
+    assert job["state"] == "done", job
+    if shots:
+        page.screenshot(path=str(shots / "facesynth_studio_drive.png"), full_page=True)
+    return {"record": t_record, "recorded": t_recorded, "train_pressed": page.evaluate("window.studio.state.trainPressedAt"),
+            "first_frame": page.evaluate("window.studio.state.firstFrameAt"), "job": job,
+            "coverage": page.evaluate("window.studio.state.coverage")}
+
+
+def test_record_train_drive(tmp_path, camera):
+    lib = tmp_path / "lib"
+    with studio_served(lib, overrides=SMALL, min_frames=10) as (url, studio), \
+            browser.browser_page(camera) as (page, blocked):
+        t = run_flow(page, url, "me-small", 0.12, SHOTS)
+        assert t["first_frame"] > t["train_pressed"] > t["record"]
+        assert 0 < t["coverage"]["overall"] <= 1 and len(t["coverage"]["prompts"]) == 13
+        # the library: the avatar, its run with report.html; listed in the page with its report link
+        assert library_entries(lib) == ["me-small"]
+        assert {"avatar.onnx", "run", "ingest", "studio.json"} <= set(os.listdir(lib / "me-small"))
+        assert (lib / "me-small" / "run" / "report.html").is_file()
+        assert page.locator("#library a", has_text="report").count() == 1
+        status, html = request(url, "GET", "/library/me-small/report.html")
+        assert status == 200 and "<html" in html.lower()
+        # the avatar drives: frames keep coming and differ from the still neutral frame
+        n = page.evaluate("window.studio.state.frames")
+        page.wait_for_function(f"window.studio.state.frames >= {n + 10}", timeout=60_000)
+        assert not [m for m in page.evaluate("window.studio.state.messages") if m["error"]]
+        # a name already in the library: a one-line message in the page, nothing started
+        page.click("#train")
+        page.wait_for_function("document.getElementById('message').className === 'error'")
+        assert "already has an avatar named me-small" in page.inner_text("#message")
+    assert blocked == []
+
+
+def test_page_shows_a_failed_training(tmp_path, camera):
+    """A recording the server refuses (here: too short) ends in a one-line message in the page."""
+    lib = tmp_path / "lib"
+    with studio_served(lib, overrides=SMALL, min_frames=100000) as (url, studio), \
+            browser.browser_page(camera) as (page, blocked):
+        page.goto(f"{url}?seconds=0.12")
+        page.wait_for_function("!document.getElementById('record').disabled", timeout=120_000)
+        page.click("#record")
+        page.wait_for_function("!document.getElementById('train').disabled", timeout=120_000)
+        page.click("#train")
+        page.wait_for_function("window.studio.state.job && window.studio.state.job.state === 'failed'", timeout=120_000)
+        text = page.inner_text("#message")
+        assert text.startswith("Training failed: the recording is too short") and "\n" not in text, text
+        assert library_entries(lib) == []
+    assert blocked == []
+
+
+def test_cli_serves_the_studio_and_refuses_a_file_as_library(tmp_path):
+    """``facesynth studio`` (``python -m facesynth``: the job's process must not start a second
+    server) answers on the port it prints; a file as the library is one line, exit 2."""
+    import signal
+    import subprocess
+    import sys
+
+    (tmp_path / "file").write_text("x")
+    done = subprocess.run([sys.executable, "-m", "facesynth", "studio", "--library", str(tmp_path / "file"), "--port", "0"],
+                          capture_output=True, text=True, timeout=120)
+    assert done.returncode == 2 and done.stderr.strip() == f"error: {tmp_path / 'file'}: the library must be a folder"
+    proc = subprocess.Popen([sys.executable, "-m", "facesynth", "studio", "--library", str(tmp_path / "lib"), "--port", "0"],
+                            stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+    try:
+        line = proc.stdout.readline()
+        assert line.startswith("open http://127.0.0.1:"), line
+        url = line.split()[1]
+        status, session = request(url, "GET", "/api/session")
+        assert status == 200 and len(session["token"]) >= 40 and session["library"] == str(tmp_path / "lib")
+        status, html = request(url, "GET", "/")
+        assert status == 200 and "facesynth studio" in html
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        proc.wait(60)
+    assert (tmp_path / "lib").is_dir() and library_entries(tmp_path / "lib") == []
