@@ -67,7 +67,7 @@ def test_a_face_cut_by_the_crop_fades_out_at_the_crop_edge():
 @pytest.mark.parametrize("feather", [2.0, 3.4])
 def test_the_graphs_seam_layers_match_numpy(feather):
     h, w = _masks()[0].shape
-    graph = SeamGraph(feather, (200, 200), (w, h))
+    graph = SeamGraph(feather, (200, 200), (h, w))
     masks = np.stack(_masks())[:, None]
     crop = np.random.default_rng(0).uniform(0, 1, (len(masks), 3, h, w)).astype(np.float32) * masks
     with torch.no_grad():

@@ -161,6 +161,21 @@ class FrameWarpGraph(ToTarget):
         return torch.floor(torch.cat(self.channels(face), 1))
 
 
+def _blur_matrix(g: np.ndarray, n: int) -> np.ndarray:
+    """float32 (n, n) M with ``x @ M`` the 1-D convolution of rows ``x`` (n,) with the centred
+    kernel ``g``, the row mirrored beyond its ends (``BORDER_REFLECT_101``, as often as needed)."""
+    p = len(g) // 2
+    m = np.zeros((n, n), np.float64)
+    out = np.arange(n)
+    for t, gt in enumerate(g):
+        src = out + t - p
+        period = 2 * (n - 1) if n > 1 else 1
+        src = np.abs(np.mod(src, period)) if n > 1 else np.zeros_like(src)
+        src = np.where(src > n - 1, period - src, src)
+        np.add.at(m, (src, out), gt)
+    return m.astype(np.float32)
+
+
 class SeamGraph(nn.Module):
     """:func:`facesynth.runtime.blend.blend_face` (colour matching on) with a fixed feather
     of ``feather`` crop pixels: crop (B, C, Hc, Wc) in [0, 1], mask (B, 1, Hc, Wc), placement
@@ -183,9 +198,13 @@ class SeamGraph(nn.Module):
         self.feather = float(feather)
         self.r = max(1, int(math.ceil(self.feather)))
         g = gaussian_kernel(self.feather / 2)
-        self.k = k = len(g)
-        self.register_buffer("gx", torch.from_numpy(g.copy()).reshape(1, 1, 1, k))
-        self.register_buffer("gy", torch.from_numpy(g.copy()).reshape(1, 1, k, 1))
+        self.k = len(g)
+        # the separable Gaussian (mirrored at the crop's edge, BORDER_REFLECT_101) as two
+        # MatMuls by constant (n, n) matrices: a one-channel Conv runs 16 channels wide in ONNX
+        # Runtime's blocked layout
+        ch, cw = crop_size  # (H, W), as the synthesis' canvas
+        self.register_buffer("blur_x", torch.from_numpy(_blur_matrix(g, cw)))  # rows @ blur_x
+        self.register_buffer("blur_y", torch.from_numpy(_blur_matrix(g, ch).T.copy()))  # blur_y @ columns
         self.register_buffer("frame_max", torch.tensor([float(w), float(h)]))
         self.register_buffer("zero2", torch.zeros(2))
         self.register_buffer("to255", _const(np.array([255.0] * 3 + [1.0, 1.0]).reshape(1, 5, 1, 1)))
@@ -206,9 +225,7 @@ class SeamGraph(nn.Module):
         """(B, 5, Hc, Wc) premultiplied face, alpha, band (:func:`seam_layers`) and the face's
         mean colour in the band (B, 3)."""
         hard = (mask > 0.5).to(crop.dtype)
-        p = self.k // 2
-        a = F.conv2d(F.pad(self._erode(hard, self.r), (p, p, 0, 0), mode="reflect"), self.gx)
-        alpha = F.conv2d(F.pad(a, (0, 0, p, p), mode="reflect"), self.gy) * hard
+        alpha = torch.matmul(self.blur_y, torch.matmul(self._erode(hard, self.r), self.blur_x)) * hard
         band = hard * (1.0 - self._erode(hard, 2 * self.r))
         face_mean = (crop * band).sum((2, 3)) / torch.clamp(band.sum((2, 3)), min=1.0)
         return torch.cat([crop * alpha, alpha, band], 1), face_mean
