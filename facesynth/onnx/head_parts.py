@@ -129,24 +129,29 @@ class FrameWarpGraph(ToTarget):
         single = (s > self.code_base * 0.5) & (s < self.code_base * 2.0 + 1.0)  # one triangle: C + 1 .. C + T
         return torch.cat([torch.where(single, u, self.node_x + u * 0.0), torch.where(single, v, self.node_y + v * 0.0)], 1)
 
-    def maps(self, face: torch.Tensor) -> torch.Tensor:
-        """(B, P, 2) -> (B, 2, H, W): the neutral-frame pixel (x, y) each output pixel reads
-        (FrameWarp.maps): the node maps mirrored at the frame's border, then upsampled
-        bilinearly, along x and then along y."""
-        m = torch.matmul(mirror(self.node_maps(face), self.uv_max), self.up_x)  # (B, 2, Hn, W)
+    def _upsampled(self, m: torch.Tensor) -> torch.Tensor:
+        """(B, C, Hn, Wn) node values -> (B, C, H, W), bilinear as FrameWarp's maps: along x
+        one MatMul by the (Wn, W) interpolation matrix, along y two row gathers and a lerp."""
+        m = torch.matmul(m, self.up_x)
         m0, m1 = torch.index_select(m, 2, self.up_k0), torch.index_select(m, 2, self.up_k1)
         return m0 + self.up_fy * (m1 - m0)
+
+    def maps(self, face: torch.Tensor) -> torch.Tensor:
+        """(B, P, 2) -> (B, 2, H, W): the neutral-frame pixel (x, y) each output pixel reads
+        (FrameWarp.maps): the node maps mirrored at the frame's border, then upsampled."""
+        return self._upsampled(mirror(self.node_maps(face), self.uv_max))
 
     def channels(self, face: torch.Tensor) -> list[torch.Tensor]:
         """(B, P, 2) -> the warped neutral frame's three colours, each (B, 1, H, W), read
         bilinearly and plus a half: a Cast to uint8 (truncation) rounds them."""
-        uv = self.maps(face)
-        fl = torch.floor(uv)
-        f = uv - fl
-        fx, fy = f[:, 0:1], f[:, 1:2]
+        m = mirror(self.node_maps(face), self.uv_max)
+        # x and y upsampled apart (no full-frame slices of a two-channel map)
+        x, y = self._upsampled(m[:, 0:1]), self._upsampled(m[:, 1:2])
+        flx, fly = torch.floor(x), torch.floor(y)
+        fx, fy = x - flx, y - fly
         # the index in float (exact below 2^24), then one Cast: an index chain the export's
         # int32 pass rewrites (facesynth.onnx.passes.int32_indices)
-        base = (fl[:, 1:2] * float(self.tex_w) + (fl[:, 0:1] + float(self.tex_w + 1))).to(torch.int64)
+        base = (fly * float(self.tex_w) + (flx + float(self.tex_w + 1))).to(torch.int64)
         # one gather per tap and channel: the batch shares the texture (no copy per frame), and
         # no split of a (B, 4, H, W) gather; bilinear as two lerps along x, one along y
         index = [(base + k).reshape(1, -1) for k in (0, 1, self.tex_w, self.tex_w + 1)]
@@ -230,8 +235,8 @@ class SeamGraph(nn.Module):
         face_mean = (crop * band).sum((2, 3)) / torch.clamp(band.sum((2, 3)), min=1.0)
         return torch.cat([crop * alpha, alpha, band], 1), face_mean
 
-    def _bilinear(self, images: torch.Tensor, u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
-        """(B, 5, h, w) images read at (B, 1, Hb, Wb) pixel positions u, v -> (B, 5, Hb, Wb):
+    def _bilinear(self, images: torch.Tensor, u: torch.Tensor, v: torch.Tensor) -> list[torch.Tensor]:
+        """(B, 5, h, w) images read at (B, 1, Hb, Wb) pixel positions u, v -> five (B, 1, Hb, Wb):
         bilinear, zero outside (``cv2.warpAffine``'s constant border); one element gather per
         tap of all the channels."""
         h, w = int(images.shape[2]), int(images.shape[3])
@@ -247,7 +252,7 @@ class SeamGraph(nn.Module):
             t = [torch.gather(flat[:, ch], 1, i).reshape_as(fx) for i in index]
             top = t[0] + fx * (t[1] - t[0])
             out.append(top + fy * (t[2] + fx * (t[3] - t[2]) - top))
-        return torch.cat(out, 1)
+        return out
 
     def forward(self, crop: torch.Tensor, mask: torch.Tensor, placement: torch.Tensor, frame: list[torch.Tensor],
                 face: torch.Tensor) -> torch.Tensor:
@@ -269,18 +274,18 @@ class SeamGraph(nn.Module):
         inv = inv.unsqueeze(2)  # (B, 6, 1, 1, 1)
         u = inv[:, 0] * xr + (inv[:, 1] * yr + inv[:, 2])  # (B, 1, Hb, Wb) box pixels in the crop
         v = inv[:, 3] * xr + (inv[:, 4] * yr + inv[:, 5])
-        placed = self._bilinear(layers, u, v)
-        pre, alpha, band = placed[:, :3], placed[:, 3:4], placed[:, 4:5]
+        *pre, alpha, band = self._bilinear(layers, u, v)
         # [y0, x0, y1, x1] of the box, and of the frame's parts round it
         y0x0, y1x1 = lo.flip(0).to(torch.int64), hi.flip(0).to(torch.int64)
         box = torch.cat([y0x0, y1x1])
-        bg = torch.floor(torch.cat([slice_by_tensor(c, box) for c in frame], 1))  # the warped frame, 0..255
+        bg = [torch.floor(slice_by_tensor(c, box)) for c in frame]  # the warped frame, 0..255
         n = band.sum((2, 3))  # (B, 1)
-        shift = (bg * band).sum((2, 3)) / torch.clamp(n, min=1.0) - face_mean * 255.0
+        sums = torch.cat([(c * band).sum((2, 3)) for c in bg], 1)  # (B, 3)
+        shift = sums / torch.clamp(n, min=1.0) - face_mean * 255.0
         shift = torch.where(n > MIN_BAND, shift, shift * 0.0)[:, :, None, None]
         # face + alpha shift + (1 - alpha) frame, plus a half: rounded by the Cast
-        blended = pre + (bg + 0.5) + alpha * (shift - bg)
-        inner = torch.clamp(blended, 0.0, 255.0).to(torch.uint8)
+        inner = torch.cat([torch.clamp(p + (c + 0.5) + alpha * (shift[:, k:k + 1] - c), 0.0, 255.0).to(torch.uint8)
+                           for k, (p, c) in enumerate(zip(pre, bg, strict=True))], 1)
         full = torch.cat([c.to(torch.uint8) for c in frame], 1)  # the warped frame, rounded
         # the frame with the box replaced: rows above it, the box's rows, rows below it
         zero, size = self.zero2.to(torch.int64), self.frame_max.flip(0).to(torch.int64)  # [0, 0], [H, W]
