@@ -14,7 +14,7 @@ default :func:`facesynth.runtime.blend.seam_width` of the face's mask rendered a
 avatar's neutral), where ``blend_face`` measures it per frame.
 
 Standard ONNX operators only (opset 18: Gather, GatherElements, ScatterElements, CumSum,
-Conv, Pad, Slice, Range, MatMulInteger, ...), none outside ONNX Runtime Web's.
+Pad, Slice, Range, MatMul, MatMulInteger, ...), none outside ONNX Runtime Web's.
 """
 
 from __future__ import annotations
