@@ -203,7 +203,6 @@ class SeamGraph(nn.Module):
         self.feather = float(feather)
         self.r = max(1, int(math.ceil(self.feather)))
         g = gaussian_kernel(self.feather / 2)
-        self.k = len(g)
         # the separable Gaussian (mirrored at the crop's edge, BORDER_REFLECT_101) as two
         # MatMuls by constant (n, n) matrices: a one-channel Conv runs 16 channels wide in ONNX
         # Runtime's blocked layout
