@@ -1,11 +1,13 @@
 """The seam of the composite (runtime.blend.seam_layers) against an independent erosion
-(scipy), the talking-head graph's tensor form (onnx.head_parts.SeamGraph) against it, a
-face that reaches the crop's edge fading out there instead of ending in a line, and the
-placed alpha (runtime.blend.placed_alpha) as the weight blend_face gives the face."""
+(scipy), the talking-head graph's tensor form (onnx.head_parts.SeamGraph) against it (its
+layers, and its whole composite in torch and in ONNX Runtime against blend_face), a face that
+reaches the crop's edge fading out there instead of ending in a line, and the placed alpha
+(runtime.blend.placed_alpha) as the weight blend_face gives the face."""
 
 from __future__ import annotations
 
 import math
+import warnings
 
 import cv2
 import numpy as np
@@ -67,7 +69,7 @@ def test_a_face_cut_by_the_crop_fades_out_at_the_crop_edge():
 @pytest.mark.parametrize("feather", [2.0, 3.4])
 def test_the_graphs_seam_layers_match_numpy(feather):
     h, w = _masks()[0].shape
-    graph = SeamGraph(feather, (200, 200), (w, h))
+    graph = SeamGraph(feather, (200, 200), (h, w))
     masks = np.stack(_masks())[:, None]
     crop = np.random.default_rng(0).uniform(0, 1, (len(masks), 3, h, w)).astype(np.float32) * masks
     with torch.no_grad():
@@ -96,3 +98,54 @@ def test_placed_alpha_is_the_weight_blend_face_gives_the_face(feather):
     white = np.ones((h, w, 3), np.float32)
     out = blend_face(white, mask, placement, np.zeros((90, 120, 3), np.uint8), feather, match_colour=False)
     np.testing.assert_array_equal(out[..., 0], np.clip(np.floor(alpha * 255.0 + 0.5), 0, 255))
+
+
+class _Composite(torch.nn.Module):
+    """SeamGraph with the frame as one (B, 3, H, W) input, for export."""
+
+    def __init__(self, seam: SeamGraph):
+        super().__init__()
+        self.seam = seam
+
+    def forward(self, crop, mask, placement, frame, face):
+        return self.seam(crop, mask, placement, [frame[:, c:c + 1] for c in range(3)], face)
+
+
+@pytest.mark.parametrize("where", ["inside", "corner"])
+def test_the_graphs_composite_is_blend_faces(where, tmp_path):
+    """SeamGraph's composite (the face's box composed, then put into the uint8 frame by slices
+    and concatenations) is blend_face's, within 2/255 (the talking head's parity; a pixel or
+    none above 1): in torch, and exported and run in ONNX
+    Runtime, for a face inside the frame and one cut by its top-left corner (the box on the
+    frame's edge: empty slices above and left of it)."""
+    import onnxruntime as ort
+
+    mask = _masks()[0]
+    h, w = mask.shape
+    rng = np.random.default_rng(1)
+    crop = (rng.uniform(0.2, 0.9, (3, h, w)) * mask).astype(np.float32)
+    frame = rng.integers(0, 256, (90, 120, 3), dtype=np.uint8)
+    a, b = 1.2 * math.cos(0.2), 1.2 * math.sin(0.2)
+    shift = (30.0, 10.0) if where == "inside" else (-14.0, -20.0)
+    placement = np.array([[a, -b, shift[0]], [b, a, shift[1]]])
+    want = blend_face(crop.transpose(1, 2, 0), mask, placement, frame, 3.0)
+    corners = np.array([[0, 0, 1], [w, 0, 1], [0, h, 1], [w, h, 1]], np.float64) @ placement.T
+    args = (torch.from_numpy(crop[None]), torch.from_numpy(mask[None, None]),
+            torch.from_numpy(placement[None].astype(np.float32)),
+            torch.from_numpy(frame.transpose(2, 0, 1)[None].astype(np.float32) + 0.5),
+            torch.from_numpy(corners[None].astype(np.float32)))
+    graph = _Composite(SeamGraph(3.0, (120, 90), (h, w))).eval()
+    with torch.no_grad():
+        got = graph(*args)[0].numpy().transpose(1, 2, 0)
+    diff = np.abs(got.astype(int) - want)
+    assert got.dtype == np.uint8 and diff.max() <= 2 and (diff > 1).mean() < 1e-3  # float32 sums: a rounding apart
+    assert (got != frame).any(1).any() and (got == frame).all(-1)[-1, -1]  # the face composed, the rest the frame
+    path = tmp_path / "seam.onnx"
+    names = ["crop", "mask", "placement", "frame", "face"]
+    with torch.no_grad(), warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the tracer's, as facesynth.onnx.talking_head silences them
+        torch.onnx.export(graph, args, str(path), input_names=names, output_names=["out"], opset_version=18,
+                          dynamo=False)
+    out = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"]).run(
+        None, {k: v.numpy() for k, v in zip(names, args, strict=True)})[0][0].transpose(1, 2, 0)
+    np.testing.assert_array_equal(out, got)

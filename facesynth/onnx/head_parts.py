@@ -26,9 +26,9 @@ from facesynth.landmarks import IBUG68, scheme_for_points
 from facesynth.model.warp import invert_affine_t, similarity_to
 from facesynth.model.warp_target import ToTarget
 from facesynth.onnx.retarget_graph import _apply, _const
-from facesynth.ops import pad_by_tensor, slice_by_tensor
+from facesynth.ops import slice_by_tensor
 from facesynth.runtime.blend import MIN_BAND, gaussian_kernel
-from facesynth.runtime.fullframe import EYE_CORNERS, HEAD_POINTS, NOSE_TIP, FrameWarp, nose_offset
+from facesynth.runtime.fullframe import EYE_CORNERS, HEAD_POINTS, NOSE_TIP, FrameWarp, interpolation_weights, nose_offset
 
 
 class _Mesh:
@@ -50,7 +50,8 @@ class FrameWarpGraph(ToTarget):
     :class:`ToTarget`'s scanline coverage counting on a canvas of one pixel per node (the
     control points scaled to it); a node covered once takes its triangle's affine map
     (output -> neutral-frame pixels), any other (a fold's gap or overlap) its own position.
-    The node maps are upsampled bilinearly to every pixel (Resize, ``align_corners``), and
+    The node maps are upsampled bilinearly to every pixel as FrameWarp does (along x a MatMul
+    by the interpolation matrix, along y two row gathers and a lerp), and
     the neutral frame is read there bilinearly, mirrored beyond its border (the nodes' maps
     reflected about the first and last pixel, as FrameWarp's)."""
 
@@ -79,15 +80,26 @@ class FrameWarpGraph(ToTarget):
         self.register_buffer("to_node", _const([[(wn - 1) / (w - 1), (hn - 1) / (h - 1)]]))  # frame px -> node units
         self.register_buffer("node_x", _const(nx))
         self.register_buffer("node_y", _const(ny[:, None]))
-        tex = np.pad(fw.frame.astype(np.float32), ((0, 1), (0, 1), (0, 0)), mode="edge")  # (H + 1, W + 1, 3)
+        # the frame plus a half, for rounding by truncation (a Cast), with one pixel of its edge
+        # round it: maps a rounding error outside [0, W - 1] read it with a weight of that error
+        tex = np.pad(fw.frame.astype(np.float32) + 0.5, ((1, 1), (1, 1), (0, 0)), mode="edge")  # (H + 2, W + 2, 3)
         self.register_buffer("texture", torch.from_numpy(np.ascontiguousarray(tex.transpose(2, 0, 1).reshape(3, 1, -1))))
-        self.register_buffer("quad", torch.tensor([0, 1, w + 1, w + 2]).reshape(4, 1, 1))
+        self.tex_w = w + 2
+        # the node maps' upsampling, as FrameWarp's: along x one MatMul by the (Wn, W)
+        # interpolation matrix, along y two row gathers and a lerp
+        (kx, fx), (ky, fy) = (interpolation_weights(n, len(nodes)) for n, nodes in ((w, nx), (h, ny)))
+        up_x = np.zeros((wn, w), np.float32)
+        np.add.at(up_x, (kx, np.arange(w)), 1.0 - fx)
+        np.add.at(up_x, (kx + 1, np.arange(w)), fx)
+        self.register_buffer("up_x", torch.from_numpy(up_x))
+        self.register_buffer("up_k0", torch.from_numpy(ky.astype(np.int64)))
+        self.register_buffer("up_k1", torch.from_numpy(ky.astype(np.int64) + 1))
+        self.register_buffer("up_fy", _const(fy.reshape(1, 1, -1, 1)))
         self.register_buffer("box_lo", torch.zeros(2))
         self.register_buffer("box_hi", torch.tensor([float(wn), float(hn)]))
         self.register_buffer("cols_f", torch.arange(wn, dtype=torch.float32))
         self.register_buffer("rows_f", torch.arange(hn + 1, dtype=torch.float32))
         self.register_buffer("uv_max", torch.tensor([float(w - 1), float(h - 1)]).reshape(1, 2, 1, 1))
-        self.tex_w = w + 1
         # the nodes are located with FrameWarp's push of the right and bottom anchors (node units)
         self.register_buffer("outward", _const(fw.locate_push))
 
@@ -117,16 +129,29 @@ class FrameWarpGraph(ToTarget):
         single = (s > self.code_base * 0.5) & (s < self.code_base * 2.0 + 1.0)  # one triangle: C + 1 .. C + T
         return torch.cat([torch.where(single, u, self.node_x + u * 0.0), torch.where(single, v, self.node_y + v * 0.0)], 1)
 
-    def forward(self, face: torch.Tensor) -> torch.Tensor:  # noqa: D102  (a different signature from ToTarget's)
-        # the border mirrored at the nodes, as FrameWarp does; between them the maps stay inside
-        # the frame but for rounding, which the clamp takes out
+    def _upsampled(self, m: torch.Tensor) -> torch.Tensor:
+        """(B, C, Hn, Wn) node values -> (B, C, H, W), bilinear as FrameWarp's maps: along x
+        one MatMul by the (Wn, W) interpolation matrix, along y two row gathers and a lerp."""
+        m = torch.matmul(m, self.up_x)
+        m0, m1 = torch.index_select(m, 2, self.up_k0), torch.index_select(m, 2, self.up_k1)
+        return m0 + self.up_fy * (m1 - m0)
+
+    def maps(self, face: torch.Tensor) -> torch.Tensor:
+        """(B, P, 2) -> (B, 2, H, W): the neutral-frame pixel (x, y) each output pixel reads
+        (FrameWarp.maps): the node maps mirrored at the frame's border, then upsampled."""
+        return self._upsampled(mirror(self.node_maps(face), self.uv_max))
+
+    def channels(self, face: torch.Tensor) -> list[torch.Tensor]:
+        """(B, P, 2) -> the warped neutral frame's three colours, each (B, 1, H, W), read
+        bilinearly and plus a half: a Cast to uint8 (truncation) rounds them."""
         m = mirror(self.node_maps(face), self.uv_max)
-        uv = torch.clamp(F.interpolate(m, size=self.frame_size, mode="bilinear", align_corners=True), min=0.0)
-        fl = torch.floor(uv)
-        fx, fy = uv[:, 0:1] - fl[:, 0:1], uv[:, 1:2] - fl[:, 1:2]  # (B, 1, H, W)
+        # x and y upsampled apart (no full-frame slices of a two-channel map)
+        x, y = self._upsampled(m[:, 0:1]), self._upsampled(m[:, 1:2])
+        flx, fly = torch.floor(x), torch.floor(y)
+        fx, fy = x - flx, y - fly
         # the index in float (exact below 2^24), then one Cast: an index chain the export's
         # int32 pass rewrites (facesynth.onnx.passes.int32_indices)
-        base = (fl[:, 1:2] * float(self.tex_w) + fl[:, 0:1]).to(torch.int64)
+        base = (fly * float(self.tex_w) + (flx + float(self.tex_w + 1))).to(torch.int64)
         # one gather per tap and channel: the batch shares the texture (no copy per frame), and
         # no split of a (B, 4, H, W) gather; bilinear as two lerps along x, one along y
         index = [(base + k).reshape(1, -1) for k in (0, 1, self.tex_w, self.tex_w + 1)]
@@ -135,19 +160,40 @@ class FrameWarpGraph(ToTarget):
             t = [torch.gather(self.texture[ch], 1, i).reshape_as(fx) for i in index]
             top = t[0] + fx * (t[1] - t[0])
             out.append(top + fy * (t[2] + fx * (t[3] - t[2]) - top))
-        return torch.floor(torch.cat(out, 1) + 0.5)
+        return out
+
+    def forward(self, face: torch.Tensor) -> torch.Tensor:  # noqa: D102  (a different signature from ToTarget's)
+        return torch.floor(torch.cat(self.channels(face), 1))
+
+
+def _blur_matrix(g: np.ndarray, n: int) -> np.ndarray:
+    """float32 (n, n) M with ``x @ M`` the 1-D convolution of rows ``x`` (n,) with the centred
+    kernel ``g``, the row mirrored beyond its ends (``BORDER_REFLECT_101``, as often as needed)."""
+    p = len(g) // 2
+    m = np.zeros((n, n), np.float64)
+    out = np.arange(n)
+    for t, gt in enumerate(g):
+        src = out + t - p
+        period = 2 * (n - 1) if n > 1 else 1
+        src = np.abs(np.mod(src, period)) if n > 1 else np.zeros_like(src)
+        src = np.where(src > n - 1, period - src, src)
+        np.add.at(m, (src, out), gt)
+    return m.astype(np.float32)
 
 
 class SeamGraph(nn.Module):
     """:func:`facesynth.runtime.blend.blend_face` (colour matching on) with a fixed feather
     of ``feather`` crop pixels: crop (B, C, Hc, Wc) in [0, 1], mask (B, 1, Hc, Wc), placement
-    (B, 2, 3), the warped frame (B, 3, H, W) 0..255 and the face's landmarks (B, P, 2) ->
-    (B, 3, H, W) 0..255 integer values.
+    (B, 2, 3), the warped frame's colours plus a half (three (B, 1, H, W), 0.5..255.5;
+    :meth:`FrameWarpGraph.channels`) and the face's landmarks (B, P, 2) -> the composited
+    frame, uint8 (B, 3, H, W).
 
     The alpha and the seam band are made in the crop's pixels (:func:`seam_layers`); the
     premultiplied face, alpha and band are placed in the frame bilinearly, inside the
     landmarks' bounding box of the batch grown by a crop pixel's size and 2 px (the placed
-    face reaches no further)."""
+    face reaches no further); the frame is rounded to uint8 (a Cast of the values plus a half)
+    and the composited box put in its place by slices and concatenations of uint8: no
+    full-frame float pass after the read."""
 
     CHANNELS = 5  # premultiplied face (3), alpha, band
 
@@ -157,11 +203,15 @@ class SeamGraph(nn.Module):
         self.feather = float(feather)
         self.r = max(1, int(math.ceil(self.feather)))
         g = gaussian_kernel(self.feather / 2)
-        self.k = k = len(g)
-        self.register_buffer("gx", torch.from_numpy(g.copy()).reshape(1, 1, 1, k))
-        self.register_buffer("gy", torch.from_numpy(g.copy()).reshape(1, 1, k, 1))
+        # the separable Gaussian (mirrored at the crop's edge, BORDER_REFLECT_101) as two
+        # MatMuls by constant (n, n) matrices: a one-channel Conv runs 16 channels wide in ONNX
+        # Runtime's blocked layout
+        ch, cw = crop_size  # (H, W), as the synthesis' canvas
+        self.register_buffer("blur_x", torch.from_numpy(_blur_matrix(g, cw)))  # rows @ blur_x
+        self.register_buffer("blur_y", torch.from_numpy(_blur_matrix(g, ch).T.copy()))  # blur_y @ columns
         self.register_buffer("frame_max", torch.tensor([float(w), float(h)]))
         self.register_buffer("zero2", torch.zeros(2))
+        self.register_buffer("to255", _const(np.array([255.0] * 3 + [1.0, 1.0]).reshape(1, 5, 1, 1)))
 
     @staticmethod
     def _erode(x: torch.Tensor, r: int) -> torch.Tensor:
@@ -179,15 +229,13 @@ class SeamGraph(nn.Module):
         """(B, 5, Hc, Wc) premultiplied face, alpha, band (:func:`seam_layers`) and the face's
         mean colour in the band (B, 3)."""
         hard = (mask > 0.5).to(crop.dtype)
-        p = self.k // 2
-        a = F.conv2d(F.pad(self._erode(hard, self.r), (p, p, 0, 0), mode="reflect"), self.gx)
-        alpha = F.conv2d(F.pad(a, (0, 0, p, p), mode="reflect"), self.gy) * hard
+        alpha = torch.matmul(self.blur_y, torch.matmul(self._erode(hard, self.r), self.blur_x)) * hard
         band = hard * (1.0 - self._erode(hard, 2 * self.r))
         face_mean = (crop * band).sum((2, 3)) / torch.clamp(band.sum((2, 3)), min=1.0)
         return torch.cat([crop * alpha, alpha, band], 1), face_mean
 
-    def _bilinear(self, images: torch.Tensor, u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
-        """(B, 5, h, w) images read at (B, 1, Hb, Wb) pixel positions u, v -> (B, 5, Hb, Wb):
+    def _bilinear(self, images: torch.Tensor, u: torch.Tensor, v: torch.Tensor) -> list[torch.Tensor]:
+        """(B, 5, h, w) images read at (B, 1, Hb, Wb) pixel positions u, v -> five (B, 1, Hb, Wb):
         bilinear, zero outside (``cv2.warpAffine``'s constant border); one element gather per
         tap of all the channels."""
         h, w = int(images.shape[2]), int(images.shape[3])
@@ -203,13 +251,16 @@ class SeamGraph(nn.Module):
             t = [torch.gather(flat[:, ch], 1, i).reshape_as(fx) for i in index]
             top = t[0] + fx * (t[1] - t[0])
             out.append(top + fy * (t[2] + fx * (t[3] - t[2]) - top))
-        return torch.cat(out, 1)
+        return out
 
-    def forward(self, crop: torch.Tensor, mask: torch.Tensor, placement: torch.Tensor, frame: torch.Tensor,
+    def forward(self, crop: torch.Tensor, mask: torch.Tensor, placement: torch.Tensor, frame: list[torch.Tensor],
                 face: torch.Tensor) -> torch.Tensor:
+        """``frame``: the warped frame's colours plus a half (FrameWarpGraph.channels) -> the
+        composited frame, uint8 (B, 3, H, W)."""
         if crop.shape[1] == 1:
             crop = torch.cat([crop, crop, crop], 1)
         layers, face_mean = self.layers(crop, mask)
+        layers = layers * self.to255  # the premultiplied face in 0..255, as the frame
         # the box: the landmarks' bounding box grown by the largest crop pixel (placed) and 2 px
         reach = torch.ceil(torch.sqrt((placement[:, :, 0] ** 2).sum(1)).amax()) + 2.0
         xy = face.reshape(-1, 2)
@@ -222,14 +273,24 @@ class SeamGraph(nn.Module):
         inv = inv.unsqueeze(2)  # (B, 6, 1, 1, 1)
         u = inv[:, 0] * xr + (inv[:, 1] * yr + inv[:, 2])  # (B, 1, Hb, Wb) box pixels in the crop
         v = inv[:, 3] * xr + (inv[:, 4] * yr + inv[:, 5])
-        placed = self._bilinear(layers, u, v)
-        pre, alpha, band = placed[:, :3], placed[:, 3:4], placed[:, 4:5]
-        bg255 = slice_by_tensor(frame, torch.cat([lo.flip(0), hi.flip(0)]).to(torch.int64))
-        bg = bg255 / 255.0
+        *pre, alpha, band = self._bilinear(layers, u, v)
+        # [y0, x0, y1, x1] of the box, and of the frame's parts round it
+        y0x0, y1x1 = lo.flip(0).to(torch.int64), hi.flip(0).to(torch.int64)
+        box = torch.cat([y0x0, y1x1])
+        bg = [torch.floor(slice_by_tensor(c, box)) for c in frame]  # the warped frame, 0..255
         n = band.sum((2, 3))  # (B, 1)
-        shift = (bg * band).sum((2, 3)) / torch.clamp(n, min=1.0) - face_mean
+        sums = torch.cat([(c * band).sum((2, 3)) for c in bg], 1)  # (B, 3)
+        shift = sums / torch.clamp(n, min=1.0) - face_mean * 255.0
         shift = torch.where(n > MIN_BAND, shift, shift * 0.0)[:, :, None, None]
-        blended = pre + alpha * shift + (1.0 - alpha) * bg
-        box = torch.clamp(torch.floor(blended * 255.0 + 0.5), 0.0, 255.0)
-        pads = torch.cat([self.zero2, lo.flip(0), self.zero2, (self.frame_max - hi).flip(0)]).to(torch.int64)
-        return frame + pad_by_tensor(box - bg255, pads)
+        # face + alpha shift + (1 - alpha) frame, plus a half: rounded by the Cast
+        inner = torch.cat([torch.clamp(p + (c + 0.5) + alpha * (shift[:, k:k + 1] - c), 0.0, 255.0).to(torch.uint8)
+                           for k, (p, c) in enumerate(zip(pre, bg, strict=True))], 1)
+        full = torch.cat([c.to(torch.uint8) for c in frame], 1)  # the warped frame, rounded
+        # the frame with the box replaced: rows above it, the box's rows, rows below it
+        zero, size = self.zero2.to(torch.int64), self.frame_max.flip(0).to(torch.int64)  # [0, 0], [H, W]
+        cut = torch.cat([y0x0[:1], size[1:]])  # [y0, W]
+        top = slice_by_tensor(full, torch.cat([zero, cut]))
+        left = slice_by_tensor(full, torch.cat([y0x0[:1], zero[:1], y1x1[:1], y0x0[1:]]))
+        right = slice_by_tensor(full, torch.cat([y0x0[:1], y1x1[1:], y1x1[:1], size[1:]]))
+        bottom = slice_by_tensor(full, torch.cat([y1x1[:1], zero[:1], size]))
+        return torch.cat([top, torch.cat([left, inner, right], 3), bottom], 2)

@@ -14,7 +14,7 @@ default :func:`facesynth.runtime.blend.seam_width` of the face's mask rendered a
 avatar's neutral), where ``blend_face`` measures it per frame.
 
 Standard ONNX operators only (opset 18: Gather, GatherElements, ScatterElements, CumSum,
-Conv, Pad, Resize, Slice, Range, MatMulInteger, ...), none outside ONNX Runtime Web's.
+Pad, Slice, Range, MatMul, MatMulInteger, ...), none outside ONNX Runtime Web's.
 """
 
 from __future__ import annotations
@@ -73,9 +73,8 @@ class TalkingHeadGraph(nn.Module):
     def forward(self, driver: torch.Tensor, neutral: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         face = self.retarget(driver, neutral)
         crop, mask, placement = self.synthesis(face)
-        bg = self.frame_warp(face)
-        out = self.seam(crop, mask, placement, bg, face)
-        return out.to(torch.uint8).permute(0, 2, 3, 1), face  # uint8 before the transpose: a quarter of the bytes
+        out = self.seam(crop, mask, placement, self.frame_warp.channels(face), face)  # uint8 (B, 3, H, W)
+        return out.permute(0, 2, 3, 1), face
 
 
 def default_feather(synthesis: SynthesisGraph, neutral: np.ndarray) -> float:
