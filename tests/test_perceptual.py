@@ -148,3 +148,45 @@ def test_region_box_is_a_clipped_square():
 def test_shape_mismatch_is_a_clear_error():
     with pytest.raises(FacesynthError, match="one shape"):
         perceptual.lpips(np.zeros((8, 8, 3), np.uint8), np.zeros((8, 9, 3), np.uint8))
+
+
+def test_lpips_and_flicker_in_an_evaluation():
+    """A synthetic run: LPIPS per region for the three rows, the re-warped frame closer to the
+    real one than the PCA's mean appearance would be; flicker's real figure equals a direct
+    count on the frames, and a repeated frame has none."""
+    import json
+
+    from facesynth.data.synthetic import make_synthetic_sequence
+    from facesynth.eval.common_region import region_masks
+    from facesynth.eval.flicker import flicker, flicker_rows
+    from facesynth.eval.sadm_eval import EvalConfig, evaluate_sadm
+    from facesynth.model import FaceModel, FaceModelConfig
+    from facesynth.sadm.fit import fit_sadm
+
+    seq = make_synthetic_sequence(n_frames=40, size=160, seed=5)
+    tr, te = np.arange(30), np.arange(30, 40)
+    model, tex = FaceModel.fit_with_textures(seq, FaceModelConfig(reference_width=64), rows=tr, progress=False)
+    sadm = fit_sadm(model, seq, tr, tex, "linear")
+    cfg = EvalConfig(noise=[0.0], max_test_frames=6, train_level=False, talking_head=False, flicker_frames=5)
+    metrics, _ = evaluate_sadm(sadm, seq, tr, te, cfg, 0, train_textures=tex, common=seq.landmarks)
+    json.dumps(metrics)
+    lp = metrics["lpips_frame_common"]
+    assert set(lp) == {"face", "eyes", "mouth"} and all(set(v) == {"sadm", "oracle", "rewarp"} for v in lp.values())
+    assert all(0 <= x < 1 for v in lp.values() for x in v.values())
+    fl = metrics["flicker_frame_common"]
+    assert fl["frames"] == 5 and set(fl["ratio"]) == {"sadm", "rewarp"}
+    assert fl["ratio"]["sadm"] == pytest.approx(fl["sadm"] / fl["real"])
+    # the real frames' change, counted directly over both frames' common region
+    rows = te[flicker_rows(len(te), 5)]
+    assert list(rows) == [32, 33, 34, 35, 36]
+    frames = [f.astype(np.float64) for f in seq.iter_frames(rows)]
+    h, w = frames[0].shape[:2]
+    masks = [region_masks(seq.landmarks[r], (0, h, 0, w))["whole"] for r in rows]
+    tot = sum(np.abs(frames[i + 1] - frames[i])[masks[i] & masks[i + 1]].sum() for i in range(4))
+    cnt = sum(3 * (masks[i] & masks[i + 1]).sum() for i in range(4))
+    assert fl["real"] == pytest.approx(tot / cnt, rel=1e-9)
+    # one frame shown five times, rendered from one texture: nothing changes
+    still = np.full(5, 32)
+    t = model.sample_textures(seq, still[:1])
+    same = flicker(model, {"rewarp": np.repeat(t, 5, 0)}, seq, still, seq.landmarks[still], 2.0)
+    assert same["real"] == 0 and same["rewarp"] == 0
