@@ -12,7 +12,8 @@ matches the real frame over the face::
 
 Paste (an affine warp with bilinear interpolation) is linear, so each kernel tap contributes
 the pasted, shifted crop as one column of the least-squares design, and the normal equations
-are summed frame by frame. The kernel size (1 = none, 3, 5, 7) and ``lam`` (ridge towards no
+are summed frame by frame (:data:`FIT_FRAMES` evenly spaced training frames, a seeded subset
+of :data:`FIT_PIXELS` face pixels each). The kernel size (1 = none, 3, 5, 7) and ``lam`` (ridge towards no
 filter) are chosen by two-fold blocked cross-validation over the training frames (the first
 half against the second and back); the winner is refitted on all of them. Outside the face
 the crop is zero, so before filtering, the pixels within the kernel's reach of the face are
@@ -34,7 +35,8 @@ from torch.nn import functional as F
 
 SIZES = (3, 5, 7)
 RIDGE = (1e-4, 1e-3, 1e-2)  # lam, as a fraction of the design's mean diagonal energy
-FIT_FRAMES = 48  # evenly spaced training frames
+FIT_FRAMES = 32  # evenly spaced training frames
+FIT_PIXELS = 12000  # face pixels per frame (a seeded random subset; all when fewer)
 
 
 class Restore(nn.Module):
@@ -102,16 +104,19 @@ def fit_restoration(model, seq, rows: np.ndarray, textures: np.ndarray, feather:
         place = places[j].copy()
         place[0, 2] -= x0
         place[1, 2] -= y0
-        sub = region[y0:y1, x0:x1]
+        sy, sx = np.nonzero(region[y0:y1, x0:x1])
+        if len(sy) > FIT_PIXELS:
+            keep = np.sort(np.random.default_rng(j).choice(len(sy), FIT_PIXELS, replace=False))
+            sy, sx = sy[keep], sx[keep]
         xp = cv2.copyMakeBorder(x, r, r, r, r, cv2.BORDER_CONSTANT, value=0)
         hh, ww = x.shape[:2]
         cols = []
         for dy in range(-r, r + 1):
             for dx in range(-r, r + 1):  # conv2d is a correlation: tap (dy, dx) reads x[p + (dy, dx)]
                 shifted = np.ascontiguousarray(xp[r + dy : r + dy + hh, r + dx : r + dx + ww])
-                cols.append(cv2.warpAffine(shifted, place, (x1 - x0, y1 - y0), flags=cv2.INTER_LINEAR)[sub])
+                cols.append(cv2.warpAffine(shifted, place, (x1 - x0, y1 - y0), flags=cv2.INTER_LINEAR)[sy, sx])
         a = np.stack(cols, -1).reshape(-1, n_taps).astype(np.float64)  # (pixels * 3, taps)
-        b = frame[y0:y1, x0:x1][sub].reshape(-1).astype(np.float64) / 255.0
+        b = frame[y0:y1, x0:x1][sy, sx].reshape(-1).astype(np.float64) / 255.0
         folds[f] += a.T @ a
         rhs[f] += a.T @ b
         energy[f] += float(b @ b)
