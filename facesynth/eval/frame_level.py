@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
+import torch
 
 from facesynth import progress
 from facesynth.eval import perceptual
@@ -30,22 +31,28 @@ LPIPS_ROWS = ("sadm", "oracle", "rewarp")
 
 
 class _LpipsPool:
-    """Per-frame LPIPS of rendered-over-real region crops against the real ones, scored in batches."""
+    """Per-frame LPIPS of rendered-over-real region crops against the real ones, scored in
+    batches (each real crop's features computed once for every row)."""
 
-    def __init__(self, batch: int = 48):
+    def __init__(self, batch: int = 16):
         self.batch, self.pending, self.scores = batch, [], {}
 
-    def add(self, region: str, row: str, real: np.ndarray, shown: np.ndarray) -> None:
-        self.pending.append((region, row, real, shown))
+    def add(self, region: str, real: np.ndarray, shown: dict[str, np.ndarray]) -> None:
+        self.pending.append((region, real, shown))
         if len(self.pending) >= self.batch:
             self.flush()
 
     def flush(self) -> None:
         if not self.pending:
             return
-        d = perceptual.lpips(np.stack([p[2] for p in self.pending]), np.stack([p[3] for p in self.pending]))
-        for (region, row, *_), v in zip(self.pending, d, strict=True):
-            self.scores.setdefault(region, {}).setdefault(row, []).append(float(v))
+        net = perceptual.load()
+        rows = list(self.pending[0][2])
+        with torch.no_grad():
+            real = net.features(perceptual.to_tensor(np.stack([p[1] for p in self.pending])))
+            for row in rows:
+                d = net.distance(real, net.features(perceptual.to_tensor(np.stack([p[2][row] for p in self.pending]))))
+                for (region, *_), v in zip(self.pending, d.numpy(), strict=True):
+                    self.scores.setdefault(region, {}).setdefault(row, []).append(float(v))
         self.pending = []
 
     def medians(self) -> dict[str, dict[str, float]]:
@@ -166,12 +173,13 @@ def frame_level(model, predict, seq, rows, tex_te, oracle, cfg, seed, keys, nois
             y0, y1, x0, x1 = box
             sub = frame[y0:y1, x0:x1]
             sub_f = sub.astype(np.float64)
-            boxes = {}
+            boxes, shown_crops = {}, {}
             if lp is not None:
                 for reg, parts in LPIPS_REGIONS.items():
                     b_ = perceptual.region_box(np.logical_or.reduce([regions[p] for p in parts]))
                     if b_ is not None:
                         boxes[reg] = (b_, perceptual.region_crop(sub, b_))
+                        shown_crops[reg] = {}
             for k in keys:
                 img, msk, plc = crops[k]
                 for i, name in enumerate(sources):
@@ -182,8 +190,8 @@ def frame_level(model, predict, seq, rows, tex_te, oracle, cfg, seed, keys, nois
                     for reg, m in regions.items():
                         sq_common[reg][name][k][j] = (float(d2[m].sum()), 3 * int(m.sum()))
                     if k == k0 and name in LPIPS_ROWS:
-                        for reg, (b_, real_crop) in boxes.items():
-                            lp.add(reg, name, real_crop, perceptual.region_crop(out, b_))
+                        for reg, (b_, _) in boxes.items():
+                            shown_crops[reg][name] = perceptual.region_crop(out, b_)
                     if regions and k == k0:
                         shown = blend_face(img[r], msk[r], _shift(plc[r], y0, x0), sub)
                         for reg, v in sharpness(shown, sub, regions).items():
@@ -193,6 +201,8 @@ def frame_level(model, predict, seq, rows, tex_te, oracle, cfg, seed, keys, nois
                         crop_box = (slice(ys.min(), ys.max() + 1), slice(xs.min(), xs.max() + 1))
                         grid.append({"real": sub[crop_box].copy(), "synth": out[crop_box].copy(), "frame": int(rows[pick[j]]),
                                      "psnr": _db(*sq[name][k][j])})
+            for reg, (_, real_crop) in boxes.items():
+                lp.add(reg, real_crop, shown_crops[reg])
             bar.update(1)
     bar.close()
     pooled = {name: {k: _db(*v.sum(0)) for k, v in d_.items()} for name, d_ in sq.items()}
