@@ -15,14 +15,49 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
+import torch
 
 from facesynth import progress
+from facesynth.eval import perceptual
 from facesynth.eval.common_region import REGIONS, hull_box, region_masks
 from facesynth.eval.sharpness import median_table, sharpness
 from facesynth.imaging import composite
 from facesynth.runtime.blend import blend_face
 
 MARGIN = 8  # px around the crops' footprint: > feather erosion + Gaussian support + bilinear reach
+LPIPS_REGIONS = {"face": ("whole",), "eyes": ("eyes",), "mouth": ("mouth_interior", "lips")}
+"""LPIPS's regions, as unions of the common region's parts (:data:`REGIONS`)."""
+LPIPS_ROWS = ("sadm", "oracle", "rewarp")
+
+
+class _LpipsPool:
+    """Per-frame LPIPS of rendered-over-real region crops against the real ones, scored in
+    batches (each real crop's features computed once for every row)."""
+
+    def __init__(self, batch: int = 16):
+        self.batch, self.pending, self.scores = batch, [], {}
+
+    def add(self, region: str, real: np.ndarray, shown: dict[str, np.ndarray]) -> None:
+        self.pending.append((region, real, shown))
+        if len(self.pending) >= self.batch:
+            self.flush()
+
+    def flush(self) -> None:
+        if not self.pending:
+            return
+        net = perceptual.load()
+        rows = list(self.pending[0][2])
+        with torch.no_grad():
+            real = net.features(perceptual.to_tensor(np.stack([p[1] for p in self.pending])))
+            for row in rows:
+                d = net.distance(real, net.features(perceptual.to_tensor(np.stack([p[2][row] for p in self.pending]))))
+                for (region, *_), v in zip(self.pending, d.numpy(), strict=True):
+                    self.scores.setdefault(region, {}).setdefault(row, []).append(float(v))
+        self.pending = []
+
+    def medians(self) -> dict[str, dict[str, float]]:
+        self.flush()
+        return {reg: {row: float(np.median(v)) for row, v in rows.items()} for reg, rows in self.scores.items()}
 
 
 def subset(n: int, max_frames: int | None) -> np.ndarray:
@@ -82,8 +117,13 @@ def frame_level(model, predict, seq, rows, tex_te, oracle, cfg, seed, keys, nois
         ``psnr["common_shares"]``: {region: its pixels / the whole region's, over the frames
         evaluated}, and ``psnr["sharpness"]``: {region: {row: median over frames of the
         rendered face's Sobel energy over the real frame's}} at sigma 0, pasted with
-        ``blend_face`` (:mod:`facesynth.eval.sharpness`) (the caller pops all three); a region
-        with no pixels in any evaluated frame is left out of all three
+        ``blend_face`` (:mod:`facesynth.eval.sharpness`), and, when LPIPS is installed
+        (:mod:`facesynth.eval.perceptual`), ``psnr["lpips"]``: {face, eyes, mouth: {row: median
+        over frames of LPIPS}} at sigma 0 for rows :data:`LPIPS_ROWS`, each region's square box
+        (:func:`~facesynth.eval.perceptual.region_box` of its common-region pixels in the real
+        frame) of the face pasted as for PSNR (feathered, no colour match) against the real
+        frame's, both resized to 224 px (the caller pops all four); a region with no pixels in
+        any evaluated frame is left out of all of them
     per_frame : {"index": (n,) test-row positions evaluated, "psnr": {row: (n,) dB at sigma 0}}
     grid : list of dicts (real, synth uint8 crops, frame row, psnr)
     """
@@ -104,6 +144,7 @@ def frame_level(model, predict, seq, rows, tex_te, oracle, cfg, seed, keys, nois
     show = set(subset(n, n_grid).tolist())
     k0 = keys[[float(s) for s in cfg.noise].index(0.0)] if 0.0 in [float(s) for s in cfg.noise] else keys[0]
     grid = []
+    lp = _LpipsPool() if common is not None and perceptual.available() else None
     bs = cfg.batch_size
     frames = seq.iter_frames(rows[pick])
     bar = progress.bar(total=n, desc="frame-level PSNR", unit="frame")
@@ -132,6 +173,13 @@ def frame_level(model, predict, seq, rows, tex_te, oracle, cfg, seed, keys, nois
             y0, y1, x0, x1 = box
             sub = frame[y0:y1, x0:x1]
             sub_f = sub.astype(np.float64)
+            boxes, shown_crops = {}, {}
+            if lp is not None:
+                for reg, parts in LPIPS_REGIONS.items():
+                    b_ = perceptual.region_box(np.logical_or.reduce([regions[p] for p in parts]))
+                    if b_ is not None:
+                        boxes[reg] = (b_, perceptual.region_crop(sub, b_))
+                        shown_crops[reg] = {}
             for k in keys:
                 img, msk, plc = crops[k]
                 for i, name in enumerate(sources):
@@ -141,6 +189,9 @@ def frame_level(model, predict, seq, rows, tex_te, oracle, cfg, seed, keys, nois
                     sq[name][k][j] = (float(d2[region].sum()), 3 * int(region.sum()))
                     for reg, m in regions.items():
                         sq_common[reg][name][k][j] = (float(d2[m].sum()), 3 * int(m.sum()))
+                    if k == k0 and name in LPIPS_ROWS:
+                        for reg, (b_, _) in boxes.items():
+                            shown_crops[reg][name] = perceptual.region_crop(out, b_)
                     if regions and k == k0:
                         shown = blend_face(img[r], msk[r], _shift(plc[r], y0, x0), sub)
                         for reg, v in sharpness(shown, sub, regions).items():
@@ -150,6 +201,8 @@ def frame_level(model, predict, seq, rows, tex_te, oracle, cfg, seed, keys, nois
                         crop_box = (slice(ys.min(), ys.max() + 1), slice(xs.min(), xs.max() + 1))
                         grid.append({"real": sub[crop_box].copy(), "synth": out[crop_box].copy(), "frame": int(rows[pick[j]]),
                                      "psnr": _db(*sq[name][k][j])})
+            for reg, (_, real_crop) in boxes.items():
+                lp.add(reg, real_crop, shown_crops[reg])
             bar.update(1)
     bar.close()
     pooled = {name: {k: _db(*v.sum(0)) for k, v in d_.items()} for name, d_ in sq.items()}
@@ -162,6 +215,8 @@ def frame_level(model, predict, seq, rows, tex_te, oracle, cfg, seed, keys, nois
                             for reg in shown}
         pooled["common_shares"] = {reg: counts[reg] / max(counts["whole"], 1.0) for reg in shown}
         pooled["sharpness"] = {reg: t for reg, t in median_table(sharp).items() if reg in shown}
+        if lp is not None:
+            pooled["lpips"] = lp.medians()
     per_frame = {"index": pick, "psnr": {name: np.array([_db(*r) for r in d_[k0]]) for name, d_ in sq.items()}}
     return pooled, per_frame, grid
 

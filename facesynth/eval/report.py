@@ -90,7 +90,7 @@ def below_mean(metrics: dict, noise: str = "0") -> list[str]:
 
 def face_detail_sections(doc: Document, metrics: dict) -> None:
     """The report's per-part figures: parts below the mean texture (flagged), the per-part
-    reference-frame PSNR, the SADM's shrinkage weights and the sharpness table."""
+    reference-frame PSNR, the SADM's shrinkage weights, the sharpness, LPIPS and flicker tables."""
     flags = below_mean(metrics)
     doc.heading("Face parts below the mean texture (held out, sigma 0)")
     doc.para("WARNING, worse than rendering no model there: " + "; ".join(flags) + "." if flags else
@@ -115,6 +115,19 @@ def face_detail_sections(doc: Document, metrics: dict) -> None:
                     "sigma 0; 1 = as detailed as the real frame)")
         names = list(next(iter(sharp.values())))
         doc.table(["region"] + names, [[reg] + [f"{v[n]:.2f}" for n in names] for reg, v in sharp.items()])
+    lp = metrics.get("lpips_frame_common")
+    if lp:
+        doc.heading("Perceptual distance LPIPS-Alex of the face pasted into the real frame (median over frames, sigma 0; "
+                    "lower is closer, 0 = the real frame)")
+        names = list(next(iter(lp.values())))
+        doc.table(["region"] + names, [[reg] + [f"{v[n]:.4f}" for n in names] for reg, v in lp.items()])
+    fl = metrics.get("flicker_frame_common")
+    if fl:
+        doc.heading(f"Flicker: the face's mean absolute frame-to-frame change on {fl['frames']} consecutive held-out frames "
+                    "(0-255; ratio to the real frames')")
+        rows = [r for r in fl["ratio"]]
+        doc.table(["", "real"] + rows, [["change", f"{fl['real']:.2f}"] + [f"{fl[r]:.2f}" for r in rows],
+                                        ["ratio", "1.00"] + [f"{fl['ratio'][r]:.2f}" for r in rows]])
 
 
 def legend_lines() -> list[str]:

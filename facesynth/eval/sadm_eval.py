@@ -20,6 +20,14 @@
   over the real frame's in each common region, pasted with ``blend_face``, median over the
   frames evaluated, sigma 0 (:mod:`facesynth.eval.sharpness`; 1 = as detailed as the real
   frame).
+* ``lpips_frame_common``: {face, eyes, mouth: {row: LPIPS}}: the perceptual distance
+  (LPIPS-Alex, :mod:`facesynth.eval.perceptual`; lower is closer) of each region's square crop
+  of the face pasted as for ``psnr_frame_common`` against the real frame's, median over the
+  frames evaluated, sigma 0, rows ``sadm``, ``oracle`` and ``rewarp``
+  (:func:`facesynth.eval.frame_level.frame_level`); left out without the ``perceptual`` extra.
+* ``flicker_frame_common``: the face's mean absolute frame-to-frame change over consecutive
+  held-out frames, rendered over real (rows ``sadm`` and ``rewarp``) and real, and the ratio
+  to the real frames' (:mod:`facesynth.eval.flicker`).
 * ``psnr_ref_regions``: {part: {row: {noise: dB}}}: ``psnr_ref`` per face part of the
   reference frame, each test frame's (:func:`facesynth.sadm.regions.frame_regions`: a closed
   mouth's interior counts as lips), rows ``sadm`` and
@@ -40,6 +48,7 @@ import torch
 
 from facesynth import progress
 from facesynth.data.sequence import FaceSequence
+from facesynth.eval.flicker import flicker, flicker_rows
 from facesynth.eval.frame_level import frame_level
 from facesynth.eval.strip import strip_rows, strip_tiles
 from facesynth.landmarks import get_scheme
@@ -59,7 +68,8 @@ class EvalConfig:
     frame; None: found as :func:`facesynth.eval.common_region.common_landmarks` says).
     talking_head: also drive the avatar with its own held-out frames through the whole talking
     head (static / warp / full; :mod:`facesynth.eval.talking_head`; clips with frames, on up
-    to ``talking_head_frames`` frames)."""
+    to ``talking_head_frames`` frames). flicker_frames: consecutive held-out frames of the
+    flicker measure (with the common region; 0: not measured)."""
 
     noise: list = field(default_factory=lambda: [0.0, 1.0, 2.0, 3.0])
     frame_level: bool = True
@@ -71,6 +81,7 @@ class EvalConfig:
     common_landmarks: Optional[str] = None
     talking_head: bool = True
     talking_head_frames: int = 40
+    flicker_frames: int = 40
 
 
 def _key(s: float) -> str:
@@ -207,12 +218,21 @@ def evaluate_sadm(
         common_pooled = pooled.pop("common", None)
         shares = pooled.pop("common_shares", None)
         sharp = pooled.pop("sharpness", None)
+        lp = pooled.pop("lpips", None)
         metrics["psnr_frame"] = pooled
         if common_pooled is not None:
             metrics["psnr_frame_common"] = common_pooled["whole"]
             metrics["psnr_frame_common_regions"] = common_pooled
             metrics["psnr_frame_common_shares"] = shares
             metrics["sharpness_frame_common"] = sharp
+            if lp is not None:
+                metrics["lpips_frame_common"] = lp
+            if cfg.flicker_frames > 1 and len(test_rows) > 1:
+                pos = flicker_rows(len(test_rows), cfg.flicker_frames)
+                fr = test_rows[pos]
+                metrics["flicker_frame_common"] = flicker(
+                    model, {"sadm": _predict(syn, seq.landmarks[fr], cfg.batch_size), "rewarp": tex_te[pos]}, seq, fr,
+                    common[fr], cfg.feather)
         metrics["frame_level_frames"] = {"evaluated": n, "test_frames": int(len(test_rows)),
                                          "max_test_frames": cfg.max_test_frames, "spacing": "evenly spaced"}
         extras["per_frame"].update(frame_index=per_frame["index"], psnr_frame=per_frame["psnr"])

@@ -42,6 +42,8 @@ def save_face_model(model: FaceModel, directory: str | os.PathLike, extra: dict 
         tensors.update(denoise_mean=model.denoise_pca.mean, denoise_components=model.denoise_pca.components,
                        denoise_eigenvalues=model.denoise_pca.eigenvalues.astype(np.float64))
         denoise = {"denoise_total_variance": model.denoise_pca.total_variance}
+    if model.restore_kernel is not None:  # absent: no restoration filter
+        tensors["restore_kernel"] = np.asarray(model.restore_kernel, np.float32)
     return save_artifact(directory, TENSORS, MANIFEST, tensors, {
         "landmark_scheme": model.scheme,
         "reference_size": list(model.reference.size),
@@ -91,6 +93,7 @@ def load_face_model(directory: str | os.PathLike) -> FaceModel:
             denoise_pca=None if "denoise_mean" not in t else PCAModel(
                 t["denoise_mean"], t["denoise_components"], t["denoise_eigenvalues"],
                 float(manifest_field(manifest, "denoise_total_variance", where))),
+            restore_kernel=t.get("restore_kernel"),
         )
         check_face_model(model)
         return model
@@ -137,3 +140,6 @@ def check_face_model(model: FaceModel) -> None:
     check_pca(model.appearance_pca, "appearance PCA", model.n_channels * model.n_pixels)
     if model.denoise_pca is not None:
         check_pca(model.denoise_pca, "denoise PCA", 2 * n_points)
+    k = model.restore_kernel
+    if k is not None and (k.ndim != 2 or k.shape[0] != k.shape[1] or k.shape[0] % 2 != 1):
+        raise ValueError(f"restore_kernel: expected an odd square (k, k) kernel, got {k.shape}")

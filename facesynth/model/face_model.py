@@ -23,6 +23,7 @@ from facesynth.landmarks import DEFAULT_SCHEME, folded_triangles, get_scheme
 from facesynth.model.pca import PCAModel
 from facesynth.model.procrustes import generalised_procrustes
 from facesynth.model.reference import ReferenceFrame, open_mouth, reference_width, subset_triangulation
+from facesynth.model.restore import fit_restoration
 from facesynth.model.warp import ToReference, ToTarget, apply_affine_t, candidate_spans, invert_affine_t, similarity_to
 from facesynth.progress import bar as progress_bar
 
@@ -64,6 +65,7 @@ class FaceModelConfig:
     # iBUG-68 view plus the eye and lip contours, ~197 triangles; the other points are
     # regressor inputs only; faster to render, docs/runtime.md); no effect on ibug68
     warp_points: str = "mesh"
+    restore: bool = False  # fit a restoration filter on the training frames (model/restore.py)
 
 
 # The settings whose default depends on the landmark scheme (config None): a dense mesh (a
@@ -147,6 +149,7 @@ class FaceModel:
     meta: dict = field(default_factory=dict)
     scheme: str = DEFAULT_SCHEME.name
     denoise_pca: PCAModel | None = None
+    restore_kernel: np.ndarray | None = None  # float32 (k, k): every render's restoration filter (model/restore.py)
 
     # ------------------------------------------------------------------ fitting
     @classmethod
@@ -190,7 +193,7 @@ class FaceModel:
         if mouth_q > 0:
             ref_shape, mouth = open_mouth(mean, aligned, scheme.region("inner_lips"), mouth_q, fixed)
         ref = ReferenceFrame.from_mean_shape(ref_shape, cfg.reference_width, cfg.margin, fixed)
-        model = cls(cfg, shape_pca, ref, None, np.zeros((ref.n_triangles, 2), np.int64), seq.fingerprint,  # type: ignore[arg-type]
+        model = cls(cfg, shape_pca, ref, None, np.zeros((ref.n_triangles, 2), np.int64), seq.fingerprint,  # type: ignore
                     scheme=scheme.name, denoise_pca=denoise_pca)
         folded = [] if fixed is None else np.flatnonzero(folded_triangles(ref.points, fixed)).tolist()
         if folded:
@@ -204,18 +207,17 @@ class FaceModel:
         t2 = time.perf_counter()
         model.appearance_pca = PCAModel.fit(textures, cfg.n_appearance, cfg.appearance_variance)
         t3 = time.perf_counter()
+        model.restore_kernel, restore = fit_restoration(model, seq, rows, textures) if cfg.restore else (None, {})
         model.meta = {
             "train_frames": int(len(rows)),
             "fit_seconds": {"shape": t1 - t0, "textures": t2 - t1, "appearance_pca": t3 - t2},
             "sequence": seq.name,
             "triangles_folded_on_mean": folded,
-            "reference_mouth": mouth,
+            "reference_mouth": mouth, **({"restore": {**restore, "seconds": time.perf_counter() - t3}} if restore else {}),
         }
-        log.info(
-            "face model: %d shape / %d appearance components (%.1f%% / %.1f%% variance), %d mask pixels",
-            shape_pca.n_components, model.appearance_pca.n_components, 100 * shape_pca.explained_variance_ratio,
-            100 * model.appearance_pca.explained_variance_ratio, model.n_pixels,
-        )
+        log.info("face model: %d shape / %d appearance components (%.1f%% / %.1f%% variance), %d mask pixels",
+                 shape_pca.n_components, model.appearance_pca.n_components, 100 * shape_pca.explained_variance_ratio,
+                 100 * model.appearance_pca.explained_variance_ratio, model.n_pixels)
         return model, textures
 
     # --------------------------------------------------------------- geometry
@@ -288,9 +290,9 @@ class FaceModel:
 
     def target_warp(self) -> ToTarget:
         """The reference -> target warp module (built once per span, cached)."""
-        key = self.span.tobytes()
+        key = self.span.tobytes() + (b"" if self.restore_kernel is None else self.restore_kernel.tobytes())
         if self.__dict__.get("_target_warp_key") != key:
-            self.__dict__["_target_warp"] = ToTarget(self.reference, self.span)
+            self.__dict__["_target_warp"] = ToTarget(self.reference, self.span, restore=self.restore_kernel)
             self.__dict__["_target_warp_key"] = key
         return self.__dict__["_target_warp"]
 

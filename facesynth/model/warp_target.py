@@ -10,6 +10,7 @@ from torch import nn
 from torch.nn import functional as F
 
 from facesynth.model.reference import ReferenceFrame
+from facesynth.model.restore import Restore
 from facesynth.ops import pad_by_tensor, sum4
 
 PER_PIXEL_TRIANGLES = 256  # above this many triangles, pixels gather their triangle's map (dense meshes)
@@ -66,6 +67,8 @@ class ToTarget(nn.Module):
         its triangles (:meth:`clipped_triangles` reports targets that exceed the span).
     canvas : (H, W), optional
         Output size; defaults to the reference frame size.
+    restore : (k, k) array, optional
+        A restoration filter applied to the warped face (:class:`facesynth.model.restore.Restore`).
 
     Forward
     -------
@@ -74,8 +77,10 @@ class ToTarget(nn.Module):
     returns : image (B, C, H, W) with zeros outside the face, mask (B, 1, H, W) in {0, 1}
     """
 
-    def __init__(self, ref: ReferenceFrame, span: np.ndarray, canvas: tuple[int, int] | None = None):
+    def __init__(self, ref: ReferenceFrame, span: np.ndarray, canvas: tuple[int, int] | None = None,
+                 restore: np.ndarray | None = None):
         super().__init__()
+        self.restore = None if restore is None else Restore(restore)
         self.canvas = tuple(int(s) for s in (canvas or ref.size))
         self.ref_size = tuple(int(s) for s in ref.size)
         tri = np.asarray(ref.triangles, np.int64)
@@ -368,7 +373,10 @@ class ToTarget(nn.Module):
         img = self.bilinear(textures, u, v, inside)
         # ONNX Pad order: begins of (B, C, H, W), then ends
         pads = torch.cat([self.zero2, lo.flip(0), self.zero2, (self.canvas_max - hi).flip(0)]).to(torch.int64)
-        return pad_by_tensor(img, pads), pad_by_tensor(inside, pads)
+        img, inside = pad_by_tensor(img, pads), pad_by_tensor(inside, pads)
+        if self.restore is not None:
+            img = self.restore(img, inside)
+        return img, inside
 
     def clipped_triangles(self, target: torch.Tensor) -> torch.Tensor:
         """bool (B, T): triangles wider than their ``span`` (their edges may miss columns)."""

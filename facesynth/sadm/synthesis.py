@@ -203,7 +203,7 @@ class Synthesizer(nn.Module):
             raise FacesynthError(f"landmark scheme {scheme!r} does not fit a face model of {self.model_points} points")
         self.encoder = ShapeEncoder(model, clamp_shape)
         self.appearance = appearance
-        self.warp = ToTarget(model.reference, model.span)
+        self.warp = ToTarget(model.reference, model.span, restore=model.restore_kernel)
         # FaceModel.denoise on the model's points, the rest as given (identity without a denoise PCA)
         self.denoise = shape_denoiser(model.denoise_pca)
         self.register_buffer("ref_points", torch.from_numpy(model.reference.points.copy()))

@@ -1,0 +1,156 @@
+"""A per-subject restoration filter: one small convolution on the rendered face crop that
+gives back the detail the render path itself blurs (``model.restore=true``).
+
+The render samples the frame into the reference frame and warps it back (bilinear both ways),
+then the paste scales the crop into the frame (bilinear again): even the frame's own texture
+comes back softer than the real frame (``rewarp`` keeps 0.50-0.66 of its gradient energy at
+128 px). The filter ``K`` (k x k, one kernel for every colour channel) is fitted by least
+squares on training frames so that the frame's own texture, rendered, filtered and pasted,
+matches the real frame over the face::
+
+    min_K  sum_frames sum_face px | paste(K * render(texture)) - frame |^2 + lam |K - delta|^2
+
+Paste (an affine warp with bilinear interpolation) is linear, so each kernel tap contributes
+the pasted, shifted crop as one column of the least-squares design, and the normal equations
+are summed frame by frame (:data:`FIT_FRAMES` evenly spaced training frames, a seeded subset
+of :data:`FIT_PIXELS` face pixels each). The kernel size (1 = none, 3, 5, 7) and ``lam`` (ridge towards no
+filter) are chosen by two-fold blocked cross-validation over the training frames (the first
+half against the second and back); the winner is refitted on all of them. Outside the face
+the crop is zero, so before filtering, the pixels within the kernel's reach of the face are
+filled with the mean of the face pixels around them (a normalised box filter), and the
+result is cut back to the face: the convolution never reads black.
+
+At render time :class:`Restore` runs inside the warp (:class:`facesynth.model.warp_target.ToTarget`),
+so the evaluation, the torch synthesiser and the exported face-only graph (three Conv nodes:
+the two of the fill and the filter) all show the filtered face.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import torch
+from torch import nn
+from torch.nn import functional as F
+
+SIZES = (3, 5, 7)
+RIDGE = (1e-4, 1e-3, 1e-2)  # lam, as a fraction of the design's mean diagonal energy
+FIT_FRAMES = 32  # evenly spaced training frames
+FIT_PIXELS = 12000  # face pixels per frame (a seeded random subset; all when fewer)
+
+
+class Restore(nn.Module):
+    """``forward(img (B, C, H, W), mask (B, 1, H, W) in {0, 1})`` -> the face filtered by the
+    (k, k) ``kernel`` (the same for every channel), zero outside ``mask``."""
+
+    def __init__(self, kernel: np.ndarray):
+        super().__init__()
+        k = np.asarray(kernel, np.float32)
+        self.radius = k.shape[0] // 2
+        self.register_buffer("kernel", torch.from_numpy(k.copy())[None, None])
+        self.register_buffer("box", torch.ones(1, 1, 2 * self.radius + 1, 2 * self.radius + 1))
+
+    def fill(self, img: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+        """``img`` with the pixels outside ``mask`` within the kernel's reach set to the mean of
+        the face pixels in their box (0 where there are none)."""
+        c = img.shape[1]
+        r = self.radius
+        num = F.conv2d(img.reshape(-1, 1, *img.shape[2:]), self.box, padding=r).reshape(img.shape)
+        den = F.conv2d(mask, self.box, padding=r)
+        return img + (1 - mask) * num / torch.clamp(den, min=1.0).expand(-1, c, -1, -1)
+
+    def forward(self, img: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+        x = self.fill(img, mask)
+        b, c, h, w = x.shape
+        y = F.conv2d(x.reshape(b * c, 1, h, w), self.kernel, padding=self.radius).reshape(b, c, h, w)
+        return torch.clamp(y, 0.0, 1.0) * mask
+
+
+def _taps(size: int, full: int) -> np.ndarray:
+    """Indices (into the (full, full) taps, raster order) of the centred (size, size) ones."""
+    off = (full - size) // 2
+    idx = np.arange(full * full).reshape(full, full)
+    return idx[off : off + size, off : off + size].reshape(-1)
+
+
+def fit_restoration(model, seq, rows: np.ndarray, textures: np.ndarray, feather: float = 2.0) -> tuple[np.ndarray | None, dict]:
+    """(kernel or None, report) for a face model ``model`` (without a kernel) fitted on ``rows``
+    of ``seq`` whose sampled textures are ``textures`` (len(rows), C * M); None when no filter
+    beats none in cross-validation. report: the chosen ``size`` and ``ridge``, the frames used,
+    and the held-out RMS (0-255) per size of the best ridge."""
+    full = max(SIZES)
+    r = full // 2
+    pick = np.unique(np.linspace(0, len(rows) - 1, min(FIT_FRAMES, len(rows))).round().astype(int))
+    lm = seq.landmarks[np.asarray(rows)[pick]][:, : model.mean_shape.shape[0]]
+    crops, masks, places = model.render(textures[pick], lm)
+    n_taps = full * full
+    folds = [np.zeros((n_taps, n_taps)), np.zeros((n_taps, n_taps))]
+    rhs = [np.zeros(n_taps), np.zeros(n_taps)]
+    energy = [0.0, 0.0]
+    count = [0, 0]
+    fill = Restore(np.zeros((full, full), np.float32))
+    for j, frame in enumerate(seq.iter_frames(np.asarray(rows)[pick])):
+        f = 0 if j < len(pick) / 2 else 1
+        img = torch.from_numpy(crops[j]).permute(2, 0, 1)[None]
+        msk = torch.from_numpy(masks[j])[None, None]
+        x = fill.fill(img, msk)[0].permute(1, 2, 0).numpy()
+        h, w = frame.shape[:2]
+        alpha = cv2.warpAffine(masks[j], places[j], (w, h), flags=cv2.INTER_LINEAR) > 0.999
+        region = cv2.erode(alpha.astype(np.uint8), np.ones((2 * int(np.ceil(feather)) + 1,) * 2, np.uint8)) > 0
+        ys, xs = np.nonzero(region)
+        if len(ys) == 0:
+            continue
+        y0, y1, x0, x1 = ys.min(), ys.max() + 1, xs.min(), xs.max() + 1
+        place = places[j].copy()
+        place[0, 2] -= x0
+        place[1, 2] -= y0
+        sy, sx = np.nonzero(region[y0:y1, x0:x1])
+        if len(sy) > FIT_PIXELS:
+            keep = np.sort(np.random.default_rng(j).choice(len(sy), FIT_PIXELS, replace=False))
+            sy, sx = sy[keep], sx[keep]
+        xp = cv2.copyMakeBorder(x, r, r, r, r, cv2.BORDER_CONSTANT, value=0)
+        hh, ww = x.shape[:2]
+        cols = []
+        for dy in range(-r, r + 1):
+            for dx in range(-r, r + 1):  # conv2d is a correlation: tap (dy, dx) reads x[p + (dy, dx)]
+                shifted = np.ascontiguousarray(xp[r + dy : r + dy + hh, r + dx : r + dx + ww])
+                cols.append(cv2.warpAffine(shifted, place, (x1 - x0, y1 - y0), flags=cv2.INTER_LINEAR)[sy, sx])
+        a = np.stack(cols, -1).reshape(-1, n_taps).astype(np.float64)  # (pixels * 3, taps)
+        b = frame[y0:y1, x0:x1][sy, sx].reshape(-1).astype(np.float64) / 255.0
+        folds[f] += a.T @ a
+        rhs[f] += a.T @ b
+        energy[f] += float(b @ b)
+        count[f] += len(b)
+    centre = n_taps // 2
+    scale = float(np.mean(np.diag(folds[0] + folds[1]))) / max(sum(count), 1)
+
+    def solve(ata, atb, n, taps, lam):
+        a_, b_ = ata[np.ix_(taps, taps)], atb[taps]
+        delta = (taps == centre).astype(np.float64)
+        return np.linalg.solve(a_ + lam * n * scale * np.eye(len(taps)), b_ + lam * n * scale * delta)
+
+    def sse(ata, atb, bb, taps, k):
+        return float(k @ ata[np.ix_(taps, taps)] @ k - 2 * k @ atb[taps] + bb)
+
+    none = sum(sse(folds[f], rhs[f], energy[f], np.array([centre]), np.ones(1)) for f in (0, 1))
+    best = (none, 1, 0.0)
+    held_out = {"1": float(255 * np.sqrt(none / max(sum(count), 1)))}
+    for size in SIZES:
+        taps = _taps(size, full)
+        best_size = None
+        for lam in RIDGE:
+            err = 0.0
+            for f in (0, 1):
+                k = solve(folds[f], rhs[f], count[f], taps, lam)
+                err += sse(folds[1 - f], rhs[1 - f], energy[1 - f], taps, k)
+            best_size = err if best_size is None else min(best_size, err)
+            if err < best[0]:
+                best = (err, size, lam)
+        held_out[str(size)] = float(255 * np.sqrt(best_size / max(sum(count), 1)))
+    _, size, lam = best
+    report = {"size": size, "ridge": lam, "frames": int(len(pick)), "held_out_rms": held_out}
+    if size == 1:
+        return None, report
+    taps = _taps(size, full)
+    k = solve(folds[0] + folds[1], rhs[0] + rhs[1], sum(count), taps, lam)
+    return k.reshape(size, size).astype(np.float32), report
