@@ -207,7 +207,7 @@ def test_readme_paths_leave_a_checkout_under_tmp_alone():
 
 
 def test_readme_live_page_path_runs_as_written(tmp_path, shared_clip_dir):
-    """README's Getting started, step 4, command by command as written, on a shorter shared
+    """README's Getting started, step 5, command by command as written, on a shorter shared
     clip (lp_d0, 78 frames, in place of lp_d6) and in a temporary folder: MediaPipe ingest,
     training, the talking-head export, and ``facesynth serve`` serving that avatar."""
     import os
@@ -220,7 +220,7 @@ def test_readme_live_page_path_runs_as_written(tmp_path, shared_clip_dir):
 
     _site_avatar(tmp_path)  # skips without what the page needs
     root = Path(__file__).resolve().parents[1]
-    step = (root / "README.md").read_text().split("**4. Drive an avatar.**")[1].split("```bash\n")[1].split("```")[0]
+    step = (root / "README.md").read_text().split("**5. Drive an avatar from any video.**")[1].split("```bash\n")[1].split("```")[0]
     commands = [shlex.split(c) for c in re.split(r"\s*&&\s*", step.replace("\\\n", " ").strip())]
     assert [c[:2] for c in commands] == [["facesynth", "ingest"], ["facesynth", "train"], ["facesynth", "export"],
                                          ["facesynth", "serve"]]
