@@ -104,6 +104,20 @@ def remove_stale_temps(path: str | os.PathLike) -> list[Path]:
     return removed
 
 
+def remove_dead_pid_folders(root: str | os.PathLike, prefix: str) -> list[Path]:
+    """Remove the folders ``root/PREFIX<PID>-*`` of this user whose process ``PID`` is gone (a
+    server or job killed before it cleaned up); returns them. Folders of live processes, of
+    other users, links and other names stay."""
+    removed = []
+    for d in Path(root).glob(prefix + "*-*"):
+        pid = d.name[len(prefix):].split("-", 1)[0]
+        if not pid.isdigit() or d.is_symlink() or not d.is_dir() or d.stat().st_uid != os.getuid() or _pid_alive(int(pid)):
+            continue
+        shutil.rmtree(d, ignore_errors=True)
+        removed.append(d)
+    return removed
+
+
 def _umask() -> int:
     umask = os.umask(0)
     os.umask(umask)

@@ -256,3 +256,25 @@ def test_row8_read_only_folder_is_refused_before_any_work(fake_ingest, tmp_path,
     with pytest.raises(FacesynthError, match=f"{tmp_path} is not writable"):
         ingest_video(path, tmp_path / "out", detector=det)
     assert calls["n"] == 0 and _listing(tmp_path) == ["v.avi"]
+
+
+def test_folders_of_dead_processes_are_removed_and_live_ones_kept(tmp_path):
+    """``io.remove_dead_pid_folders``, which ``serve`` (its page builds) and the studio (its job
+    folders in the library) clean up with: a dead PID's folder goes; this process's, another
+    name's and a link stay."""
+    import subprocess
+
+    from facesynth.io import remove_dead_pid_folders
+    from facesynth.web.site import STALE_PREFIX
+    from facesynth.web.studio import WORK_PREFIX
+
+    dead = subprocess.Popen(["true"])
+    dead.wait()
+    for prefix in (STALE_PREFIX, WORK_PREFIX):
+        root = tmp_path / prefix.strip(".-")
+        gone, alive, other = root / f"{prefix}{dead.pid}-a", root / f"{prefix}{os.getpid()}-b", root / "keep-1-c"
+        for d in (gone, alive, other):
+            (d / "x").mkdir(parents=True)
+        (root / f"{prefix}{dead.pid}-link").symlink_to(other)
+        assert remove_dead_pid_folders(root, prefix) == [gone]
+        assert sorted(p.name for p in root.iterdir()) == sorted([alive.name, other.name, f"{prefix}{dead.pid}-link"])

@@ -15,7 +15,7 @@ import tempfile
 from pathlib import Path
 
 from facesynth.errors import FacesynthError
-from facesynth.io import atomic_dir, check_writable, refuse_overwriting_inputs, set_default_mode
+from facesynth.io import atomic_dir, check_writable, refuse_overwriting_inputs, remove_dead_pid_folders, set_default_mode
 
 PAGE = Path(__file__).resolve().parent / "page"  # the page and its npm manifest: package data
 PAGE_FILES = ("index.html", "main.js", "worker.js", "tracker.js", "neutral.js", "schemes.js", "onnxmeta.js",
@@ -193,21 +193,7 @@ def remove_stale_builds(root: str | Path | None = None) -> list[Path]:
     """Remove the build folders in ``root`` (the temporary folder) left by a ``serve`` that was
     killed while it built its page (its PID is gone); returns them. Folders of live processes and
     folders of other names stay."""
-    removed = []
-    for d in Path(root or tempfile.gettempdir()).glob(STALE_PREFIX + "*-*"):
-        pid = d.name[len(STALE_PREFIX):].split("-", 1)[0]
-        if not pid.isdigit() or not d.is_dir() or d.is_symlink() or d.stat().st_uid != os.getuid():
-            continue
-        try:
-            os.kill(int(pid), 0)
-            continue  # alive (or another user's: PermissionError below is alive too)
-        except ProcessLookupError:
-            pass
-        except PermissionError:
-            continue
-        shutil.rmtree(d, ignore_errors=True)
-        removed.append(d)
-    return removed
+    return remove_dead_pid_folders(root or tempfile.gettempdir(), STALE_PREFIX)
 
 
 def serve(model: str | Path, port: int = 8000, ready=print) -> None:

@@ -35,6 +35,7 @@ import time
 from pathlib import Path
 
 from facesynth.errors import FacesynthError
+from facesynth.io import remove_dead_pid_folders
 from facesynth.web.studio_job import UPLOAD
 
 NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_-]{0,39}$")
@@ -68,21 +69,7 @@ def page_files() -> dict[str, bytes]:
 
 def remove_stale_work(library: Path) -> list[Path]:
     """Work folders in ``library`` left by a studio that was killed (its PID is gone)."""
-    removed = []
-    for d in library.glob(WORK_PREFIX + "*-*"):
-        pid = d.name[len(WORK_PREFIX):].split("-", 1)[0]
-        if not pid.isdigit() or not d.is_dir() or d.is_symlink():
-            continue
-        try:
-            os.kill(int(pid), 0)
-            continue
-        except ProcessLookupError:
-            pass
-        except PermissionError:
-            continue
-        shutil.rmtree(d, ignore_errors=True)
-        removed.append(d)
-    return removed
+    return remove_dead_pid_folders(library, WORK_PREFIX)
 
 
 class Studio:
