@@ -114,8 +114,8 @@ def test_training_landmarks_from_run_config(tmp_path):
     from facesynth.runs.rundir import training_landmarks
 
     (tmp_path / "config.yaml").write_text(
-        "seed: 3\ndata:\n  kind: synthetic\n  n_frames: 12\n  size: 96\n  max_frames: null\n"
-        "  train_fraction: 0.75\n  gap: 1\n"
+        "seed: 3\ndata:\n  kind: synthetic\n  path: null\n  n_frames: 12\n  size: 96\n  max_frames: null\n"
+        "  train_fraction: 0.75\n  gap: 1\n"  # every data setting, as train.py writes them (read_config checks)
     )
     seq = make_synthetic_sequence(n_frames=12, size=96, seed=3)
     rows, _ = temporal_split(12, 0.75, 1)

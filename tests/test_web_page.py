@@ -6,6 +6,7 @@ playwright or the page's npm packages (``facesynth web setup``)."""
 from __future__ import annotations
 
 import os
+import re
 import shutil
 from pathlib import Path
 
@@ -17,6 +18,7 @@ pytest.importorskip("tflite")
 pytest.importorskip("mediapipe")
 
 from facesynth.contract import SYNTHESIS_FORMAT, TALKING_HEAD_FORMAT  # noqa: E402
+from facesynth.errors import FacesynthError  # noqa: E402
 from facesynth.web import browser, site  # noqa: E402
 
 if browser.chromium_path() is None:
@@ -350,12 +352,9 @@ def test_a_corrupt_avatar_is_refused_and_the_current_one_runs_on(page_site, came
         f = tmp_path / f"bad_{weight.split('.')[-1]}.onnx"
         f.write_bytes(_overwritten(path, weight))
         assert read_metadata(f) == meta  # the metadata intact
-        try:  # broken for Python's runtime too: it fails, or its frame at its own neutral is not its neutral frame
-            th = TalkingHead(f, driver_neutral=np.asarray(meta["avatar_neutral"], np.float32))
-            frame, _ = th.run(np.asarray(meta["avatar_neutral"], np.float32)[None])
-            assert np.abs(frame[0].astype(int) - th.background).mean() > 10
-        except Exception as exc:
-            assert "GatherElements" in str(exc), exc
+        # refused by Python's runtime too: its check's first run fails, or renders a face far from its neutral frame
+        with pytest.raises(FacesynthError, match=re.escape(str(f)) + ".*corrupt"):
+            TalkingHead(f)
         bad[f.name] = f.read_bytes()
     # the talking head's metadata on a one-node graph (x -> y)
     m = onnx.load(str(path), load_external_data=False)
