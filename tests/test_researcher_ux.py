@@ -6,6 +6,7 @@ import argparse
 import base64
 import importlib
 import re
+from html.parser import HTMLParser
 
 import numpy as np
 import pytest
@@ -79,7 +80,87 @@ def test_report_writes_every_plot_and_a_self_contained_html(run, tmp_path):
     for row in ("sadm", "mean_texture", "oracle", "rewarp", "s0..s3", "ncc"):
         assert row in html and row in md  # the legend
     assert "src='plots/" not in html
-    assert "Face parts below the mean texture" in md and ("WARNING" in md) == bool(below_mean(metrics))
+    assert "Weak regions" in md and ("WARNING" in md) == bool(below_mean(metrics))
+
+
+class _FirstScreen(HTMLParser):
+    """The report's body up to its first <details>: tags, list items, images and headings."""
+
+    def __init__(self):
+        super().__init__()
+        self.done, self.tags, self.items, self.images, self.headings, self._text = False, [], [], [], [], None
+        self.details = self.summaries = 0
+
+    def handle_starttag(self, tag, attrs):
+        self.details += tag == "details"
+        self.summaries += tag == "summary"
+        self.done = self.done or tag == "details"
+        if self.done:
+            return
+        self.tags.append(tag)
+        if tag == "img":
+            self.images.append(dict(attrs)["src"])
+        if tag in ("li", "h2"):
+            self._text = [tag, ""]
+
+    def handle_data(self, data):
+        if self._text is not None and not self.done:
+            self._text[1] += data
+
+    def handle_endtag(self, tag):
+        if self._text is not None and tag == self._text[0]:
+            (self.items if tag == "li" else self.headings).append(self._text[1])
+            self._text = None
+
+
+def test_report_first_screen_holds_the_verdicts_the_strip_and_the_weak_regions(run, tmp_path):
+    """Before the first <details>: one verdict line per measure with the figures of
+    metrics.json, the real | rendered strip, and the weak regions; every table is below,
+    inside a collapsible section."""
+    seq, tr, te, sadm = run
+    metrics, extras = evaluate_sadm(sadm, seq, tr, te, EvalConfig(noise=[0, 2], max_test_frames=5))
+    plots = write_plots(metrics, extras, tmp_path / "plots")
+    head = {"frames": 7, "neutral_row": 3, **{r: {"psnr_head_db": 20.0 + i, "ssim_head": 0.5, "psnr_frame_db": 25.0,
+                                                  "ssim_frame": 0.8} for i, r in enumerate(("static", "warp", "full"))}}
+    for with_head in (False, True):
+        m = {**metrics, "talking_head": head} if with_head else metrics
+        write_report(m, tmp_path, plots, worst_frames=extras["worst_frames"])
+        page = _FirstScreen()
+        page.feed((tmp_path / "report.html").read_text())
+        assert "table" not in page.tags and page.details >= 4 and page.details == page.summaries
+        verdicts = "\n".join(page.items)
+        for key, where in (("psnr_frame", "original frame"), ("psnr_ref", "reference frame")):
+            s, mean, oracle = (m[key][r]["0"] for r in ("sadm", "mean_texture", "oracle"))
+            line = next(x for x in page.items if x.startswith(f"Held-out PSNR ({where}"))
+            assert f"{s:.2f} dB, {s - mean:+.2f} dB over the mean texture ({mean:.2f}), " \
+                   f"{oracle - s:.2f} dB below the oracle ({oracle:.2f})" in line
+            assert ("NOT LEARNED" in line) == (s <= mean)
+        if "lpips_frame_common" in m:
+            assert f"{m['lpips_frame_common']['face']['sadm']:.3f}" in verdicts
+        else:
+            assert "Perceptual distance (LPIPS): not measured" in verdicts
+        sharp = m.get("sharpness_frame_common")
+        assert (f"Sharpness (rendered / real gradient energy, 1 = as detailed as the real frame): "
+                f"{(sharp.get('whole') or next(iter(sharp.values())))['sadm']:.2f}" if sharp else
+                "Sharpness: not measured") in verdicts
+        if with_head:
+            assert "Talking head, driving itself on 7 held-out frames: head PSNR 22.00 dB, SSIM 0.500, better than its " \
+                   "still neutral frame (20.00 dB) and +1.00 dB over the warp alone (21.00)." in verdicts
+        else:
+            assert "Talking head: not measured" in verdicts
+        strip = base64.b64encode((tmp_path / "plots" / "motion_strip.png").read_bytes()).decode()
+        assert page.images == [f"data:image/png;base64,{strip}"]
+        assert page.headings == ["Weak regions"]
+        weak = page.items[page.items.index(next(x for x in page.items if x.startswith(("No face part", "WARNING")))):]
+        for flag in below_mean(m):
+            assert any(flag in x for x in weak)
+        table = {p: v for p, v in (m.get("psnr_frame_common_regions") or m["psnr_ref_regions"]).items() if p != "whole"}
+        listed = next(x for x in weak if x.startswith("Face parts, weakest first"))
+        gains = sorted((v["sadm"]["0"] - v["mean_texture"]["0"], p.replace("_", " ")) for p, v in table.items())
+        assert len(gains) >= 2
+        positions = [listed.index(f"{name} ") for _, name in gains]
+        assert positions == sorted(positions)  # weakest first
+        assert f"Worst test frames (reference-frame PSNR, sigma 0): {', '.join(map(str, extras['worst_frames']))}." in weak
 
 
 def test_frame_level_equals_pasting_into_the_whole_frame(run):

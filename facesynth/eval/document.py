@@ -12,11 +12,14 @@ from facesynth.io import write_text
 
 _CSS = ("body{font-family:sans-serif;max-width:1100px;margin:2em auto;line-height:1.4}"
         "table{border-collapse:collapse;margin:0.5em 0}td,th{border:1px solid #bbb;padding:2px 8px;text-align:right}"
-        "td:first-child,th:first-child{text-align:left}img{max-width:100%}figcaption{color:#444;font-size:90%}")
+        "td:first-child,th:first-child{text-align:left}img{max-width:100%}figcaption{color:#444;font-size:90%}"
+        "ul.verdict{padding-left:1.2em;margin:0.3em 0}ul.verdict li{margin:0.15em 0}"
+        "details{margin:0.4em 0;border-top:1px solid #ddd}summary{cursor:pointer;font-weight:bold;padding:0.3em 0}")
 
 
 class Document:
-    """Blocks of a report: headings, paragraphs, bullet lists, tables and figures."""
+    """Blocks of a report: headings, paragraphs, bullet lists, tables, figures and collapsible
+    sections (``<details>`` in HTML, a heading in Markdown)."""
 
     def __init__(self, title: str):
         self.title = title
@@ -28,8 +31,15 @@ class Document:
     def para(self, text: str) -> None:
         self.blocks.append(("p", text))
 
-    def bullets(self, items: list[str]) -> None:
-        self.blocks.append(("ul", list(items)))
+    def bullets(self, items: list[str], css_class: str = "") -> None:
+        self.blocks.append(("ul", list(items), css_class))
+
+    def open_section(self, summary: str) -> None:
+        """Start a collapsible section (closed by :meth:`close_section`), collapsed in HTML."""
+        self.blocks.append(("details", summary))
+
+    def close_section(self) -> None:
+        self.blocks.append(("/details",))
 
     def table(self, header: list[str], rows: list[list]) -> None:
         self.blocks.append(("table", list(header), [list(map(str, r)) for r in rows]))
@@ -51,6 +61,10 @@ class Document:
                 out += [b[1], ""]
             elif b[0] == "ul":
                 out += [f"- {t}" for t in b[1]] + [""]
+            elif b[0] == "details":
+                out += [f"## {b[1]}", ""]
+            elif b[0] == "/details":
+                continue
             elif b[0] == "table":
                 out += ["| " + " | ".join(b[1]) + " |", "|---" + "|---:" * (len(b[1]) - 1) + "|"]
                 out += ["| " + " | ".join(r) + " |" for r in b[2]] + [""]
@@ -69,7 +83,12 @@ class Document:
             elif b[0] == "p":
                 out.append(f"<p>{e(b[1])}</p>")
             elif b[0] == "ul":
-                out.append("<ul>" + "".join(f"<li>{e(t)}</li>" for t in b[1]) + "</ul>")
+                cls = f" class='{e(b[2])}'" if b[2] else ""
+                out.append(f"<ul{cls}>" + "".join(f"<li>{e(t)}</li>" for t in b[1]) + "</ul>")
+            elif b[0] == "details":
+                out.append(f"<details><summary>{e(b[1])}</summary>")
+            elif b[0] == "/details":
+                out.append("</details>")
             elif b[0] == "table":
                 head = "".join(f"<th>{e(h)}</th>" for h in b[1])
                 body = "".join("<tr>" + "".join(f"<td>{e(c)}</td>" for c in r) + "</tr>" for r in b[2])

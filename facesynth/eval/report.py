@@ -89,14 +89,11 @@ def below_mean(metrics: dict, noise: str = "0") -> list[str]:
 
 
 def face_detail_sections(doc: Document, metrics: dict) -> None:
-    """The report's per-part figures: parts below the mean texture (flagged), the per-part
-    reference-frame PSNR, the SADM's shrinkage weights, the sharpness, LPIPS and flicker tables."""
-    flags = below_mean(metrics)
-    doc.heading("Face parts below the mean texture (held out, sigma 0)")
-    doc.para("WARNING, worse than rendering no model there: " + "; ".join(flags) + "." if flags else
-             "None: every face part's held-out prediction is at least as close to the real frame as the mean texture.")
+    """The report's per-part figures: the per-part reference-frame PSNR, the SADM's shrinkage
+    weights, the sharpness, LPIPS and flicker tables (the parts below the mean texture are on
+    the first screen, :func:`weak_regions`)."""
     if metrics.get("psnr_ref_regions"):
-        doc.heading("Test PSNR in the reference frame per face part (dB)")
+        doc.heading("Test PSNR in the reference frame per face part (dB)", 3)
         rows = metrics["psnr_ref_regions"]
         keys = list(next(iter(rows.values()))["sadm"])
         doc.table(["part"] + [f"{r} sigma {k}" for r in ("sadm", "mean_texture") for k in keys],
@@ -105,29 +102,94 @@ def face_detail_sections(doc: Document, metrics: dict) -> None:
     if shrink:
         how = f"{shrink['folds']}-fold blocked cross-validation" if shrink.get("folds") else "the validation slice"
         doc.heading(f"Shrinkage towards the mean texture per face part ({how}, {shrink['val_frames']} training frames "
-                    "scored held out; val = those frames)")
+                    "scored held out; val = those frames)", 3)
         doc.table(["part", "weight", "val sadm dB", "val mean texture dB", "val shrunk dB"],
                   [[p, f"{w:.2f}"] + [f"{shrink['psnr'][p][r]:.2f}" for r in ("sadm", "mean_texture", "shrunk")]
                    for p, w in shrink["weights"].items()])
     sharp = metrics.get("sharpness_frame_common")
     if sharp:
         doc.heading("Sharpness over the common region (rendered / real Sobel gradient energy, median over frames, "
-                    "sigma 0; 1 = as detailed as the real frame)")
+                    "sigma 0; 1 = as detailed as the real frame)", 3)
         names = list(next(iter(sharp.values())))
         doc.table(["region"] + names, [[reg] + [f"{v[n]:.2f}" for n in names] for reg, v in sharp.items()])
     lp = metrics.get("lpips_frame_common")
     if lp:
         doc.heading("Perceptual distance LPIPS-Alex of the face pasted into the real frame (median over frames, sigma 0; "
-                    "lower is closer, 0 = the real frame)")
+                    "lower is closer, 0 = the real frame)", 3)
         names = list(next(iter(lp.values())))
         doc.table(["region"] + names, [[reg] + [f"{v[n]:.4f}" for n in names] for reg, v in lp.items()])
     fl = metrics.get("flicker_frame_common")
     if fl:
         doc.heading(f"Flicker: the face's mean absolute frame-to-frame change on {fl['frames']} consecutive held-out frames "
-                    "(0-255; ratio to the real frames')")
+                    "(0-255; ratio to the real frames')", 3)
         rows = [r for r in fl["ratio"]]
         doc.table(["", "real"] + rows, [["change", f"{fl['real']:.2f}"] + [f"{fl[r]:.2f}" for r in rows],
                                         ["ratio", "1.00"] + [f"{fl['ratio'][r]:.2f}" for r in rows]])
+
+
+def verdict_lines(metrics: dict) -> list[str]:
+    """One line per measure for the report's first screen: held-out PSNR against the mean
+    texture and the oracle (original frame and reference frame), the perceptual distance and
+    the sharpness where measured, and the talking head's figures."""
+    lines = []
+    for key, where in (("psnr_frame", "original frame, face region"), ("psnr_ref", "reference frame, face mask")):
+        rows = metrics.get(key)
+        if not rows or "0" not in rows.get("sadm", {}):
+            continue
+        s, m, o = rows["sadm"]["0"], rows["mean_texture"]["0"], rows["oracle"]["0"]
+        verdict = "learned" if s > m else "NOT LEARNED (no better than the mean texture)"
+        lines.append(f"Held-out PSNR ({where}, sigma 0): {verdict}: {s:.2f} dB, {s - m:+.2f} dB over the mean texture "
+                     f"({m:.2f}), {o - s:.2f} dB below the oracle ({o:.2f}).")
+    lp = (metrics.get("lpips_frame_common") or {}).get("face")
+    if lp and "sadm" in lp:
+        others = ", ".join(f"{r} {v:.3f}" for r, v in lp.items() if r != "sadm")
+        lines.append(f"Perceptual distance (LPIPS-Alex, face, lower is closer): {lp['sadm']:.3f}"
+                     + (f" (the same face through the {others})." if others else "."))
+    else:
+        lines.append("Perceptual distance (LPIPS): not measured (the perceptual extra is not installed).")
+    sharp = (metrics.get("sharpness_frame_common") or {})
+    part = sharp.get("whole") or next(iter(sharp.values()), None)
+    if part and "sadm" in part:
+        others = ", ".join(f"{r} {v:.2f}" for r, v in part.items() if r != "sadm")
+        lines.append(f"Sharpness (rendered / real gradient energy, 1 = as detailed as the real frame): {part['sadm']:.2f}"
+                     + (f" ({others})." if others else "."))
+    else:
+        lines.append("Sharpness: not measured (no common face region: the clip's dlib points are not known).")
+    head = metrics.get("talking_head")
+    if head:
+        f, st, w = head["full"], head["static"], head["warp"]
+        better = "better than" if f["psnr_head_db"] > st["psnr_head_db"] else "NOT better than"
+        lines.append(f"Talking head, driving itself on {head['frames']} held-out frames: head PSNR {f['psnr_head_db']:.2f} dB, "
+                     f"SSIM {f['ssim_head']:.3f}, {better} its still neutral frame ({st['psnr_head_db']:.2f} dB) and "
+                     f"{f['psnr_head_db'] - w['psnr_head_db']:+.2f} dB over the warp alone ({w['psnr_head_db']:.2f}).")
+    else:
+        lines.append("Talking head: not measured (eval.talking_head=false, or a clip without frames).")
+    return lines
+
+
+def weak_regions(metrics: dict, worst_frames: list[int] | None = None) -> list[str]:
+    """The first screen's weak regions: every face part below the mean texture (flagged), then
+    each part's held-out gain over the mean texture and gap to the oracle, weakest first, and
+    the worst test frames."""
+    out = [f"WARNING, worse than rendering no model: {flag}." for flag in below_mean(metrics)]
+    parts = {p: rows for p, rows in (metrics.get("psnr_frame_common_regions") or {}).items() if p != "whole"}
+    where = "frame, common region"
+    if not parts:
+        parts, where = metrics.get("psnr_ref_regions") or {}, "reference frame"
+    gains = []
+    for p, rows in parts.items():
+        s, m = rows.get("sadm", {}).get("0"), rows.get("mean_texture", {}).get("0")
+        if s is not None and m is not None:
+            o = rows.get("oracle", {}).get("0")
+            gains.append((s - m, f"{p.replace('_', ' ')} {s:.2f} dB ({s - m:+.2f} over the mean texture"
+                                 + (f", {o - s:.2f} below the oracle)" if o is not None else ")")))
+    if gains:
+        out.append(f"Face parts, weakest first ({where}, sigma 0): " + "; ".join(t for _, t in sorted(gains)) + ".")
+    if not below_mean(metrics):
+        out.insert(0, "No face part is below the mean texture.")
+    if worst_frames:
+        out.append(f"Worst test frames (reference-frame PSNR, sigma 0): {', '.join(map(str, worst_frames))}.")
+    return out
 
 
 def legend_lines() -> list[str]:
@@ -137,8 +199,20 @@ def legend_lines() -> list[str]:
 
 def write_report(metrics: dict, out_dir: str | os.PathLike, plots: list[str], header: dict | None = None,
                  plot_dir: str = "plots", worst_frames: list[int] | None = None) -> Document:
-    """Write ``report.md`` and ``report.html`` summarising ``metrics`` with the plots."""
+    """Write ``report.md`` and ``report.html`` summarising ``metrics`` with the plots.
+
+    The first screen holds the verdict line per measure (:func:`verdict_lines`), the real |
+    rendered strip and the weak regions (:func:`weak_regions`); every table and plot follows in
+    collapsible sections."""
     doc = Document(f"facesynth run: {metrics.get('regressor')} regressor")
+    doc.bullets(verdict_lines(metrics), "verdict")
+    strip = next((p for p in ("motion_strip.png", "test_grid.png") if p in plots), None)
+    if strip:
+        doc.figure(f"{plot_dir}/{strip}", PLOTS[strip])
+    doc.heading("Weak regions")
+    doc.bullets(weak_regions(metrics, worst_frames))
+
+    doc.open_section("Run")
     lines = [f"{k}: {v}" for k, v in (header or {}).items()]
     lines += [f"shape components: {metrics['n_shape']}, appearance components: {metrics['n_appearance']}",
               f"frames: {metrics['train_frames']} train / {metrics['test_frames']} test (temporal split)"]
@@ -147,26 +221,37 @@ def write_report(metrics: dict, out_dir: str | os.PathLike, plots: list[str], he
         lines.append(f"original-frame PSNR measured on {fl['evaluated']} of {fl['test_frames']} test frames, evenly spaced "
                      f"(eval.max_test_frames={fl['max_test_frames']})")
     doc.bullets(lines)
-    doc.heading("Legend")
+    doc.heading("Legend", 3)
     doc.table(["row / column", "meaning"], [[k, v] for k, v in {**ROWS, **COLUMNS}.items()])
-    doc.heading("Test PSNR in the reference frame (dB, peak 255, over the face mask)")
+    doc.close_section()
+
+    doc.open_section("Held-out PSNR tables")
+    doc.heading("Test PSNR in the reference frame (dB, peak 255, over the face mask)", 3)
     _table(doc, metrics["psnr_ref"])
     if "psnr_frame" in metrics:
-        doc.heading("Test PSNR in the original frame (dB, whole pipeline, face region)")
+        doc.heading("Test PSNR in the original frame (dB, whole pipeline, face region)", 3)
         _table(doc, metrics["psnr_frame"])
     common = metrics.get("psnr_frame_common_regions", {})
     for region, table in common.items():
-        doc.heading(f"Test PSNR in the original frame over the common region, {region} (dB; dlib hull 0-26 eroded 3 px)")
+        doc.heading(f"Test PSNR in the original frame over the common region, {region} (dB; dlib hull 0-26 eroded 3 px)", 3)
         _table(doc, table)
     unseen = [p.replace("_", " ") for p in FACE_REGIONS if common and p not in common]
     if unseen:
         doc.para(f"Not in any evaluated frame, so not measured: {', '.join(unseen)} (a closed mouth has no interior).")
+    if "psnr_train_ref" in metrics:
+        doc.heading("Training-frame PSNR in the reference frame (the paper's Table 2 setting)", 3)
+        _table(doc, metrics["psnr_train_ref"])
+    doc.close_section()
+
+    doc.open_section("Face parts, sharpness, perceptual distance and flicker")
     face_detail_sections(doc, metrics)
+    doc.close_section()
+
     head = metrics.get("talking_head")
     if head:
-        doc.heading(f"Talking head: the avatar driving itself on {head['frames']} held-out frames (relative motion, "
-                    f"neutral = training frame {head['neutral_row']})")
-        doc.para("static: the avatar's neutral frame unchanged; warp: that frame warped with the landmarks, no "
+        doc.open_section(f"Talking head: the avatar driving itself on {head['frames']} held-out frames")
+        doc.para(f"Relative motion, neutral = training frame {head['neutral_row']}. "
+                 "static: the avatar's neutral frame unchanged; warp: that frame warped with the landmarks, no "
                  "synthesised face; full: the synthesised face composited into the warped frame (what the exported "
                  "talking head renders). Head region: the real landmarks' hull grown to hair and neck."
                  + (f" The warp's head ring: {head['ring_scale']:g} x the default size, chosen on the training frames."
@@ -175,18 +260,19 @@ def write_report(metrics: dict, out_dir: str | os.PathLike, plots: list[str], he
                   [[r] + [f"{head[r][k]:.2f}" if k.startswith("psnr") else f"{head[r][k]:.3f}"
                           for k in ("psnr_head_db", "ssim_head", "psnr_frame_db", "ssim_frame")]
                    for r in ("static", "warp", "full")])
-    if "psnr_train_ref" in metrics:
-        doc.heading("Training-frame PSNR in the reference frame (the paper's Table 2 setting)")
-        _table(doc, metrics["psnr_train_ref"])
+        doc.close_section()
+
     ncc = np.asarray(metrics.get("ncc", []))
     if ncc.size:
-        doc.heading("Per-component NCC of predicted vs true b_g (test frames)")
+        doc.open_section("Appearance parameters: per-component NCC of predicted vs true b_g (test frames)")
         doc.para(f"first 10: {', '.join(f'{v:.2f}' for v in ncc[:10])}; mean over all {ncc.size}: {ncc.mean():.3f}; "
                  f"range {ncc.min():.2f} .. {ncc.max():.2f}")
-    if worst_frames:
-        doc.para(f"Worst test frames (reference-frame PSNR, sigma 0): {', '.join(map(str, worst_frames))}.")
-    doc.heading("Plots")
-    for p in plots:
-        doc.figure(f"{plot_dir}/{p}", PLOTS.get(p, p))
+        doc.close_section()
+    rest = [p for p in plots if p != strip]
+    if rest:
+        doc.open_section("Plots")
+        for p in rest:
+            doc.figure(f"{plot_dir}/{p}", PLOTS.get(p, p))
+        doc.close_section()
     doc.write(out_dir)
     return doc
