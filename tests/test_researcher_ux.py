@@ -123,7 +123,8 @@ def test_report_first_screen_holds_the_verdicts_the_strip_and_the_weak_regions(r
     head = {"frames": 7, "neutral_row": 3, **{r: {"psnr_head_db": 20.0 + i, "ssim_head": 0.5, "psnr_frame_db": 25.0,
                                                   "ssim_frame": 0.8} for i, r in enumerate(("static", "warp", "full"))}}
     for with_head in (False, True):
-        m = {**metrics, "talking_head": head} if with_head else metrics
+        lp = {"face": {"sadm": 0.1234, "oracle": 0.0456}, "eyes": {"sadm": 0.2346, "oracle": 0.1}}
+        m = {**metrics, "talking_head": head, "lpips_frame_common": lp} if with_head else metrics
         write_report(m, tmp_path, plots, worst_frames=extras["worst_frames"])
         page = _FirstScreen()
         page.feed((tmp_path / "report.html").read_text())
@@ -136,7 +137,8 @@ def test_report_first_screen_holds_the_verdicts_the_strip_and_the_weak_regions(r
                    f"{oracle - s:.2f} dB below the oracle ({oracle:.2f})" in line
             assert ("NOT LEARNED" in line) == (s <= mean)
         if "lpips_frame_common" in m:
-            assert f"{m['lpips_frame_common']['face']['sadm']:.3f}" in verdicts
+            assert all(f"{reg} {v['sadm']:.3f}" in verdicts for reg, v in m["lpips_frame_common"].items())
+            assert "face 0.123, eyes 0.235; on the face, the oracle's 0.046." in verdicts
         else:
             assert "Perceptual distance (LPIPS): not measured" in verdicts
         sharp = m.get("sharpness_frame_common")

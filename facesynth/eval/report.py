@@ -140,11 +140,12 @@ def verdict_lines(metrics: dict) -> list[str]:
         verdict = "learned" if s > m else "NOT LEARNED (no better than the mean texture)"
         lines.append(f"Held-out PSNR ({where}, sigma 0): {verdict}: {s:.2f} dB, {s - m:+.2f} dB over the mean texture "
                      f"({m:.2f}), {o - s:.2f} dB below the oracle ({o:.2f}).")
-    lp = (metrics.get("lpips_frame_common") or {}).get("face")
-    if lp and "sadm" in lp:
-        others = ", ".join(f"{r} {v:.3f}" for r, v in lp.items() if r != "sadm")
-        lines.append(f"Perceptual distance (LPIPS-Alex, face, lower is closer): {lp['sadm']:.3f}"
-                     + (f" (the same face through the {others})." if others else "."))
+    lp = metrics.get("lpips_frame_common") or {}
+    if "sadm" in lp.get("face", {}):
+        parts = ", ".join(f"{reg} {v['sadm']:.3f}" for reg, v in lp.items() if "sadm" in v)
+        bounds = ", ".join(f"the {r}'s {v:.3f}" for r, v in lp["face"].items() if r != "sadm")
+        lines.append(f"Perceptual distance (LPIPS-Alex, lower is closer, 0 = the real frame): {parts}"
+                     + (f"; on the face, {bounds}." if bounds else "."))
     else:
         lines.append("Perceptual distance (LPIPS): not measured (the perceptual extra is not installed).")
     sharp = (metrics.get("sharpness_frame_common") or {})
