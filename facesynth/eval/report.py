@@ -127,6 +127,11 @@ def face_detail_sections(doc: Document, metrics: dict) -> None:
                                         ["ratio", "1.00"] + [f"{fl['ratio'][r]:.2f}" for r in rows]])
 
 
+def _row(name: str) -> str:
+    """A row's name as a reader reads it: ``mean_texture`` -> ``mean texture``, ``rewarp`` -> ``re-warp``."""
+    return name.replace("_", " ").replace("rewarp", "re-warp")
+
+
 def verdict_lines(metrics: dict) -> list[str]:
     """One line per measure for the report's first screen: held-out PSNR against the mean
     texture and the oracle (original frame and reference frame), the perceptual distance and
@@ -143,7 +148,7 @@ def verdict_lines(metrics: dict) -> list[str]:
     lp = metrics.get("lpips_frame_common") or {}
     if "sadm" in lp.get("face", {}):
         parts = ", ".join(f"{reg} {v['sadm']:.3f}" for reg, v in lp.items() if "sadm" in v)
-        bounds = ", ".join(f"the {r}'s {v:.3f}" for r, v in lp["face"].items() if r != "sadm")
+        bounds = ", ".join(f"the {_row(r)}'s {v:.3f}" for r, v in lp["face"].items() if r != "sadm")
         lines.append(f"Perceptual distance (LPIPS-Alex, lower is closer, 0 = the real frame): {parts}"
                      + (f"; on the face, {bounds}." if bounds else "."))
     else:
@@ -151,7 +156,7 @@ def verdict_lines(metrics: dict) -> list[str]:
     sharp = (metrics.get("sharpness_frame_common") or {})
     part = sharp.get("whole") or next(iter(sharp.values()), None)
     if part and "sadm" in part:
-        others = ", ".join(f"{r} {v:.2f}" for r, v in part.items() if r != "sadm")
+        others = ", ".join(f"{_row(r)} {v:.2f}" for r, v in part.items() if r != "sadm")
         lines.append(f"Sharpness (rendered / real gradient energy, 1 = as detailed as the real frame): {part['sadm']:.2f}"
                      + (f" ({others})." if others else "."))
     else:
