@@ -20,7 +20,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from facesynth import progress  # noqa: E402
 from facesynth.eval.sadm_eval import EvalConfig, evaluate_sadm  # noqa: E402
-from facesynth.runs.rundir import read_config, run_data  # noqa: E402
+from facesynth.rundir import read_config, run_data  # noqa: E402
 from facesynth.sadm.fit import load_sadm  # noqa: E402
 
 

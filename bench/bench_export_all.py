@@ -55,7 +55,7 @@ def emulation_jobs(run: Path, out: Path, train_lm: np.ndarray, lm: np.ndarray) -
     export did), each with torch's crops on the first 16 rows of ``lm``."""
     from facesynth.contract import LEGACY_CODE_LEVELS
     from facesynth.onnx.synthesis import compress_for_export, export_synthesizer, run_torch
-    from facesynth.runs.rundir import load_synthesizer
+    from facesynth.rundir import load_synthesizer
     from facesynth.runtime import Renderer
     from facesynth.sadm.quantize import quantize_synthesizer
 
@@ -119,7 +119,7 @@ def bench_clip(clip_dir: Path, regressors: list[str], step: int, work: Path, job
     from facesynth.data import load_sequence, temporal_split
     from facesynth.errors import FacesynthError
     from facesynth.model import FaceModel, FaceModelConfig
-    from facesynth.onnx.cli import export_model
+    from facesynth.onnx.export import export_model
     from facesynth.onnx.int8check import matmul_errors, matmul_integer_codes, pair_sum_worst
     from facesynth.progress import set_quiet
     from facesynth.runs.config import train_defaults

@@ -37,7 +37,7 @@ sys.path.insert(0, str(ROOT))
 
 from facesynth.data import load_sequence, shared_clip  # noqa: E402
 from facesynth.eval.reenact import pair_figures, self_driving_psnr, speed  # noqa: E402
-from facesynth.runs.rundir import read_config, run_data  # noqa: E402
+from facesynth.rundir import read_config, run_data  # noqa: E402
 from facesynth.runtime.renderer import read_metadata  # noqa: E402
 
 PAIRS = (("lp_d3", "lp_d6"), ("lp_d10", "lp_d13"), ("lp_d20", "lp_d6"))  # lp_d20: a three-quarter view

@@ -27,8 +27,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from facesynth import progress  # noqa: E402
 from facesynth.model.artifact import load_face_model  # noqa: E402
-from facesynth.onnx.cli import export_model  # noqa: E402
-from facesynth.runs.rundir import read_config, run_data  # noqa: E402
+from facesynth.onnx.export import export_model  # noqa: E402
+from facesynth.rundir import read_config, run_data  # noqa: E402
 from facesynth.runtime.renderer import Renderer  # noqa: E402
 
 

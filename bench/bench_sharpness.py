@@ -38,7 +38,7 @@ from facesynth.eval.common_region import common_landmarks, hull_box, region_mask
 from facesynth.eval.frame_level import subset  # noqa: E402
 from facesynth.eval.sadm_eval import EvalConfig, evaluate_sadm  # noqa: E402
 from facesynth.eval.sharpness import sharpness  # noqa: E402
-from facesynth.runs.rundir import read_config, run_data  # noqa: E402
+from facesynth.rundir import read_config, run_data  # noqa: E402
 from facesynth.runtime.blend import blend_rendered  # noqa: E402
 from facesynth.runtime.renderer import Renderer  # noqa: E402
 from facesynth.sadm.fit import load_sadm  # noqa: E402
@@ -80,7 +80,7 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         path = args.onnx
         if path is None:
-            from facesynth.onnx.cli import export_model
+            from facesynth.onnx.export import export_model
 
             path = Path(tmp) / "model.onnx"
             export_model(args.run, path)

@@ -40,7 +40,7 @@ def main() -> None:
 
     from test_web_studio import SMALL, run_flow, studio_served
 
-    from facesynth.web import browser
+    from bench import browser
 
     load0 = os.getloadavg()[0]
     with tempfile.TemporaryDirectory() as tmp:

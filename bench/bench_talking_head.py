@@ -47,7 +47,7 @@ Measures:
 * flicker: mean absolute frame-to-frame change (0-255) outside the head region and inside the
   face's landmark hull;
 * ``ring_scale``: the size of the warp's head ring each avatar chose at export
-  (:func:`facesynth.runtime.headmotion.fit_frame_motion`).
+  (:func:`facesynth.onnx.headmotion.fit_frame_motion`).
 
 Cross pairs (avatar <- driver): the drivers are the clips with head motion, in full.
 ``--sheets DIR``: ``talking_head_AVATAR_by_DRIVER.jpg``: per row, the driver frame with one of
@@ -80,7 +80,7 @@ from facesynth.io import atomic_path  # noqa: E402
 from facesynth.landmarks import inter_ocular  # noqa: E402
 from facesynth.metrics import psnr, ssim  # noqa: E402
 from facesynth.neutral import select_neutral  # noqa: E402
-from facesynth.runs.rundir import read_config, run_data  # noqa: E402
+from facesynth.rundir import read_config, run_data  # noqa: E402
 from facesynth.runtime import Reenactor  # noqa: E402
 from facesynth.runtime.blend import placed_alpha  # noqa: E402
 from facesynth.runtime.fullframe import head_region  # noqa: E402

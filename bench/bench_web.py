@@ -49,9 +49,10 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from bench import browser  # noqa: E402
+from bench.browser import chromium_tree, memory_mb  # noqa: E402
 from facesynth.runtime.cpu import cpu_flags  # noqa: E402
-from facesynth.web import browser, site  # noqa: E402
-from facesynth.web.browser import chromium_tree, memory_mb  # noqa: E402
+from facesynth.web import site  # noqa: E402
 
 TICK = os.sysconf("SC_CLK_TCK")
 # the page's figures, and only them: serialising the whole state (the avatar's metadata, its

@@ -25,7 +25,7 @@ import torch
 
 from facesynth.eval import perceptual
 from facesynth.io import atomic_path
-from facesynth.runs.rundir import read_config, run_data
+from facesynth.rundir import read_config, run_data
 from facesynth.runtime.blend import blend_rendered
 from facesynth.sadm.fit import load_sadm
 

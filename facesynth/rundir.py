@@ -8,7 +8,8 @@
     RUN/report.md, RUN/plots/
 
 This module is the one place that knows the layout as a whole: it reloads a run's data and
-split from ``config.yaml``, rebuilds its synthesizer, and prints its summary.
+split from ``config.yaml`` and rebuilds its synthesizer. It sits below evaluation and export
+(docs/architecture.md): the run's printed summary is :mod:`facesynth.eval.summary`'s.
 """
 
 from __future__ import annotations
@@ -23,11 +24,10 @@ from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
 from facesynth.data import FaceSequence, load_sequence, temporal_split
+from facesynth.data.config import DataConf
 from facesynth.data.readers import ingest_video
 from facesynth.data.synthetic import make_synthetic_sequence
 from facesynth.errors import FacesynthError
-from facesynth.eval.report import legend_lines
-from facesynth.runs.config import DataConf
 from facesynth.sadm.fit import SADM, SADMConfig, load_sadm, save_sadm
 from facesynth.sadm.synthesis import Synthesizer
 
@@ -69,7 +69,7 @@ def load_data(data_cfg, seed: int) -> FaceSequence:
 def read_config(run_dir: str | os.PathLike, hint: str = "not a train.py run directory"):
     """The run's ``config.yaml`` (an OmegaConf node); FacesynthError with ``hint`` when absent,
     and naming the file when it is not YAML, not a mapping, or lacks ``seed`` or one of the
-    ``data`` settings (:class:`facesynth.runs.config.DataConf`'s fields, which ``train.py``
+    ``data`` settings (:class:`facesynth.data.config.DataConf`'s fields, which ``train.py``
     writes whole)."""
     path = Path(run_dir) / CONFIG
     if not path.is_file():
@@ -154,18 +154,3 @@ def save_run_synthesizer(run_dir: str | os.PathLike, model, regressor, features:
     that fit outside ``train.py``)."""
     sadm = SADM(model, regressor, regressor.name, SADMConfig(features=features, clamp_shape=clamp), regressor.config_dict())
     return save_sadm(sadm, run_dir)
-
-
-def summary_lines(metrics: dict) -> list[str]:
-    """Short printable summary of a metrics dict."""
-    lines = [f"regressor={metrics['regressor']} shape={metrics['n_shape']} appearance={metrics['n_appearance']} "
-             f"train={metrics['train_frames']} test={metrics['test_frames']}"]
-    for key in ("psnr_ref", "psnr_frame", "psnr_frame_common", "psnr_train_ref"):
-        if key in metrics:
-            for row, vals in metrics[key].items():
-                lines.append(f"{key:15s} {row:13s} " + "  ".join(f"s{k}={v:6.2f}" for k, v in vals.items()))
-    lines.append(f"ncc mean={np.mean(metrics['ncc']):.3f} (first 5: {', '.join(f'{v:.2f}' for v in metrics['ncc'][:5])})")
-    fl = metrics.get("frame_level_frames")
-    if fl:
-        lines.append(f"psnr_frame on {fl['evaluated']} of {fl['test_frames']} test frames (evenly spaced; eval.max_test_frames)")
-    return lines + ["legend:"] + [f"  {line}" for line in legend_lines()]

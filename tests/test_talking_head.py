@@ -121,14 +121,14 @@ def test_export_and_app_run_a_talking_head_file(tmp_path, capsys):
              "data.n_frames=40", "data.size=128", f"hydra.run.dir={run}", "quiet=true"]
     subprocess.run(train, check=True, capture_output=True, timeout=300)
     head = tmp_path / "head.onnx"
-    assert main(["export", str(run), "--out", str(head), "--talking-head", "--quiet"]) == 0
+    assert main(["export", str(run), "--out", str(head), "--talking-head", "--quiet", "--json"]) == 0
     summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert summary["talking_head"] and summary["max_abs_diff_vs_torch"] <= 2
     lm = make_synthetic_sequence(n_frames=12, size=128, seed=5).landmarks
     np.save(tmp_path / "lm.npy", lm)
     out, saved = tmp_path / "o.mp4", tmp_path / "avatar.npy"
     assert main(["app", "--model", str(head), "--landmarks", str(tmp_path / "lm.npy"), "--out", str(out),
-                 "--save-landmarks", str(saved), "--driver-neutral", "0", "--no-progress"]) == 0
+                 "--save-landmarks", str(saved), "--driver-neutral", "0", "--no-progress", "--json"]) == 0
     assert json.loads(capsys.readouterr().out.strip().splitlines()[-1])["talking_head_graph"] is True
     cap = cv2.VideoCapture(str(out))
     assert int(cap.get(cv2.CAP_PROP_FRAME_COUNT)) == len(lm) and cap.read()[0]

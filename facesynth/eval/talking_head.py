@@ -38,7 +38,7 @@ def talking_head_figures(syn, seq, train_rows: np.ndarray, test_rows: np.ndarray
     when the clip has no frames or its scheme cannot be retargeted.
 
     figures: {"frames": n, "neutral_row": row, "ring_scale": the warp's head ring (chosen on the
-    training frames, :mod:`facesynth.runtime.headmotion`), RENDERER: {MEASURE: mean}}; strip tiles: the
+    training frames, :mod:`facesynth.onnx.headmotion`), RENDERER: {MEASURE: mean}}; strip tiles: the
     :mod:`facesynth.eval.strip` tiles ({"frame", "real", "synth"}: the real held-out frame and
     *full*) of ``strip`` of those frames, one frame box for all, ``height`` px high."""
     scheme = str(getattr(syn, "scheme", "ibug68"))

@@ -1,59 +1,29 @@
-"""``facesynth export RUN --out model.onnx``: one ONNX file from a training run.
+"""The export API: one ONNX file from a training run, checked once with ONNX Runtime against
+torch before it is renamed onto its name. :func:`export` takes an
+:class:`~facesynth.onnx.config.ExportConfig` (what both front ends, ``facesynth export`` and
+``export/export.py``, parse); :func:`export_model`, :func:`export_talking_head_model` and
+:func:`export_eri_model` are its three kinds, each returning the export's summary (a dict).
 
-The export code is :mod:`facesynth.onnx.synthesis`; the written model is checked once
-with ONNX Runtime against torch.
-
-With ``--talking-head`` the whole talking head is exported instead (driver landmarks and
-the driver's neutral -> the avatar's composited frame; :mod:`facesynth.onnx.talking_head`),
-checked against torch on driver frames made from the avatar's own neutral.
-
-With ``--target IMAGE_OR_DIR`` the run's ERI model is exported instead, for that target
-face (:mod:`facesynth.onnx.eri`; the target is named as in ``transfer-expression``):
-MPEG-4 FAPs (B, 36) -> the target's rendered face.
+* a run's SADM model (:mod:`facesynth.onnx.synthesis`): landmarks -> the rendered face;
+* its whole talking head (:mod:`facesynth.onnx.talking_head`): driver landmarks and the
+  driver's neutral -> the avatar's composited frame, checked on driver frames made from the
+  avatar's own neutral;
+* its ERI model for one target face (:mod:`facesynth.onnx.eri`; the target named as in
+  ``transfer-expression``): MPEG-4 FAPs (B, 36) -> the target's rendered face.
 """
 
 from __future__ import annotations
 
-import argparse
-import json
 import logging
 from pathlib import Path
 
 from facesynth.contract import OPSET
-from facesynth.eri.config import SVR_VARIANTS
 from facesynth.errors import FacesynthError
 from facesynth.io import atomic_path
-from facesynth.onnx.config import BASIS_KINDS, DEFAULT_BASIS, DEFAULT_COMPONENTS
+from facesynth.onnx.config import DEFAULT_BASIS, DEFAULT_COMPONENTS, ExportConfig
 from facesynth.progress import stage
 
 log = logging.getLogger(__name__)
-
-
-def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("run", help="training run directory (face_model/ and sadm/regressor.*; or eri/ with --target)")
-    p.add_argument("--out", required=True, help="output .onnx file (written atomically)")
-    p.add_argument("--opset", type=int, default=OPSET, help=f"ONNX opset (default {OPSET})")
-    p.add_argument("--no-check", action="store_true", help="skip the ONNX Runtime vs torch check")
-    p.add_argument("--components", type=int, default=None,
-                   help="appearance components kept: those of largest predicted variance over the training "
-                        f"landmarks, the rest folded into the mean (default {DEFAULT_COMPONENTS}; 0 = all, no compression)")
-    p.add_argument("--predicted-variance", type=float, default=None,
-                   help="instead of --components: keep the fewest components holding this fraction of the predicted variance")
-    p.add_argument("--basis", choices=list(BASIS_KINDS), default=DEFAULT_BASIS,
-                   help=f"appearance basis storage (default {DEFAULT_BASIS}): int8 is 4x smaller, an integer matmul, "
-                        "its PSNR against float32 measured and recorded; or float32")
-    p.add_argument("--landmarks", default=None,
-                   help="training landmarks (.npy (N, P, 2), run's scheme) for the compression (default: reloaded from RUN/config.yaml)")
-    p.add_argument("--talking-head", action="store_true",
-                   help="export the whole talking head: driver landmarks + driver neutral -> the avatar's frame, its head "
-                        "warped with the face (run it with 'facesynth app --model' or 'facesynth serve')")
-    eri = p.add_argument_group("ERI model (exported when --target is given)")
-    eri.add_argument("--target", metavar="IMAGE_OR_DIR",
-                     help="target neutral face: an image, or a folder in ingest layout (its neutral frame is used)")
-    eri.add_argument("--target-landmarks", metavar="L", help="landmarks of the target image (.npy (68, 2)/(N, 68, 2) or .pts)")
-    eri.add_argument("--target-frame", type=int, metavar="ROW", help="row of the target folder / landmarks used as neutral")
-    eri.add_argument("--variant", choices=list(SVR_VARIANTS), help="SVR variant (default: the model's)")
-    eri.add_argument("--raw-ratios", action="store_true", help="no edge confidence / brightening cap (as transfer-expression)")
 
 
 # opsets accepted by --opset: 18 is the tested default; torch's TorchScript exporter writes up
@@ -65,25 +35,17 @@ def check_args(out, opset: int, run_dir=None, inputs=()) -> None:
     """Refuse, before any work, an unsupported ``--opset``, an ``--out`` that cannot be written
     (a folder, a device, a name ending in ``/``: :func:`facesynth.io.check_writable`) or that
     is one of the inputs: a file of the run ``run_dir`` or of its training data
-    (:func:`facesynth.runs.rundir.input_files`), or one of ``inputs``."""
+    (:func:`facesynth.rundir.input_files`), or one of ``inputs``."""
     from facesynth.io import check_writable, refuse_overwriting_inputs
 
     if opset not in SUPPORTED_OPSETS:
         raise FacesynthError(f"--opset: {opset} is not supported (choose {SUPPORTED_OPSETS.start}..{SUPPORTED_OPSETS.stop - 1})")
     check_writable(out)
     if run_dir is not None:
-        from facesynth.runs.rundir import input_files  # lazy: keeps --help fast (torch)
+        from facesynth.rundir import input_files  # lazy: keeps --help fast (torch)
 
         inputs = [*input_files(run_dir), *inputs]
     refuse_overwriting_inputs([out], inputs)
-
-
-def summary_json(summary: dict) -> str:
-    """The summary as one line of strict JSON; FacesynthError if a figure is not finite."""
-    try:
-        return json.dumps(summary, allow_nan=False, default=str)
-    except ValueError:
-        raise FacesynthError(f"export summary holds a non-finite figure: {summary}") from None
 
 
 def _run_scheme(run_dir) -> str:
@@ -96,24 +58,31 @@ def _run_scheme(run_dir) -> str:
     return read_manifest(Path(run_dir) / "face_model")["landmark_scheme"]
 
 
-def run(args: argparse.Namespace) -> int:
+def export(cfg: ExportConfig) -> dict:
+    """The export ``cfg`` names (its ERI model with ``target``, its talking head with
+    ``talking_head``, else its SADM model); returns the summary."""
     from facesynth.data import load_landmarks  # lazy, as below: keeps --help fast (no torch)
 
     # before reading --landmarks
-    check_args(args.out, args.opset, args.run, [args.landmarks, args.target, args.target_landmarks])
+    check_args(cfg.out, cfg.opset, cfg.run, [cfg.landmarks, cfg.target, cfg.target_landmarks])
 
-    if args.target and args.talking_head:
+    if cfg.target and cfg.talking_head:
         raise FacesynthError("--talking-head and --target: a talking head is exported from a run's SADM model, not its ERI one")
-    if args.target:
-        summary = export_eri_model(args.run, args.out, args.target, args.target_landmarks, args.target_frame,
-                                   args.variant, args.raw_ratios, args.opset, not args.no_check)
-    else:
-        lm = load_landmarks(args.landmarks, scheme=_run_scheme(args.run)) if args.landmarks else None
-        comps = DEFAULT_COMPONENTS if args.components is None else args.components
-        export = export_talking_head_model if args.talking_head else export_model
-        summary = export(args.run, args.out, args.opset, comps, args.predicted_variance, lm, not args.no_check, args.basis)
-    print(summary_json(summary))
-    return 0
+    if cfg.target:
+        return export_eri_model(cfg.run, cfg.out, cfg.target, cfg.target_landmarks, cfg.target_frame,
+                                cfg.variant, cfg.raw_ratios, cfg.opset, cfg.check)
+    lm = load_landmarks(cfg.landmarks, scheme=_run_scheme(cfg.run)) if cfg.landmarks else None
+    comps = DEFAULT_COMPONENTS if cfg.components is None else cfg.components
+    kind = export_talking_head_model if cfg.talking_head else export_model
+    return kind(cfg.run, cfg.out, cfg.opset, comps, cfg.predicted_variance, lm, cfg.check, cfg.basis)
+
+
+def summary_line(summary: dict) -> str:
+    """The export's result for a person: what was written, its size and its check."""
+    kind = "ERI model" if "target" in summary else "talking head" if summary.get("talking_head") else "model"
+    check = summary.get("max_abs_diff_vs_torch")
+    checked = "not checked" if check is None else f"ONNX Runtime vs torch max |diff| {check:.3g}"
+    return f"wrote {summary['out']} ({kind}, {summary['bytes'] / 1e6:.1f} MB, opset {summary['opset']}; {checked})"
 
 
 def export_model(run_dir, out, opset: int = OPSET, components: int | None = DEFAULT_COMPONENTS,
@@ -123,7 +92,7 @@ def export_model(run_dir, out, opset: int = OPSET, components: int | None = DEFA
     ``export/export.py``); returns the JSON summary (file, size, metadata, and the ONNX
     Runtime vs torch difference when ``check``)."""
     from facesynth.onnx.synthesis import check_export, export_run  # lazy: keeps --help fast (torch)
-    from facesynth.runs.rundir import is_eri_run
+    from facesynth.rundir import is_eri_run
 
     check_args(out, opset, run_dir)
     run_dir = Path(run_dir)
@@ -132,7 +101,7 @@ def export_model(run_dir, out, opset: int = OPSET, components: int | None = DEFA
     with atomic_path(out) as tmp:  # renamed onto --out only once the check has passed
         with stage("ONNX export"):
             _, syn, meta = export_run(run_dir, tmp, opset, components, predicted_variance, landmarks, basis)
-        summary = {"out": str(out), "bytes": tmp.stat().st_size, **_brief(meta), "opset": opset}
+        summary = {"out": str(out), "bytes": tmp.stat().st_size, **brief(meta), "opset": opset}
         if check:
             with stage("ONNX Runtime vs torch check"):
                 summary["max_abs_diff_vs_torch"] = _checked(out, tmp, lambda p: check_export(syn, p), meta)
@@ -149,7 +118,7 @@ def export_talking_head_model(run_dir, out, opset: int = OPSET, components: int 
     when ``check``)."""
     from facesynth.onnx.synthesis import prepare_run  # lazy: keeps --help fast (torch)
     from facesynth.onnx.talking_head import check_talking_head, export_talking_head
-    from facesynth.runs.rundir import is_eri_run, read_config
+    from facesynth.rundir import is_eri_run, read_config
 
     check_args(out, opset, run_dir)
     run_dir = Path(run_dir)
@@ -162,7 +131,7 @@ def export_talking_head_model(run_dir, out, opset: int = OPSET, components: int 
             if "avatar_neutral" not in meta or "background_jpeg" not in meta:
                 raise FacesynthError(f"{run_dir}: the run's data gives no avatar neutral and frame (its video is needed)")
             export_talking_head(syn, meta, tmp, opset=opset)
-        summary = {"out": str(out), "bytes": tmp.stat().st_size, **_brief(meta), "opset": opset, "talking_head": True}
+        summary = {"out": str(out), "bytes": tmp.stat().st_size, **brief(meta), "opset": opset, "talking_head": True}
         if check:
             with stage("ONNX Runtime vs torch check"):
                 summary["max_abs_diff_vs_torch"] = _checked(out, tmp, lambda p: check_talking_head(syn, meta, p), meta)
@@ -170,8 +139,8 @@ def export_talking_head_model(run_dir, out, opset: int = OPSET, components: int 
     return summary
 
 
-def _brief(meta: dict) -> dict:
-    """The metadata for the printed summary: the avatar's bulky entries (its neutral
+def brief(meta: dict) -> dict:
+    """The metadata for the summary: the avatar's bulky entries (its neutral
     landmarks, shape PCA, neutral frame as base64 JPEG: tens of kB) are stored in the model
     but only described here."""
     out = {k: v for k, v in meta.items() if k not in ("avatar_neutral", "shape_pca", "background_jpeg")}
@@ -186,7 +155,7 @@ def export_eri_model(run_dir, out, target, target_landmarks=None, target_frame: 
                      variant: str | None = None, raw_ratios: bool = False, opset: int = OPSET, check: bool = True) -> dict:
     """Export a run's ERI model for one target face (named as in ``transfer-expression``);
     returns the JSON summary, as :func:`export_model`."""
-    from facesynth.eri.cli import load_target  # lazy: keeps --help fast (torch)
+    from facesynth.eri.target import load_target  # lazy: keeps --help fast (torch)
     from facesynth.onnx.eri import check_eri_export, export_eri_run
 
     check_args(out, opset, run_dir, [target, target_landmarks])
