@@ -11,6 +11,7 @@ import cv2
 import numpy as np
 
 STILL_FEATHER = 2.0  # frame pixels: the seam of a face composited into a still frame
+GREY = 128  # uint8 level of the plain background a face is composited into where no frame is known
 
 
 def crop_rgb(crops: np.ndarray, i: int = 0) -> np.ndarray:

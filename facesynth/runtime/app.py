@@ -33,6 +33,7 @@ import cv2
 import numpy as np
 
 from facesynth.errors import FacesynthError
+from facesynth.imaging import GREY
 from facesynth.io import atomic_path, check_writable, refuse_overwriting_inputs
 from facesynth.progress import bar, result, stage
 from facesynth.runtime.checks import check_coordinate_range, check_face_extent, check_frame_size, check_in_frame
@@ -46,7 +47,6 @@ from facesynth.runtime.video import (
 from facesynth.videofile import atomic_video
 
 log = logging.getLogger(__name__)
-GREY = 128
 SHEET_DIR = Path("/tmp/facesynth_out")
 
 

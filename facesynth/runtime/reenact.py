@@ -23,13 +23,13 @@ import cv2
 import numpy as np
 
 from facesynth.errors import FacesynthError
+from facesynth.imaging import GREY
 from facesynth.neutral import select_neutral
 from facesynth.retarget import MOTIONS, Retargeter, ShapeSpace, retarget_scheme
 from facesynth.runtime.blend import blend_rendered
 from facesynth.runtime.fullframe import RING_SCALE, FrameWarp, checked_ring_scale
 from facesynth.runtime.renderer import Renderer
 
-GREY = 128
 NEUTRAL_FRAMES = 30  # one second of a 30 fps driver: long enough to meet a closed-mouth frame
 
 
