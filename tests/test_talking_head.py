@@ -91,7 +91,7 @@ def test_runtime_chooses_the_drivers_neutral_and_checks_its_input(head, shared_c
     for row in lm:
         frame, avatar = th.step(row)
     assert frame.shape == (*th.frame_size[::-1], 3) and avatar.shape == lm.shape[1:]
-    assert th.driver_neutral is not None and not th._collecting
+    assert th.driver_neutral is not None and not th._online.choosing
     frames, avatars = th.run(lm)  # a batch renders as its frames one at a time
     one, _ = th.run(lm[1:2])
     assert frames.shape[0] == 3 and np.abs(frames[1].astype(int) - one[0]).max() <= 2
