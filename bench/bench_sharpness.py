@@ -34,12 +34,12 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from facesynth import progress  # noqa: E402
+from facesynth.compositing import blend_rendered  # noqa: E402
 from facesynth.eval.common_region import common_landmarks, hull_box, region_masks  # noqa: E402
 from facesynth.eval.frame_level import subset  # noqa: E402
 from facesynth.eval.sadm_eval import EvalConfig, evaluate_sadm  # noqa: E402
 from facesynth.eval.sharpness import sharpness  # noqa: E402
 from facesynth.rundir import read_config, run_data  # noqa: E402
-from facesynth.runtime.blend import blend_rendered  # noqa: E402
 from facesynth.runtime.renderer import Renderer  # noqa: E402
 from facesynth.sadm.fit import load_sadm  # noqa: E402
 

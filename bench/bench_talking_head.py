@@ -72,6 +72,7 @@ sys.path.insert(0, str(ROOT))
 
 from bench_reenact import model_for  # noqa: E402
 
+from facesynth.compositing import placed_alpha  # noqa: E402
 from facesynth.data import load_sequence, shared_clip  # noqa: E402
 from facesynth.data.detect import predictor_path  # noqa: E402
 from facesynth.eval.reenact import hull_mask  # noqa: E402
@@ -82,7 +83,6 @@ from facesynth.metrics import psnr, ssim  # noqa: E402
 from facesynth.neutral import select_neutral  # noqa: E402
 from facesynth.rundir import read_config, run_data  # noqa: E402
 from facesynth.runtime import Reenactor  # noqa: E402
-from facesynth.runtime.blend import placed_alpha  # noqa: E402
 from facesynth.runtime.fullframe import head_region  # noqa: E402
 
 CLIPS = ("lp_d3", "lp_d20", "lp_d11", "sadtalker_aoc", "vrt_face1", "vrt_face2", "vrt_face4", "vrt_face5")

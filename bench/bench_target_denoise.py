@@ -33,10 +33,10 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from facesynth.compositing import composite  # noqa: E402
 from facesynth.eval.common_region import common_landmarks, hull_box, region_masks  # noqa: E402
 from facesynth.eval.sadm_eval import noisy_landmarks  # noqa: E402
 from facesynth.geometry import apply_affine, invert_affine  # noqa: E402
-from facesynth.imaging import composite  # noqa: E402
 from facesynth.rundir import read_config, run_data  # noqa: E402
 from facesynth.sadm.fit import load_sadm  # noqa: E402
 

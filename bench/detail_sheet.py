@@ -23,10 +23,10 @@ import cv2
 import numpy as np
 import torch
 
+from facesynth.compositing import blend_rendered
 from facesynth.eval import perceptual
 from facesynth.io import atomic_path
 from facesynth.rundir import read_config, run_data
-from facesynth.runtime.blend import blend_rendered
 from facesynth.sadm.fit import load_sadm
 
 

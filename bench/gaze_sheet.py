@@ -22,8 +22,8 @@ import cv2
 import numpy as np
 import torch
 
+from facesynth.compositing import composite
 from facesynth.data import load_sequence, temporal_split
-from facesynth.imaging import composite
 from facesynth.io import atomic_path
 from facesynth.landmarks import get_scheme
 from facesynth.sadm.fit import load_sadm

@@ -1,5 +1,11 @@
-"""Compositing a rendered face into the avatar's own frame: feathered alpha plus colour
-matching at the seam (numpy + OpenCV, no torch).
+"""Compositing: pasting a rendered face crop into a frame (numpy + OpenCV, no torch). The one
+implementation, in the ground so that every user imports it: the evaluation, ERI's synthesis,
+the torch-free runtime (still frames and the avatar's own frame) and the talking-head graph's
+reference (:class:`facesynth.onnx.head_parts.SeamGraph` computes the same steps as tensor ops).
+
+:func:`blend_face` pastes one crop: a feathered alpha, and (``match_colour``) the face's colour
+matched to the frame's at the seam; :func:`composite` is the still-frame form (feather in frame
+pixels, no colour matching) and :func:`blend_rendered` takes a renderer's batch.
 
 The synthesized face and the frame under it differ slightly in colour (the appearance
 model's mean, lighting of other training frames), which shows as a seam. ``blend_face``
@@ -18,9 +24,16 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from facesynth.imaging import crop_rgb
-
 MIN_BAND = 20.0  # frame pixels of seam band below which the colour is not matched
+STILL_FEATHER = 2.0  # frame pixels: the seam of a face composited into a still frame
+GREY = 128  # uint8 level of the plain background a face is composited into where no frame is known
+
+
+def crop_rgb(crops: np.ndarray, i: int = 0) -> np.ndarray:
+    """Crop ``i`` of a rendered batch (B, C, H_c, W_c), C 1 or 3, as a contiguous
+    (H_c, W_c, 3) image (a grey crop repeated to three channels)."""
+    crop = np.ascontiguousarray(crops[i].transpose(1, 2, 0))
+    return np.repeat(crop, 3, axis=2) if crop.shape[2] == 1 else crop
 
 
 def seam_width(mask: np.ndarray) -> float:
@@ -111,9 +124,28 @@ def placed_alpha(mask: np.ndarray, placement: np.ndarray, size: tuple[int, int],
 
 
 def blend_rendered(crops: np.ndarray, masks: np.ndarray, placements: np.ndarray, background: np.ndarray, i: int = 0,
-                   feather: float | None = None, match_colour: bool = True) -> np.ndarray:
+                   feather: float | None = None, match_colour: bool = True, still: bool = False) -> np.ndarray:
     """Face ``i`` of a renderer's batch (``Renderer.render`` / ``FaceModel.render`` outputs:
     crops (B, C, H_c, W_c), masks (B, 1, H_c, W_c), placements (B, 2, 3)) pasted into
-    ``background`` with :func:`blend_face` -> uint8 (H, W, 3)."""
-    return blend_face(crop_rgb(crops, i), masks[i, 0], np.asarray(placements[i], np.float64), background, feather,
-                      match_colour)
+    ``background`` with :func:`blend_face` -> uint8 (H, W, 3); ``still``: as :func:`composite`
+    (``feather`` in frame pixels, default :data:`STILL_FEATHER`; no colour matching)."""
+    crop, mask, placement = crop_rgb(crops, i), masks[i, 0], np.asarray(placements[i], np.float64)
+    if still:
+        return composite(crop, mask, placement, background, STILL_FEATHER if feather is None else feather)
+    return blend_face(crop, mask, placement, background, feather, match_colour)
+
+
+def crop_scale(placement: np.ndarray) -> float:
+    """Frame pixels per crop pixel of a (2, 3) crop -> frame ``placement`` (its linear part's
+    area scale, square-rooted)."""
+    return float(np.sqrt(abs(np.linalg.det(np.asarray(placement, np.float64)[:, :2]))))
+
+
+def composite(crop: np.ndarray, mask: np.ndarray, placement: np.ndarray, background: np.ndarray,
+              feather: float = STILL_FEATHER) -> np.ndarray:
+    """Paste a rendered crop into a still frame: :func:`blend_face` without colour matching,
+    ``feather`` (> 0) in frame pixels (converted to the crop's by the placement's scale).
+
+    crop : float32 (H_c, W_c, 3) in [0, 1]; mask : float32 (H_c, W_c) in [0, 1]; placement :
+    (2, 3) crop -> frame; background : uint8 (H, W, 3). Returns uint8 (H, W, 3)."""
+    return blend_face(crop, mask, placement, background, feather / crop_scale(placement), match_colour=False)

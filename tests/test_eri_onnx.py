@@ -131,7 +131,7 @@ def test_metadata_and_graph(model, target, onnx_dir):
     assert set(METADATA_KEYS) <= set(props)
     assert props["kind"] == "eri" and props["driver"] == model.driver and props["n_faps"] == N_FAPS
     assert props["data_fingerprint"] == model.fingerprint and props["run"] == "unit"
-    assert props["frame_size"] == list(target[0].shape[:2]) and props["reference_size"] == list(model.reference.size)
+    assert props["frame_size"] == [target[0].shape[1], target[0].shape[0]] and props["reference_size"] == list(model.reference.size)
     assert props["canvas_size"] == list(syn.canvas) and len(props["target_fingerprint"]) == 16
     assert {o.version for o in m.opset_import if o.domain in ("", "ai.onnx")} == {18}
     dim = m.graph.input[0].type.tensor_type.shape.dim

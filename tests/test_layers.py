@@ -1,7 +1,7 @@
 """The package's layers (docs/architecture.md), checked on the source: every import of every
 module, those inside functions included, must go down or sideways within its own part.
 
-ground   errors, io, metrics, landmarks, landmark_tables, geometry, imaging, provenance, contract, artifact, ops,
+ground   errors, io, metrics, landmarks, landmark_tables, geometry, compositing, provenance, contract, artifact, ops,
          progress, neutral, faps, shape_space, retarget, videofile, sheet
 stages   data; model (data); regressors; sadm (data, model, regressors); eri (data, model, regressors);
          mesh (data); codec (data): siblings never import each other
@@ -25,7 +25,7 @@ import pytest
 
 PACKAGE = Path(__file__).resolve().parents[1] / "facesynth"
 
-GROUND = {"facesynth", "errors", "io", "metrics", "landmarks", "landmark_tables", "geometry", "imaging", "provenance",
+GROUND = {"facesynth", "errors", "io", "metrics", "landmarks", "landmark_tables", "geometry", "compositing", "provenance",
           "contract", "artifact", "ops", "progress", "neutral", "faps", "shape_space", "retarget", "videofile", "sheet"}
 # the top floor, lowest first: a part may import the parts of lower ranks (and the stages and the ground)
 TOP_RANKS = [{"rundir"}, {"onnx"}, {"eval"}, {"runs"}, {"batch", "web"}, {"cli"}]
@@ -42,7 +42,7 @@ ALLOWED = {
     "codec": {"data"},
     "runtime": {"data"},
 }
-TORCH_FREE = {"runtime", "contract", "landmarks", "landmark_tables", "errors", "io", "imaging", "geometry", "metrics",
+TORCH_FREE = {"runtime", "contract", "landmarks", "landmark_tables", "errors", "io", "compositing", "geometry", "metrics",
               "provenance", "progress", "videofile", "sheet", "facesynth"}
 
 

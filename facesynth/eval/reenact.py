@@ -20,11 +20,11 @@ import time
 import cv2
 import numpy as np
 
+from facesynth.compositing import blend_rendered
 from facesynth.landmarks import ibug68_view
 from facesynth.metrics import psnr
 from facesynth.neutral import mouth_open, select_neutral
 from facesynth.retarget import Retargeter, eye_open
-from facesynth.runtime.blend import blend_rendered
 from facesynth.runtime.reenact import Reenactor
 
 

@@ -10,7 +10,7 @@ the retargeting and shape clamp, the synthesis (:class:`SynthesisGraph`), the fu
 warp of the avatar's neutral frame (its control points and Delaunay triangles, taken from
 :class:`facesynth.runtime.fullframe.FrameWarp`) and the feathered, colour-matched seam.
 The feather is fixed at export (``feather`` metadata, pixels of the rendered crop; by
-default :func:`facesynth.runtime.blend.seam_width` of the face's mask rendered at the
+default :func:`facesynth.compositing.seam_width` of the face's mask rendered at the
 avatar's neutral), where ``blend_face`` measures it per frame.
 
 Standard ONNX operators only (opset 18: Gather, GatherElements, ScatterElements, CumSum,
@@ -27,6 +27,7 @@ import torch
 from torch import nn
 
 from facesynth import __version__
+from facesynth.compositing import seam_width
 from facesynth.contract import OPSET, TALKING_HEAD_FORMAT, TALKING_HEAD_INPUTS, TALKING_HEAD_LAYOUT, TALKING_HEAD_OUTPUTS
 from facesynth.errors import FacesynthError
 from facesynth.landmarks import get_scheme
@@ -35,7 +36,6 @@ from facesynth.onnx.head_parts import FrameWarpGraph, SeamGraph
 from facesynth.onnx.retarget_graph import RetargetGraph
 from facesynth.onnx.synthesis import SynthesisGraph, torch_reference
 from facesynth.retarget import RETARGET_SCHEMES
-from facesynth.runtime.blend import seam_width
 from facesynth.runtime.reenact import Avatar
 
 INPUTS, OUTPUTS = TALKING_HEAD_INPUTS, TALKING_HEAD_OUTPUTS

@@ -32,11 +32,12 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from facesynth.compositing import GREY
+from facesynth.data.sequence import check_landmarks_in_frame
 from facesynth.errors import FacesynthError
-from facesynth.imaging import GREY
 from facesynth.io import atomic_path, check_writable, refuse_overwriting_inputs
 from facesynth.progress import bar, result, stage
-from facesynth.runtime.checks import check_coordinate_range, check_face_extent, check_frame_size, check_in_frame
+from facesynth.runtime.checks import check_coordinate_range, check_face_extent, check_frame_size
 from facesynth.runtime.video import (
     contact_sheet,
     detect_video_landmarks,
@@ -313,7 +314,8 @@ def run(args: argparse.Namespace) -> int:
     background = choose_background(args, pipeline, driver, landmarks)
     h, w = background.shape[:2]
     # before any rendering; the driver's points are in its own frame, when known
-    check_in_frame(landmarks, (w, h) if driver is None else driver.size[::-1], args.landmarks or args.video)
+    check_landmarks_in_frame(landmarks, (w, h) if driver is None else driver.size[::-1], args.landmarks or args.video,
+                             margin=1.0)
     t_start = time.perf_counter()
     latencies, _ = write_outputs(args, pipeline, landmarks, neutral, background, driver, fps)
     wall, n, out_w = time.perf_counter() - t_start, len(landmarks), 2 * w if args.side_by_side else w

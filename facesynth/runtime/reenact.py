@@ -11,7 +11,7 @@ The driver's neutral is given (``driver_neutral``), or taken from the first
 that many frames have arrived, from the frames seen so far). Retargeting is
 :class:`facesynth.retarget.Retargeter`; the avatar's own frame is warped so that its whole
 head follows the face (:class:`facesynth.runtime.fullframe.FrameWarp`), and the rendered
-face is composited into that warped frame (:func:`facesynth.runtime.blend.blend_face`).
+face is composited into that warped frame (:func:`facesynth.compositing.blend_face`).
 """
 
 from __future__ import annotations
@@ -22,11 +22,10 @@ import time
 import cv2
 import numpy as np
 
+from facesynth.compositing import GREY, blend_rendered
 from facesynth.errors import FacesynthError
-from facesynth.imaging import GREY
 from facesynth.neutral import NEUTRAL_FRAMES, OnlineNeutral, select_neutral
 from facesynth.retarget import MOTIONS, Retargeter, ShapeSpace, retarget_scheme
-from facesynth.runtime.blend import blend_rendered
 from facesynth.runtime.fullframe import RING_SCALE, FrameWarp, checked_ring_scale
 from facesynth.runtime.renderer import Renderer
 
@@ -120,7 +119,7 @@ class Reenactor:
     background : uint8 (H, W, 3), optional; default the avatar's own frame from the
         metadata, else grey of the driver's landmark extent
     feather : soft edge in the rendered crop's pixels (default: 4% of the face,
-        :func:`facesynth.runtime.blend.blend_face`), match_colour : seam colour matching
+        :func:`facesynth.compositing.blend_face`), match_colour : seam colour matching
     full_frame : warp the avatar's own frame so that the whole head follows the face, and
         composite into that (default: when no ``background`` is given and the metadata has the
         avatar's neutral and frame); False pastes the face into the still ``background``
