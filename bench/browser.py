@@ -1,6 +1,6 @@
 """Drive the page in headless Chromium (Playwright for Python, the system ``chromium``): a clip as
 the fake camera, every request off 127.0.0.1 blocked and counted. Used by the tests and
-``bench/bench_web.py``.
+``bench/web/page.py``.
 """
 
 from __future__ import annotations

@@ -8,7 +8,7 @@ ONNX Runtime vs torch check). Per pair: whether the export passed, the check's l
 difference, the recorded int8-vs-float PSNR, the codes' worst int16 pair sum and whether the
 file's MatMulInteger is exact on this CPU; or the one-line error.
 
-    OMP_NUM_THREADS=1 PYTHONPATH=. python bench/bench_export_all.py [--clips lp_d6,lp_d10] [--regressors krr,mlp] [--step 1]
+    OMP_NUM_THREADS=1 python -m bench.export.export_all [--clips lp_d6,lp_d10] [--regressors krr,mlp] [--step 1]
 
 Prints ONE JSON line (``table``: one row per pair; ``passed`` / ``pairs``), with the CPU flags.
 
@@ -33,16 +33,14 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-
-from bench_int8 import cpu_flags  # noqa: E402
+from bench.harness import cpu_flags, emit, load_averages
 
 CHILD = """
 import json, sys
 import numpy as np
 from facesynth.onnx.int8check import scaled_coefficients
 from facesynth.runtime.renderer import Renderer
+from bench.harness import emit
 for job in json.load(open(sys.argv[1])):
     lm = np.load(job["landmarks"])
     crop, mask, _ = Renderer(job["onnx"]).render(lm)
@@ -92,7 +90,7 @@ def run_emulated(jobs: list[dict], cpu: str, work: Path) -> list[dict]:
 
     (work / "child.py").write_text(CHILD)
     (work / "jobs.json").write_text(json.dumps(jobs))
-    env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(Path(__file__).resolve().parents[2])}
     run = subprocess.run(["qemu-x86_64", "-cpu", cpu, sys.executable, str(work / "child.py"), str(work / "jobs.json")],
                          env=env, capture_output=True, text=True)
     if run.returncode:
@@ -190,7 +188,7 @@ def main(argv=None) -> int:
                 if "jobs" in row:
                     row["emulated"] = {job["tag"]: next(results) for job in row.pop("jobs")}
     out = {"bench": "export_all", "cpu_flags": cpu_flags(), "pairs": len(table), "passed": sum(r["passed"] for r in table),
-           "wall_s": round(time.perf_counter() - t0, 1), "loadavg_at_end": [round(v, 2) for v in os.getloadavg()],
+           "wall_s": round(time.perf_counter() - t0, 1), "loadavg_at_end": load_averages(),
            "worst_pair_sum": max((r.get("pair_sum_worst", 0) for r in table), default=0),
            "min_quantization_psnr_db": min((r["quantization_psnr_vs_float_db"] for r in table if r["passed"]), default=None),
            "max_abs_diff_vs_torch": max((r["max_abs_diff_vs_torch"] for r in table if r["passed"]), default=None),
@@ -204,7 +202,7 @@ def main(argv=None) -> int:
                            "max_abs_diff_255_8bit": max(e["8bit"]["max_abs_diff_255"] for e in em),
                            "vs_native_ort_255_7bit": max(e["7bit"]["vs_native_ort_255"] for e in em),
                            "vs_native_ort_255_8bit": max(e["8bit"]["vs_native_ort_255"] for e in em)}
-    print(json.dumps(out, default=lambda v: v.item() if isinstance(v, np.generic) else str(v)))
+    emit(out)
     return 0 if out["passed"] == out["pairs"] else 1
 
 

@@ -14,7 +14,7 @@ components), then exported three times. Per variant:
 * ``bytes``, and batch-1 one-thread speed: the three files timed interleaved
   (``bench_onnx_ab.interleaved_times``), median thread-CPU and wall ms, frames/s.
 
-    OMP_NUM_THREADS=1 PYTHONPATH=. python bench/bench_int8.py [--clips lp_d6,lp_d10] [--regressor krr]
+    OMP_NUM_THREADS=1 python -m bench.export.int8 [--clips lp_d6,lp_d10] [--regressor krr]
 
 Prints ONE JSON line, with the CPU's VNNI/AVX2 flags.
 """
@@ -22,28 +22,14 @@ Prints ONE JSON line, with the CPU's VNNI/AVX2 flags.
 from __future__ import annotations
 
 import argparse
-import json
-import os
 import sys
 import tempfile
 from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-
-from bench_onnx_ab import _session, interleaved_times  # noqa: E402
-
-
-def cpu_flags() -> list[str]:
-    from facesynth.runtime.cpu import cpu_flags as parse
-
-    try:
-        flags = parse(Path("/proc/cpuinfo").read_text())
-    except OSError:
-        return []
-    return sorted(f for f in flags if f in ("avx2", "avx512f", "avx512_vnni", "avx_vnni"))
+from bench.export.onnx_ab import _session, interleaved_times  # noqa: E402
+from bench.harness import cpu_flags, emit, load_averages
 
 
 def bench_clip(clip: str, regressor: str, rounds: int, reps: int) -> dict:
@@ -116,10 +102,10 @@ def main(argv=None) -> int:
     p.add_argument("--rounds", type=int, default=10)
     p.add_argument("--reps", type=int, default=200)
     args = p.parse_args(argv)
-    out = {"bench": "int8", "cpu_flags": cpu_flags(), "loadavg_at_start": [round(v, 2) for v in os.getloadavg()],
+    out = {"bench": "int8", "cpu_flags": cpu_flags(), "loadavg_at_start": load_averages(),
            "clips": [bench_clip(c, args.regressor, args.rounds, args.reps) for c in args.clips.split(",") if c]}
-    out["loadavg_at_end"] = [round(v, 2) for v in os.getloadavg()]
-    print(json.dumps(out))
+    out["loadavg_at_end"] = load_averages()
+    emit(out)
     return 0
 
 

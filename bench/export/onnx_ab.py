@@ -7,7 +7,7 @@ Reports per file the median wall and thread-CPU time (ms) over all runs, the bes
 median, the minimum, and whether every output equals the first file's (bit for bit) on
 all the landmarks used.
 
-    PYTHONPATH=. python bench/bench_onnx_ab.py A.onnx B.onnx --landmarks L.npy [--rounds 10] [--reps 100]
+    python -m bench.export.onnx_ab A.onnx B.onnx --landmarks L.npy [--rounds 10] [--reps 100]
 
 ``--landmarks``: (N, P, 2) float32 frame landmarks in the models' scheme (e.g. a clip's
 ``landmarks.npy``). Prints ONE JSON line.
@@ -16,12 +16,12 @@ all the landmarks used.
 from __future__ import annotations
 
 import argparse
-import json
-import os
 import time
 
 import numpy as np
 import onnxruntime as ort
+
+from bench.harness import emit, load_averages
 
 
 def _session(path: str) -> ort.InferenceSession:
@@ -63,7 +63,7 @@ def main() -> None:
     p.add_argument("--rounds", type=int, default=10)
     p.add_argument("--reps", type=int, default=100)
     args = p.parse_args()
-    load_start = list(os.getloadavg())
+    load_start = load_averages()
     lm = np.ascontiguousarray(np.load(args.landmarks), np.float32)
     lm = lm[np.isfinite(lm).all(axis=(1, 2))]
     sessions = [_session(m) for m in args.models]
@@ -72,15 +72,13 @@ def main() -> None:
     same = [all(all(np.array_equal(a, b) for a, b in zip(r, s.run(None, {name: lm[i * 8:i * 8 + 8]}), strict=True))
                 for i, r in enumerate(ref)) for s in sessions]
     wall, cpu = interleaved_times(sessions, lm, args.rounds, args.reps)
-    out = {"bench": "onnx_ab", "loadavg_at_start": load_start, "loadavg_at_end": list(os.getloadavg()),
+    out = {"bench": "onnx_ab", "loadavg_at_start": load_start, "loadavg_at_end": load_averages(),
            "frames": int(len(lm)), "rounds": args.rounds, "reps": args.reps, "models": {}}
     for m, w, c, eq in zip(args.models, wall, cpu, same, strict=True):
         w, c = np.asarray(w) * 1e3, np.asarray(c) * 1e3
         out["models"][m] = {"wall_ms_p50": round(float(np.median(w)), 4), "cpu_ms_p50": round(float(np.median(c)), 4),
                             "wall_ms_best_round_p50": round(float(np.median(w, 1).min()), 4),
                             "wall_ms_min": round(float(w.min()), 4), "outputs_equal_first": bool(eq)}
-    print(json.dumps(out))
-
-
+    emit(out)
 if __name__ == "__main__":
     main()

@@ -5,14 +5,13 @@ frames) and also reports the landmark error against the shipped landmarks.npy; w
 the shared data it ingests a synthetic video (the embedded subject, written to a temp
 file) and reports the error against its known landmarks.
 
-    PYTHONPATH=. python bench/bench_ingest.py [--video PATH] [--max-frames N] [--every N] [--synthetic]
+    python -m bench.ingest.ingest [--video PATH] [--max-frames N] [--every N] [--synthetic]
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-import os
 import resource
 import shutil
 import sys
@@ -22,6 +21,8 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+
+from bench.harness import emit, load_average
 
 
 def _synthetic_video(folder: Path, n: int) -> tuple[Path, np.ndarray]:
@@ -89,7 +90,7 @@ def _run(tmp: Path) -> int:
         "frames_per_s": round(st["frames_processed"] / total_s, 2),
         "ingest_cpu_s": round(cpu_s, 3),
         "frames_per_cpu_s": round(st["frames_processed"] / cpu_s, 2),
-        "load_avg_1min": round(os.getloadavg()[0], 2),
+        "load_avg_1min": round(load_average(), 2),
         "ms_per_frame": {k: round(v, 2) for k, v in st["timing_ms_per_frame"].items()},
         "detection_rate": st["detection_rate"],
         "det_source_counts": st["det_source_counts"],
@@ -102,7 +103,7 @@ def _run(tmp: Path) -> int:
         err = np.linalg.norm(lm[:n][ok] - reference[:n][ok], axis=-1)
         out["median_err_px_vs_reference"] = round(float(np.median(err)), 4)
         out["max_err_px_vs_reference"] = round(float(err.max()), 4)
-    print(json.dumps(out))
+    emit(out)
     return 0
 
 

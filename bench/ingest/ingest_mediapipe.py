@@ -8,7 +8,7 @@ exclude decoding. ``frames_per_cpu_s`` (process CPU time) is less sensitive to o
 processes on a shared machine than the wall-clock ``frames_per_s``; both are printed,
 with the load average. Prints ONE JSON line.
 
-    PYTHONPATH=. python bench/bench_ingest_mediapipe.py [--clip lp_d6 | --video PATH] [--frames 300]
+    python -m bench.ingest.ingest_mediapipe [--clip lp_d6 | --video PATH] [--frames 300]
 """
 
 from __future__ import annotations
@@ -23,6 +23,8 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+
+from bench.harness import emit, load_average
 
 
 def _frames(path: Path, n: int) -> list[np.ndarray]:
@@ -86,7 +88,7 @@ def main() -> int:
         "bench": "ingest_mediapipe",
         "video": str(video),
         "cpu_pinned": cpu,
-        "load_avg_1min": round(os.getloadavg()[0], 2),
+        "load_avg_1min": round(load_average(), 2),
         "clip_size": _landmark_rate(frames),
         "at_480x480": _landmark_rate(small),
     }
@@ -100,9 +102,9 @@ def main() -> int:
             "frames_per_s": round(st["frames_processed"] / wall, 1), "frames_per_cpu_s": round(st["frames_processed"] / cpu_s, 1),
             "ms_per_frame": {k: round(v, 3) for k, v in st["timing_ms_per_frame"].items()},
         }
-    out["load_avg_1min_end"] = round(os.getloadavg()[0], 2)
+    out["load_avg_1min_end"] = round(load_average(), 2)
     out["versions"] = mediapipe_versions()
-    print(json.dumps(out))
+    emit(out)
     return 0
 
 

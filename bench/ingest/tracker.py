@@ -6,23 +6,23 @@ Per clip: the median distance in pixels over all 478 points, over the irises (46
 the refined lips and eyes, the 95th percentile, and the tracker's time per frame on one
 thread (crop + mesh; the detector runs on the first frame only). Prints ONE JSON line.
 
-    PYTHONPATH=. python bench/bench_tracker.py [--clips lp_d3,lp_d6,vrt_face1] [--frames 100]
+    python -m bench.ingest.tracker [--clips lp_d3,lp_d6,vrt_face1] [--frames 100]
 """
 
 from __future__ import annotations
 
 import argparse
-import json
-import os
 import sys
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
-from bench_ingest_mediapipe import _frames  # the clip's first frames, RGB
 
-SHARED = Path(__file__).resolve().parents[2] / "shared" / "data" / "faces"
+from bench.harness import emit, load_average
+from bench.ingest.ingest_mediapipe import _frames  # the clip's first frames, RGB
+
+SHARED = Path(__file__).resolve().parents[3] / "shared" / "data" / "faces"
 
 
 def main() -> int:
@@ -39,7 +39,7 @@ def main() -> int:
     table = mediapipe_ops.refinement_table()
     refined = np.flatnonzero(table >= 468)  # lips, eyes, irises: the points the refinement writes
     flags = set(Path("/proc/cpuinfo").read_text().split()) & {"avx2", "avx512f", "avx512_vnni", "avx_vnni"}
-    out = {"bench": "tracker", "host_flags": sorted(flags), "load": os.getloadavg()[0], "clips": {}}
+    out = {"bench": "tracker", "host_flags": sorted(flags), "load": load_average(), "clips": {}}
     with tempfile.TemporaryDirectory() as tmp:
         convert.convert_all(tmp)
         for clip in args.clips.split(","):
@@ -64,7 +64,7 @@ def main() -> int:
                 "iris_median_px": round(float(np.median(err[:, 468:])), 3),
                 "refined_median_px": round(float(np.median(err[:, refined])), 3),
                 "tracker_ms": round(float(np.median(ms[1:])), 2)}
-    print(json.dumps(out))
+    emit(out)
     return 0
 
 

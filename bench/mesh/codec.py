@@ -1,6 +1,6 @@
 """Benchmark of geometry videos and the PDP codec; prints ONE JSON line.
 
-    PYTHONPATH=. python bench/bench_codec.py [--frames 10 --size 256 --qps 18,30,42,54,60,66,72]
+    python -m bench.mesh.codec [--frames 10 --size 256 --qps 18,30,42,54,60,66,72]
                                              [--no-anchors] [--plot codec_rd.png] [--quick]
 
 Source: the ICT face (9409 vertices, ../shared/data/mesh) animated by seeded blendshape
@@ -16,14 +16,12 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-
+from bench.harness import emit, load_average
 from facesynth.codec.bitstream import decode_video, encode_video  # noqa: E402
 from facesynth.codec.frame import CodecConfig  # noqa: E402
 from facesynth.codec.geometry import (  # noqa: E402
@@ -73,7 +71,7 @@ def geometry_figures(seq: dict, sizes=(256, 512)) -> dict:
 def speed(video_by_size: dict, qp: int, repeats: int = 3) -> dict:
     """Encode/decode frames/s: the best of ``repeats`` runs (the machine is shared), with
     the 1-minute load average before the runs."""
-    out = {"load_average_1min": os.getloadavg()[0], "repeats": repeats}
+    out = {"load_average_1min": load_average(), "repeats": repeats}
     for s, (vid, mask) in video_by_size.items():
         for name, sizes in (("hip+pdp-intra", (8, 16)), ("hip+pdp-intra", (4, 8, 16)),
                             ("hip+pdp+pvm-ippp", (8, 16)), ("hip+pdp+pvm-ippp", (4, 8, 16))):
@@ -163,7 +161,7 @@ def main() -> None:
         lay5 = build_layout(seq["faces"], seq["uv"], 512)
         v5, _ = geometry_video(lay5, seq["frames"][:3])
         result["speed"] = speed({args.size: (vid[:6], mask), 512: (v5, lay5.mask)}, args.speed_qp, args.speed_repeats)
-        print(json.dumps(result, default=float))
+        emit(result)
         return
     result["geometry"] = geometry_figures(seq, (args.size,) if args.quick else (256, 512))
     result["video"] = {"shape": list(vid.shape), "fingerprint": array_fingerprint(vid),
@@ -216,8 +214,6 @@ def main() -> None:
                 pts[k] = [p for p in v if p["psnr_db"] is not None]
         plot_rd(pts, args.plot, f"ICT geometry video {vid.shape[0]}x{vid.shape[1]}x{vid.shape[2]}")
         result["plot"] = str(args.plot)
-    print(json.dumps(result, default=float))
-
-
+    emit(result)
 if __name__ == "__main__":
     main()

@@ -1,4 +1,4 @@
-"""External anchors for bench_codec.py through the ffmpeg command line (optional).
+"""External anchors for bench/mesh/codec.py through the ffmpeg command line (optional).
 
 Each channel (x, y, z) of the uint16 geometry video is one plane of a 4:4:4 frame; the
 samples are rounded to the codec's bit depth, coded, decoded and scaled back to 16 bits

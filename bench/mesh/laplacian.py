@@ -1,8 +1,8 @@
 """Laplacian deformation: factorisation and per-frame solve time, and (with --clips) the
 plain / iterative / dual methods on real clips.
 
-    PYTHONPATH=. python bench/bench_laplacian.py                  # timing, ICT + subdivided ICT
-    PYTHONPATH=. python bench/bench_laplacian.py --clips lp_d6 lp_d3 --frames 40   # methods
+    python -m bench.mesh.laplacian                  # timing, ICT + subdivided ICT
+    python -m bench.mesh.laplacian --clips lp_d6 lp_d3 --frames 40   # methods
 
 Prints ONE JSON line. Timing: factorisation (cotangent Laplacian + normal equations +
 splu) and the median per-frame plain solve (all three coordinates) for the 9409-vertex
@@ -17,14 +17,11 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 import time
-from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
+from bench.harness import emit, load_average
 from facesynth.data.shared import shared_clip, shared_mesh_dir  # noqa: E402
 from facesynth.mesh.deform import LaplacianDeformer  # noqa: E402
 from facesynth.mesh.io import load_landmark_map, load_mesh  # noqa: E402
@@ -60,7 +57,6 @@ def time_case(V, F, handles, repeats, rng) -> dict:
 
 
 def timing(args) -> dict:
-    import os
 
     import trimesh
 
@@ -70,7 +66,7 @@ def timing(args) -> dict:
     m = load_mesh(mesh_dir / "ict_face_9409_neutral.obj")
     h = load_landmark_map(mesh_dir / "ict_face_9409_ibug68_map.json", len(m.vertices))
     rng = np.random.default_rng(args.seed)
-    out = {"load_average_1min": os.getloadavg()[0], "ict": time_case(m.vertices, m.faces, h, args.repeats, rng)}
+    out = {"load_average_1min": load_average(), "ict": time_case(m.vertices, m.faces, h, args.repeats, rng)}
     V, F = m.vertices, m.faces
     for k in range(args.subdiv):
         V, F = trimesh.remesh.subdivide(V, F)  # original vertices keep their indices
@@ -140,8 +136,6 @@ def main() -> None:
     out = {"bench": "laplacian", "timing": None if args.clips else timing(args)}
     if args.clips:
         out["methods"] = methods(args)
-    print(json.dumps(out))
-
-
+    emit(out)
 if __name__ == "__main__":
     main()

@@ -2,7 +2,7 @@
 Gaussian pixel noise sigma in {0, 1, 3, 10}; every pose method (the project's DLT,
 normalised DLT and EPnP; OpenCV's EPNP, SQPNP and ITERATIVE) is scored.
 
-    PYTHONPATH=. python bench/bench_pose.py [--cameras 50] [--draws 1] [--markdown T.md] [--json T.json]
+    python -m bench.mesh.pose [--cameras 50] [--draws 1] [--markdown T.md] [--json T.json]
 
 Prints ONE JSON line. Per method and sigma: mean and std over trials of
 
@@ -28,15 +28,13 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
+from bench.harness import emit
 from facesynth.data.shared import shared_mesh_dir  # noqa: E402
 from facesynth.io import write_json, write_text  # noqa: E402
 from facesynth.mesh.camera import MESH_TO_CAMERA, project, projection_matrix, rotation_angle_deg  # noqa: E402
@@ -174,8 +172,6 @@ def main() -> None:
         write_json(args.json, out)
     if args.markdown:
         write_text(args.markdown, markdown(out))
-    print(json.dumps(out))
-
-
+    emit(out)
 if __name__ == "__main__":
     main()

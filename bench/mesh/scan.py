@@ -18,7 +18,7 @@ Sections (ICT face from ../shared/data/mesh, its 53 blendshapes at weight 1 as t
   temporal coherence (MSE between consecutive frames after 8x8 block motion
   search, +-2 px).
 
-Usage: ``OMP_NUM_THREADS=1 PYTHONPATH=. python bench/bench_scan.py [--quick] [--plots DIR]``
+Usage: ``OMP_NUM_THREADS=1 python -m bench.mesh.scan [--quick] [--plots DIR]``
 """
 
 from __future__ import annotations
@@ -31,6 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
+from bench.harness import emit
 from facesynth.codec.geometry import build_layout, geometry_video, sample_vertices
 from facesynth.codec.rd import CONFIGS, bd_rate
 from facesynth.codec.scan_cli import scan_geometry_video
@@ -306,7 +307,7 @@ def main(argv=None) -> int:
     if "codec" in sections:
         res["codec"] = bench_codec(m, lm, args.size, 4 if args.quick else args.frames, qps, args.plots)
     res["total_s"] = time.perf_counter() - t0
-    print(json.dumps(res))
+    emit(res)
     return 0
 
 

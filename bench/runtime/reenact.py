@@ -1,6 +1,6 @@
 """Reenactment figures (issue 13): avatars driven by other people, one JSON line.
 
-    OMP_NUM_THREADS=1 PYTHONPATH=. python bench/bench_reenact.py [--work /tmp/facesynth_reenact] [--sheets docs]
+    OMP_NUM_THREADS=1 python -m bench.runtime.reenact [--work /tmp/facesynth_reenact] [--sheets docs]
         [--dense /tmp/dense]
 
 ``--dense DIR``: 478-point avatars and drivers instead, from ``DIR/CLIP`` folders that
@@ -22,7 +22,6 @@ avatar's own neutral frame). Speed: model call and retargeting CPU time per fram
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import subprocess
 import sys
@@ -32,9 +31,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+ROOT = Path(__file__).resolve().parents[2]
 
+from bench.harness import emit, load_average  # noqa: E402
 from facesynth.data import load_sequence, shared_clip  # noqa: E402
 from facesynth.eval.reenact import pair_figures, self_driving_psnr, speed  # noqa: E402
 from facesynth.rundir import read_config, run_data  # noqa: E402
@@ -85,7 +84,7 @@ def main() -> None:
     work = Path(args.work)
     work.mkdir(parents=True, exist_ok=True)
     t0 = time.time()
-    out = {"load_average_start": os.getloadavg()[0], "scheme": "ibug68" if dense is None else "mediapipe478", "pairs": {}}
+    out = {"load_average_start": load_average(), "scheme": "ibug68" if dense is None else "mediapipe478", "pairs": {}}
     for avatar, driver in pairs:
         run, path = model_for(avatar, work, dense)
         seq, rows, _ = run_data(read_config(run))
@@ -112,10 +111,8 @@ def main() -> None:
     run, path = model_for(avatar, work, dense)
     lm = np.asarray(load_sequence(clip_dir(pairs[0][1], dense)).landmarks, np.float32)
     out["speed"] = {"model": f"{avatar}.onnx", **speed(path, lm, reps=args.reps)}
-    out["load_average_end"] = os.getloadavg()[0]
+    out["load_average_end"] = load_average()
     out["wall_s"] = round(time.time() - t0, 1)
-    print(json.dumps(out))
-
-
+    emit(out)
 if __name__ == "__main__":
     main()

@@ -1,6 +1,6 @@
 """Batch-1 one-thread speed of exported runs against the floor of one render; one JSON line.
 
-    OMP_NUM_THREADS=1 python bench/bench_render_floor.py RUN_DIR [RUN_DIR ...] [--rounds 5] [--frames 200]
+    OMP_NUM_THREADS=1 python -m bench.runtime.render_floor RUN_DIR [RUN_DIR ...] [--rounds 5] [--frames 200]
 
 For each run (a train.py run folder): exports it with ``facesynth export``'s defaults into a
 temporary folder (ONNX size recorded), renders its held-out landmarks one frame at a time
@@ -15,15 +15,12 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 import tempfile
 import time
 from pathlib import Path
 
 import cv2
 import numpy as np
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from facesynth import progress  # noqa: E402
 from facesynth.model.artifact import load_face_model  # noqa: E402

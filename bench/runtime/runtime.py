@@ -29,8 +29,8 @@ too, under ``schemes.mediapipe478`` (same settings), and ``summary`` becomes
 
 Prints ONE JSON line.
 
-    PYTHONPATH=. python bench/bench_runtime.py [--regressors linear,mlp] [--components 40] [--reps 1000]
-    PYTHONPATH=. python bench/bench_runtime.py --regressors linear,mlp --variants default --no-torch --dense /tmp/mp/lp_d6
+    python -m bench.runtime.runtime [--regressors linear,mlp] [--components 40] [--reps 1000]
+    python -m bench.runtime.runtime --regressors linear,mlp --variants default --no-torch --dense /tmp/mp/lp_d6
 """
 
 from __future__ import annotations
@@ -46,8 +46,7 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
+from bench.harness import emit, load_averages
 
 ROUNDS = 10  # repetitions are split into this many rounds; the best round median is reported too
 
@@ -146,15 +145,15 @@ def main(argv=None) -> int:
         print(json.dumps({"error": f"shared clip {args.clip!r} is absent"}))
         return 2
     start = {"bench": "runtime", "clip": args.clip, "cpu_count": os.cpu_count(),
-             "loadavg_at_start": [round(v, 2) for v in os.getloadavg()]}
+             "loadavg_at_start": load_averages()}
     out = {**start, **_bench_clip(load_sequence(clip), args)}
     if args.dense is not None:
         dense = _bench_clip(load_sequence(args.dense), args)
         out = {**start, "schemes": {"ibug68": out, dense["landmark_scheme"]: dense},
                "summary": {"ibug68": out["summary"], dense["landmark_scheme"]: dense["summary"]}}
-    out["loadavg_at_end"] = [round(v, 2) for v in os.getloadavg()]
+    out["loadavg_at_end"] = load_averages()
     out["peak_rss_mb"] = round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1)
-    print(json.dumps(out))
+    emit(out)
     return 0
 
 

@@ -1,7 +1,7 @@
 """Talking-head figures: the avatar's still frame, the full-frame warp alone and the whole
 pipeline on the same frames; one JSON line (and contact sheets).
 
-    OMP_NUM_THREADS=1 PYTHONPATH=. python bench/bench_talking_head.py [--work /tmp/facesynth_th] [--sheets docs]
+    OMP_NUM_THREADS=1 python -m bench.runtime.talking_head [--work /tmp/facesynth_th] [--sheets docs]
         [--clips lp_d3,...] [--stride 1] [--regressor krr]
 
 Renderers (every avatar a model trained on the first 75 % of its clip,
@@ -58,20 +58,16 @@ the three largest head turns (roll and yaw against the driver's neutral) | paste
 from __future__ import annotations
 
 import argparse
-import json
-import os
-import sys
 import time
 from pathlib import Path
 
 import cv2
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+ROOT = Path(__file__).resolve().parents[2]
 
-from bench_reenact import model_for  # noqa: E402
-
+from bench.harness import emit, load_average  # noqa: E402
+from bench.runtime.reenact import model_for  # noqa: E402
 from facesynth.compositing import placed_alpha  # noqa: E402
 from facesynth.data import load_sequence, shared_clip  # noqa: E402
 from facesynth.data.detect import predictor_path  # noqa: E402
@@ -349,7 +345,7 @@ def main() -> None:
     work.mkdir(parents=True, exist_ok=True)
     t0 = time.time()
     dl = Dlib()
-    out = {"load_average_start": os.getloadavg()[0], "regressor": args.regressor, "self": {}, "cross": {}, "sheets": []}
+    out = {"load_average_start": load_average(), "regressor": args.regressor, "self": {}, "cross": {}, "sheets": []}
     infos = {}
     pairs = [tuple(p.split("<-")) for p in args.pairs.split(",") if p]
     for clip in dict.fromkeys([c for c in args.clips.split(",") if c] + [a for a, _ in pairs]):
@@ -386,10 +382,8 @@ def main() -> None:
             dest = Path(args.sheets) / f"talking_head_{avatar}_by_{driver}.jpg"
             write_jpeg(dest, img)
             out["sheets"].append(str(dest))
-    out["load_average_end"] = os.getloadavg()[0]
+    out["load_average_end"] = load_average()
     out["wall_s"] = round(time.time() - t0, 1)
-    print(json.dumps(out))
-
-
+    emit(out)
 if __name__ == "__main__":
     main()

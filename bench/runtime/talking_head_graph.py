@@ -2,7 +2,7 @@
 face-only synthesis graph, the bare frame read and the numpy reference pipeline, in one run;
 one JSON line.
 
-    OMP_NUM_THREADS=1 PYTHONPATH=. python bench/bench_talking_head_graph.py [--pairs lp_d3<-lp_d6,...]
+    OMP_NUM_THREADS=1 python -m bench.runtime.talking_head_graph [--pairs lp_d3<-lp_d6,...]
         [--frames 0] [--work /tmp/facesynth_th_graph] [--against DIR] [--profile 60]
 
 Per pair AVATAR<-DRIVER: a linear model of the first 75 % of the avatar's clip (every 3rd
@@ -34,15 +34,12 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
+from bench.harness import load_average
 from facesynth.runtime.cpu import cpu_flags  # noqa: E402
 
 
@@ -231,7 +228,7 @@ def main() -> None:
     against = Path(args.against) if args.against else None
     pairs = [run_pair(*p.split("<-"), args.frames, work, against, args.profile) for p in args.pairs.split(",")]
     print(json.dumps({"cpu_flags": sorted(cpu_flags(Path("/proc/cpuinfo").read_text()) & {"avx2", "avx512_vnni", "avx_vnni"}),
-                      "load_avg": round(os.getloadavg()[0], 2), "max_pixel_diff": max(p["max_pixel_diff"] for p in pairs),
+                      "load_avg": round(load_average(), 2), "max_pixel_diff": max(p["max_pixel_diff"] for p in pairs),
                       "max_landmark_diff_px": max(p["max_landmark_diff_px"] for p in pairs), "pairs": pairs}))
 
 

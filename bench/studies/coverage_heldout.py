@@ -5,7 +5,7 @@ frames, as for a recording without a neutral prompt), and the clip's held-out PS
 mediapipe478 (whole face and mouth interior, sigma 0) from the table of docs/landmarks.md.
 Prints ONE JSON line: per clip, and Spearman's rank correlation of coverage with each PSNR.
 
-    PYTHONPATH=. python bench/coverage_heldout.py
+    python -m bench.studies.coverage_heldout
 """
 
 from __future__ import annotations
@@ -37,7 +37,7 @@ def main() -> None:
     from facesynth.data.shared import shared_data_dir
     from facesynth.web.coverage import coverage
 
-    md = (Path(__file__).resolve().parents[1] / "docs" / "landmarks.md").read_text()
+    md = (Path(__file__).resolve().parents[2] / "docs" / "landmarks.md").read_text()
     whole = {r[0]: float(r[4]) for r in table(md, "| clip | frames | detection rate: MediaPipe")}
     mouth = {r[0]: float(re.split(r"\s*/\s*", r[2])[1].split()[0]) for r in table(md, "| clip | eyes | mouth interior")}
     out = {}

@@ -11,7 +11,7 @@ draws on points 0-67 in every variant), landmark noise as :mod:`facesynth.eval.s
 (sigma 2 on all 78 points). ``main only`` is the ``ibug68`` model: its 68-point noise draws
 and fit are those of ``train.py`` on the shipped dlib folder.
 
-    PYTHONPATH=. python bench/gaze_study.py --dirs /tmp/gaze/lp_d6 [/tmp/gaze/lp_d10 ...] [--only main,gaze]
+    python -m bench.studies.gaze --dirs /tmp/gaze/lp_d6 [/tmp/gaze/lp_d10 ...] [--only main,gaze]
 
 where each DIR is an ``ibug68+iris`` folder (``facesynth ingest VIDEO --landmarker dlib+iris``
 or :func:`facesynth.data.iris.add_irises`). Prints ONE JSON line:

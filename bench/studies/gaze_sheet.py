@@ -1,7 +1,7 @@
 """Contact sheet of test frames where the eyes look sideways: real | run A | run B (the eye
 band of each frame, synthesized from the landmarks alone and pasted into the real frame).
 
-    PYTHONPATH=. python bench/gaze_sheet.py --data /tmp/gaze/lp_d6 --runs RUN_IBUG68 RUN_IRIS \\
+    python -m bench.studies.gaze_sheet --data /tmp/gaze/lp_d6 --runs RUN_IBUG68 RUN_IRIS \\
         --labels ibug68 ibug68+iris --out docs/gaze_lp_d6.jpg [--n 6]
 
 ``--data`` is an ``ibug68+iris`` folder (its irises pick the frames: the test frames with the

@@ -8,18 +8,19 @@ similarity (Umeyama, all 68 points), and compared point by point. Prints ONE JSO
 per clip and region the median and p95 distance in pixels and in % of the inter-ocular
 distance (outer eye corners of the dlib landmarks), and the unaligned median.
 
-    PYTHONPATH=. python bench/landmark_mapping.py [--clips lp_d6 lp_d10 lp_d3] [--from-dir DIR]
+    python -m bench.studies.landmark_mapping [--clips lp_d6 lp_d10 lp_d3] [--from-dir DIR]
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import tempfile
 from pathlib import Path
 
 import numpy as np
+
+from bench.harness import emit
 
 REGIONS = ("jaw", "brows", "nose", "eyes", "outer_lips", "inner_lips")
 
@@ -74,7 +75,7 @@ def main() -> int:
             dlib = load_landmarks(src)
             n = min(len(lm), len(dlib))
             out[clip] = mapping_errors(lm[:n], dlib[:n])
-    print(json.dumps(out))
+    emit(out)
     return 0
 
 

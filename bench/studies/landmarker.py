@@ -14,7 +14,7 @@ Folders under ROOT (default /tmp/lm_study), one per clip::
     mp/CLIP          facesynth train data=video data.path=ROOT/mp_data/CLIP hydra.run.dir=...
     logs/            each command's output (the error of a run that failed is read from it)
 
-    PYTHONPATH=. python bench/landmarker_study.py [--root DIR] [--clips lp_d6 ...] [--train]
+    python -m bench.studies.landmarker [--root DIR] [--clips lp_d6 ...] [--train]
 
 Prints ONE JSON line (per clip and a summary), then the markdown tables. Trains nothing unless
 ``--train`` is given: then it first runs the missing ingests and trainings above, one at a time.

@@ -1,6 +1,6 @@
 """Issue 44's yardstick per shared clip, for today's default and variants; prints one JSON line.
 
-    OMP_NUM_THREADS=1 python bench/bench_perceptual.py [--clips lp_d3,lp_d20] \
+    OMP_NUM_THREADS=1 python -m bench.studies.perceptual [--clips lp_d3,lp_d20] \
         [--variant auto=model.reference_width=auto] [--jobs 2] [--out DIR]
 
 Each clip (default: every clip of ../shared/data/faces) is trained with ``facesynth train
@@ -35,9 +35,9 @@ from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+ROOT = Path(__file__).resolve().parents[2]
 
+from bench.harness import emit  # noqa: E402
 from facesynth.data.shared import shared_data_dir  # noqa: E402
 
 EVAL = ["eval.noise=[0]", "eval.train_level=false", "eval.talking_head=false"]
@@ -125,8 +125,6 @@ def main() -> None:
                 per_clip[c][n] = fig
     result = {"bench": "perceptual", "variants": variants, "eval": EVAL, "clips": per_clip,
               "summary": {n: summary(per_clip, n) for n in variants if n != "today"}}
-    print(json.dumps(result))
-
-
+    emit(result)
 if __name__ == "__main__":
     main()

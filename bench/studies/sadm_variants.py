@@ -8,7 +8,7 @@ segment. Reference-frame PSNR (peak 255, over the mask) of the clamped predictio
 landmark noise seeded as in :mod:`facesynth.eval.sadm_eval` and added before anything
 else (temporal filters included); 4 noisy training copies at 1 px unless a variant says.
 
-    PYTHONPATH=. python bench/sadm_study.py [--clips lp_d6,lp_d10,lp_d3] [--only krr_rbf,krr_matern]
+    python -m bench.studies.sadm_variants [--clips lp_d6,lp_d10,lp_d3] [--only krr_rbf,krr_matern]
 
 Prints ONE JSON line: ``{variant: {clip: {"val": [psnr_sigma0, loss_0_to_2], "test": [...]}}}``
 (``--list`` prints the variant names). All variants: ~10 min on one core.

@@ -8,7 +8,7 @@ the ``rest`` figure the target would need (with the eyes and mouth interior as p
 at the oracle) next to the ``rest`` of both runs and the dense run's ``rest`` oracle.
 Prints ONE JSON line.
 
-    PYTHONPATH=. python bench/scheme_gap.py --dense RUN_MP/lp_d6 RUN_MP/lp_d10 --base RUN_IB/lp_d6 RUN_IB/lp_d10 [--margin 1]
+    python -m bench.studies.scheme_gap --dense RUN_MP/lp_d6 RUN_MP/lp_d10 --base RUN_IB/lp_d6 RUN_IB/lp_d10 [--margin 1]
 """
 
 from __future__ import annotations
@@ -17,8 +17,6 @@ import argparse
 import json
 import sys
 from pathlib import Path
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 
 def main() -> None:

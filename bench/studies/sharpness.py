@@ -1,6 +1,6 @@
 """Where a run's rendered detail goes, stage by stage; prints one JSON line.
 
-    OMP_NUM_THREADS=1 python bench/bench_sharpness.py RUN_DIR [--onnx MODEL.onnx] [--frames 40]
+    OMP_NUM_THREADS=1 python -m bench.studies.sharpness RUN_DIR [--onnx MODEL.onnx] [--frames 40]
 
 Sharpness S (facesynth.eval.sharpness: Sobel gradient energy of the face pasted into the real
 frame with blend_face over the real frame's, median over frames) over the common region
@@ -24,15 +24,12 @@ run; its config names the data and the split. The clip needs its dlib landmarks 
 from __future__ import annotations
 
 import argparse
-import json
-import sys
 import tempfile
 from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
+from bench.harness import emit
 from facesynth import progress  # noqa: E402
 from facesynth.compositing import blend_rendered  # noqa: E402
 from facesynth.eval.common_region import common_landmarks, hull_box, region_masks  # noqa: E402
@@ -89,8 +86,6 @@ def main() -> None:
     out = {"run": str(args.run), "data": seq.name, "frames": int(len(rows)), "reference_size": list(sadm.model.reference.size),
            "face_width_px": float(np.median(np.ptp(common[rows][:, :17, 0], axis=1))),
            "stages": {k: {a: round(b, 3) for a, b in v.items()} for k, v in stages.items()}}
-    print(json.dumps(out))
-
-
+    emit(out)
 if __name__ == "__main__":
     main()

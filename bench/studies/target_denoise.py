@@ -4,7 +4,7 @@ landmark denoising (``model.denoise_variance``, docs/sadm.md), which ``FaceModel
 applies itself: give it runs trained with ``model.denoise_variance=1`` (or before it
 existed) for ``raw`` to mean the landmarks as given.
 
-    PYTHONPATH=. python bench/bench_target_denoise.py RUN [RUN ...] [--frames 40] [--sigma 2]
+    python -m bench.studies.target_denoise RUN [RUN ...] [--frames 40] [--sigma 2]
 
 For each training run (``train.py``; any scheme) and about ``--frames`` evenly spaced test
 frames, the SADM's predicted texture (from clean, and from noisy landmarks: seeded Gaussian
@@ -24,15 +24,13 @@ frame's own texture instead of the prediction (the geometry alone). One JSON lin
 from __future__ import annotations
 
 import argparse
-import json
-import sys
 from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+ROOT = Path(__file__).resolve().parents[2]
 
+from bench.harness import emit  # noqa: E402
 from facesynth.compositing import composite  # noqa: E402
 from facesynth.eval.common_region import common_landmarks, hull_box, region_masks  # noqa: E402
 from facesynth.eval.sadm_eval import noisy_landmarks  # noqa: E402
@@ -106,8 +104,6 @@ def main() -> None:
     out = {"sigma": args.sigma, "runs": {}}
     for run in args.runs:
         out["runs"][str(run)] = measure(run, args.frames, args.sigma)
-    print(json.dumps(out))
-
-
+    emit(out)
 if __name__ == "__main__":
     main()

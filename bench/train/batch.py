@@ -13,8 +13,8 @@ summary.json) and the load average around each run.
 one clip in a fresh process, read with wait4) at several frame counts, and the line
 through them (what MEMORY_BASE_MB / MEMORY_PER_FRAME_MB in facesynth/batch/executor.py hold).
 
-    PYTHONPATH=. python bench/bench_batch.py [--clips lp_d6,lp_d10,lp_d3,lp_d9] [--max-frames 120] [--keep DIR] [OVERRIDE ...]
-    PYTHONPATH=. python bench/bench_batch.py --memory [--frames 60,300,1008]
+    python -m bench.train.batch [--clips lp_d6,lp_d10,lp_d3,lp_d9] [--max-frames 120] [--keep DIR] [OVERRIDE ...]
+    python -m bench.train.batch --memory [--frames 60,300,1008]
 """
 
 from __future__ import annotations
@@ -31,11 +31,12 @@ from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
+from bench.harness import load_average
+
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def _clips(names: list[str]) -> list[Path]:
-    sys.path.insert(0, str(ROOT))
     from facesynth.data.shared import shared_clip
 
     clips = [shared_clip(n) for n in names]
@@ -78,7 +79,7 @@ def timing(args: argparse.Namespace) -> dict:
             out = tmp / key
             cmd = [sys.executable, "-m", "facesynth", "batch", str(videos), "--out", str(out), "--workers", str(workers),
                    "--cpus-per-subject", str(cpus), "--max-frames", str(args.max_frames), "--no-progress", *args.overrides]
-            load_before = os.getloadavg()[0]
+            load_before = load_average()
             wall, _, _ = _run(cmd)
             rows = json.loads((out / "summary.json").read_text())
             failed = [r["subject"] for r in rows if r["status"] != "ok"]
@@ -87,7 +88,7 @@ def timing(args: argparse.Namespace) -> dict:
             stages = {k: round(sum(r[k] for r in rows), 2) for k in ("ingest_s", "train_s", "evaluate_s", "export_s")}
             # the 1-minute load average before and after: other processes on the machine count too
             result[key] = {"wall_s": round(wall, 2), "stage_sums_s": stages,
-                                            "loadavg_1m": [round(load_before, 2), round(os.getloadavg()[0], 2)],
+                                            "loadavg_1m": [round(load_before, 2), round(load_average(), 2)],
                                             "subject_wall_sum_s": round(sum(r["wall_s"] for r in rows), 2),
                                             "psnr_sadm": {r["subject"]: round(r["psnr_sadm"], 3) for r in rows}}
         result["ratio_1_over_2"] = round(result["workers_1"]["wall_s"] / result["workers_2"]["wall_s"], 3)

@@ -7,8 +7,8 @@ With the ONNX part (default; ``--no-onnx`` skips it) the synthesizer is also exp
 with 1 and 2 threads, batch-32 throughput, the same steps in torch eager at batch 1, the
 file size and the largest |ONNX - torch| crop difference on the driving FAPs.
 
-    PYTHONPATH=. python bench/bench_eri.py                      # lp_d6, 300 training frames
-    PYTHONPATH=. python bench/bench_eri.py --train-frames 756 --synth-frames 64 --variant eps_rbf
+    python -m bench.train.eri                      # lp_d6, 300 training frames
+    python -m bench.train.eri --train-frames 756 --synth-frames 64 --variant eps_rbf
 
 Uses ../shared/data/faces/<clip> (training) and <target> (synthesis target); when the
 data is absent it falls back to a small synthetic sequence and says so in the output.
@@ -19,13 +19,10 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import sys
 import time
 
 import numpy as np
 import torch
-
-sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 from facesynth.data import load_sequence, shared_clip  # noqa: E402
 from facesynth.eri.config import EriConfig  # noqa: E402

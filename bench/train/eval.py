@@ -1,7 +1,7 @@
 """Time a run's evaluation (facesynth.eval.sadm_eval.evaluate_sadm) with the default
 frame-level subset, optionally against every test frame; prints one JSON line.
 
-    OMP_NUM_THREADS=1 python bench/bench_eval.py RUN_DIR [--compare-all]
+    OMP_NUM_THREADS=1 python -m bench.train.eval RUN_DIR [--compare-all]
 
 RUN_DIR is a train.py run (its config names the data and the split). Figures: CPU and wall
 seconds of the evaluation, and with --compare-all the largest |difference| (dB) of every
@@ -11,13 +11,10 @@ psnr_frame entry between the default subset and every test frame.
 from __future__ import annotations
 
 import argparse
-import json
-import sys
 import time
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
+from bench.harness import emit
 from facesynth import progress  # noqa: E402
 from facesynth.eval.sadm_eval import EvalConfig, evaluate_sadm  # noqa: E402
 from facesynth.rundir import read_config, run_data  # noqa: E402
@@ -50,8 +47,6 @@ def main() -> None:
         out.update(all_eval_cpu_s=round(cpu_all, 2), all_eval_wall_s=round(wall_all, 2),
                    psnr_frame_sadm_all=m_all["psnr_frame"]["sadm"], max_abs_diff_db=max(diffs.values()),
                    abs_diff_db=diffs)
-    print(json.dumps(out))
-
-
+    emit(out)
 if __name__ == "__main__":
     main()

@@ -1,19 +1,20 @@
 """Face model benchmark: fitting time and peak memory on a real clip (all frames), and
 batched piecewise-affine warp throughput at the 128-px reference.
 
-    PYTHONPATH=. python bench/bench_model.py [--clip lp_d6] [--synthetic] [--threads 1]
+    python -m bench.train.face_model [--clip lp_d6] [--synthetic] [--threads 1]
 
 Prints one JSON line.
 """
 
 import argparse
-import json
 import resource
 import sys
 import time
 
 import numpy as np
 import torch
+
+from bench.harness import emit
 
 
 def main() -> None:
@@ -78,8 +79,6 @@ def main() -> None:
         "torch": torch.__version__,
         "python": sys.version.split()[0],
     }
-    print(json.dumps(out))
-
-
+    emit(out)
 if __name__ == "__main__":
     main()

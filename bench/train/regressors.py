@@ -5,9 +5,9 @@ present -- face model fitted on the first 75% of the frames (temporal split), in
 b_s (clamped) or other shape features, targets b_g of the sampled textures -- else random
 data of the same size (N=1008 -> 756 train, D_in=16, D_out=150).
 
-    PYTHONPATH=. python bench/bench_regressors.py                       # all defaults
-    PYTHONPATH=. python bench/bench_regressors.py --search              # + default-grid search
-    PYTHONPATH=. python bench/bench_regressors.py --random --only linear,svr
+    python -m bench.train.regressors                       # all defaults
+    python -m bench.train.regressors --search              # + default-grid search
+    python -m bench.train.regressors --random --only linear,svr
 
 Figures: ``fit_s`` (training time, all defaults), ``predict_batch_ms`` (torch forward on
 all test rows at once), ``predict_frame_ms`` (batch of 1, median), ``test_mse`` (mean over
@@ -28,6 +28,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from bench.harness import emit
 from facesynth.regressors import CONFIGS, DEFAULT_GRIDS, REGISTRY, search
 from facesynth.regressors._common import tail_holdout
 
@@ -133,7 +134,7 @@ def main(argv=None) -> int:
             }
         out["regressors"][name] = row
         print(f"{name}: fit {fit_s:.2f}s test_mse {row['test_mse']:.5g}", file=sys.stderr)
-    print(json.dumps(out))
+    emit(out)
     return 0
 
 

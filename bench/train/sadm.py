@@ -1,17 +1,18 @@
 """SADM benchmark: training time per regressor on a real clip (all defaults, temporal
 75/25 split) and per-frame synthesis time of the torch graph (batch 1 and batch 32).
 
-    PYTHONPATH=. python bench/bench_sadm.py [--clip lp_d6] [--only linear,svr] [--threads 1]
+    python -m bench.train.sadm [--clip lp_d6] [--only linear,svr] [--threads 1]
 
 Prints one JSON line.
 """
 
 import argparse
-import json
 import time
 
 import numpy as np
 import torch
+
+from bench.harness import emit
 
 
 def main() -> None:
@@ -69,8 +70,6 @@ def main() -> None:
             **{k: v for k, v in sadm.regressor.summary().items() if isinstance(v, (int, float))},
         }
     result["mean_texture_psnr_ref"] = round(psnr(np.clip(model.appearance_pca.mean, 0, 1)[None].repeat(len(te), 0) * 255, tex_te * 255), 2)
-    print(json.dumps(result))
-
-
+    emit(result)
 if __name__ == "__main__":
     main()

@@ -29,7 +29,7 @@ blocks every request off 127.0.0.1, waits for the first avatar frame, then measu
   paused (median of 100, ``performance.now()``, the worker's message round trip included), and
   ``avatar_vs_python`` their ratio.
 
-    PYTHONPATH=. python bench/bench_web.py --model M.onnx --video CLIP.mp4 [--seconds 30] [--workers 1|2|auto] [--stage-ms 30]
+    python -m bench.web.page --model M.onnx --video CLIP.mp4 [--seconds 30] [--workers 1|2|auto] [--stage-ms 30]
 
 Prints ONE JSON line.
 """
@@ -37,9 +37,7 @@ Prints ONE JSON line.
 from __future__ import annotations
 
 import argparse
-import json
 import os
-import sys
 import tempfile
 import time
 import uuid
@@ -47,10 +45,9 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
 from bench import browser  # noqa: E402
 from bench.browser import chromium_tree, memory_mb  # noqa: E402
+from bench.harness import emit, load_average
 from facesynth.runtime.cpu import cpu_flags  # noqa: E402
 from facesynth.web import site  # noqa: E402
 
@@ -181,12 +178,10 @@ def main() -> None:
         "python_avatar_ms": round(python_avatar_ms(args.model), 3),
         "busiest_threads_ms": dict(sorted(((k, round(v, 2)) for k, v in d.items()), key=lambda kv: -kv[1])[:6]),
         "cpu_flags": sorted(cpu_flags(Path("/proc/cpuinfo").read_text()) & {"avx2", "avx512_vnni", "avx_vnni"}),
-        "load_avg": os.getloadavg()[0],
+        "load_avg": load_average(),
     }
     out["avatar_alone_ms"] = round(alone, 3)
     out["avatar_vs_python"] = round(alone / out["python_avatar_ms"], 2)
-    print(json.dumps(out))
-
-
+    emit(out)
 if __name__ == "__main__":
     main()

@@ -14,19 +14,17 @@ flow test's). Prints ONE JSON line:
   ``frames``: the recording's frames; ``coverage``: the page's overall coverage;
 * ``load``: the host's 1-minute load average at the start and the end (the machine is shared).
 
-    PYTHONPATH=. python bench/bench_studio.py --video CLIP.mp4 [--seconds 1] [--small]
+    python -m bench.web.studio --video CLIP.mp4 [--seconds 1] [--small]
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-import os
-import sys
 import tempfile
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+from bench.harness import load_average
 
 
 def main() -> None:
@@ -42,7 +40,7 @@ def main() -> None:
 
     from bench import browser
 
-    load0 = os.getloadavg()[0]
+    load0 = load_average()
     with tempfile.TemporaryDirectory() as tmp:
         cam = Path(tmp) / "cam.y4m"
         browser.write_y4m(a.video, cam, a.frames, (640, 480))
@@ -56,7 +54,7 @@ def main() -> None:
         "total_s": round((t["first_frame"] - t["record"]) / 1000, 1),
         "job_s": summary.get("seconds"), "frames": summary.get("frames"),
         "coverage": round(t["coverage"]["overall"], 3), "small": a.small, "prompt_scale": a.seconds,
-        "offline": not blocked, "load": [round(load0, 1), round(os.getloadavg()[0], 1)],
+        "offline": not blocked, "load": [round(load0, 1), round(load_average(), 1)],
     }))
 
 

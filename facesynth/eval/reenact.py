@@ -1,4 +1,4 @@
-"""Figures of reenactment, shared by ``bench/bench_reenact.py`` and the tests.
+"""Figures of reenactment, shared by ``bench/runtime/reenact.py`` and the tests.
 
 * coverage: per frame, the share of the avatar's face-outline hull (convex hull of the
   rendered landmarks, eroded 3 px) that the rendered mask covers (placed in the frame);

@@ -11,7 +11,7 @@ into the warped frame, :func:`facesynth.compositing.blend_face`): the numpy pipe
 shape PCA, that frame as JPEG). Measures: PSNR (dB) and SSIM over the head region (the real
 landmarks' hull grown to hair and neck, :func:`facesynth.runtime.fullframe.head_region`) and
 over the whole frame, mean over up to ``frames`` evenly spaced held-out frames
-(``bench/bench_talking_head.py`` adds the detector-based figures on other drivers).
+(``bench/runtime/talking_head.py`` adds the detector-based figures on other drivers).
 """
 
 from __future__ import annotations
