@@ -63,8 +63,10 @@ def load():
 
 def emit(figures: dict) -> None:
     """``figures`` as the bench's one JSON line on stdout (numpy scalars as numbers), with the
-    host added where the bench has not recorded it."""
+    host and the load average at the end added where the bench has not recorded them."""
     out = figures if "host" in figures else {**figures, **host()}
+    if not any("load" in k for k in out):
+        out = {**out, "load_average_at_end": load_average()}
 
     def plain(v):
         return v.item() if hasattr(v, "item") else str(v)
