@@ -124,6 +124,12 @@ def test_export_and_app_run_a_talking_head_file(tmp_path, capsys):
     assert main(["export", str(run), "--out", str(head), "--talking-head", "--quiet", "--json"]) == 0
     summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert summary["talking_head"] and summary["max_abs_diff_vs_torch"] <= 2
+    # without --json a person reads one short line: what was written, its size, its check
+    from facesynth.onnx.export import summary_line
+
+    line = summary_line(summary)
+    assert len(json.dumps(summary)) > 1000 and len(line) < 120 and "\n" not in line, line
+    assert line.startswith(f"wrote {head} (talking head, ") and "ONNX Runtime vs torch" in line
     lm = make_synthetic_sequence(n_frames=12, size=128, seed=5).landmarks
     np.save(tmp_path / "lm.npy", lm)
     out, saved = tmp_path / "o.mp4", tmp_path / "avatar.npy"
