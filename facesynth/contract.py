@@ -106,7 +106,7 @@ METADATA_FIELDS = {
     "quantization_frames": "int: training frames that PSNR was measured on",
     "run": "str: the training run folder the file was exported from",
     "int32_index_gathers": "int: gathers whose indices the export pass made int32 (facesynth.onnx.passes)",
-    "n_scanline_events": "int: the render warp's scanline events per face (facesynth.model.warp_target)",
+    "n_scanline_events": "int: the render warp's scanline events per face (facesynth.model.warp)",
     "eigeneri_components": "int: the ERI model's ratio-image PCA components",
     "support_vectors": "int: the ERI SVRs' support vectors",
     "distinct_support_vectors": "int: the distinct ones among them (shared in the graph)",

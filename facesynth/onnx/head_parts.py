@@ -24,8 +24,7 @@ from torch.nn import functional as F
 from facesynth.compositing import MIN_BAND, gaussian_kernel
 from facesynth.geometry import mirror
 from facesynth.landmarks import IBUG68, scheme_for_points
-from facesynth.model.warp import invert_affine_t, similarity_to
-from facesynth.model.warp_target import ToTarget
+from facesynth.model.warp import ToTarget, invert_affine_t, similarity_to
 from facesynth.onnx.retarget_graph import _apply, _const
 from facesynth.ops import slice_by_tensor
 from facesynth.runtime.fullframe import EYE_CORNERS, HEAD_POINTS, NOSE_TIP, FrameWarp, interpolation_weights, nose_offset
