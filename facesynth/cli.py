@@ -14,7 +14,7 @@ import sys
 
 from facesynth.errors import DiskFullError, FacesynthError
 from facesynth.io import Terminated, install_sigterm_handler, is_disk_full
-from facesynth.progress import set_quiet
+from facesynth.progress import set_json, set_quiet
 
 # name -> (module, one-line help). Training first, then the rest in pipeline order.
 SUBCOMMANDS: dict[str, tuple[str, str]] = {
@@ -61,13 +61,19 @@ def _top_parser() -> argparse.ArgumentParser:
     return p
 
 
-QUIET_HELP = "no progress bars, stage timings or info logs (results and errors are still printed)"
+QUIET_HELP = ("no progress bars, stage timings or info logs (results and errors are still printed); "
+              "--no-progress is the same")
+JSON_HELP = "print each result as one line of JSON (its full figures) instead of one line for people"
 
 
 def _add_quiet(parser: argparse.ArgumentParser, default=False) -> None:
-    """``--quiet`` on a command and on each of its sub-actions (accepted before or after them)."""
+    """``--quiet`` (alias ``--no-progress``) and ``--json`` on a command and on each of its
+    sub-actions (accepted before or after them): the same output switches on every command."""
     if "--quiet" not in parser._option_string_actions:
-        parser.add_argument("--quiet", action="store_true", default=default, help=QUIET_HELP)
+        parser.add_argument("--quiet", "--no-progress", dest="quiet", action="store_true", default=default,
+                            help=QUIET_HELP)
+    if "--json" not in parser._option_string_actions:
+        parser.add_argument("--json", action="store_true", default=default, help=JSON_HELP)
     for action in parser._actions:
         if isinstance(action, argparse._SubParsersAction):
             for sub in action.choices.values():
@@ -106,6 +112,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parse(rest)
     install_sigterm_handler()  # SIGTERM unwinds: temporary outputs are removed
     set_quiet(bool(getattr(args, "quiet", False)))  # every call sets it: an earlier --quiet does not carry over
+    set_json(bool(getattr(args, "json", False)))
     if getattr(args, "quiet", False):
         logging.getLogger().setLevel(logging.WARNING)
     try:

@@ -12,7 +12,8 @@ from facesynth.landmarks import DEFAULT_SCHEME
 OPSET = 18
 
 SYNTHESIS_FORMAT = "facesynth.synthesis.onnx/1"
-ERI_FORMAT = "facesynth.eri.onnx/1"
+ERI_FORMAT = "facesynth.eri.onnx/2"  # 2: frame_size [W, H] as in every other file (1: (H, W))
+ERI_FORMAT_V1 = "facesynth.eri.onnx/1"  # still read: its frame_size is (H, W)
 TALKING_HEAD_FORMAT = "facesynth.talking-head.onnx/2"  # 2: the feather in crop pixels, the frame warp on a grid
 LANDMARK_SCHEME = DEFAULT_SCHEME.name
 N_LANDMARKS = DEFAULT_SCHEME.n_points
@@ -65,9 +66,56 @@ ERI_METADATA_KEYS = (
 AVATAR_METADATA_KEYS = ("avatar_neutral", "avatar_neutral_row", "avatar_neutral_rule", "shape_pca", "background_jpeg",
                         "frame_size")
 
+# Every metadata field of every file kind: its order and unit, written once. Sizes of a frame
+# (what a person calls "W x H") are [W, H]; sizes of the arrays a model renders into (the
+# reference frame, the crop canvas) follow the arrays' (H, W) shape; points are (x, y) pixels.
+METADATA_FIELDS = {
+    "facesynth_version": "str: the package version that wrote the file",
+    "format": "str: the file kind and its version (SYNTHESIS_FORMAT, ERI_FORMAT, TALKING_HEAD_FORMAT)",
+    "opset": "int: the ONNX opset",
+    "output_layout": "str: the outputs' shapes and units (the *_LAYOUT strings above)",
+    "landmark_scheme": "str: the landmark scheme's name (facesynth.landmarks)",
+    "n_landmarks": "int: P, points per face of the scheme",
+    "frame_size": "[W, H] int pixels: the frame the outputs are placed in (the avatar's, the ERI target's)",
+    "reference_size": "[H, W] int pixels: the face model's reference frame (an array shape)",
+    "canvas_size": "[H, W] int pixels: the rendered crop (the crop and mask outputs' last two axes)",
+    "channels": "int: 1 (grey) or 3 (RGB) channels of the crop",
+    "feather": "float: the seam's width in pixels of the rendered crop (ERI: frame pixels, composite())",
+    "regressor": "str: the SADM regressor's name",
+    "data_fingerprint": "str: hex fingerprint of the training data (facesynth.provenance)",
+    "target_fingerprint": "str: hex fingerprint of the ERI target's image and landmarks",
+    "avatar_neutral": "(P, 2) float (x, y) pixels of frame_size: the avatar's neutral landmarks",
+    "avatar_neutral_row": "int: the neutral's row in the training clip",
+    "avatar_neutral_rule": "str: how the neutral was chosen (facesynth.neutral.select_neutral)",
+    "shape_pca": "{mean (2P,), components (K, 2P), limit (K,)}: the avatar's shape PCA, (x, y) interleaved",
+    "background_jpeg": "str: base64 JPEG of the avatar's neutral frame, frame_size [W, H]",
+    "frame_motion": "{coefficients (K - P, 2), ...}: the full-frame warp's learned motion (facesynth.onnx.headmotion)",
+    "kind": "str: 'eri'",
+    "driver": "str: the ERI model's SVR variant",
+    "raw_ratios": "bool: ratios applied without edge confidence or brightening cap",
+    "n_faps": "int: MPEG-4 FAPs per frame (the input's last axis)",
+    "fap_names": "[str]: the FAPs' names, in input column order",
+    "appearance_code_levels": "int: the int8 basis's weight code range (CODE_LEVELS below)",
+    "appearance_basis": "str: 'int8' or 'float32', how the appearance basis is stored",
+    "appearance_basis_bytes": "int: bytes of the stored appearance basis",
+    "appearance_components": "int: appearance components kept at export",
+    "appearance_components_full": "int: appearance components of the trained model",
+    "compression": "str: how the components were chosen ('none', 'components', 'predicted_variance')",
+    "predicted_variance": "float: the fraction of predicted variance the kept components hold",
+    "quantization_psnr_vs_float_db": "float dB: the int8 basis's faces against float32's",
+    "quantization_frames": "int: training frames that PSNR was measured on",
+    "run": "str: the training run folder the file was exported from",
+    "int32_index_gathers": "int: gathers whose indices the export pass made int32 (facesynth.onnx.passes)",
+    "n_scanline_events": "int: the render warp's scanline events per face (facesynth.model.warp)",
+    "eigeneri_components": "int: the ERI model's ratio-image PCA components",
+    "support_vectors": "int: the ERI SVRs' support vectors",
+    "distinct_support_vectors": "int: the distinct ones among them (shared in the graph)",
+}
+
 # what a file of each format is, for error messages that point to the right class
 FORMAT_HINTS = {
     ERI_FORMAT: "an ERI model: use facesynth.runtime.EriRenderer",
+    ERI_FORMAT_V1: "an ERI model: use facesynth.runtime.EriRenderer",
     SYNTHESIS_FORMAT: "a landmark-driven model: use facesynth.runtime.Renderer",
     TALKING_HEAD_FORMAT: "a talking head: use facesynth.runtime.TalkingHead",
 }

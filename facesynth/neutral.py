@@ -14,7 +14,9 @@ from facesynth.errors import FacesynthError
 from facesynth.geometry import generalised_procrustes
 from facesynth.landmarks import INNER_LOWER, INNER_UPPER, MOUTH_CLOSED, ibug68_view, mouth_open, scheme_for_points
 
-__all__ = ["INNER_LOWER", "INNER_UPPER", "MOUTH_CLOSED", "mouth_open", "select_neutral"]
+__all__ = ["INNER_LOWER", "INNER_UPPER", "MOUTH_CLOSED", "NEUTRAL_FRAMES", "OnlineNeutral", "mouth_open", "select_neutral"]
+
+NEUTRAL_FRAMES = 30  # one second of a 30 fps driver: long enough to meet a closed-mouth frame
 
 
 def select_neutral(landmarks: np.ndarray, mouth_closed_max: float = MOUTH_CLOSED) -> tuple[int, dict]:
@@ -48,3 +50,31 @@ def select_neutral(landmarks: np.ndarray, mouth_closed_max: float = MOUTH_CLOSED
     best = int(cand[np.argmin(dist[cand])])
     return best, {"rule": rule, "candidates": int(len(cand)), "procrustes_distance": float(dist[best]),
                   "mouth_open": float(gap[best])}
+
+
+class OnlineNeutral:
+    """A live driver's neutral, chosen while it plays: :func:`select_neutral` among the frames
+    seen so far, until ``frames`` have been seen; then the choice stays (the reenactment's
+    :class:`~facesynth.runtime.reenact.Reenactor` and the talking head's
+    :class:`~facesynth.runtime.talking_head.TalkingHead` without a given neutral)."""
+
+    def __init__(self, frames: int = NEUTRAL_FRAMES):
+        if int(frames) < 1:
+            raise FacesynthError(f"neutral_frames must be >= 1, got {frames}")
+        self.frames = int(frames)
+        self._seen: list[np.ndarray] | None = []
+
+    @property
+    def choosing(self) -> bool:
+        """True until ``frames`` frames have been seen."""
+        return self._seen is not None
+
+    def see(self, landmarks: np.ndarray) -> np.ndarray:
+        """One more driver frame (P, 2) while :attr:`choosing`; returns the neutral chosen so far."""
+        if self._seen is None:
+            raise FacesynthError("OnlineNeutral: the neutral is chosen already")
+        self._seen.append(landmarks)
+        chosen = self._seen[select_neutral(np.stack(self._seen))[0]]
+        if len(self._seen) >= self.frames:
+            self._seen = None
+        return chosen

@@ -5,7 +5,9 @@
 * :func:`stage` is a context manager that prints one line per finished stage with its time,
   e.g. ``[facesynth] evaluation: 60 test frames x 4 noise levels in 8.4 s``;
 * :func:`set_quiet` (``--quiet`` on every command, ``quiet=true`` for ``train.py``) turns
-  both off; errors and results are still printed by the callers.
+  both off; errors and results are still printed by the callers;
+* :func:`result` prints a command's result on stdout: one line for people, or its figures as
+  one line of strict JSON when the command runs with ``--json`` (:func:`set_json`).
 
 The state is process-wide on purpose: a command sets it once and every stage below it
 follows, without a ``progress=`` argument threaded through each call.
@@ -13,6 +15,7 @@ follows, without a ``progress=`` argument threaded through each call.
 
 from __future__ import annotations
 
+import json
 import sys
 import time
 from collections.abc import Iterable, Iterator
@@ -21,6 +24,7 @@ from contextlib import contextmanager
 from tqdm.auto import tqdm
 
 _QUIET = False
+_JSON = False
 
 
 def set_quiet(quiet: bool) -> None:
@@ -31,6 +35,31 @@ def set_quiet(quiet: bool) -> None:
 
 def is_quiet() -> bool:
     return _QUIET
+
+
+def set_json(on: bool) -> None:
+    """Print results as JSON lines (True, ``--json``) or as lines for people (False) from here on."""
+    global _JSON
+    _JSON = bool(on)
+
+
+def json_line(figures: dict) -> str:
+    """``figures`` as one line of strict JSON; FacesynthError if a figure is not finite (a
+    reader of the JSON never meets ``NaN``)."""
+    try:
+        return json.dumps(figures, allow_nan=False, default=str)
+    except ValueError:
+        from facesynth.errors import FacesynthError
+
+        raise FacesynthError(f"a result holds a non-finite figure: {figures}") from None
+
+
+def result(line: str, figures: dict) -> None:
+    """One result of a command on stdout: ``line`` for a person, or ``figures`` as one
+    :func:`json_line` under ``--json``. The figures are checked either way, before anything is
+    printed: a non-finite one is an error, not a plausible line."""
+    text = json_line(figures)
+    print(text if _JSON else line, flush=True)
 
 
 LOG_EVERY_S = 5.0

@@ -40,13 +40,13 @@ def test_transfer3d_to_codec_and_back(tmp_path, capsys, qp_args, tol):
     _case(tmp_path)
     assert main(["transfer3d", "--mesh", str(tmp_path / "face.obj"), "--landmark-map", str(tmp_path / "map.json"),
                  "--landmarks", str(tmp_path / "lm.npy"), "--out", str(tmp_path / "seq.npz"), "--image-size", "320x240",
-                 "--quiet"]) == 0
+                 "--quiet", "--json"]) == 0
     summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert summary["neutral_rule"].startswith("automatic")
     seq = np.load(tmp_path / "seq.npz")
     assert np.ptp(seq["vertices"], axis=0).max() > 0.05  # frames differ: something to code
     assert main(["codec", "encode", str(tmp_path / "seq.npz"), str(tmp_path / "s.fsgv"), *qp_args, "--size", "64",
-                 "--preview", str(tmp_path / "enc.png"), "--quiet"]) == 0
+                 "--preview", str(tmp_path / "enc.png"), "--quiet", "--json"]) == 0
     enc = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert (tmp_path / "s.fsgv.layout.npz").is_file() and (tmp_path / "enc.png").stat().st_size > 0
     assert main(["codec", "decode", str(tmp_path / "s.fsgv"), str(tmp_path / "back.npz"), "--mesh",

@@ -140,14 +140,14 @@ def test_cli_encode_decode_round_trip(tmp_path, video, capsys):
     np.save(tmp_path / "v.npy", vid)
     np.save(tmp_path / "v.mask.npy", mask)
     assert main(["codec", "encode", str(tmp_path / "v.npy"), str(tmp_path / "v.fsgv"), "--qp", "30",
-                 "--modes", "hip+pdp", "--gop", "3"]) == 0
+                 "--modes", "hip+pdp", "--gop", "3", "--json"]) == 0
     enc = json.loads(capsys.readouterr().out)
     assert enc["bytes"] == (tmp_path / "v.fsgv").stat().st_size and enc["psnr_db"] > 60
     assert main(["codec", "decode", str(tmp_path / "v.fsgv"), str(tmp_path / "d.npy")]) == 0
     dec = np.load(tmp_path / "d.npy")
     assert psnr(vid, dec, mask, peak=65535) == pytest.approx(enc["psnr_db"])
     assert main(["codec", "encode", str(tmp_path / "v.npy"), str(tmp_path / "t4.fsgv"), "--qp", "30",
-                 "--no-transform8", "--block-sizes", "4,8,16"]) == 0
+                 "--no-transform8", "--block-sizes", "4,8,16", "--json"]) == 0
     assert json.loads(capsys.readouterr().out.strip().splitlines()[-1])["bytes"] > 0
     assert main(["codec", "decode", str(tmp_path / "t4.fsgv"), str(tmp_path / "t4.npy")]) == 0
     assert main(["codec", "encode", str(tmp_path / "v.npy"), str(tmp_path / "l.fsgv"), "--lossless"]) == 0
@@ -165,7 +165,7 @@ def test_cli_rd_writes_json_and_plot(tmp_path, video, capsys):
     np.save(tmp_path / "v.mask.npy", mask)
     assert main(["codec", "rd", "--input", str(tmp_path / "v.npy"), "--qps", "20,32,44",
                  "--configs", "hip-intra,hip+pdp-intra", "--block-sizes", "4",
-                 "--plot", str(tmp_path / "rd.png")]) == 0
+                 "--plot", str(tmp_path / "rd.png"), "--json"]) == 0
     out = json.loads(capsys.readouterr().out)
     assert set(out["points"]) == {"hip-intra", "hip+pdp-intra"}
     assert all(p["bit_exact"] for pts in out["points"].values() for p in pts)

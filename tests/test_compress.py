@@ -10,7 +10,7 @@ from _onnx_models import assert_export_matches, driving_landmarks, synthetic_mod
 
 from facesynth.errors import FacesynthError
 from facesynth.onnx.synthesis import export_run, export_synthesizer
-from facesynth.runs.rundir import save_run_synthesizer
+from facesynth.rundir import save_run_synthesizer
 from facesynth.sadm.compress import choose_components, compress_synthesizer, predicted_params
 
 NAMES = ("linear", "poly2", "mlp", "svr")
@@ -111,7 +111,7 @@ def test_export_run_records_compression(tmp_path):
 def test_training_landmarks_from_run_config(tmp_path):
     from facesynth.data import temporal_split
     from facesynth.data.synthetic import make_synthetic_sequence
-    from facesynth.runs.rundir import training_landmarks
+    from facesynth.rundir import training_landmarks
 
     (tmp_path / "config.yaml").write_text(
         "seed: 3\ndata:\n  kind: synthetic\n  path: null\n  n_frames: 12\n  size: 96\n  max_frames: null\n"

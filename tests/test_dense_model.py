@@ -150,7 +150,7 @@ def test_sadm_run_with_a_face_model_of_another_scheme_is_refused(dense, tmp_path
 def test_per_pixel_source_equals_the_table_lookup(dense, monkeypatch):
     """A dense mesh reads each pixel's affine map by a per-pixel gather; a sparse one from
     (triangle, column) tables: both give the same render (the same products)."""
-    import facesynth.model.warp_target as wt
+    import facesynth.model.warp as wt
 
     _, seq, model, tex = dense
     target = torch.from_numpy(model.to_canvas(seq.landmarks[:3] + np.float32(0.7))[0])

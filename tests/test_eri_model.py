@@ -164,7 +164,7 @@ def test_transfer_expression_cli(seq, model, tmp_path, capsys, monkeypatch):
     np.savez(tmp_path / "drv.npz", landmarks=seq.landmarks, frames=np.stack(list(seq.iter_frames())))
     args = ["transfer-expression", "--eri", str(tmp_path / "run"), "--target", str(tmp_path / "b.png"),
             "--target-landmarks", str(tmp_path / "b.npy"), "--driver", str(tmp_path / "drv.npz"),
-            "--out", str(tmp_path / "o.mp4"), "--sheet", str(tmp_path / "s.png"), "--sheet-rows", "3"]
+            "--out", str(tmp_path / "o.mp4"), "--sheet", str(tmp_path / "s.png"), "--sheet-rows", "3", "--json"]
     assert main(args) == 0
     cap = cv2.VideoCapture(str(tmp_path / "o.mp4"))
     assert int(cap.get(cv2.CAP_PROP_FRAME_COUNT)) == len(seq)
@@ -177,7 +177,7 @@ def test_transfer_expression_cli(seq, model, tmp_path, capsys, monkeypatch):
     assert main(args[:3] + ["--target", str(tmp_path / "nope.png")] + args[5:]) == 2
     assert "no such target" in capsys.readouterr().err
     monkeypatch.setitem(sys.modules, "dlib", None)  # import dlib -> ImportError
-    from facesynth.eri.cli import _detect
+    from facesynth.eri.target import _detect
 
     with pytest.raises(MissingExtraError, match="ingest"):
         _detect(seq.frame(0), tmp_path / "b.png")

@@ -131,7 +131,7 @@ def test_metadata_and_graph(model, target, onnx_dir):
     assert set(METADATA_KEYS) <= set(props)
     assert props["kind"] == "eri" and props["driver"] == model.driver and props["n_faps"] == N_FAPS
     assert props["data_fingerprint"] == model.fingerprint and props["run"] == "unit"
-    assert props["frame_size"] == list(target[0].shape[:2]) and props["reference_size"] == list(model.reference.size)
+    assert props["frame_size"] == [target[0].shape[1], target[0].shape[0]] and props["reference_size"] == list(model.reference.size)
     assert props["canvas_size"] == list(syn.canvas) and len(props["target_fingerprint"]) == 16
     assert {o.version for o in m.opset_import if o.domain in ("", "ai.onnx")} == {18}
     dim = m.graph.input[0].type.tensor_type.shape.dim
@@ -166,7 +166,7 @@ def test_export_cli(seq, model, target, tmp_path, capsys):
     cv2.imwrite(str(tmp_path / "b.png"), cv2.cvtColor(target[0], cv2.COLOR_RGB2BGR))
     np.save(tmp_path / "b.npy", target[1][None])
     args = ["export", str(tmp_path / "run"), "--out", str(tmp_path / "e.onnx"), "--target", str(tmp_path / "b.png"),
-            "--target-landmarks", str(tmp_path / "b.npy"), "--variant", "nu_linear"]
+            "--target-landmarks", str(tmp_path / "b.npy"), "--variant", "nu_linear", "--json"]
     assert main(args) == 0
     summary = json.loads(capsys.readouterr().out.strip())
     assert summary["max_abs_diff_vs_torch"] <= 1e-4 and summary["driver"] == "nu_linear"
@@ -214,7 +214,7 @@ def test_hydra_entry_point_exports_eri(seq, model, target, tmp_path):
     np.save(tmp_path / "b.npy", target[1][None])
     script = Path(__file__).resolve().parents[1] / "export" / "export.py"
     res = subprocess.run([sys.executable, str(script), f"run={tmp_path / 'run'}", f"out={tmp_path / 'h.onnx'}",
-                          f"target={tmp_path / 'b.png'}", f"target_landmarks={tmp_path / 'b.npy'}", "raw_ratios=true"],
+                          f"target={tmp_path / 'b.png'}", f"target_landmarks={tmp_path / 'b.npy'}", "raw_ratios=true", "json=true"],
                          capture_output=True, text=True, cwd=tmp_path, timeout=300)
     assert res.returncode == 0, res.stderr[-2000:]
     summary = json.loads(res.stdout.strip().splitlines()[-1])

@@ -1,4 +1,4 @@
-"""The full-frame warp's motion learned from the avatar's video (facesynth.runtime.headmotion):
+"""The full-frame warp's motion learned from the avatar's video (facesynth.onnx.headmotion):
 a synthetic video made with known coefficients gives them back (exactly from the true
 displacements, closely from DIS flow), the ridge leads to the prior, bad frames and metadata
 are refused, and the talking-head graph reads the frame numpy reads with a learned motion
@@ -10,8 +10,8 @@ import pytest
 
 from facesynth.errors import FacesynthError
 from facesynth.geometry import apply_affine
+from facesynth.onnx.headmotion import fit_frame_motion, fit_motion, ring_clearance
 from facesynth.runtime.fullframe import FrameWarp
-from facesynth.runtime.headmotion import fit_frame_motion, fit_motion, ring_clearance
 from facesynth.runtime.reenact import Avatar
 from tests._faces import face_template, smooth_image
 from tests.test_fullframe import similarity
@@ -49,7 +49,7 @@ def video():
 def test_the_fit_is_least_squares_on_the_points_displacements(video, monkeypatch):
     """With the flow replaced by each point's true displacement, the coefficients come back
     exactly (but the ring's a, kept at 1, and the still guard ring's prior)."""
-    from facesynth.runtime import headmotion
+    from facesynth.onnx import headmotion
 
     fw, truth, landmarks, frames = video
     gen = FrameWarp(fw.frame, fw.neutral68, motion=truth)

@@ -155,7 +155,7 @@ def test_runtime_refuses_saturating_files_without_vnni_and_warns_elsewhere(files
 def test_failed_export_check_names_out_cause_and_way_out(tmp_path, monkeypatch, caplog, capsys):
     from facesynth import cli
     from facesynth.onnx import synthesis
-    from facesynth.runs.rundir import save_run_synthesizer
+    from facesynth.rundir import save_run_synthesizer
 
     syn = synthetic_synthesizer("linear")
     run = tmp_path / "run"
@@ -184,7 +184,7 @@ def test_failed_export_check_names_out_cause_and_way_out(tmp_path, monkeypatch, 
 
 def test_successful_export_logs_after_the_check(tmp_path, caplog, capsys):
     from facesynth import cli
-    from facesynth.runs.rundir import save_run_synthesizer
+    from facesynth.rundir import save_run_synthesizer
 
     syn = synthetic_synthesizer("linear")
     run = tmp_path / "run"

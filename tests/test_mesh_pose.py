@@ -77,7 +77,7 @@ def test_epnp_close_to_opencv_under_noise():
         rep.append(_reprojection(K, Re, te, X, x) / _reprojection(K, Rc, tvec.ravel(), X, x))
     # Under noise both follow the reference algorithm but are not bit-identical (on these
     # generic 3D clouds they differ by ~0.1-0.3 deg; on the ICT face landmarks of
-    # bench_pose.py by ~0.003 deg); the reprojection error stays the same.
+    # bench/mesh/pose.py by ~0.003 deg); the reprojection error stays the same.
     assert np.median(errs) < 0.3
     assert 0.95 < np.median(rep) < 1.05 and max(rep) < 1.1
 

@@ -10,8 +10,7 @@ pytest.importorskip("potpourri3d")
 pytest.importorskip("igl")
 
 from facesynth.errors import FacesynthError  # noqa: E402
-from facesynth.mesh.eip import harmonic_disk, parameterise, signed_areas  # noqa: E402
-from facesynth.mesh.eip_domain import Domain  # noqa: E402
+from facesynth.mesh.eip import Domain, harmonic_disk, parameterise, signed_areas  # noqa: E402
 from facesynth.mesh.paths import geodesic_distance  # noqa: E402
 from facesynth.mesh.scan import process_scan, uv_drift  # noqa: E402
 from facesynth.mesh.segment import EYE_L, EYE_R, MOUTH_INNER, feature_distance, segment_face  # noqa: E402
@@ -169,7 +168,7 @@ def test_sequence_maps_consistently_and_round_trips_through_the_codec(tmp_path, 
     out = tmp_path / "v.npy"
     capsys.readouterr()
     assert main(["codec", "scan", str(tmp_path / "seq.npz"), str(out), "--landmarks", str(tmp_path / "lm.npy"),
-                 "--size", "64", "--radius", "3.0"]) == 0
+                 "--size", "64", "--radius", "3.0", "--json"]) == 0
     report = json.loads(capsys.readouterr().out)
     assert report["holes_filled"] == [1, 1, 1] and report["flipped"] == [0, 0, 0]
     assert main(["codec", "encode", str(out), str(tmp_path / "v.fsgv"), "--qp", "12", "--gop", "3"]) == 0

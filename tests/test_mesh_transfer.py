@@ -164,7 +164,7 @@ def test_cli_writes_sequence_and_skips_nan_frames(tmp_path, rng, capsys):
     mesh, lmap = _write_case(tmp_path, rng)
     rc = main(["transfer3d", "--mesh", str(tmp_path / "cap.obj"), "--landmark-map", str(tmp_path / "map.json"),
                "--landmarks", str(tmp_path / "lm.npy"), "--out", str(tmp_path / "seq.npz"),
-               "--render", str(tmp_path / "p.mp4"), "--contact-sheet", str(tmp_path / "sheet.png")])
+               "--render", str(tmp_path / "p.mp4"), "--contact-sheet", str(tmp_path / "sheet.png"), "--json"])
     assert rc == 0
     summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert summary["skipped_nan_frames"] == 1 and summary["frames"] == 5

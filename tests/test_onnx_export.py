@@ -18,7 +18,7 @@ from _onnx_models import driving_landmarks, exported, real_linear_synthesizer, s
 from facesynth.errors import FacesynthError
 from facesynth.onnx.synthesis import METADATA_KEYS, SynthesisGraph, export_run, export_synthesizer, torch_reference
 from facesynth.regressors import REGISTRY
-from facesynth.runs.rundir import load_synthesizer, save_run_synthesizer
+from facesynth.rundir import load_synthesizer, save_run_synthesizer
 from facesynth.sadm.quantize import quantize_synthesizer
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -132,7 +132,7 @@ def test_hydra_entry_point(tmp_path):
     syn = synthetic_synthesizer("linear")
     run = save_run_synthesizer(tmp_path / "run", syn.face_model, syn.regressor_)
     out = tmp_path / "h.onnx"
-    res = subprocess.run([sys.executable, str(ROOT / "export" / "export.py"), f"run={run}", f"out={out}"],
+    res = subprocess.run([sys.executable, str(ROOT / "export" / "export.py"), f"run={run}", f"out={out}", "json=true"],
                          capture_output=True, text=True, cwd=tmp_path, timeout=300)
     assert res.returncode == 0, res.stderr[-2000:]
     summary = json.loads(res.stdout.strip().splitlines()[-1])
@@ -156,9 +156,9 @@ def test_landmark_feature_kinds_export_with_parity(features, tmp_path):
 
 
 def test_printed_summary_describes_the_bulky_avatar_metadata():
-    from facesynth.onnx.cli import _brief
+    from facesynth.onnx.export import brief
 
     meta = {"regressor": "linear", "avatar_neutral": [[1.0, 2.0]] * 68, "avatar_neutral_row": 3,
             "shape_pca": {"mean": [0.0] * 136, "components": [[0.0] * 136] * 2, "limit": [0.1, 0.2]}, "background_jpeg": "x" * 5000}
-    out = _brief(meta)
+    out = brief(meta)
     assert out == {"regressor": "linear", "avatar_neutral_row": 3, "shape_pca_components": 2, "background_jpeg_chars": 5000}

@@ -219,7 +219,7 @@ def test_app_writes_the_rendered_landmarks(avatar, shared_clip_dir, tmp_path):
     clip = shared_clip_dir("lp_d13")
     out, lm_out = tmp_path / "out.mp4", tmp_path / "avatar.npy"
     cmd = [sys.executable, "-m", "facesynth", "app", "--model", str(path), "--landmarks", str(clip), "--out", str(out),
-           "--max-frames", "8", "--side-by-side", "--save-landmarks", str(lm_out), "--no-progress"]
+           "--max-frames", "8", "--side-by-side", "--save-landmarks", str(lm_out), "--no-progress", "--json"]
     res = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT)
     assert res.returncode == 0, res.stderr
     summary = json.loads(res.stdout.strip().splitlines()[-1])

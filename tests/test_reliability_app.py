@@ -114,7 +114,7 @@ def test_app_writes_the_drivers_frame_rate(model_path, tmp_path, capsys, monkeyp
 
     monkeypatch.setattr(app, "detect_video_landmarks", lambda frames, scheme, on_frame=None: lm[: len(list(frames()))])
     for name, (extra, fps) in cases.items():
-        assert main([*base, *extra, "--out", str(tmp_path / name)]) == 0, capsys.readouterr().err
+        assert main([*base, *extra, "--out", str(tmp_path / name), "--json"]) == 0, capsys.readouterr().err
         frames, got = _read_video(tmp_path / name)
         assert got == pytest.approx(fps, abs=1e-3) and len(frames) == len(lm), name
         assert json.loads(capsys.readouterr().out.splitlines()[-1])["fps"] == pytest.approx(fps)

@@ -45,7 +45,7 @@ def stream(tmp_path_factory) -> tuple[Path, np.ndarray]:
 @pytest.mark.parametrize("name", ["decoded.raw", "decoded", "decoded.npy", "out.bin"])
 def test_row1_decode_writes_exactly_the_named_file(stream, tmp_path, name, capsys):
     src, rec = stream
-    assert main(["codec", "decode", str(src), str(tmp_path / name)]) == 0
+    assert main(["codec", "decode", str(src), str(tmp_path / name), "--json"]) == 0
     assert _listing(tmp_path) == [name]  # no hidden .npy temp left beside it
     np.testing.assert_array_equal(np.load(tmp_path / name), rec)
     assert json.loads(capsys.readouterr().out)["output"] == str(tmp_path / name)

@@ -180,7 +180,7 @@ def test_a_refused_export_leaves_no_folders(run_dir, tmp_path, capsys):
 CTRL_C = """
 import atexit, logging, sys
 from facesynth import cli
-import facesynth.onnx.cli as export_cli
+import facesynth.onnx.cli as export_cli  # the command's run: patched to be interrupted
 
 def interrupted(args):  # a library that logs at exit, as torch's FakeTensor cache statistics do
     atexit.register(lambda: logging.getLogger("torch._subclasses.fake_tensor").info("FakeTensor cache stats:"))

@@ -18,7 +18,7 @@ from safetensors.numpy import load_file, save_file
 from facesynth.artifact import _sha256
 from facesynth.eri.model import EriModel
 from facesynth.errors import FacesynthError
-from facesynth.runs.rundir import save_run_synthesizer
+from facesynth.rundir import save_run_synthesizer
 from facesynth.sadm.fit import load_sadm
 
 RUN_FILES = ["face_model/face_model.safetensors", "face_model/face_model.json", "sadm/regressor.safetensors", "sadm/sadm.json"]

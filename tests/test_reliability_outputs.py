@@ -188,7 +188,7 @@ def test_full_tmpfs_ingest(cli_ingest, tmp_path, capsys, copy):
 def test_full_tmpfs_export(tmp_path, capsys):
     from _onnx_models import synthetic_model, synthetic_synthesizer
 
-    from facesynth.runs.rundir import save_run_synthesizer
+    from facesynth.rundir import save_run_synthesizer
 
     syn = synthetic_synthesizer("linear")
     run = save_run_synthesizer(tmp_path / "run", synthetic_model()[0], syn.regressor_)

@@ -107,12 +107,15 @@ def test_row9_export_options_are_checked_before_loading(tmp_path, capsys):
     assert _listing(tmp_path) == ["afile", "folder"]
 
 
-def test_row6_export_summary_is_strict_json():
-    from facesynth.onnx.cli import summary_json
+def test_row6_export_summary_is_strict_json(capsys):
+    from facesynth.progress import json_line, result
 
-    assert json.loads(summary_json({"a": 1.5})) == {"a": 1.5}
+    assert json.loads(json_line({"a": 1.5})) == {"a": 1.5}
     with pytest.raises(FacesynthError, match="non-finite"):
-        summary_json({"max_abs_diff_vs_torch": float("nan")})
+        json_line({"max_abs_diff_vs_torch": float("nan")})
+    with pytest.raises(FacesynthError, match="non-finite"):  # the line for people is refused too
+        result("wrote m.onnx", {"max_abs_diff_vs_torch": float("nan")})
+    assert capsys.readouterr().out == ""
 
 
 APP_UNDER_SIGTERM = """

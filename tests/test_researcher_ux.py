@@ -12,12 +12,12 @@ import numpy as np
 import pytest
 
 from facesynth.cli import SUBCOMMANDS, _add_quiet, main
+from facesynth.compositing import composite
 from facesynth.data import temporal_split
 from facesynth.data.synthetic import make_synthetic_sequence
 from facesynth.eval.frame_level import frame_level, subset
 from facesynth.eval.report import below_mean, write_plots, write_report
 from facesynth.eval.sadm_eval import EvalConfig, _key, _predict, evaluate_sadm, noisy_landmarks
-from facesynth.imaging import composite
 from facesynth.model import FaceModel, FaceModelConfig
 from facesynth.sadm.fit import SADMConfig, fit_sadm
 

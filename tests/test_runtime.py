@@ -52,7 +52,7 @@ def test_render_matches_torch_and_reuses_buffers(model_path):
 
 
 def test_render_frame_equals_torch_composite(model_path):
-    from facesynth.imaging import composite as torch_side_composite
+    from facesynth.compositing import composite as torch_side_composite
 
     syn = synthetic_synthesizer("linear")
     lm = driving_landmarks(seed=8, n=1)
@@ -67,7 +67,7 @@ def test_render_frame_equals_torch_composite(model_path):
 
 
 def test_composite_is_the_synthesis_composite():
-    from facesynth.imaging import composite as torch_side_composite
+    from facesynth.compositing import composite as torch_side_composite
 
     rng = np.random.default_rng(1)
     crop = rng.random((40, 36, 3), dtype=np.float32)
@@ -174,7 +174,7 @@ def _read_video(path) -> list[np.ndarray]:
 
 def test_app_writes_video_matching_torch(model_path, tmp_path):
     from facesynth.cli import main
-    from facesynth.imaging import composite as torch_side_composite
+    from facesynth.compositing import composite as torch_side_composite
 
     syn = synthetic_synthesizer("linear")
     lm = driving_landmarks(seed=10, n=8)
@@ -208,8 +208,8 @@ def test_app_on_lp_d6_matches_torch(shared_clip_dir, tmp_path):
     """``facesynth app`` driven by lp_d6 landmarks with a model fitted on other lp_d6 frames,
     the real video beside it: the frames it encodes equal torch's rendering + composite."""
     from facesynth.cli import main
+    from facesynth.compositing import composite as torch_side_composite
     from facesynth.data import load_sequence
-    from facesynth.imaging import composite as torch_side_composite
     from facesynth.onnx.synthesis import export_synthesizer
     from facesynth.sadm.quantize import quantize_synthesizer
 

@@ -243,7 +243,7 @@ def test_run_directory_metrics_and_reevaluation(tmp_path):
         assert (tmp_path / "run" / f).is_file(), f
     # re-evaluation of the saved run reproduces the reference-frame figures
     out = tmp_path / "re.json"
-    assert main(["evaluate", str(tmp_path / "run"), "--noise", "0,2", "--no-frame", "--json", str(out)]) == 0
+    assert main(["evaluate", str(tmp_path / "run"), "--noise", "0,2", "--no-frame", "--save-json", str(out)]) == 0
     again = json.loads(out.read_text())
     for row in ("sadm", "mean_texture", "oracle"):
         for k in ("0", "2"):

@@ -15,8 +15,8 @@ import pytest
 import torch
 from scipy.ndimage import minimum_filter
 
+from facesynth.compositing import blend_face, gaussian_kernel, placed_alpha, seam_layers
 from facesynth.onnx.head_parts import SeamGraph
-from facesynth.runtime.blend import blend_face, gaussian_kernel, placed_alpha, seam_layers
 
 
 def _masks() -> list[np.ndarray]:

@@ -91,7 +91,7 @@ def test_runtime_chooses_the_drivers_neutral_and_checks_its_input(head, shared_c
     for row in lm:
         frame, avatar = th.step(row)
     assert frame.shape == (*th.frame_size[::-1], 3) and avatar.shape == lm.shape[1:]
-    assert th.driver_neutral is not None and not th._collecting
+    assert th.driver_neutral is not None and not th._online.choosing
     frames, avatars = th.run(lm)  # a batch renders as its frames one at a time
     one, _ = th.run(lm[1:2])
     assert frames.shape[0] == 3 and np.abs(frames[1].astype(int) - one[0]).max() <= 2
@@ -121,14 +121,20 @@ def test_export_and_app_run_a_talking_head_file(tmp_path, capsys):
              "data.n_frames=40", "data.size=128", f"hydra.run.dir={run}", "quiet=true"]
     subprocess.run(train, check=True, capture_output=True, timeout=300)
     head = tmp_path / "head.onnx"
-    assert main(["export", str(run), "--out", str(head), "--talking-head", "--quiet"]) == 0
+    assert main(["export", str(run), "--out", str(head), "--talking-head", "--quiet", "--json"]) == 0
     summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert summary["talking_head"] and summary["max_abs_diff_vs_torch"] <= 2
+    # without --json a person reads one short line: what was written, its size, its check
+    from facesynth.onnx.export import summary_line
+
+    line = summary_line(summary)
+    assert len(json.dumps(summary)) > 1000 and len(line) < 120 and "\n" not in line, line
+    assert line.startswith(f"wrote {head} (talking head, ") and "ONNX Runtime vs torch" in line
     lm = make_synthetic_sequence(n_frames=12, size=128, seed=5).landmarks
     np.save(tmp_path / "lm.npy", lm)
     out, saved = tmp_path / "o.mp4", tmp_path / "avatar.npy"
     assert main(["app", "--model", str(head), "--landmarks", str(tmp_path / "lm.npy"), "--out", str(out),
-                 "--save-landmarks", str(saved), "--driver-neutral", "0", "--no-progress"]) == 0
+                 "--save-landmarks", str(saved), "--driver-neutral", "0", "--no-progress", "--json"]) == 0
     assert json.loads(capsys.readouterr().out.strip().splitlines()[-1])["talking_head_graph"] is True
     cap = cv2.VideoCapture(str(out))
     assert int(cap.get(cv2.CAP_PROP_FRAME_COUNT)) == len(lm) and cap.read()[0]

@@ -17,9 +17,10 @@ pytest.importorskip("playwright")
 pytest.importorskip("tflite")
 pytest.importorskip("mediapipe")
 
+from bench import browser  # noqa: E402
 from facesynth.contract import SYNTHESIS_FORMAT, TALKING_HEAD_FORMAT  # noqa: E402
 from facesynth.errors import FacesynthError  # noqa: E402
-from facesynth.web import browser, site  # noqa: E402
+from facesynth.web import site  # noqa: E402
 
 if browser.chromium_path() is None:
     pytest.skip("chromium is absent (apt-get install chromium)", allow_module_level=True)

@@ -99,7 +99,7 @@ def test_schemes_json_equals_the_landmark_tables():
 def test_server_headers_and_types(tmp_path):
     (tmp_path / "a.wasm").write_bytes(b"\0asm")
     (tmp_path / "b.mjs").write_text("export {}")
-    from facesynth.web.browser import served
+    from bench.browser import served
 
     with served(tmp_path) as url:
         assert url.startswith("http://127.0.0.1:")

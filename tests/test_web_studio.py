@@ -22,7 +22,8 @@ pytest.importorskip("playwright")
 pytest.importorskip("tflite")
 pytest.importorskip("mediapipe")
 
-from facesynth.web import browser, coverage, server, site  # noqa: E402
+from bench import browser  # noqa: E402
+from facesynth.web import coverage, server, site  # noqa: E402
 from facesynth.web.studio import Studio, create_studio_app  # noqa: E402
 
 if browser.chromium_path() is None:

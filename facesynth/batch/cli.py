@@ -19,6 +19,7 @@ import sys
 from pathlib import Path
 
 from facesynth.errors import FacesynthError
+from facesynth.progress import result
 
 # facesynth.cli parses this subcommand's arguments intermixed: overrides may follow options.
 INTERMIXED_ARGS = True
@@ -63,8 +64,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                      help="memory each subject asks for (default: estimated from its frame count)")
     ray.add_argument("--retries", type=int, default=1, help="Ray retries of a subject whose worker died (default 1)")
     ray.add_argument("--sequential", action="store_true", help="no Ray: run the subjects one after another here")
-    p.add_argument("--no-progress", action="store_true", help="no progress bar")
-    p.add_argument("--json", action="store_true", help="print the run's figures as one JSON line at the end")
 
 
 def _check(args: argparse.Namespace) -> None:
@@ -156,7 +155,7 @@ def run(args: argparse.Namespace) -> int:
     config = training_config(args.overrides, args.regressor)
     jobs = make_jobs(args, config)
     t0 = time.perf_counter()
-    progress = Progress(len(jobs), enabled=not args.no_progress)
+    progress = Progress(len(jobs), enabled=not args.quiet)
     # SIGTERM (a scheduler cancelling the driver) unwinds like Ctrl-C: Ray tasks cancelled, Ray shut down.
     previous = signal.signal(signal.SIGTERM, lambda signum, frame: sys.exit(128 + signum))
     try:
@@ -170,9 +169,7 @@ def run(args: argparse.Namespace) -> int:
     for r in rows:
         if r["status"] == "failed":
             print(f"failed: {r['subject']}: {r['reason']}", file=sys.stderr)
-    print(f"{len(rows)} subjects in {wall:.1f} s on {where}: {c['ok']} trained, {c['skipped']} already complete, "
-          f"{c['failed']} failed -> {paths['csv']}, {paths['md'].name}, {paths['png'].name}")
-    if args.json:
-        print(json.dumps({"subjects": len(rows), **c, "wall_s": round(wall, 3), "executor": where,
-                          "summary": str(paths["csv"])}))
+    result(f"{len(rows)} subjects in {wall:.1f} s on {where}: {c['ok']} trained, {c['skipped']} already complete, "
+           f"{c['failed']} failed -> {paths['csv']}, {paths['md'].name}, {paths['png'].name}",
+           {"subjects": len(rows), **c, "wall_s": round(wall, 3), "executor": where, "summary": str(paths["csv"])})
     return 1 if c["failed"] else 0

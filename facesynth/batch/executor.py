@@ -21,7 +21,7 @@ log = logging.getLogger(__name__)
 
 # Memory a subject job asks Ray for: the least-squares line through the peak resident memory
 # of one subject job at 60 / 300 / 1008 frames (default config with frame-level evaluation,
-# 480x480 video; ``bench/bench_batch.py --memory``, figures in docs/scale.md) plus a Ray
+# 480x480 video; ``bench/train/batch.py --memory``, figures in docs/scale.md) plus a Ray
 # worker's own overhead, rounded up by about 20 %. Ray then runs at most (node memory /
 # request) subjects at once on a node.
 MEMORY_BASE_MB = 600

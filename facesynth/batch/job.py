@@ -98,7 +98,7 @@ def _train(job: SubjectJob, out: Path) -> dict:
 
 
 def _export(job: SubjectJob, out: Path) -> dict:
-    from facesynth.onnx.cli import export_model
+    from facesynth.onnx.export import export_model
 
     (out / state.EXPORT_FILE).unlink(missing_ok=True)
     opts = job.export

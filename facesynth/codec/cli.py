@@ -12,11 +12,11 @@ Sub-subcommands::
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
 
 import numpy as np
 
+from facesynth import progress
 from facesynth.errors import FacesynthError
 
 
@@ -69,7 +69,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                    "the 8x8 transform, else 4,8,16)")
     r.add_argument("--no-transform8", action="store_true", help="4x4 transform for every block size")
     r.add_argument("--plot", type=Path, default=Path("codec_rd.png"), help="RD plot PNG (default codec_rd.png)")
-    r.add_argument("--json", type=Path, help="also write the figures here")
+    r.add_argument("--save-json", type=Path, metavar="FILE", help="also write the figures here (JSON)")
 
 
 def _codec_options(p: argparse.ArgumentParser) -> None:
@@ -146,7 +146,7 @@ def _refuse_overwriting_inputs(args: argparse.Namespace) -> None:
 
     a = vars(args)
     out, inp = a.get("output"), a.get("input")
-    outputs = [out, a.get("preview"), a.get("plot"), a.get("json")]
+    outputs = [out, a.get("preview"), a.get("plot"), a.get("save_json")]
     if out is not None and args.action in ("geometry", "scan"):
         outputs += [out.with_suffix(".mask.npy"), out.with_suffix(".scan.npz")]
     if out is not None and args.action == "encode":
@@ -170,8 +170,18 @@ def run(args: argparse.Namespace) -> int:
     if args.action in ("geometry", "encode", "decode"):
         check_writable(args.output)  # before the work
     action = {"geometry": _geometry, "encode": _encode, "decode": _decode, "rd": _rd}[args.action]
-    print(json.dumps(action(args)))
+    figures = action(args)
+    progress.result(_line(args.action, figures), figures)
     return 0
+
+
+def _line(action: str, figures: dict) -> str:
+    """A codec action's result for a person: what it wrote and its main figures."""
+    wrote = [figures[k] for k in ("output", "plot") if figures.get(k)]
+    shown = {"shape": "shape {}", "bytes": "{} bytes", "bits_per_frame": "{:.0f} bits/frame", "psnr_db": "PSNR {:.2f} dB",
+             "decode_fps": "{:.1f} frames/s", "encode_fps": "{:.1f} frames/s"}
+    parts = [fmt.format(figures[k]) for k, fmt in shown.items() if figures.get(k) is not None]
+    return f"codec {action}: wrote {', '.join(map(str, wrote)) or 'nothing'}" + (f" ({', '.join(parts)})" if parts else "")
 
 
 def _geometry(args: argparse.Namespace) -> dict:
@@ -302,6 +312,6 @@ def _rd(args: argparse.Namespace) -> dict:
               "bd_rate_vs_" + names[0]: {n: bd_between(points, names[0], n) for n in names[1:]}}
     plot_rd(points, args.plot, f"{video.shape[0]} frames {video.shape[1]}x{video.shape[2]}")
     result["plot"] = str(args.plot)
-    if args.json:
-        write_json(args.json, result)
+    if args.save_json:
+        write_json(args.save_json, result)
     return result

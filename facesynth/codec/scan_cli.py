@@ -14,11 +14,11 @@ of the quantiser), from which the vertices are sampled back after decoding.
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
 
 import numpy as np
 
+from facesynth import progress
 from facesynth.errors import FacesynthError
 
 
@@ -113,8 +113,10 @@ def run(args: argparse.Namespace) -> int:
     with atomic_path(args.output.with_suffix(".scan.npz")) as tmp:
         with open(tmp, "wb") as fh:
             np.savez_compressed(fh, **side)
-    print(json.dumps({"output": str(args.output), "shape": list(video.shape), "method": args.method,
-                      "mask_share": float(mask.mean()), "vertices": [len(fr.vertices) for fr in frames],
-                      "holes_filled": [fr.filled for fr in frames], "flipped": [fr.flipped for fr in frames],
-                      "untangled": [fr.untangled for fr in frames], "diag": q.diag}))
+    figures = {"output": str(args.output), "shape": list(video.shape), "method": args.method,
+               "mask_share": float(mask.mean()), "vertices": [len(fr.vertices) for fr in frames],
+               "holes_filled": [fr.filled for fr in frames], "flipped": [fr.flipped for fr in frames],
+               "untangled": [fr.untangled for fr in frames], "diag": q.diag}
+    progress.result(f"codec scan: wrote {args.output} ({len(frames)} scans -> shape {list(video.shape)}, "
+                    f"{args.method})", figures)
     return 0

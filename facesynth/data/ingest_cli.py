@@ -4,8 +4,8 @@ landmarks (68 iBUG points with dlib, 478 MediaPipe points with irises) in a vide
 from __future__ import annotations
 
 import argparse
-import json
 
+from facesynth import progress
 from facesynth.errors import FacesynthError
 
 
@@ -36,8 +36,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="dlib: downscale frames to this longer side for detection (default 640)")
     parser.add_argument("--reuse-limit", type=int, default=15, metavar="N",
                         help="dlib: reuse the previous frame's box for at most N consecutive misses (default 15)")
-    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
-    parser.add_argument("--json", action="store_true", help="print the summary as one JSON line")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -47,7 +45,7 @@ def run(args: argparse.Namespace) -> int:
     if args.max_side < 32:
         raise FacesynthError(f"--max-side must be >= 32, got {args.max_side}")
     kwargs = dict(every=args.every, max_frames=args.max_frames, copy=args.copy, export_pts=args.export_pts,
-                  progress=not (args.no_progress or args.quiet), max_side=args.max_side, reuse_limit=args.reuse_limit)
+                  progress=not args.quiet, max_side=args.max_side, reuse_limit=args.reuse_limit)
     if args.landmarker == "dlib+iris":
         seq = ingest_dlib_iris(args.video, args.out, **kwargs)
     else:
@@ -65,15 +63,8 @@ def run(args: argparse.Namespace) -> int:
         "frames_per_s": round(st["frames_per_s"], 2),
         "ms_per_frame": {k: round(v, 2) for k, v in st["timing_ms_per_frame"].items()},
     }
-    if args.json:
-        print(json.dumps(summary))
-    else:
-        print(
-            f"ingested {summary['frames_processed']} frames of {args.video} in {summary['seconds']:.1f} s "
-            f"({summary['frames_per_s']:.1f} frames/s; decode/detect/landmarks "
-            f"{summary['ms_per_frame']['decode']:.1f}/{summary['ms_per_frame']['detect']:.1f}/"
-            f"{summary['ms_per_frame']['landmarks']:.1f} ms per frame)\n"
-            f"detection rate {summary['detection_rate']:.3f} {summary['det_source_counts']}; "
-            f"wrote {args.out}/landmarks.npy ({seq.scheme}) and meta.json"
-        )
+    progress.result(
+        f"ingested {summary['frames_processed']} frames of {args.video} in {summary['seconds']:.1f} s "
+        f"({summary['frames_per_s']:.1f} frames/s), detection rate {summary['detection_rate']:.3f}: "
+        f"wrote {args.out}/landmarks.npy ({seq.scheme}) and meta.json", summary)
     return 0

@@ -56,14 +56,16 @@ def validate_landmarks(landmarks: np.ndarray, where: str, allow_nan_rows: bool =
     return lm
 
 
-FRAME_MARGIN = 0.25  # landmarks may stray this fraction of the frame size outside it (faces at the border)
+FRAME_MARGIN = 0.25  # training landmarks may stray this fraction of the frame size outside it (faces at the border)
 
 
 def check_landmarks_in_frame(landmarks: np.ndarray, size: tuple[int, int], where: str, margin: float = FRAME_MARGIN) -> None:
-    """FacesynthError naming the rows of (N, 68, 2) landmarks (NaN rows skipped) with a point
-    outside the (H, W) frame by more than ``margin`` of its size: wrong units, a scale or an
-    offset, or another video's landmarks, caught before any frame is decoded."""
-    h, w = size
+    """FacesynthError naming the rows of (N, P, 2) landmarks (NaN rows skipped) with a point
+    outside the frame of ``size`` (W, H) by more than ``margin`` of its size: wrong units, a
+    scale or an offset, or another video's landmarks, caught before any frame is decoded.
+    Training data is held to :data:`FRAME_MARGIN`; a driver of ``facesynth app`` to one whole
+    frame size (``margin=1``: a head may leave the frame, its landmarks not another video's)."""
+    w, h = size
     lo = -margin * np.array([w, h], np.float32)
     hi = (1 + margin) * np.array([w, h], np.float32)
     with np.errstate(invalid="ignore"):
@@ -143,7 +145,7 @@ class FaceSequence:
             log.warning("%s: %d landmark rows for %d video frames: row t is paired with frame t, the last %d frames "
                         "are unused (landmarks of a shorter clip?)", where, len(lm), len(frames), len(frames) - len(lm))
         if frames is not None and all(int(v) > 0 for v in frames.size):
-            check_landmarks_in_frame(lm, tuple(frames.size), where)
+            check_landmarks_in_frame(lm, tuple(frames.size)[::-1], where)  # frames.size is (H, W)
         keep = np.isfinite(lm).all(axis=(1, 2))
         meta = dict(kwargs.pop("meta", {}) or {})
         dropped = int((~keep).sum())

@@ -4,18 +4,15 @@ with a trained ERI model (FAPs of the driver -> ratio images + geometry on the t
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import time
-from pathlib import Path
 
-import cv2
 import numpy as np
 
-from facesynth.errors import FacesynthError, MissingExtraError
+from facesynth import progress
+from facesynth.errors import FacesynthError
 
 log = logging.getLogger(__name__)
-IMAGE_EXT = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp"}
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -41,56 +38,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "its jaw, neck and hair follow the expression; facesynth.runtime.fullframe)")
 
 
-def load_target(target, target_landmarks=None, target_frame: int | None = None) -> tuple[np.ndarray, np.ndarray, str]:
-    """The target's neutral image (uint8 RGB) and (68, 2) landmarks, and a description.
-
-    ``target``: an image (landmarks from ``target_landmarks``, row ``target_frame``, or
-    detected) or a folder in ingest layout (row ``target_frame``, default automatic)."""
-    from facesynth.data import load_landmarks, load_sequence
-    from facesynth.eri.geometry import select_neutral
-
-    path = Path(target)
-    if path.is_dir():
-        seq = load_sequence(path, scheme="ibug68")
-        if not seq.has_frames:
-            raise FacesynthError(f"{path}: target folder has landmarks but no video/images")
-        row = target_frame if target_frame is not None else select_neutral(seq.landmarks)[0]
-        if not 0 <= row < len(seq):
-            raise FacesynthError(f"--target-frame {row} is outside {path} (0..{len(seq) - 1})")
-        return seq.frame(row), seq.landmarks[row], f"{path} row {row}"
-    if not path.is_file():
-        raise FacesynthError(f"{path}: no such target image or folder")
-    if path.suffix.lower() not in IMAGE_EXT:
-        raise FacesynthError(f"{path}: target must be an image ({', '.join(sorted(IMAGE_EXT))}) or an ingest folder")
-    bgr = cv2.imread(str(path), cv2.IMREAD_COLOR)
-    if bgr is None:
-        raise FacesynthError(f"{path}: unreadable image")
-    img = cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
-    if target_landmarks:
-        lm = load_landmarks(target_landmarks, scheme="ibug68")
-        row = target_frame or 0
-        if not 0 <= row < len(lm) or not np.isfinite(lm[row]).all():
-            raise FacesynthError(f"{target_landmarks}: no valid landmarks at row {row}")
-        return img, lm[row], f"{path} with {target_landmarks}"
-    return img, _detect(img, path), f"{path} (landmarks detected)"
-
-
-def _detect(img: np.ndarray, path: Path) -> np.ndarray:
-    try:
-        import dlib  # noqa: F401
-    except ImportError:
-        raise MissingExtraError("ingest", "dlib") from None
-    try:
-        from facesynth.data.detect import LandmarkDetector
-    except ImportError:
-        raise FacesynthError(f"{path}: landmark detection is not available in this build; pass --target-landmarks") from None
-    det = LandmarkDetector()
-    box, _, _ = det.detect(img)
-    if box is None:
-        raise FacesynthError(f"{path}: no face found in the target image; pass --target-landmarks")
-    return det.landmarks(img, box)
-
-
 def run(args) -> int:
     from facesynth.data import load_sequence
     from facesynth.eri.faps import compute_faps
@@ -98,6 +45,7 @@ def run(args) -> int:
     from facesynth.eri.model import EriModel
     from facesynth.eri.render import contact_sheet, pick_sheet_rows, write_video
     from facesynth.eri.synthesis import EriSynthesizer
+    from facesynth.eri.target import load_target
     from facesynth.retarget import Retargeter
     from facesynth.runtime.fullframe import FrameWarp
 
@@ -120,7 +68,6 @@ def run(args) -> int:
     # every point, B's own proportions; the app's retargeting), in B's head pose
     positions = Retargeter(syn.neutral, d_neutral, head_motion=False)(driver.landmarks[:n])
     t0 = time.perf_counter()
-    from facesynth import progress
 
     # B's image warped with the face (jaw, neck and hair follow the expression), or as it is
     background = None if args.still_frame else FrameWarp(image, syn.neutral)
@@ -143,5 +90,6 @@ def run(args) -> int:
         contact_sheet(args.sheet, list(driver.iter_frames(rows)), driver.landmarks[rows], list(geo), list(eri),
                       positions[rows])
         summary.update(sheet=str(args.sheet), sheet_rows=rows.tolist())
-    print(json.dumps(summary))
+    progress.result(f"{frames} frames -> {args.out} ({per_frame * 1e3:.0f} ms/frame, variant {syn.variant})"
+                    + (f", sheet -> {args.sheet}" if args.sheet else ""), summary)
     return 0

@@ -9,8 +9,7 @@ from typing import Iterable
 import cv2
 import numpy as np
 
-from facesynth.errors import FacesynthError
-from facesynth.io import write_bytes
+from facesynth.sheet import grid, write_png
 from facesynth.videofile import atomic_video
 
 
@@ -58,12 +57,5 @@ def contact_sheet(
     rows = []
     for d, dl, g, e, tl in zip(driver, driver_lm, geometry, eri, target_lm, strict=True):
         tb = face_box(tl, g.shape)
-        rows.append(np.concatenate([crop(d, face_box(dl, d.shape), size), crop(g, tb, size), crop(e, tb, size)], 1))
-    sheet = np.concatenate(rows, 0)
-    head = np.full((28, sheet.shape[1], 3), 255, np.uint8)
-    for i, label in enumerate(("driver", "geometry-only warp", "ERI")):
-        cv2.putText(head, label, (i * size + 8, 20), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (0, 0, 0), 1, cv2.LINE_AA)
-    ok, buf = cv2.imencode(".png", cv2.cvtColor(np.concatenate([head, sheet], 0), cv2.COLOR_RGB2BGR))
-    if not ok:  # pragma: no cover
-        raise FacesynthError(f"{path}: PNG encoding failed")
-    write_bytes(path, buf.tobytes())
+        rows.append([crop(d, face_box(dl, d.shape), size), crop(g, tb, size), crop(e, tb, size)])
+    write_png(path, grid(rows, ("driver", "geometry-only warp", "ERI")))

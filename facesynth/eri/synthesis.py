@@ -19,13 +19,13 @@ import cv2
 import numpy as np
 import torch
 
+from facesynth.compositing import composite
 from facesynth.eri.faps import faps_to_landmarks
 from facesynth.eri.geometry import extend, forehead_points, to_canvas
 from facesynth.eri.model import EriModel
 from facesynth.eri.ratio import apply_ratio, edge_confidence, sample_textures, to_multiplier
 from facesynth.errors import FacesynthError
 from facesynth.geometry import apply_affine, invert_affine
-from facesynth.imaging import composite
 from facesynth.model.warp import ToTarget, candidate_spans
 
 MODES = ("eri", "geometry")

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
 
 from facesynth.errors import FacesynthError
@@ -19,15 +18,16 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "0: every test frame)")
     p.add_argument("--common-landmarks", type=Path, metavar="PATH",
                    help="dlib (T, 68, 2) landmarks for psnr_frame_common (default: found as docs/sadm.md says)")
-    p.add_argument("--json", type=Path, help="write the metrics here (JSON)")
+    p.add_argument("--save-json", type=Path, metavar="FILE", help="write the metrics here (JSON)")
 
 
 def run(args: argparse.Namespace) -> int:
     from facesynth import progress
     from facesynth.eval.common_region import common_landmarks
     from facesynth.eval.sadm_eval import EvalConfig, evaluate_sadm
+    from facesynth.eval.summary import summary_lines
     from facesynth.io import write_json
-    from facesynth.runs.rundir import read_config, run_data, summary_lines
+    from facesynth.rundir import read_config, run_data
     from facesynth.sadm.fit import load_sadm
 
     sadm = load_sadm(args.run)
@@ -47,10 +47,9 @@ def run(args: argparse.Namespace) -> int:
     with progress.stage("evaluation"):
         metrics, _ = evaluate_sadm(sadm, seq, tr, te, ecfg, int(cfg.seed), common=common)
     metrics["evaluated_data"] = {"name": seq.name, "fingerprint": seq.fingerprint}
-    print("\n".join(summary_lines(metrics)))
-    if args.json:
-        write_json(args.json, metrics)
-        print(f"metrics -> {args.json}")
-    else:
-        print(json.dumps({"psnr_ref": metrics["psnr_ref"]}))
+    if args.save_json:
+        write_json(args.save_json, metrics)
+    saved = [f"metrics -> {args.save_json}"] if args.save_json else []
+    progress.result("\n".join(summary_lines(metrics) + saved),  # the run's table: one line per figure row
+                    {"run": str(args.run), "psnr_ref": metrics["psnr_ref"], "metrics": args.save_json})
     return 0

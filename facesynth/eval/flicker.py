@@ -14,9 +14,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from facesynth.compositing import composite
 from facesynth.eval.common_region import hull_box, region_masks
 from facesynth.eval.frame_level import MARGIN
-from facesynth.imaging import composite
 
 
 def flicker_rows(n_test: int, n: int) -> np.ndarray:

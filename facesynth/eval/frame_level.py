@@ -18,11 +18,10 @@ import numpy as np
 import torch
 
 from facesynth import progress
+from facesynth.compositing import blend_face, composite
 from facesynth.eval import perceptual
 from facesynth.eval.common_region import REGIONS, hull_box, region_masks
 from facesynth.eval.sharpness import median_table, sharpness
-from facesynth.imaging import composite
-from facesynth.runtime.blend import blend_face
 
 MARGIN = 8  # px around the crops' footprint: > feather erosion + Gaussian support + bilinear reach
 LPIPS_REGIONS = {"face": ("whole",), "eyes": ("eyes",), "mouth": ("mouth_interior", "lips")}

@@ -1,4 +1,4 @@
-"""Figures of reenactment, shared by ``bench/bench_reenact.py`` and the tests.
+"""Figures of reenactment, shared by ``bench/runtime/reenact.py`` and the tests.
 
 * coverage: per frame, the share of the avatar's face-outline hull (convex hull of the
   rendered landmarks, eroded 3 px) that the rendered mask covers (placed in the frame);
@@ -20,11 +20,11 @@ import time
 import cv2
 import numpy as np
 
+from facesynth.compositing import blend_rendered
 from facesynth.landmarks import ibug68_view
 from facesynth.metrics import psnr
 from facesynth.neutral import mouth_open, select_neutral
 from facesynth.retarget import Retargeter, eye_open
-from facesynth.runtime.blend import blend_rendered
 from facesynth.runtime.reenact import Reenactor
 
 

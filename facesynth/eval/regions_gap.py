@@ -16,7 +16,7 @@ reach a target (:func:`needed`; ``inf`` when the others alone already miss it).
 
 :func:`scheme_gap` applies them to a pair of runs of one clip on two landmark schemes
 (does the dense scheme beat ``ibug68`` by ``margin`` dB over the common region?).
-``bench/scheme_gap.py`` prints it for run folders.
+``bench/studies/scheme_gap.py`` prints it for run folders.
 """
 
 from __future__ import annotations

@@ -7,7 +7,7 @@ Sharpness of a rendered frame against the real one, over a region::
 
 with ``cv2.Sobel`` (3x3, x and y, each colour channel, float32) of the whole frame, summed
 over the region's pixels and the channels. The rendered face is pasted into the real frame
-with :func:`facesynth.runtime.blend.blend_face` (as the app shows it), so S is measured on
+with :func:`facesynth.compositing.blend_face` (as the app shows it), so S is measured on
 what a viewer sees; the regions are the common region's (the dlib hull 0-26 eroded 3 px and
 its parts, :mod:`facesynth.eval.common_region`), identical for every landmark scheme. S = 1:
 as much gradient energy as the real frame; a blurred face scores < 1. Energy ratios, not

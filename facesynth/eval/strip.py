@@ -2,7 +2,7 @@
 
 A run of ``n`` test frames ``stride`` frames apart from the middle of the test segment, the
 face synthesized from each frame's landmarks (sigma 0) and pasted into its real frame with
-:func:`facesynth.runtime.blend.blend_face` (as the app shows it), every tile cut from the
+:func:`facesynth.compositing.blend_face` (as the app shows it), every tile cut from the
 same frame box (the union of the frames' landmark boxes plus a margin) so that the head's
 motion shows, and scaled to ``height`` pixels.
 """
@@ -13,9 +13,9 @@ import cv2
 import numpy as np
 import torch
 
+from facesynth.compositing import blend_rendered
 from facesynth.errors import FacesynthError
 from facesynth.io import write_bytes
-from facesynth.runtime.blend import blend_rendered
 
 
 def strip_rows(n_test: int, n: int = 8, stride: int = 3) -> np.ndarray:

@@ -5,13 +5,13 @@ driver's neutral = the avatar's own, :class:`facesynth.retarget.Retargeter` with
 clamp) and rendered three ways, compared with the real frame: *static* (the avatar's neutral
 frame unchanged), *warp* (that frame warped with the landmarks, no synthesised face;
 :class:`facesynth.runtime.fullframe.FrameWarp`) and *full* (the synthesised face composited
-into the warped frame, :func:`facesynth.runtime.blend.blend_face`): the numpy pipeline that
+into the warped frame, :func:`facesynth.compositing.blend_face`): the numpy pipeline that
 ``facesynth export --talking-head`` puts in one graph. The avatar is the exported one's
 (:func:`facesynth.onnx.avatar.avatar_metadata`: its neutral among the training frames, its
 shape PCA, that frame as JPEG). Measures: PSNR (dB) and SSIM over the head region (the real
 landmarks' hull grown to hair and neck, :func:`facesynth.runtime.fullframe.head_region`) and
 over the whole frame, mean over up to ``frames`` evenly spaced held-out frames
-(``bench/bench_talking_head.py`` adds the detector-based figures on other drivers).
+(``bench/runtime/talking_head.py`` adds the detector-based figures on other drivers).
 """
 
 from __future__ import annotations
@@ -19,12 +19,12 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from facesynth.compositing import blend_rendered
 from facesynth.eval.strip import box_tile
 from facesynth.landmarks import ibug68_view
 from facesynth.metrics import psnr, ssim
 from facesynth.onnx.avatar import avatar_metadata
 from facesynth.retarget import RETARGET_SCHEMES, Retargeter
-from facesynth.runtime.blend import blend_rendered
 from facesynth.runtime.fullframe import head_region
 from facesynth.runtime.reenact import Avatar
 
@@ -38,7 +38,7 @@ def talking_head_figures(syn, seq, train_rows: np.ndarray, test_rows: np.ndarray
     when the clip has no frames or its scheme cannot be retargeted.
 
     figures: {"frames": n, "neutral_row": row, "ring_scale": the warp's head ring (chosen on the
-    training frames, :mod:`facesynth.runtime.headmotion`), RENDERER: {MEASURE: mean}}; strip tiles: the
+    training frames, :mod:`facesynth.onnx.headmotion`), RENDERER: {MEASURE: mean}}; strip tiles: the
     :mod:`facesynth.eval.strip` tiles ({"frame", "real", "synth"}: the real held-out frame and
     *full*) of ``strip`` of those frames, one frame box for all, ``height`` px high."""
     scheme = str(getattr(syn, "scheme", "ibug68"))

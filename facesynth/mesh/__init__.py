@@ -7,7 +7,7 @@ Modules: :mod:`~facesynth.mesh.camera` (conventions), :mod:`~facesynth.mesh.pose
 :mod:`~facesynth.mesh.render`, :mod:`~facesynth.mesh.smoothing`, :mod:`~facesynth.mesh.cli`.
 Face scans -> parametric coordinates for geometry videos: :mod:`~facesynth.mesh.holes` (hole
 filling), :mod:`~facesynth.mesh.segment` (geodesic segmentation), :mod:`~facesynth.mesh.eip`
-and :mod:`~facesynth.mesh.eip_domain` (expression-invariant parameterisation),
+(expression-invariant parameterisation and its domain),
 :mod:`~facesynth.mesh.paths` (edge paths, geodesics), :mod:`~facesynth.mesh.scan` (the
 per-frame pipeline), :mod:`~facesynth.mesh.synthetic` (a synthetic scan for tests).
 """

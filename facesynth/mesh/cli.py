@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
+from facesynth import progress
 from facesynth.errors import FacesynthError
 
 log = logging.getLogger(__name__)
@@ -95,7 +96,6 @@ def _image_size(args, frames, lm) -> tuple[int, int]:
 def _rows_and_neutral(args, lm: np.ndarray) -> tuple[np.ndarray, list[int], int, str]:
     """The rows to transfer (--stride, --max-frames, finite landmarks only), the skipped rows
     with NaN landmarks, and the neutral frame with the rule that chose it."""
-    from facesynth import progress
     from facesynth.neutral import select_neutral
 
     rows = np.arange(0, len(lm), args.stride)
@@ -124,7 +124,6 @@ def _transfer_rows(args, tr, mesh, lmap, lm: np.ndarray, rows: np.ndarray, neutr
                    size: tuple[int, int]) -> tuple[dict, float]:
     """Transfer every row (rendering the preview video and the contact sheet on the way);
     the per-frame arrays of the output file and the seconds spent in the solves."""
-    from facesynth import progress
     from facesynth.mesh.preview import PreviewWriter, contact_sheet, panel, pick_sheet_frames
 
     T, n = len(rows), len(mesh.vertices)
@@ -221,5 +220,6 @@ def run(args: argparse.Namespace) -> int:
             converged=out["converged"], pose_reprojection_px=out["pose_reprojection_px"],
             skipped_frames=np.array(skipped, np.int64), meta=json.dumps(meta, default=str),
         )
-    print(json.dumps(summary))
+    progress.result(f"transferred {T} frames -> {args.out} ({args.method}, {summary['ms_per_frame_transfer']:.1f} "
+                    f"ms/frame, pose reprojection {summary['pose_reprojection_px_mean']:.2f} px)", summary)
     return 0

@@ -9,8 +9,8 @@ import cv2
 import numpy as np
 
 from facesynth.errors import FacesynthError
-from facesynth.io import atomic_path
 from facesynth.mesh.render import render_frontal, render_posed
+from facesynth.sheet import grid, write_png
 from facesynth.videofile import atomic_video
 
 
@@ -126,9 +126,7 @@ def contact_sheet(rows: list[np.ndarray], labels: list[str], path: str | os.Path
         if not cols:  # name the rows once, in the first column
             parts = [parts[0]] + [_label(p, name) for p, name in zip(parts[1:], ROW_NAMES[1:], strict=True)]
             parts[0] = _label(parts[0], ROW_NAMES[0], y=parts[0].shape[0] - 30)
-        cols.append(np.vstack(parts))
-    sheet = np.hstack(cols)
-    with atomic_path(path) as tmp:
-        if not cv2.imwrite(str(tmp), cv2.cvtColor(sheet, cv2.COLOR_RGB2BGR)):
-            raise FacesynthError(f"{path}: could not write the contact sheet image")
+        cols.append(parts)
+    sheet = grid([list(row) for row in zip(*cols, strict=True)])
+    write_png(path, sheet)
     return sheet

@@ -13,8 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from facesynth.errors import FacesynthError
-from facesynth.mesh.eip import harmonic_disk, parameterise
-from facesynth.mesh.eip_domain import Domain
+from facesynth.mesh.eip import Domain, harmonic_disk, parameterise
 from facesynth.mesh.holes import fill_holes
 from facesynth.mesh.laplacian import ordered_boundary_loops
 from facesynth.mesh.segment import FEATURE_CONTOURS, SOURCES, segment_face

@@ -41,7 +41,7 @@ FEATURE_CONTOURS = {"eye_r": EYE_R, "eye_l": EYE_L, "mouth": MOUTH_INNER}
 # skin stretches by centimetres under mouth expressions, only half of it, enough to keep the
 # mouth inside; the chin (iBUG 8-10), rigid with the jaw, 1 / 2.5 of it, so that the lower rim
 # rides on the jaw bone instead of the neck skin that a jaw opening compresses. Measured on
-# the ICT blendshapes (docs/codec.md, bench/bench_scan.py).
+# the ICT blendshapes (docs/codec.md, bench/mesh/scan.py).
 ANCHORED_FEATURES = {"eyes_nose": (np.array(RIGID_NOSE_EYES), 1.0), "mouth": (np.array(MOUTH), 2.0),
                      "chin": (np.array(JAW[7:10]), 2.5)}
 SOURCES = ("anchored", "points", "contours")

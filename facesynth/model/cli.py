@@ -3,10 +3,10 @@
 from __future__ import annotations
 
 import argparse
-import json
 from dataclasses import fields
 from pathlib import Path
 
+from facesynth import progress
 from facesynth.model.face_model import FaceModelConfig
 
 _DEFAULT = {f.name: f.default for f in fields(FaceModelConfig)}  # the help texts quote the dataclass
@@ -65,5 +65,8 @@ def run(args: argparse.Namespace) -> int:
     if args.out:
         save_face_model(model, args.out)
         figures["artifact"] = str(args.out)
-    print(json.dumps(figures, indent=1))
+    progress.result(f"face model: {figures.get('n_shape')} shape / {figures.get('n_appearance')} appearance "
+                    f"components, appearance PSNR train {figures['appearance_recon_psnr_train']:.2f} / test "
+                    f"{figures['appearance_recon_psnr_test']:.2f} dB, shape RMS test "
+                    f"{figures['shape_recon_rms_test_ref_px']:.2f} px" + (f" -> {args.out}" if args.out else ""), figures)
     return 0

@@ -20,7 +20,7 @@ the crop is zero, so before filtering, the pixels within the kernel's reach of t
 filled with the mean of the face pixels around them (a normalised box filter), and the
 result is cut back to the face: the convolution never reads black.
 
-At render time :class:`Restore` runs inside the warp (:class:`facesynth.model.warp_target.ToTarget`),
+At render time :class:`Restore` runs inside the warp (:class:`facesynth.model.warp.ToTarget`),
 so the evaluation, the torch synthesiser and the exported face-only graph (three Conv nodes:
 the two of the fill and the filter) all show the filtered face.
 """

@@ -16,7 +16,7 @@ into its ONNX metadata at export time (torch-side; the runtime reads it with
 * ``frame_motion``: how the full-frame warp's control points besides the landmarks follow
   the face, learned from up to ``headmotion.FRAMES`` training frames, and the size of the
   head's ring, chosen on ``headmotion.VALIDATION`` others
-  (:func:`facesynth.runtime.headmotion.fit_frame_motion`: ``coefficients`` (K - 68, 2),
+  (:func:`facesynth.onnx.headmotion.fit_frame_motion`: ``coefficients`` (K - 68, 2),
   ``frames``, ``lambda``, ``points_fitted``, ``ring_scale``, ``ring_scores``,
   ``validation_frames``).
 """
@@ -33,8 +33,8 @@ import numpy as np
 from facesynth.errors import FacesynthError
 from facesynth.landmarks import eye_openings
 from facesynth.neutral import select_neutral
+from facesynth.onnx.headmotion import FRAMES, VALIDATION, fit_frame_motion
 from facesynth.retarget import RETARGET_SCHEMES, ShapeSpace, head_shifts, retarget_scheme
-from facesynth.runtime.headmotion import FRAMES, VALIDATION, fit_frame_motion
 
 log = logging.getLogger(__name__)
 JPEG_QUALITY = 90
@@ -112,7 +112,7 @@ def run_avatar_metadata(run_dir, syn) -> dict:
     """:func:`avatar_metadata` of a ``train.py`` run (its data and training rows); {} with a
     log line when the run's data cannot be reloaded (the model then needs --driver-neutral
     style inputs: the runtime says so)."""
-    from facesynth.runs.rundir import read_config, run_data
+    from facesynth.rundir import read_config, run_data
 
     if getattr(syn, "scheme", "ibug68") not in RETARGET_SCHEMES:
         log.info("no reenactment metadata: retargeting takes %s landmarks, this model takes %s",

@@ -78,23 +78,26 @@ class SimilarityAlignment(nn.Module):
 
 
 def save_graph(
-    graph: nn.Module, example: torch.Tensor, path: Path, input_name: str, output_names: tuple[str, ...],
-    meta: dict, opset: int, doc: str,
+    graph: nn.Module, example: torch.Tensor | tuple[torch.Tensor, ...], path: Path, input_name: str | tuple[str, ...],
+    output_names: tuple[str, ...], meta: dict, opset: int, doc: str,
 ) -> None:
-    """Trace ``graph`` on ``example`` into ``path`` (written atomically): dynamic batch axis
-    on the input and every output, the int32 index pass (its count is recorded as
-    ``int32_index_gathers``), producer, ``doc`` and ``meta`` as metadata properties
-    (strings, JSON for other values); the file passes ``onnx.checker``."""
+    """Trace ``graph`` on ``example`` (one input tensor, or a tuple for ``input_name`` a tuple
+    of names) into ``path`` (written atomically): dynamic batch axis on the first input and
+    every output, the int32 index pass (its count is recorded as ``int32_index_gathers``),
+    producer, ``doc`` and ``meta`` as metadata properties (strings, JSON for other values);
+    the file passes ``onnx.checker``."""
     import onnx  # heavy: imported when a graph is written
 
+    names = [input_name] if isinstance(input_name, str) else list(input_name)
+    example = (example,) if isinstance(example, torch.Tensor) else tuple(example)
     with atomic_path(path) as tmp, warnings.catch_warnings():
         # torch.onnx.export(dynamo=False) is the TorchScript exporter, deprecated in torch 2.9+; the
         # dynamo exporter cannot trace the warp's custom symbolics (facesynth.ops), so it stays
         warnings.simplefilter("ignore")
         with torch.no_grad():
             torch.onnx.export(
-                graph, (example,), str(tmp), input_names=[input_name], output_names=list(output_names),
-                dynamic_axes={input_name: {0: "batch"}, **{k: {0: "batch"} for k in output_names}},
+                graph, example, str(tmp), input_names=names, output_names=list(output_names),
+                dynamic_axes={names[0]: {0: "batch"}, **{k: {0: "batch"} for k in output_names}},
                 opset_version=opset, dynamo=False, do_constant_folding=True,
             )
         model = onnx.load(str(tmp))

@@ -25,7 +25,7 @@ model geometry (closed form, as :func:`facesynth.eri.geometry.to_canvas`), and t
 piecewise-affine warp :class:`facesynth.model.warp.ToTarget`.
 
 Compositing into the frame (OpenCV warpAffine + feathering) stays outside the graph, in
-:class:`facesynth.runtime.EriRenderer` (the same :func:`facesynth.imaging.composite` as
+:class:`facesynth.runtime.EriRenderer` (the same :func:`facesynth.compositing.composite` as
 ``EriSynthesizer.render``).
 """
 
@@ -180,7 +180,7 @@ def export_eri(
         "facesynth_version": __version__, "format": ERI_FORMAT, "kind": "eri", "driver": syn.variant,
         "raw_ratios": bool(syn.raw), "n_faps": N_FAPS, "fap_names": list(FAP_NAMES), "landmark_scheme": LANDMARK_SCHEME,
         "reference_size": list(m.reference.size), "canvas_size": list(syn.canvas),
-        "frame_size": list(syn.image.shape[:2]), "channels": 3, "data_fingerprint": m.fingerprint,
+        "frame_size": [int(syn.image.shape[1]), int(syn.image.shape[0])], "channels": 3, "data_fingerprint": m.fingerprint,
         "target_fingerprint": array_fingerprint(syn.image, syn.neutral), "feather": float(m.config.feather),
         "eigeneri_components": int(m.pca.n_components), "support_vectors": graph.n_support_vectors,
         "distinct_support_vectors": graph.n_distinct,

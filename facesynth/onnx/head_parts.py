@@ -5,7 +5,7 @@
   control points' motion and the piecewise-affine warp of the neutral frame, located by
   :class:`facesynth.model.warp.ToTarget`'s scanline coverage counting at the warp's grid
   nodes and bilinear between them;
-* :class:`SeamGraph`: :func:`facesynth.runtime.blend.blend_face` with a fixed feather (its
+* :class:`SeamGraph`: :func:`facesynth.compositing.blend_face` with a fixed feather (its
   alpha and band in the crop's pixels).
 
 Landmarks of :data:`facesynth.retarget.RETARGET_SCHEMES` (the full-frame warp's control
@@ -21,13 +21,12 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
+from facesynth.compositing import MIN_BAND, gaussian_kernel
 from facesynth.geometry import mirror
 from facesynth.landmarks import IBUG68, scheme_for_points
-from facesynth.model.warp import invert_affine_t, similarity_to
-from facesynth.model.warp_target import ToTarget
+from facesynth.model.warp import ToTarget, invert_affine_t, similarity_to
 from facesynth.onnx.retarget_graph import _apply, _const
 from facesynth.ops import slice_by_tensor
-from facesynth.runtime.blend import MIN_BAND, gaussian_kernel
 from facesynth.runtime.fullframe import EYE_CORNERS, HEAD_POINTS, NOSE_TIP, FrameWarp, interpolation_weights, nose_offset
 
 
@@ -182,7 +181,7 @@ def _blur_matrix(g: np.ndarray, n: int) -> np.ndarray:
 
 
 class SeamGraph(nn.Module):
-    """:func:`facesynth.runtime.blend.blend_face` (colour matching on) with a fixed feather
+    """:func:`facesynth.compositing.blend_face` (colour matching on) with a fixed feather
     of ``feather`` crop pixels: crop (B, C, Hc, Wc) in [0, 1], mask (B, 1, Hc, Wc), placement
     (B, 2, 3), the warped frame's colours plus a half (three (B, 1, H, W), 0.5..255.5;
     :meth:`FrameWarpGraph.channels`) and the face's landmarks (B, P, 2) -> the composited
@@ -216,7 +215,7 @@ class SeamGraph(nn.Module):
     @staticmethod
     def _erode(x: torch.Tensor, r: int) -> torch.Tensor:
         """Square (2r + 1) erosion of a {0, 1} (B, 1, h, w) map, the outside of the map
-        counted as 0 (:func:`facesynth.runtime.blend.seam_layers`): no hole (0) within r
+        counted as 0 (:func:`facesynth.compositing.seam_layers`): no hole (0) within r
         pixels, counted by running sums (CumSum), whose cost does not grow with r as
         MaxPool's does."""
         k = 2 * r + 1

@@ -43,7 +43,7 @@ from facesynth.onnx.avatar import run_avatar_metadata
 from facesynth.onnx.common import SimilarityAlignment, check_parity, save_graph
 from facesynth.onnx.config import BASIS_KINDS, DEFAULT_BASIS, DEFAULT_COMPONENTS
 from facesynth.onnx.int8check import scaled_coefficients, tie_allowance
-from facesynth.runs.rundir import load_synthesizer, training_landmarks
+from facesynth.rundir import load_synthesizer, training_landmarks
 from facesynth.runtime.renderer import Renderer
 from facesynth.sadm.compress import compress_synthesizer
 from facesynth.sadm.quantize import quantize_synthesizer

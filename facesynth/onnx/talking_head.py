@@ -10,7 +10,7 @@ the retargeting and shape clamp, the synthesis (:class:`SynthesisGraph`), the fu
 warp of the avatar's neutral frame (its control points and Delaunay triangles, taken from
 :class:`facesynth.runtime.fullframe.FrameWarp`) and the feathered, colour-matched seam.
 The feather is fixed at export (``feather`` metadata, pixels of the rendered crop; by
-default :func:`facesynth.runtime.blend.seam_width` of the face's mask rendered at the
+default :func:`facesynth.compositing.seam_width` of the face's mask rendered at the
 avatar's neutral), where ``blend_face`` measures it per frame.
 
 Standard ONNX operators only (opset 18: Gather, GatherElements, ScatterElements, CumSum,
@@ -19,9 +19,7 @@ Pad, Slice, Range, MatMul, MatMulInteger, ...), none outside ONNX Runtime Web's.
 
 from __future__ import annotations
 
-import json
 import os
-import warnings
 from pathlib import Path
 
 import numpy as np
@@ -29,16 +27,15 @@ import torch
 from torch import nn
 
 from facesynth import __version__
+from facesynth.compositing import seam_width
 from facesynth.contract import OPSET, TALKING_HEAD_FORMAT, TALKING_HEAD_INPUTS, TALKING_HEAD_LAYOUT, TALKING_HEAD_OUTPUTS
 from facesynth.errors import FacesynthError
-from facesynth.io import atomic_path
 from facesynth.landmarks import get_scheme
+from facesynth.onnx.common import save_graph
 from facesynth.onnx.head_parts import FrameWarpGraph, SeamGraph
-from facesynth.onnx.passes import int32_indices
 from facesynth.onnx.retarget_graph import RetargetGraph
 from facesynth.onnx.synthesis import SynthesisGraph, torch_reference
 from facesynth.retarget import RETARGET_SCHEMES
-from facesynth.runtime.blend import seam_width
 from facesynth.runtime.reenact import Avatar
 
 INPUTS, OUTPUTS = TALKING_HEAD_INPUTS, TALKING_HEAD_OUTPUTS
@@ -89,8 +86,6 @@ def export_talking_head(syn, metadata: dict, path: str | os.PathLike, feather: f
     """Export the talking head of ``syn`` with its avatar ``metadata`` (the synthesis file's:
     ``avatar_neutral``, ``shape_pca``, ``background_jpeg``; :mod:`facesynth.onnx.avatar`) to
     one ONNX file, written atomically. Returns the path."""
-    import onnx  # heavy: imported when a graph is written
-
     path = Path(path)
     metadata = {"landmark_scheme": str(getattr(syn, "scheme", "ibug68")), **metadata}
     graph = TalkingHeadGraph(syn, Avatar(metadata, str(path)), feather).eval()
@@ -100,21 +95,9 @@ def export_talking_head(syn, metadata: dict, path: str | os.PathLike, feather: f
     meta = {k: v for k, v in metadata.items() if k not in ("format", "inputs", "outputs")}  # the model's provenance too
     meta.update({"facesynth_version": __version__, "format": TALKING_HEAD_FORMAT, "frame_size": [w, h],
                  "feather": graph.feather, "opset": opset, "output_layout": TALKING_HEAD_LAYOUT, "n_landmarks": int(n.shape[0])})
-    with atomic_path(path) as tmp, warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # the TorchScript exporter's deprecation and tracer warnings
-        with torch.no_grad():
-            torch.onnx.export(graph, example, str(tmp), input_names=list(INPUTS), output_names=list(OUTPUTS),
-                              dynamic_axes={"driver": {0: "batch"}, **{k: {0: "batch"} for k in OUTPUTS}},
-                              opset_version=opset, dynamo=False, do_constant_folding=True)
-        model = onnx.load(str(tmp))
-        meta["int32_index_gathers"] = int32_indices(model)
-        model.producer_name, model.producer_version = "facesynth", __version__
-        model.doc_string = "facesynth talking head: driver landmarks, driver neutral -> avatar frame"
-        for k, v in meta.items():
-            entry = model.metadata_props.add()
-            entry.key, entry.value = k, v if isinstance(v, str) else json.dumps(v)
-        onnx.checker.check_model(model)
-        onnx.save(model, str(tmp))
+    meta.pop("int32_index_gathers", None)  # the synthesis graph's count, not this one's
+    save_graph(graph, example, path, INPUTS, OUTPUTS, meta, opset,
+               "facesynth talking head: driver landmarks, driver neutral -> avatar frame")
     return path
 
 

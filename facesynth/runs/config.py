@@ -25,7 +25,7 @@ from hydra.errors import HydraException
 from omegaconf import II, MISSING, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
-from facesynth.data.splits import TRAIN_FRACTION
+from facesynth.data.config import DataConf
 from facesynth.eri.config import EriConfig
 from facesynth.errors import FacesynthError
 from facesynth.eval.sadm_eval import EvalConfig
@@ -34,21 +34,6 @@ from facesynth.regressors import REGISTRY
 from facesynth.sadm.fit import SADMConfig, make_config, resolve_sadm_config
 
 CONF_DIR = Path(__file__).resolve().parents[1] / "conf"  # the Hydra configs, shipped inside the package
-
-
-@dataclass
-class DataConf:
-    """kind: 'synthetic' (the embedded default subject) or 'video' (``path``: a folder in
-    the ingest layout, a folder of images + .pts, or .npy/.npz). Temporal split:
-    the first ``train_fraction`` trains, the rest (after ``gap`` frames) tests."""
-
-    kind: str = "synthetic"
-    path: Optional[str] = None
-    n_frames: int = 240
-    size: int = 256
-    max_frames: Optional[int] = None
-    train_fraction: float = TRAIN_FRACTION
-    gap: int = 0
 
 
 @dataclass

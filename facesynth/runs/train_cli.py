@@ -39,9 +39,9 @@ def _hydra_app() -> None:
     from omegaconf import DictConfig
 
     from facesynth.errors import FacesynthError
+    from facesynth.eval.summary import summary_lines
     from facesynth.runs.config import CONF_DIR, register_configs
     from facesynth.runs.lock import discard_unused_run_dir
-    from facesynth.runs.rundir import summary_lines
     from facesynth.runs.training import run_training
 
     register_configs()

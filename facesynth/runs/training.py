@@ -1,6 +1,6 @@
 """The training job behind ``train.py``: data -> face model -> SADM -> evaluation -> run dir.
 
-The run directory's layout is :mod:`facesynth.runs.rundir`; every file records the config,
+The run directory's layout is :mod:`facesynth.rundir`; every file records the config,
 package versions and the data fingerprint.
 """
 
@@ -30,8 +30,8 @@ from facesynth.io import dumps_json, write_text
 from facesynth.landmarks import get_scheme
 from facesynth.model.face_model import FaceModel, FaceModelConfig
 from facesynth.provenance import package_versions
+from facesynth.rundir import CONFIG, METRICS, PLOTS, load_data
 from facesynth.runs.config import regressor_params
-from facesynth.runs.rundir import CONFIG, METRICS, PLOTS, load_data
 from facesynth.sadm.fit import SADMConfig, fit_sadm, save_sadm
 
 log = logging.getLogger(__name__)

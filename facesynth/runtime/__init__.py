@@ -21,7 +21,7 @@ Imports only numpy, onnxruntime and OpenCV (a test checks that torch stays unimp
     frames = e.render_frames(faps, target_image)         # (B, 36) MPEG-4 FAPs -> uint8 (B, H, W, 3)
 """
 
-from facesynth.imaging import composite
+from facesynth.compositing import composite
 from facesynth.runtime.eri import EriRenderer
 from facesynth.runtime.filters import OneEuroFilter, smooth_landmarks
 from facesynth.runtime.pipeline import AvatarPipeline

@@ -24,7 +24,6 @@ from __future__ import annotations
 import argparse
 import contextlib
 import itertools
-import json
 import logging
 import os
 import time
@@ -33,10 +32,12 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from facesynth.compositing import GREY
+from facesynth.data.sequence import check_landmarks_in_frame
 from facesynth.errors import FacesynthError
 from facesynth.io import atomic_path, check_writable, refuse_overwriting_inputs
-from facesynth.progress import bar, stage
-from facesynth.runtime.checks import check_coordinate_range, check_face_extent, check_frame_size, check_in_frame
+from facesynth.progress import bar, result, stage
+from facesynth.runtime.checks import check_coordinate_range, check_face_extent, check_frame_size
 from facesynth.runtime.video import (
     contact_sheet,
     detect_video_landmarks,
@@ -47,7 +48,6 @@ from facesynth.runtime.video import (
 from facesynth.videofile import atomic_video
 
 log = logging.getLogger(__name__)
-GREY = 128
 SHEET_DIR = Path("/tmp/facesynth_out")
 
 
@@ -80,7 +80,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-colour-match", action="store_true", help="do not match the face's colour to the frame at the seam")
     p.add_argument("--max-frames", type=int, help="render only the first N frames (N >= 1)")
     p.add_argument("--contact-sheet", help=f"also write a PNG contact sheet (driver above rendering), e.g. {SHEET_DIR}/sheet.png")
-    p.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
 # ------------------------------------------------------------------ inputs
@@ -228,7 +227,7 @@ def read_driver(args: argparse.Namespace, driver, driver_video, scheme: str) -> 
     from facesynth.data.readers import load_landmarks
 
     if args.video:
-        return detect_with_progress(driver, args.max_frames, scheme, not args.no_progress)
+        return detect_with_progress(driver, args.max_frames, scheme, not args.quiet)
     landmarks = load_landmarks(args.landmarks, scheme=scheme)  # mediapipe478 -> ibug68 is mapped; the reverse is an error
     if args.max_frames:
         landmarks = landmarks[: args.max_frames]
@@ -270,7 +269,7 @@ def write_outputs(args: argparse.Namespace, pipeline, landmarks: np.ndarray, neu
     driver_iter = driver.read(sorted(shown_left)) if driver is not None else None
     with contextlib.ExitStack() as written:  # every output is renamed into place only once all are written
         video = written.enter_context(atomic_video(Path(args.out), fps, (2 * w if args.side_by_side else w, h)))
-        progress = bar(total=n, unit="frame", desc="app", enabled=not args.no_progress)
+        progress = bar(total=n, unit="frame", desc="app", enabled=not args.quiet)
         pipeline.start(neutral, background)
         for i, frame in enumerate(pipeline.frames(landmarks, rendered, latencies)):
             if i in shown_left:
@@ -315,7 +314,8 @@ def run(args: argparse.Namespace) -> int:
     background = choose_background(args, pipeline, driver, landmarks)
     h, w = background.shape[:2]
     # before any rendering; the driver's points are in its own frame, when known
-    check_in_frame(landmarks, (w, h) if driver is None else driver.size[::-1], args.landmarks or args.video)
+    check_landmarks_in_frame(landmarks, (w, h) if driver is None else driver.size[::-1], args.landmarks or args.video,
+                             margin=1.0)
     t_start = time.perf_counter()
     latencies, _ = write_outputs(args, pipeline, landmarks, neutral, background, driver, fps)
     wall, n, out_w = time.perf_counter() - t_start, len(landmarks), 2 * w if args.side_by_side else w
@@ -327,9 +327,10 @@ def run(args: argparse.Namespace) -> int:
                     "talking_head_graph": pipeline.head is not None})
     extra = {"driver_neutral_row": neutral_row, "landmarks_out": args.save_landmarks, "contact_sheet": args.contact_sheet}
     summary.update({k: v for k, v in extra.items() if v is not None})
+    line = f"{n} frames -> {args.out} ({out_w}x{h}, {fps:g} fps) in {wall:.1f} s"
     if latencies:
         m, f = summary["model_ms"], summary["frame_ms"]
-        print(f"{n} frames -> {args.out} ({out_w}x{h}, {fps:g} fps) in {wall:.1f} s; latency ms p50/p90/p99: "
-              f"model {m['p50']}/{m['p90']}/{m['p99']}, frame {f['p50']}/{f['p90']}/{f['p99']}")
-    print(json.dumps(summary))
+        line += (f"; latency ms p50/p90/p99: model {m['p50']}/{m['p90']}/{m['p99']}, "
+                 f"frame {f['p50']}/{f['p90']}/{f['p99']}")
+    result(line, summary)
     return 0

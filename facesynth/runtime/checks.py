@@ -43,18 +43,6 @@ def check_face_extent(landmarks: np.ndarray, field: str = "landmarks") -> None:
                              f"{bad[:10].tolist()}")
 
 
-def check_in_frame(landmarks: np.ndarray, size: tuple[int, int], field: str = "landmarks") -> None:
-    """FacesynthError naming the rows of (T, P, 2) (NaN rows skipped) with a point further
-    than one frame size outside the frame of ``size`` (W, H)."""
-    w, h = size
-    x = np.asarray(landmarks)
-    with np.errstate(invalid="ignore"):
-        out = ((x[..., 0] < -w) | (x[..., 0] > 2 * w) | (x[..., 1] < -h) | (x[..., 1] > 2 * h)).any(axis=-1)
-    if out.any():
-        raise FacesynthError(f"{field}: points far outside the {w}x{h} frame in rows {_rows(out)} "
-                             "(wrong units, another video's landmarks, or outlier frames?)")
-
-
 def check_frame_size(size: tuple[int, int], field: str) -> tuple[int, int]:
     """(W, H) within [16, MAX_FRAME_SIDE], else FacesynthError naming ``field``."""
     w, h = size

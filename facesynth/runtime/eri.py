@@ -12,9 +12,9 @@ import os
 
 import numpy as np
 
-from facesynth.contract import ERI_FORMAT, ERI_INPUT
+from facesynth.compositing import blend_rendered
+from facesynth.contract import ERI_FORMAT, ERI_FORMAT_V1, ERI_INPUT
 from facesynth.errors import FacesynthError
-from facesynth.imaging import composite, crop_rgb
 from facesynth.runtime.renderer import Renderer, check_batch
 
 
@@ -30,11 +30,12 @@ class EriRenderer(Renderer):
     Attributes
     ----------
     n_faps : int, FAPs per frame (metadata ``n_faps``; columns in ``metadata["fap_names"]`` order)
-    frame_size : (H, W) of the target's frame (placements map into it)
+    frame_size : (W, H) of the target's frame (placements map into it; metadata ``frame_size``)
     feather : float, compositing edge width (the model's ``eri.feather``)
     """
 
     format = ERI_FORMAT
+    older_formats = (ERI_FORMAT_V1,)  # its frame_size is (H, W)
     input_name = ERI_INPUT
     kind_name = "ERI"
 
@@ -43,7 +44,8 @@ class EriRenderer(Renderer):
         md = self.metadata
         try:
             self.n_faps = int(md["n_faps"])
-            self.frame_size = tuple(int(v) for v in md["frame_size"])
+            size = tuple(int(v) for v in md["frame_size"])
+            self.frame_size = size[::-1] if md.get("format") == ERI_FORMAT_V1 else size
         except (KeyError, TypeError, ValueError):
             raise FacesynthError(f"{self.path}: ERI model metadata lacks n_faps / frame_size") from None
         names = md.get("fap_names")
@@ -72,9 +74,9 @@ class EriRenderer(Renderer):
     def render_frames(self, faps, background: np.ndarray, feather: float | None = None) -> np.ndarray:
         """Frames uint8 (B, H, W, 3): the rendered faces pasted into ``background`` (uint8
         (H, W, 3) RGB of the target's frame size, normally the target's neutral image, or
-        (B, H, W, 3)), as ``EriSynthesizer.render`` (:func:`facesynth.imaging.composite`)."""
+        (B, H, W, 3)), as ``EriSynthesizer.render`` (:func:`facesynth.compositing.composite`)."""
         bg = np.asarray(background)
-        h, w = self.frame_size
+        w, h = self.frame_size
         if bg.dtype != np.uint8 or bg.ndim not in (3, 4) or bg.shape[-3:] != (h, w, 3):
             raise FacesynthError(f"background: expected uint8 ({h}, {w}, 3) (the target's frame size), "
                                  f"got {bg.dtype} {bg.shape}")
@@ -83,7 +85,6 @@ class EriRenderer(Renderer):
             raise FacesynthError(f"background: {len(bg)} frames for a batch of {len(crops)}")
         f = self.feather if feather is None else float(feather)
         return np.stack([
-            composite(crop_rgb(crops, i), masks[i, 0], places[i].astype(np.float64),
-                      bg[i] if bg.ndim == 4 else bg, f)
+            blend_rendered(crops, masks, places, bg[i] if bg.ndim == 4 else bg, i, feather=f, still=True)
             for i in range(len(crops))
         ])

@@ -7,7 +7,7 @@ Control points, all placed on the avatar's neutral face (its iBUG-68 view; :func
 * a ring round the head (ears, over the hair), neck points below the jaw and an outer
   ring, in the face's own units (origin between the eyes, unit the outer-eye-corner
   distance, the face's axes); the rings' size is the warp's ``ring_scale`` times
-  ``HEAD_AXES``, per avatar (a slick bun and a mane differ: :mod:`facesynth.runtime.headmotion`
+  ``HEAD_AXES``, per avatar (a slick bun and a mane differ: :mod:`facesynth.onnx.headmotion`
   chooses it on the avatar's own video);
 * anchors along the frame border.
 
@@ -22,7 +22,7 @@ warp's ``motion``: by default ``w`` and ``PARALLAX w`` (:meth:`FrameWarp.prior`)
 ``w`` is 1 on the head's ring, falls off linearly outside it, more so below the chin, and is
 0 at the shoulders and on the frame's border away from the head (:func:`motion_weight`); an
 exported model carries its own, learned from the avatar's video
-(:mod:`facesynth.runtime.headmotion`).
+(:mod:`facesynth.onnx.headmotion`).
 
 Anchors on the left, right and bottom sides only slide along them (the bottom corners stay):
 where a chin or shoulder reaches the bottom, the edge follows the head along it, never
@@ -186,7 +186,7 @@ class FrameWarp:
     (any registered scheme; the iBUG-68 view is used); method : "affine" (default) or "tps";
     motion : float (K - 68, 2) per control point besides the landmarks, the share of the
     head's motion ``S`` and of the parallax term ``d`` it follows (default :meth:`prior`,
-    ``w`` and ``PARALLAX w``; :mod:`facesynth.runtime.headmotion` learns them from the
+    ``w`` and ``PARALLAX w``; :mod:`facesynth.onnx.headmotion` learns them from the
     avatar's video); ring_scale : the head's ellipse, ring and falloff, this times its
     default size (:func:`head_points`; headmotion chooses it per avatar).
 

@@ -27,13 +27,13 @@ from typing import Iterator
 
 import numpy as np
 
+from facesynth.compositing import STILL_FEATHER, blend_rendered
 from facesynth.contract import TALKING_HEAD_FORMAT
 from facesynth.errors import FacesynthError
-from facesynth.imaging import STILL_FEATHER
 from facesynth.landmarks import get_scheme
 from facesynth.retarget import RETARGET_SCHEMES
 from facesynth.runtime.reenact import Avatar, Reenactor, reenact_frames
-from facesynth.runtime.renderer import Renderer, composite_face, read_metadata
+from facesynth.runtime.renderer import Renderer, read_metadata
 from facesynth.runtime.talking_head import TalkingHead
 
 
@@ -51,7 +51,7 @@ def render_frames(renderer, landmarks: np.ndarray, background: np.ndarray, feath
         else:
             rendered = renderer.render(lm[None])
             t1 = time.perf_counter()
-            frame = composite_face(*rendered, background, feather)
+            frame = blend_rendered(*rendered, background, feather=feather, still=True)
             if latencies is not None:
                 latencies.append((t1 - t0, time.perf_counter() - t0))
         yield frame

@@ -11,7 +11,7 @@ The driver's neutral is given (``driver_neutral``), or taken from the first
 that many frames have arrived, from the frames seen so far). Retargeting is
 :class:`facesynth.retarget.Retargeter`; the avatar's own frame is warped so that its whole
 head follows the face (:class:`facesynth.runtime.fullframe.FrameWarp`), and the rendered
-face is composited into that warped frame (:func:`facesynth.runtime.blend.blend_face`).
+face is composited into that warped frame (:func:`facesynth.compositing.blend_face`).
 """
 
 from __future__ import annotations
@@ -22,15 +22,12 @@ import time
 import cv2
 import numpy as np
 
+from facesynth.compositing import GREY, blend_rendered
 from facesynth.errors import FacesynthError
-from facesynth.neutral import select_neutral
+from facesynth.neutral import NEUTRAL_FRAMES, OnlineNeutral, select_neutral
 from facesynth.retarget import MOTIONS, Retargeter, ShapeSpace, retarget_scheme
-from facesynth.runtime.blend import blend_rendered
 from facesynth.runtime.fullframe import RING_SCALE, FrameWarp, checked_ring_scale
 from facesynth.runtime.renderer import Renderer
-
-GREY = 128
-NEUTRAL_FRAMES = 30  # one second of a 30 fps driver: long enough to meet a closed-mouth frame
 
 
 class Avatar:
@@ -122,7 +119,7 @@ class Reenactor:
     background : uint8 (H, W, 3), optional; default the avatar's own frame from the
         metadata, else grey of the driver's landmark extent
     feather : soft edge in the rendered crop's pixels (default: 4% of the face,
-        :func:`facesynth.runtime.blend.blend_face`), match_colour : seam colour matching
+        :func:`facesynth.compositing.blend_face`), match_colour : seam colour matching
     full_frame : warp the avatar's own frame so that the whole head follows the face, and
         composite into that (default: when no ``background`` is given and the metadata has the
         avatar's neutral and frame); False pastes the face into the still ``background``
@@ -134,15 +131,13 @@ class Reenactor:
                  threads: int = 1, full_frame: bool | None = None, warp: str = "affine"):
         if motion not in MOTIONS:
             raise FacesynthError(f"motion must be one of {MOTIONS}, got {motion!r}")
-        if int(neutral_frames) < 1:
-            raise FacesynthError(f"neutral_frames must be >= 1, got {neutral_frames}")
+        online = OnlineNeutral(neutral_frames)  # checks neutral_frames, before the model is loaded
         self.renderer = model if isinstance(model, Renderer) else Renderer(model, threads=threads)
         self.avatar = Avatar(self.renderer.metadata, str(self.renderer.path))
         self.motion = motion
         self.neutral_frames = int(neutral_frames)
         self.feather, self.match_colour = feather, match_colour
-        self._seen: list[np.ndarray] = []  # driver frames collected while choosing its neutral
-        self._collecting = driver_neutral is None
+        self._online = online if driver_neutral is None else None  # choosing the driver's neutral
         self._retarget: Retargeter | None = None
         self.last_model_s = 0.0  # seconds of the last model call
         if motion == "relative":
@@ -173,11 +168,8 @@ class Reenactor:
         lm = lm[0]
         if self.motion == "absolute":
             return lm
-        if self._collecting:  # no neutral given: choose among the frames seen so far
-            self._seen.append(lm)
-            self._set_neutral(self._seen[select_neutral(np.stack(self._seen))[0]])
-            if len(self._seen) >= self.neutral_frames:
-                self._collecting, self._seen = False, []
+        if self._online is not None and self._online.choosing:  # no neutral given: chosen online
+            self._set_neutral(self._online.see(lm))
         return self._retarget.one(lm.astype(np.float64)).astype(np.float32)
 
     def step(self, landmarks) -> tuple[np.ndarray, np.ndarray]:

@@ -16,9 +16,9 @@ import numpy as np
 import onnxruntime as ort
 
 from facesynth import __version__
+from facesynth.compositing import STILL_FEATHER, blend_rendered
 from facesynth.contract import FORMAT_HINTS, OUTPUT_NAMES, SYNTHESIS_FORMAT, SYNTHESIS_INPUT
 from facesynth.errors import FacesynthError
-from facesynth.imaging import STILL_FEATHER, composite, crop_rgb
 from facesynth.landmarks import SCHEMES, scheme_for_points
 from facesynth.runtime.checks import (
     as_array,
@@ -103,6 +103,7 @@ class Renderer:
     """
 
     format = SYNTHESIS_FORMAT
+    older_formats: tuple[str, ...] = ()  # earlier versions of the format this class still reads
     input_name = SYNTHESIS_INPUT
     kind_name = "synthesis"
 
@@ -115,7 +116,7 @@ class Renderer:
         self.metadata = _decode(self.session.get_modelmeta().custom_metadata_map)
         where = str(self.path)
         fmt = self.metadata.get("format")
-        if fmt != self.format:
+        if fmt != self.format and fmt not in self.older_formats:
             hint = f" ({FORMAT_HINTS[fmt]})" if fmt in FORMAT_HINTS else ""
             raise FacesynthError(f"{where}: not a facesynth {self.kind_name} model (format {fmt!r}, expected {self.format!r}){hint}")
         name = self.metadata.get("landmark_scheme")
@@ -213,7 +214,7 @@ class Renderer:
         """One face composited into a frame.
 
         landmarks : (P, 2) frame pixels; background : uint8 (H, W, 3) RGB.
-        Returns uint8 (H, W, 3) (see :func:`facesynth.imaging.composite`).
+        Returns uint8 (H, W, 3) (see :func:`facesynth.compositing.composite`).
         """
         bg = np.asarray(background)
         if bg.dtype != np.uint8 or bg.ndim != 3 or bg.shape[2] != 3:
@@ -221,14 +222,7 @@ class Renderer:
         x = self.validate(landmarks)
         if len(x) != 1:
             raise FacesynthError(f"render_frame: one face at a time, got a batch of {len(x)}")
-        return composite_face(*self.render(x), bg, feather)
+        return blend_rendered(*self.render(x), bg, feather=feather, still=True)
 
 
-def composite_face(crops, masks, placements, background: np.ndarray, feather: float = STILL_FEATHER,
-                   i: int = 0) -> np.ndarray:
-    """Face ``i`` of :meth:`Renderer.render`'s (crops, masks, placements) composited into
-    ``background`` (uint8 (H, W, 3) RGB) -> uint8 (H, W, 3) (:func:`facesynth.imaging.composite`)."""
-    return composite(crop_rgb(crops, i), masks[i, 0], placements[i].astype(np.float64), background, feather)
-
-
-__all__ = ["Renderer", "composite_face", "read_metadata", "__version__"]
+__all__ = ["Renderer", "read_metadata", "__version__"]

@@ -38,9 +38,9 @@ from facesynth.contract import (
 from facesynth.errors import FacesynthError
 from facesynth.landmarks import get_scheme
 from facesynth.metrics import psnr
-from facesynth.neutral import select_neutral
+from facesynth.neutral import NEUTRAL_FRAMES, OnlineNeutral
 from facesynth.runtime.checks import check_coordinate_range, check_face_extent, check_metadata_size, check_outputs
-from facesynth.runtime.reenact import NEUTRAL_FRAMES, Avatar
+from facesynth.runtime.reenact import Avatar
 from facesynth.runtime.renderer import _decode, _session, check_batch
 
 # The first run's frame against the avatar's own neutral frame, PSNR over the box of its neutral
@@ -123,8 +123,8 @@ class TalkingHead:
         self.last_model_s = 0.0  # seconds of the last ONNX Runtime call
         self._first_run()
         self.neutral_frames = int(neutral_frames)
-        self._seen: list[np.ndarray] = []  # driver frames collected while choosing its neutral
-        self._collecting = driver_neutral is None
+        online = OnlineNeutral(neutral_frames)  # checks neutral_frames either way
+        self._online = online if driver_neutral is None else None  # choosing the driver's neutral
         self.driver_neutral = None
         if driver_neutral is not None:
             self.use_neutral(driver_neutral)
@@ -187,10 +187,7 @@ class TalkingHead:
     def step(self, landmarks) -> tuple[np.ndarray, np.ndarray]:
         """One (P, 2) driver frame -> (uint8 (H, W, 3) frame, float32 (P, 2) avatar landmarks)."""
         lm = self._points(np.asarray(landmarks)[None], "driver landmarks")
-        if self._collecting:  # no neutral given: choose among the frames seen so far
-            self._seen.append(lm[0])
-            self.driver_neutral = self._seen[select_neutral(np.stack(self._seen))[0]]
-            if len(self._seen) >= self.neutral_frames:
-                self._collecting, self._seen = False, []
+        if self._online is not None and self._online.choosing:  # no neutral given: chosen online
+            self.driver_neutral = self._online.see(lm[0])
         frames, avatar = self.run(lm)
         return frames[0], avatar[0]

@@ -14,6 +14,7 @@ import cv2
 import numpy as np
 
 from facesynth.errors import FacesynthError, MissingExtraError
+from facesynth.sheet import grid
 from facesynth.videofile import raise_unless_space
 
 
@@ -85,13 +86,12 @@ def fit_into(image: np.ndarray, size: tuple[int, int]) -> np.ndarray:
 
 
 def contact_sheet(top: list[np.ndarray], bottom: list[np.ndarray], width: int = 240) -> np.ndarray:
-    """Two rows of thumbnails (uint8 RGB): drivers above renderings."""
+    """Two rows of thumbnails (uint8 RGB): drivers above renderings (:func:`facesynth.sheet.grid`)."""
     def thumb(img):
         h, w = img.shape[:2]
         return cv2.resize(img, (width, int(round(h * width / w))), interpolation=cv2.INTER_AREA)
 
-    rows = [np.concatenate([thumb(i) for i in r], 1) for r in (top, bottom)]
-    return np.concatenate(rows, 0)
+    return grid([[thumb(i) for i in r] for r in (top, bottom)])
 
 
 def write_image(tmp: Path, rgb: np.ndarray, name: str | os.PathLike) -> None:

@@ -1,5 +1,5 @@
 """Fitting a shape-appearance dependence mapping (SADM) on a face model, and its artifact
-(the run directory's part of it; the whole layout is :mod:`facesynth.runs.rundir`)::
+(the run directory's part of it; the whole layout is :mod:`facesynth.rundir`)::
 
     RUN/face_model/         the face model artifact (facesynth.model.artifact)
     RUN/sadm/sadm.json      regressor name + hyper-parameters, SADM settings, provenance

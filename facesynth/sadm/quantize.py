@@ -118,7 +118,7 @@ def quantize_synthesizer(syn: Synthesizer, landmarks: np.ndarray | None = None,
     syn : Synthesizer with a :class:`GlobalAppearance` (compressed or not) and finite limits
     landmarks : (N, P, 2) frame landmarks (the synthesizer's scheme) to measure the effect on (the training frames), optional
     levels : weight codes in [-levels, levels]; the default is exact on every CPU (a larger
-      range reproduces older files, for comparison: ``bench/bench_int8.py``)
+      range reproduces older files, for comparison: ``bench/export/int8.py``)
 
     Returns
     -------

@@ -16,15 +16,18 @@ def add_arguments(parser) -> None:
 
 
 def run(args) -> int:
+    from facesynth import progress
     from facesynth.runtime.talking_head import check_talking_head_file
     from facesynth.web.site import build_site, check_avatar, check_site_folder, ort_dist, setup_npm
 
     if args.action == "setup":
-        print(setup_npm())
+        where = setup_npm()
+        progress.result(str(where), {"packages": str(where)})
         return 0
     check_site_folder(args.out, args.model)  # before any work: the user's files are never replaced
     check_avatar(args.model)  # a face model is named as such, with the export that makes its talking head
     ort_dist()
     check_talking_head_file(args.model)  # its graph against the contract, a first run on its own neutral
-    print(build_site(args.model, args.out))
+    site = build_site(args.model, args.out)
+    progress.result(str(site), {"out": str(site)})
     return 0

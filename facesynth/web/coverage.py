@@ -27,7 +27,7 @@ fill a direction). A prompt's coverage is the mean of its directions' coverage o
 direction's coverage on all its frames. The targets are set by hand (a wide-open mouth opens by
 about a third of the eye-corner distance). Across the shared clips the measure ranks clips
 opposite to their held-out PSNR (lively clips are both well covered and hard to render:
-``bench/coverage_heldout.py``, docs/studio.md): it says what a recording lacks, not how well its
+``bench/studies/coverage_heldout.py``, docs/studio.md): it says what a recording lacks, not how well its
 avatar will score.
 """
 

@@ -147,7 +147,7 @@ def run_job(work: str, overrides: list[str], min_frames: int, min_face: float, q
 
         t = time.perf_counter()
         report("export", 0.0)
-        from facesynth.onnx.cli import export_talking_head_model
+        from facesynth.onnx.export import export_talking_head_model
 
         export = export_talking_head_model("run", "avatar.onnx")
         timings["export"] = time.perf_counter() - t

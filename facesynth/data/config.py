@@ -1,0 +1,25 @@
+"""The data a training run names (``data.*`` of ``train.py``'s config): a stage's config
+dataclass, as :class:`facesynth.eri.config.EriConfig` is ERI's, so that the run folder's
+reader (:mod:`facesynth.rundir`) checks it below the training layer."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Optional
+
+from facesynth.data.splits import TRAIN_FRACTION
+
+
+@dataclass
+class DataConf:
+    """kind: 'synthetic' (the embedded default subject) or 'video' (``path``: a folder in
+    the ingest layout, a folder of images + .pts, or .npy/.npz). Temporal split:
+    the first ``train_fraction`` trains, the rest (after ``gap`` frames) tests."""
+
+    kind: str = "synthetic"
+    path: Optional[str] = None
+    n_frames: int = 240
+    size: int = 256
+    max_frames: Optional[int] = None
+    train_fraction: float = TRAIN_FRACTION
+    gap: int = 0
