@@ -40,6 +40,8 @@ def brute_force(bank, k, strength, texture, aligned):
         w = np.maximum(0, 1 / (d[order[:k]] + 1e-12) - 1 / (d[order[k]] + 1e-12))
         w /= w.sum()
         add = (w[:, None] * high[order[:k]]).sum(0).reshape(texture.shape[1], len(cols))
+        if bank.get("detail_replace", [False])[0]:  # a texture bank: towards the frames' own pixels
+            add = add - out[b][:, cols]
         out[b][:, cols] += strength * add
     return np.clip(out, 0, 1)
 
@@ -52,6 +54,9 @@ def test_retrieval_equals_a_brute_force_nearest_neighbour():
     for k, s in ((1, 1.0), (4, 0.5), (7, 1.0)):
         got = DetailTransfer(bank, k, s, 50)(torch.from_numpy(tex), torch.from_numpy(aligned)).numpy()
         assert got == pytest.approx(brute_force(bank, k, s, tex, aligned), abs=1e-5)
+    texture_bank = {**bank, "detail_replace": np.asarray([True])}
+    got = DetailTransfer(texture_bank, 4, 0.5, 50)(torch.from_numpy(tex), torch.from_numpy(aligned)).numpy()
+    assert got == pytest.approx(brute_force(texture_bank, 4, 0.5, tex, aligned), abs=1e-5)
     # pixels outside the bank's columns are untouched
     got = DetailTransfer(bank, 4, 1.0, 50)(torch.from_numpy(tex), torch.from_numpy(aligned)).numpy()
     out = np.setdiff1d(np.arange(50), bank["detail_columns"])

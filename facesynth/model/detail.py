@@ -23,6 +23,10 @@ where the shape says which frames look alike:
   it is that frame's detail.
 * **Blend.** ``texture + detail * sum_i w_i high_i`` on the parts' pixels (clipped to [0, 1]):
   the regressor gives the coarse band, the subject's retrieved frames the fine one.
+  ``detail_band`` picks what the bank holds: ``high`` (the high band above), ``residual``
+  (the texture minus its appearance-PCA reconstruction: what the PCA cannot hold) or
+  ``texture`` (the frames' own pixels; the blend then moves the prediction towards their
+  weighted mean, ``texture + detail * (sum_i w_i t_i - texture)``).
 
 :class:`DetailTransfer` is the torch form (TopK, Gather over the int8 bank, a batched matmul,
 one Gather that spreads the parts' pixels over the texture) used by the synthesiser, the

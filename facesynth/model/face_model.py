@@ -73,7 +73,7 @@ class FaceModelConfig:
     detail: float = 0.0
     detail_k: int = 4
     detail_parts: str = "mouth"  # "mouth" (interior and lips), "mouth+eyes" or "face"
-    detail_band: str = "high"  # "high" (texture - blur) or "residual" (texture - its appearance-PCA reconstruction)
+    detail_band: str = "high"  # "high" (texture - blur), "residual" (- its PCA reconstruction), "texture" (blend to it)
     detail_sigma: float = 2.0  # the high band's Gaussian, px at a 128 px reference (scaled with its width)
 
 
