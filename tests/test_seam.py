@@ -1,8 +1,8 @@
-"""The seam of the composite (runtime.blend.seam_layers) against an independent erosion
+"""The seam of the composite (compositing.seam_layers) against an independent erosion
 (scipy), the talking-head graph's tensor form (onnx.head_parts.SeamGraph) against it (its
 layers, and its whole composite in torch and in ONNX Runtime against blend_face), a face that
 reaches the crop's edge fading out there instead of ending in a line, and the placed alpha
-(runtime.blend.placed_alpha) as the weight blend_face gives the face."""
+(compositing.placed_alpha) as the weight blend_face gives the face."""
 
 from __future__ import annotations
 

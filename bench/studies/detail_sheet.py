@@ -56,13 +56,25 @@ def main() -> None:
     ap.add_argument("--out", required=True)
     ap.add_argument("--frames", type=int, default=4)
     ap.add_argument("--quality", type=int, default=80)
+    ap.add_argument("--detail", nargs="+", type=float, default=None,
+                    help="per run: the example-based detail's strength, its bank fitted on the run's training frames "
+                         "as bench_detail.py does (0: the run as trained)")
+    ap.add_argument("--set", action="append", default=[], help="KEY=VALUE of model.detail_* for the banks")
     a = ap.parse_args()
     if len(a.labels) != len(a.runs):
         raise SystemExit("error: give one --labels entry per run")
     seq, _, te = run_data(read_config(a.runs[0]))
     lm_te = seq.landmarks[te][:, :68]
     chosen = pick(lm_te, a.frames)
-    syns = [load_sadm(r).synthesizer() for r in a.runs]
+    syns = []
+    for r, strength in zip(a.runs, a.detail or [0.0] * len(a.runs), strict=True):
+        sadm = load_sadm(r)
+        if strength > 0:
+            from bench_detail import attach_bank, parse_settings
+
+            rseq, tr, _ = run_data(read_config(r))
+            attach_bank(sadm, rseq, tr, parse_settings(a.set), strength)
+        syns.append(sadm.synthesizer())
     rows, info = [], []
     for pos, why in chosen:
         row = int(te[pos])

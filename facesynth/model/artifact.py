@@ -14,6 +14,7 @@ from facesynth.artifact import manifest_field, read_tensors, rebuild, save_artif
 from facesynth.artifact import read_manifest as _read_manifest
 from facesynth.errors import FacesynthError
 from facesynth.landmarks import SCHEMES, get_scheme
+from facesynth.model.detail import BANK_TENSORS, check_bank
 from facesynth.model.face_model import FaceModel, FaceModelConfig
 from facesynth.model.pca import PCAModel
 from facesynth.model.reference import ReferenceFrame
@@ -44,6 +45,8 @@ def save_face_model(model: FaceModel, directory: str | os.PathLike, extra: dict 
         denoise = {"denoise_total_variance": model.denoise_pca.total_variance}
     if model.restore_kernel is not None:  # absent: no restoration filter
         tensors["restore_kernel"] = np.asarray(model.restore_kernel, np.float32)
+    if model.detail_bank is not None:  # absent: no example-based detail
+        tensors.update(model.detail_bank)
     return save_artifact(directory, TENSORS, MANIFEST, tensors, {
         "landmark_scheme": model.scheme,
         "reference_size": list(model.reference.size),
@@ -94,6 +97,7 @@ def load_face_model(directory: str | os.PathLike) -> FaceModel:
                 t["denoise_mean"], t["denoise_components"], t["denoise_eigenvalues"],
                 float(manifest_field(manifest, "denoise_total_variance", where))),
             restore_kernel=t.get("restore_kernel"),
+            detail_bank={k: t[k] for k in BANK_TENSORS} if BANK_TENSORS[0] in t else None,
         )
         check_face_model(model)
         return model
@@ -140,6 +144,8 @@ def check_face_model(model: FaceModel) -> None:
     check_pca(model.appearance_pca, "appearance PCA", model.n_channels * model.n_pixels)
     if model.denoise_pca is not None:
         check_pca(model.denoise_pca, "denoise PCA", 2 * n_points)
+    if model.detail_bank is not None:
+        check_bank(model.detail_bank, n_points, model.n_channels, model.n_pixels)
     k = model.restore_kernel
     if k is not None and (k.ndim != 2 or k.shape[0] != k.shape[1] or k.shape[0] % 2 != 1):
         raise ValueError(f"restore_kernel: expected an odd square (k, k) kernel, got {k.shape}")

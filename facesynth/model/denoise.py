@@ -44,3 +44,21 @@ class ShapeDenoiser(nn.Module):
 def shape_denoiser(pca: PCAModel | None) -> nn.Module:
     """:class:`ShapeDenoiser` of ``pca``, or the identity when there is none."""
     return nn.Identity() if pca is None else ShapeDenoiser(pca)
+
+
+def denoise_model(aligned: np.ndarray, variance: float, free: np.ndarray) -> PCAModel:
+    """The denoiser's subspace over (N, P, 2) aligned training shapes: their PCA keeping
+    ``variance``, widened by every coordinate of the ``free`` points (an orthonormal basis of
+    both), so that the projection leaves those points as they are and fits the PCA's modes
+    to the others. Eigenvalues: the training shapes' variance along each basis vector."""
+    x = aligned.reshape(len(aligned), -1).astype(np.float64)
+    pca = PCAModel.fit(x, None, variance)
+    if len(free) == 0:
+        return pca
+    cols = np.stack([2 * np.asarray(free), 2 * np.asarray(free) + 1], 1).reshape(-1)
+    unit = np.zeros((len(cols), x.shape[1]))
+    unit[np.arange(len(cols)), cols] = 1.0
+    q, _ = np.linalg.qr(np.concatenate([pca.components.astype(np.float64), unit]).T)  # (2P, K + 2F)
+    comps = q.T.astype(np.float32)
+    ev = ((x - pca.mean) @ comps.T.astype(np.float64)).var(0, ddof=1)
+    return PCAModel(pca.mean, comps, ev, pca.total_variance)

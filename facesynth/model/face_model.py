@@ -20,6 +20,8 @@ from facesynth.data.sequence import FaceSequence, validate_landmarks
 from facesynth.errors import FacesynthError
 from facesynth.geometry import apply_affine, invert_affine, similarity_fit
 from facesynth.landmarks import DEFAULT_SCHEME, folded_triangles, get_scheme
+from facesynth.model.denoise import denoise_model
+from facesynth.model.detail import check_detail, fit_detail_bank
 from facesynth.model.pca import PCAModel
 from facesynth.model.procrustes import generalised_procrustes
 from facesynth.model.reference import ReferenceFrame, open_mouth, reference_width, subset_triangulation
@@ -66,6 +68,13 @@ class FaceModelConfig:
     # regressor inputs only; faster to render, docs/runtime.md); no effect on ibug68
     warp_points: str = "mesh"
     restore: bool = False  # fit a restoration filter on the training frames (model/restore.py)
+    # example-based detail (model/detail.py): the strength (0 = off, no bank; 1 = full) of the
+    # high band of the k training frames nearest in shape, added on ``detail_parts``
+    detail: float = 0.0
+    detail_k: int = 4
+    detail_parts: str = "mouth"  # "mouth" (interior and lips), "mouth+eyes" or "face"
+    detail_band: str = "high"  # "high" (texture - blur), "residual" (- its PCA reconstruction), "texture" (blend to it)
+    detail_sigma: float = 2.0  # the high band's Gaussian, px at a 128 px reference (scaled with its width)
 
 
 # The settings whose default depends on the landmark scheme (config None): a dense mesh (a
@@ -91,24 +100,6 @@ def resolved(cfg: "FaceModelConfig", scheme_name: str, name: str):
     """Config field ``name``, or its scheme default when None."""
     v = getattr(cfg, name)
     return scheme_default(scheme_name, name) if v is None else v
-
-
-def denoise_model(aligned: np.ndarray, variance: float, free: np.ndarray) -> PCAModel:
-    """The denoiser's subspace over (N, P, 2) aligned training shapes: their PCA keeping
-    ``variance``, widened by every coordinate of the ``free`` points (an orthonormal basis of
-    both), so that the projection leaves those points as they are and fits the PCA's modes
-    to the others. Eigenvalues: the training shapes' variance along each basis vector."""
-    x = aligned.reshape(len(aligned), -1).astype(np.float64)
-    pca = PCAModel.fit(x, None, variance)
-    if len(free) == 0:
-        return pca
-    cols = np.stack([2 * np.asarray(free), 2 * np.asarray(free) + 1], 1).reshape(-1)
-    unit = np.zeros((len(cols), x.shape[1]))
-    unit[np.arange(len(cols)), cols] = 1.0
-    q, _ = np.linalg.qr(np.concatenate([pca.components.astype(np.float64), unit]).T)  # (2P, K + 2F)
-    comps = q.T.astype(np.float32)
-    ev = ((x - pca.mean) @ comps.T.astype(np.float64)).var(0, ddof=1)
-    return PCAModel(pca.mean, comps, ev, pca.total_variance)
 
 
 @dataclass
@@ -150,6 +141,7 @@ class FaceModel:
     scheme: str = DEFAULT_SCHEME.name
     denoise_pca: PCAModel | None = None
     restore_kernel: np.ndarray | None = None  # float32 (k, k): every render's restoration filter (model/restore.py)
+    detail_bank: dict | None = None  # name -> array (model/detail.py BANK_TENSORS); None: no example-based detail
 
     # ------------------------------------------------------------------ fitting
     @classmethod
@@ -179,6 +171,7 @@ class FaceModel:
             raise FacesynthError(f"model.denoise_variance must be a fraction in (0, 1] (1 = off), got {cfg.denoise_variance}")
         if not 0 <= mouth_q <= 1:
             raise FacesynthError(f"model.reference_mouth_quantile must lie in [0, 1] (0 = off), got {cfg.reference_mouth_quantile}")
+        check_detail(cfg)
         if cfg.warp_points not in WARP_POINTS:
             raise FacesynthError(f"model.warp_points must be one of {WARP_POINTS}, got {cfg.warp_points!r}")
         aligned, mean = generalised_procrustes(lm)
@@ -208,12 +201,15 @@ class FaceModel:
         model.appearance_pca = PCAModel.fit(textures, cfg.n_appearance, cfg.appearance_variance)
         t3 = time.perf_counter()
         model.restore_kernel, restore = fit_restoration(model, seq, rows, textures) if cfg.restore else (None, {})
+        t4 = time.perf_counter()
+        model.detail_bank, detail = fit_detail_bank(model, seq.landmarks[rows], textures) if cfg.detail > 0 else (None, {})
         model.meta = {
             "train_frames": int(len(rows)),
             "fit_seconds": {"shape": t1 - t0, "textures": t2 - t1, "appearance_pca": t3 - t2},
             "sequence": seq.name,
             "triangles_folded_on_mean": folded,
-            "reference_mouth": mouth, **({"restore": {**restore, "seconds": time.perf_counter() - t3}} if restore else {}),
+            "reference_mouth": mouth, **({"restore": {**restore, "seconds": t4 - t3}} if restore else {}),
+            **({"detail": {**detail, "seconds": time.perf_counter() - t4}} if detail else {}),
         }
         log.info("face model: %d shape / %d appearance components (%.1f%% / %.1f%% variance), %d mask pixels",
                  shape_pca.n_components, model.appearance_pca.n_components, 100 * shape_pca.explained_variance_ratio,

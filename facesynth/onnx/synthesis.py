@@ -73,6 +73,7 @@ class SynthesisGraph(nn.Module):
         self.appearance = syn.appearance
         self.warp = syn.warp
         self.denoise = syn.denoise
+        self.detail = getattr(syn, "detail", None)  # the example-based detail (model/detail.py), or None
         # both similarity alignments (to the model's mean shape and to the reference frame) in one solve
         self.align = SimilarityAlignment([enc.mean_shape.double().numpy(), syn.ref_points.double().numpy()])
         # shape parameters: (aligned - mean) @ P^T = aligned @ P^T - mean @ P^T
@@ -108,6 +109,8 @@ class SynthesisGraph(nn.Module):
             tex = tex.reshape(-1, self.channels, self.n_tex)
         else:
             tex = torch.clamp(self.appearance(aligned, b_s, full) if self.gaze else self.appearance(aligned, b_s), 0.0, 1.0)
+        if self.detail is not None:  # in the reference frame, before the warp (model/detail.py)
+            tex = self.detail(tex, aligned)
         crop, mask = self.warp(tex, canvas)
         return crop, mask, self.align.placement(ab, mu, 1)  # canvas px -> frame px
 

@@ -26,6 +26,7 @@ from torch import nn
 from facesynth.errors import FacesynthError
 from facesynth.landmarks import get_scheme
 from facesynth.model.denoise import shape_denoiser
+from facesynth.model.detail import DetailTransfer
 from facesynth.model.face_model import FaceModel
 from facesynth.model.warp import ToTarget, apply_affine_t, invert_affine_t, similarity_to
 from facesynth.regressors.base import Regressor
@@ -181,6 +182,15 @@ class GlobalAppearance(nn.Module):
         return tex.reshape(tex.shape[0], self.channels, -1)
 
 
+def detail_transfer(model: FaceModel, strength: float | None = None) -> DetailTransfer | None:
+    """The face model's example-based detail (:mod:`facesynth.model.detail`) at ``strength``
+    (default: its ``detail`` setting); None without a bank or at strength 0."""
+    s = float(model.config.detail if strength is None else strength)
+    if model.detail_bank is None or s <= 0:
+        return None
+    return DetailTransfer(model.detail_bank, model.config.detail_k, s, model.n_pixels)
+
+
 class Synthesizer(nn.Module):
     """The whole synthesis graph.
 
@@ -204,6 +214,7 @@ class Synthesizer(nn.Module):
         self.encoder = ShapeEncoder(model, clamp_shape)
         self.appearance = appearance
         self.warp = ToTarget(model.reference, model.span, restore=model.restore_kernel)
+        self.detail = detail_transfer(model)
         # FaceModel.denoise on the model's points, the rest as given (identity without a denoise PCA)
         self.denoise = shape_denoiser(model.denoise_pca)
         self.register_buffer("ref_points", torch.from_numpy(model.reference.points.copy()))
@@ -226,8 +237,10 @@ class Synthesizer(nn.Module):
     def _texture(self, landmarks: torch.Tensor) -> torch.Tensor:
         aligned, b_s = self.encoder(self.model_landmarks(landmarks))
         if getattr(self.appearance, "needs_landmarks", False):
-            return torch.clamp(self.appearance(aligned, b_s, landmarks), 0.0, 1.0)
-        return torch.clamp(self.appearance(aligned, b_s), 0.0, 1.0)
+            tex = torch.clamp(self.appearance(aligned, b_s, landmarks), 0.0, 1.0)
+        else:
+            tex = torch.clamp(self.appearance(aligned, b_s), 0.0, 1.0)
+        return tex if self.detail is None else self.detail(tex, aligned)
 
     def forward(self, landmarks: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         landmarks = self.denoise(landmarks)

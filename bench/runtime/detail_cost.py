@@ -1,0 +1,126 @@
+"""What the example-based detail costs the exported graphs, interleaved in one run; one JSON line.
+
+    OMP_NUM_THREADS=1 python bench/bench_detail_cost.py [--avatar lp_d3] [--driver lp_d6] [--frames 60]
+
+Per variant (``--variant NAME=KEY=VALUE[,KEY=VALUE...]`` of the face model's settings; default:
+``today`` (no setting), ``detail`` (``detail=1``), ``auto_restore_detail``
+(``reference_width=auto,restore=true,detail=1``)): a linear model of the first 75 % of the
+avatar's clip (every 3rd frame, as ``bench_talking_head_graph.py`` builds it), exported as the
+face-only synthesis file and as the talking-head file. Timing: ONNX Runtime, one intra-op
+thread, batch 1, every variant's two graphs and the floor at its reference size
+(``bench_render_floor.floor_step``: one 40-component matmul and one bilinear remap) called in
+turn frame by frame; medians of wall time. ``face_over_floor``: the face-only graph's time over
+the floor's; ``head_fps``: the talking head's frames/s at the avatar video's size. Also per
+variant: the files' sizes, the bank's size (face model meta), and the largest difference
+(0-255) between the talking-head file and its torch graph on the timed frames.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from bench.runtime.render_floor import floor_step
+from facesynth.data import load_sequence, temporal_split
+from facesynth.data.shared import shared_data_dir
+from facesynth.model import FaceModel, FaceModelConfig
+from facesynth.onnx.avatar import avatar_metadata
+from facesynth.onnx.synthesis import export_synthesizer
+from facesynth.onnx.talking_head import TalkingHeadGraph, export_talking_head
+from facesynth.regressors import REGISTRY
+from facesynth.runtime import Renderer
+from facesynth.runtime.reenact import Avatar, driver_neutral_of
+from facesynth.runtime.talking_head import TalkingHead
+from facesynth.sadm.synthesis import GlobalAppearance, Synthesizer
+
+
+def parse(v: str):
+    return {"true": True, "false": False}.get(v, v if not v.replace(".", "", 1).isdigit() else (float(v) if "." in v else int(v)))
+
+
+def build(seq, settings: dict, work: Path, name: str):
+    train, _ = temporal_split(len(seq))
+    rows = train[::3]
+    t0 = time.perf_counter()
+    model = FaceModel.fit(seq, FaceModelConfig(**settings), rows=rows, progress=False)
+    x = model.shape_params(seq.landmarks[rows], clamp=True)
+    y = model.appearance_params(model.sample_textures(seq, rows), clamp=True)
+    syn = Synthesizer(model, GlobalAppearance(model, REGISTRY["linear"].fit(x, y, seed=0))).eval()
+    fit_s = time.perf_counter() - t0
+    meta = avatar_metadata(syn, seq.landmarks[train], train, seq)
+    face, head = work / f"{name}_face.onnx", work / f"{name}_head.onnx"
+    export_synthesizer(syn, face, meta)
+    export_talking_head(syn, meta, head)
+    return model, syn, meta, face, head, fit_s
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--avatar", default="lp_d3")
+    ap.add_argument("--driver", default="lp_d6")
+    ap.add_argument("--frames", type=int, default=60)
+    ap.add_argument("--variant", action="append", default=[])
+    args = ap.parse_args()
+    faces = shared_data_dir() / "faces" if shared_data_dir() else None
+    if faces is None or not faces.is_dir():
+        sys.exit("bench_detail_cost: ../shared/data/faces is absent")
+    variants = {"today": {}, "detail": {"detail": 1.0},
+                "auto_restore_detail": {"reference_width": "auto", "restore": True, "detail": 1.0}}
+    if args.variant:
+        variants = {}
+        for v in args.variant:
+            name, _, kv = v.partition("=")
+            variants[name] = {k: parse(val) for k, _, val in (p.partition("=") for p in kv.split(",") if p)}
+    seq = load_sequence(faces / args.avatar)
+    lm = np.load(faces / args.driver / "landmarks.npy").astype(np.float32)
+    neutral, _ = driver_neutral_of(lm)
+    rows = [int(i) for i in np.linspace(0, len(lm) - 1, args.frames).astype(int) if np.isfinite(lm[i]).all()]
+    out = {"bench": "detail_cost", "avatar": args.avatar, "driver": args.driver, "frames": len(rows), "threads": 1, "variants": {}}
+    with tempfile.TemporaryDirectory() as tmp:
+        built = {}
+        for name, settings in variants.items():
+            model, syn, meta, face, head, fit_s = build(seq, settings, Path(tmp), name)
+            th = TalkingHead(head, driver_neutral=neutral, threads=1)
+            graph = TalkingHeadGraph(syn, Avatar(meta, str(head)), th.feather).eval()
+            built[name] = (model, syn, th, Renderer(face, threads=1), graph, floor_step(model))
+            out["variants"][name] = {"settings": settings, "reference_size": list(model.reference.size),
+                                     "face_onnx_mb": round(face.stat().st_size / 1e6, 2),
+                                     "head_onnx_mb": round(head.stat().st_size / 1e6, 2),
+                                     "bank": model.meta.get("detail"), "fit_s": round(fit_s, 1), "frame_size": list(th.frame_size)}
+        times = {n: {"head": [], "face": [], "floor": []} for n in built}
+        worst = dict.fromkeys(built, 0)
+        dn = torch.from_numpy(np.asarray(built[next(iter(built))][2].driver_neutral, np.float32))
+        for i in rows:
+            d = lm[i][None]
+            for name, (_model, _syn, th, renderer, graph, floor) in built.items():
+                t = time.perf_counter()
+                frame, face_lm = th.run(d)
+                times[name]["head"].append(time.perf_counter() - t)
+                t = time.perf_counter()
+                renderer.render(face_lm)
+                times[name]["face"].append(time.perf_counter() - t)
+                t = time.perf_counter()
+                floor(0)
+                times[name]["floor"].append(time.perf_counter() - t)
+                if i in rows[:: max(1, len(rows) // 10)]:
+                    with torch.no_grad():
+                        want, _ = graph(torch.from_numpy(d), dn)
+                    worst[name] = max(worst[name], int(np.abs(want.numpy().astype(int) - frame.astype(int)).max()))
+        for name, t in times.items():
+            ms = {k: 1e3 * float(np.median(v)) for k, v in t.items()}
+            out["variants"][name].update({"head_ms": round(ms["head"], 2), "head_fps": round(1e3 / ms["head"], 1),
+                                          "face_ms": round(ms["face"], 3), "floor_ms": round(ms["floor"], 3),
+                                          "face_over_floor": round(ms["face"] / ms["floor"], 2),
+                                          "head_torch_max_diff": worst[name]})
+    print(json.dumps(out))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,193 @@
+"""Example-based detail from the subject's own frames (``model.detail``, 0..1).
+
+A regressor fitted for squared error renders the conditional mean of the texture given the
+landmarks: the teeth, the lips' creases and the skin's grain that the points do not fix are
+averaged away. This module keeps a bank of the training frames' own detail and adds it back
+where the shape says which frames look alike:
+
+* **Bank.** At most :data:`BANK_FRAMES` evenly spaced training frames. For each, the high band
+  of its reference-frame texture, ``texture - blur(texture)`` (a Gaussian of ``sigma`` =
+  ``detail_sigma`` x reference width / 128 px, normalised inside the face mask so the border
+  does not leak in), on the pixels of the chosen parts (``detail_parts``: ``mouth`` = mouth
+  interior and lips, ``mouth+eyes``, or ``face``). Stored as int8 codes with one float scale per
+  frame (the graph's compressed texture bank), beside the key of each frame: its aligned key
+  points (the inner and outer lips; with ``eyes`` or ``face`` the eye contours too), in the
+  face model's normalised frame (the same similarity alignment as the regressor's input).
+  Since every texture lives in the reference frame, the bank is already aligned to the
+  prediction point by point through the piecewise-affine warp.
+* **Retrieval.** For an output frame's aligned shape q: the squared distances d to every key,
+  the ``k + 1`` nearest (TopK), and inverse-distance weights ``w_i = 1/d_i - 1/d_(k+1)`` over
+  the k nearest, normalised (Shepard's interpolation, cut at the (k+1)-th). A weight falls to
+  zero as its frame becomes the (k+1)-th, so the blend is a continuous function of the
+  landmarks (no popping when the nearest frames change), and at a training frame's own shape
+  it is that frame's detail.
+* **Blend.** ``texture + detail * sum_i w_i high_i`` on the parts' pixels (clipped to [0, 1]):
+  the regressor gives the coarse band, the subject's retrieved frames the fine one.
+  ``detail_band`` picks what the bank holds: ``high`` (the high band above), ``residual``
+  (the texture minus its appearance-PCA reconstruction: what the PCA cannot hold) or
+  ``texture`` (the frames' own pixels; the blend then moves the prediction towards their
+  weighted mean, ``texture + detail * (sum_i w_i t_i - texture)``).
+
+:class:`DetailTransfer` is the torch form (TopK, Gather over the int8 bank, a batched matmul,
+one Gather that spreads the parts' pixels over the texture) used by the synthesiser, the
+evaluation and both exported graphs.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import torch
+from torch import nn
+
+from facesynth.errors import FacesynthError
+from facesynth.landmarks import face_region_masks, get_scheme, ibug68_view
+
+BANK_FRAMES = 256  # training frames kept in the bank (evenly spaced)
+PARTS = {"mouth": ("mouth_interior", "lips"), "mouth+eyes": ("mouth_interior", "lips", "eyes"), "face": None}
+KEY_REGIONS = {"mouth": ("outer_lips", "inner_lips"), "mouth+eyes": ("outer_lips", "inner_lips", "eyes"),
+               "face": ("outer_lips", "inner_lips", "eyes", "brows")}
+BANDS = ("high", "residual", "texture")
+EPS = 1e-12  # added to the squared key distances (aligned shapes have unit norm: neighbours lie ~1e-5 apart)
+BANK_TENSORS = ("detail_replace", "detail_keys", "detail_codes", "detail_scale", "detail_columns", "detail_points")
+
+
+def check_detail(cfg) -> None:
+    """FacesynthError naming the first ``model.detail*`` setting out of range."""
+    if not 0 <= float(cfg.detail) <= 1:
+        raise FacesynthError(f"model.detail must lie in [0, 1] (0 = off), got {cfg.detail}")
+    if int(cfg.detail_k) < 1:
+        raise FacesynthError(f"model.detail_k must be at least 1, got {cfg.detail_k}")
+    if cfg.detail_parts not in PARTS:
+        raise FacesynthError(f"model.detail_parts must be one of {sorted(PARTS)}, got {cfg.detail_parts!r}")
+    if cfg.detail_band not in BANDS:
+        raise FacesynthError(f"model.detail_band must be one of {BANDS}, got {cfg.detail_band!r}")
+    if not float(cfg.detail_sigma) > 0:
+        raise FacesynthError(f"model.detail_sigma must be positive (px at a 128 px reference), got {cfg.detail_sigma}")
+
+
+def part_columns(model, parts: str) -> np.ndarray:
+    """int64 indices of the reference-frame mask pixels (0..M-1) of ``parts`` (:data:`PARTS`),
+    cut as :func:`facesynth.landmarks.face_region_masks` cuts the reference shape."""
+    names = PARTS[parts]
+    index = model.sampler().mask_index.numpy()
+    if names is None:
+        return np.arange(len(index), dtype=np.int64)
+    h, w = model.reference.size
+    inside = np.zeros(h * w, bool)
+    inside[index] = True
+    masks = face_region_masks(ibug68_view(np.asarray(model.reference.points, np.float64)), (h, w), within=inside.reshape(h, w))
+    keep = np.zeros(h * w, bool)
+    for n in names:
+        if n in masks:
+            keep |= masks[n].reshape(-1)
+    return np.flatnonzero(keep[index]).astype(np.int64)
+
+
+def key_points(scheme: str, parts: str) -> np.ndarray:
+    """int64 indices of the points whose aligned positions key the retrieval."""
+    sch = get_scheme(scheme)
+    return np.unique(np.concatenate([sch.region(r) for r in KEY_REGIONS[parts] if r in sch.regions])).astype(np.int64)
+
+
+def high_band(model, textures: np.ndarray, sigma: float) -> np.ndarray:
+    """(N, C * M) textures -> float32 (N, C, M): each minus its Gaussian blur (``sigma`` px,
+    normalised by the blurred mask: only face pixels are averaged)."""
+    index = model.sampler().mask_index.numpy()
+    h, w = model.reference.size
+    m = np.zeros(h * w, np.float32)
+    m[index] = 1
+    m = m.reshape(h, w)
+    den = np.maximum(cv2.GaussianBlur(m, (0, 0), sigma), 1e-6)
+    imgs = model.texture_images(textures)  # (N, H, W, C), zero outside the mask
+    out = np.empty((len(textures), imgs.shape[-1], len(index)), np.float32)
+    for i, img in enumerate(imgs):
+        low = cv2.GaussianBlur(img, (0, 0), sigma).reshape(h, w, -1) / den[..., None]
+        out[i] = (img.reshape(h, w, -1) - low).reshape(h * w, -1)[index].T
+    return out
+
+
+def fit_detail_bank(model, landmarks: np.ndarray, textures: np.ndarray) -> tuple[dict, dict]:
+    """The bank (name -> array, :data:`BANK_TENSORS`) of a face model ``model`` from its training
+    frames' (N, P, 2) ``landmarks`` and (N, C * M) ``textures``, and a report (frames, pixels,
+    bytes)."""
+    cfg = model.config
+    check_detail(cfg)
+    pick = np.unique(np.linspace(0, len(textures) - 1, min(BANK_FRAMES, len(textures))).round().astype(np.int64))
+    cols = part_columns(model, cfg.detail_parts)
+    sigma = float(cfg.detail_sigma) * model.reference.size[1] / 128.0
+    if cfg.detail_band == "residual":  # what the appearance PCA cannot hold
+        tex = np.asarray(textures[pick], np.float32)
+        pca = model.appearance_pca
+        res = tex - pca.reconstruct(pca.project(tex))
+        high = res.reshape(len(pick), model.n_channels, -1)[:, :, cols].reshape(len(pick), -1)
+    elif cfg.detail_band == "texture":  # the frames' own pixels: the blend replaces the prediction there
+        tex = np.asarray(textures[pick], np.float32)
+        high = tex.reshape(len(pick), model.n_channels, -1)[:, :, cols].reshape(len(pick), -1)
+    else:
+        high = high_band(model, textures[pick], sigma)[:, :, cols].reshape(len(pick), -1)
+    scale = np.maximum(np.abs(high).max(1), 1e-6).astype(np.float32) / 127.0
+    codes = np.clip(np.round(high / scale[:, None]), -127, 127).astype(np.int8)
+    points = key_points(model.scheme, cfg.detail_parts)
+    aligned, _ = model.align(model.denoise(np.asarray(landmarks)[pick]))
+    keys = aligned[:, points].reshape(len(pick), -1).astype(np.float32)
+    bank = {"detail_replace": np.asarray([cfg.detail_band == "texture"], np.bool_), "detail_keys": keys,
+            "detail_codes": codes, "detail_scale": scale, "detail_columns": cols,
+            "detail_points": points}
+    nbytes = int(sum(v.nbytes for v in bank.values()))
+    return bank, {"frames": int(len(pick)), "pixels": int(len(cols)), "sigma_px": sigma, "bytes": nbytes}
+
+
+def check_bank(bank: dict, n_points: int, n_channels: int, n_pixels: int) -> None:
+    """ValueError naming the first bank tensor that does not fit the face model."""
+    keys, codes, scale = bank["detail_keys"], bank["detail_codes"], bank["detail_scale"]
+    cols, pts = bank["detail_columns"], bank["detail_points"]
+    n = len(keys)
+    if pts.ndim != 1 or len(pts) == 0 or pts.min() < 0 or pts.max() >= n_points or keys.shape != (n, 2 * len(pts)):
+        raise ValueError(f"detail_keys/detail_points: inconsistent shapes {keys.shape}, {pts.shape}")
+    if cols.ndim != 1 or len(cols) == 0 or cols.min() < 0 or cols.max() >= n_pixels:
+        raise ValueError(f"detail_columns: expected indices below {n_pixels}, got shape {cols.shape}")
+    if codes.dtype != np.int8 or codes.shape != (n, n_channels * len(cols)) or scale.shape != (n,):
+        raise ValueError(f"detail_codes/detail_scale: expected int8 ({n}, {n_channels * len(cols)}) and ({n},)")
+
+
+class DetailTransfer(nn.Module):
+    """``forward(texture (B, C, M), aligned (B, P, 2))`` -> the texture with the retrieved
+    frames' high band added on the bank's pixels, times ``strength`` (see the module)."""
+
+    def __init__(self, bank: dict, k: int, strength: float, n_pixels: int):
+        super().__init__()
+        keys = np.asarray(bank["detail_keys"], np.float32)
+        self.k = int(min(k, len(keys) - 1))
+        if self.k < 1:
+            raise FacesynthError("model.detail: the bank needs at least 2 frames")
+        self.strength = float(strength)
+        self.replace = bool(np.asarray(bank.get("detail_replace", False)).any())  # texture bank: blend towards it
+        self.points = [int(p) for p in bank["detail_points"]]
+        cols = np.asarray(bank["detail_columns"], np.int64)
+        spread = np.full(n_pixels, len(cols), np.int64)  # pixel -> its column in the bank, or the zero column
+        spread[cols] = np.arange(len(cols))
+        self.n_cols = len(cols)
+        self.register_buffer("keys", torch.from_numpy(keys.copy()))
+        self.register_buffer("codes", torch.from_numpy(np.asarray(bank["detail_codes"], np.int8).copy()))
+        self.register_buffer("scale", torch.from_numpy(np.asarray(bank["detail_scale"], np.float32)[:, None].copy()))
+        self.register_buffer("spread", torch.from_numpy(spread))
+        self.register_buffer("cols", torch.from_numpy(cols))
+
+    def weights(self, aligned: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(B, k) bank rows and their (B, k) weights (rows sum to 1, or 0 when every key ties)."""
+        q = aligned[:, self.points].flatten(1)
+        diff = q.unsqueeze(1) - self.keys  # (B, N, F): direct differences, no cancellation
+        neg, idx = torch.topk(-(diff * diff).sum(2), self.k + 1, dim=1)
+        d = -neg
+        w = torch.relu(1 / (d[:, : self.k] + EPS) - 1 / (d[:, self.k :] + EPS))
+        return idx[:, : self.k], w / (w.sum(1, keepdim=True) + 1e-12)
+
+    def forward(self, texture: torch.Tensor, aligned: torch.Tensor) -> torch.Tensor:
+        idx, w = self.weights(aligned)
+        rows = self.codes[idx].to(torch.float32) * self.scale[idx]  # (B, k, C * Mr)
+        high = torch.matmul(w.unsqueeze(1), rows).reshape(texture.shape[0], texture.shape[1], self.n_cols)
+        if self.replace:
+            high = high - texture[:, :, self.cols]
+        high = torch.cat([high, torch.zeros_like(high[:, :, :1])], 2)[:, :, self.spread]
+        return torch.clamp(texture + self.strength * high, 0.0, 1.0)
