@@ -4,6 +4,7 @@ one JSON line.
 
     OMP_NUM_THREADS=1 python -m bench.runtime.talking_head_graph [--pairs lp_d3<-lp_d6,...]
         [--frames 0] [--work /tmp/facesynth_th_graph] [--against DIR] [--profile 60]
+        [--page HEAD.onnx,... --page-video CLIP.mp4]
 
 Per pair AVATAR<-DRIVER: a linear model of the first 75 % of the avatar's clip (every 3rd
 frame), exported as the synthesis file (with its avatar metadata) and as the talking-head
@@ -22,7 +23,15 @@ with other jobs the CPU time moves less) of
 
 ``profile``: this talking-head file run ``--profile`` more frames with ONNX Runtime's profiler:
 per operator type, ms per frame and share of the kernels' time (the profiler's own cost
-included; the ranking is the point), the ``against`` file's as ``profile_against``.
+included; the ranking is the point), the ``against`` file's as ``profile_against``; both also
+printed as a table on stderr.
+
+``--page``: talking-head files (MediaPipe-scheme avatars, as the live page takes: README step
+5's) run on the live page by ``bench/web/page.py`` (one worker, ``--page-video`` as the
+camera, ``--page-seconds``), one after the other: per file ``page``: the page's avatar step
+(``avatar_alone_ms``, its wall time with the tracker paused; ``avatar_ms``, per frame while
+tracking), Python's one-thread time of the same file (``python_avatar_ms``), their ratio
+(``avatar_vs_python``), ``e2e_fps`` and the load average at its end.
 Parity: each driver frame (``--frames 0``: every one; else that many,
 evenly spread) against :class:`facesynth.runtime.Reenactor` (full-frame warp, relative
 motion, the graph's feather): the largest pixel difference (0-255), the frames' pixels above
@@ -145,6 +154,33 @@ def profile(path: Path, feeds: list[dict]) -> list[dict]:
         [{"op": "(all)", "ms": round(total / len(feeds) / 1e3, 3), "share": 1.0}]
 
 
+def profile_table(rows: list[dict], against: list[dict] | None = None) -> str:
+    """The per-operator profile (:func:`profile`) as a Markdown table, ``against``'s beside it."""
+    old = {r["op"]: r for r in against or []}
+    head = "| op | ms per frame | share |" + (" against ms | against share |" if against else "")
+    lines = [head, "|---" * (5 if against else 3) + "|"]
+    for r in rows:
+        o = old.get(r["op"])
+        extra = (f" {o['ms']:.3f} | {o['share']:.1%} |" if o else " | |") if against else ""
+        lines.append(f"| {r['op']} | {r['ms']:.3f} | {r['share']:.1%} |{extra}")
+    return "\n".join(lines)
+
+
+def page_step(model: Path, video: Path, seconds: float) -> dict:
+    """bench/web/page.py on ``model`` with one worker: the page's avatar step beside Python's."""
+    import subprocess
+
+    cmd = [sys.executable, "-m", "bench.web.page", "--model", str(model), "--video", str(video),
+           "--workers", "1", "--seconds", f"{seconds:g}"]
+    res = subprocess.run(cmd, capture_output=True, text=True, check=False, cwd=Path(__file__).resolve().parents[2])
+    if res.returncode != 0:
+        return {"model": str(model), "error": res.stderr.strip().splitlines()[-1:]}
+    web = json.loads(res.stdout.strip().splitlines()[-1])
+    keep = ("avatar_alone_ms", "avatar_ms", "python_avatar_ms", "avatar_vs_python", "tracker_ms", "e2e_fps", "workers",
+            "page_mb", "load_avg")
+    return {"model": str(model), **{k: web.get(k) for k in keep}}
+
+
 def run_pair(avatar: str, driver: str, frames: int, work: Path, against: Path | None = None, n_profile: int = 60) -> dict:
     from facesynth.runtime import Reenactor, Renderer
     from facesynth.runtime.reenact import driver_neutral_of
@@ -211,6 +247,8 @@ def run_pair(avatar: str, driver: str, frames: int, work: Path, against: Path | 
         out["profile"] = profile(head, feeds)
         if old is not None:
             out["profile_against"] = profile(old.path, feeds)
+        print(f"{avatar}<-{driver}, ms per frame with the profiler on (this file | against):\n"
+              + profile_table(out["profile"], out.get("profile_against")), file=sys.stderr)
     return out
 
 
@@ -222,14 +260,20 @@ def main() -> None:
     ap.add_argument("--against", default=None, help="a folder of AVATAR_head.onnx files exported by another version, "
                                                     "timed interleaved with this one's")
     ap.add_argument("--profile", type=int, default=60, help="frames run with ONNX Runtime's profiler (0: none)")
+    ap.add_argument("--page", default=None, help="talking-head files (MediaPipe avatars) for bench/web/page.py, comma-separated")
+    ap.add_argument("--page-video", default="../shared/data/faces/lp_d3/video.mp4", help="the page's camera clip")
+    ap.add_argument("--page-seconds", type=float, default=20.0)
     args = ap.parse_args()
     work = Path(args.work)
     work.mkdir(parents=True, exist_ok=True)
     against = Path(args.against) if args.against else None
     pairs = [run_pair(*p.split("<-"), args.frames, work, against, args.profile) for p in args.pairs.split(",")]
-    print(json.dumps({"cpu_flags": sorted(cpu_flags(Path("/proc/cpuinfo").read_text()) & {"avx2", "avx512_vnni", "avx_vnni"}),
-                      "load_avg": round(load_average(), 2), "max_pixel_diff": max(p["max_pixel_diff"] for p in pairs),
-                      "max_landmark_diff_px": max(p["max_landmark_diff_px"] for p in pairs), "pairs": pairs}))
+    out = {"cpu_flags": sorted(cpu_flags(Path("/proc/cpuinfo").read_text()) & {"avx2", "avx512_vnni", "avx_vnni"}),
+           "load_avg": round(load_average(), 2), "max_pixel_diff": max(p["max_pixel_diff"] for p in pairs),
+           "max_landmark_diff_px": max(p["max_landmark_diff_px"] for p in pairs), "pairs": pairs}
+    if args.page:
+        out["page"] = [page_step(Path(m), Path(args.page_video), args.page_seconds) for m in args.page.split(",")]
+    print(json.dumps(out))
 
 
 if __name__ == "__main__":

@@ -29,6 +29,10 @@ from facesynth.onnx.retarget_graph import _apply, _const
 from facesynth.ops import slice_by_tensor
 from facesynth.runtime.fullframe import EYE_CORNERS, HEAD_POINTS, NOSE_TIP, FrameWarp, interpolation_weights, nose_offset
 
+# the full-frame read's bands of rows (FrameWarpGraph.read): about this many pixels each, so
+# that a band's per-pixel tensors stay in a core's cache
+BAND_PIXELS = 1 << 16
+
 
 class _Mesh:
     """The control points' triangulation in the neutral frame as ToTarget's reference frame
@@ -79,9 +83,10 @@ class FrameWarpGraph(ToTarget):
         self.register_buffer("to_node", _const([[(wn - 1) / (w - 1), (hn - 1) / (h - 1)]]))  # frame px -> node units
         self.register_buffer("node_x", _const(nx))
         self.register_buffer("node_y", _const(ny[:, None]))
-        # the frame plus a half, for rounding by truncation (a Cast), with one pixel of its edge
-        # round it: maps a rounding error outside [0, W - 1] read it with a weight of that error
-        tex = np.pad(fw.frame.astype(np.float32) + 0.5, ((1, 1), (1, 1), (0, 0)), mode="edge")  # (H + 2, W + 2, 3)
+        # the frame as it is, uint8 (a quarter of float's memory traffic in the gathers), with one
+        # pixel of its edge round it: maps a rounding error outside [0, W - 1] read it with a
+        # weight of that error
+        tex = np.pad(fw.frame, ((1, 1), (1, 1), (0, 0)), mode="edge")  # (H + 2, W + 2, 3)
         self.register_buffer("texture", torch.from_numpy(np.ascontiguousarray(tex.transpose(2, 0, 1).reshape(3, 1, -1))))
         self.tex_w = w + 2
         # the node maps' upsampling, as FrameWarp's: along x one MatMul by the (Wn, W)
@@ -140,29 +145,40 @@ class FrameWarpGraph(ToTarget):
         (FrameWarp.maps): the node maps mirrored at the frame's border, then upsampled."""
         return self._upsampled(mirror(self.node_maps(face), self.uv_max))
 
-    def channels(self, face: torch.Tensor) -> list[torch.Tensor]:
-        """(B, P, 2) -> the warped neutral frame's three colours, each (B, 1, H, W), read
-        bilinearly and plus a half: a Cast to uint8 (truncation) rounds them."""
-        m = mirror(self.node_maps(face), self.uv_max)
-        # x and y upsampled apart (no full-frame slices of a two-channel map)
-        x, y = self._upsampled(m[:, 0:1]), self._upsampled(m[:, 1:2])
-        flx, fly = torch.floor(x), torch.floor(y)
-        fx, fy = x - flx, y - fly
-        # the index in float (exact below 2^24), then one Cast: an index chain the export's
-        # int32 pass rewrites (facesynth.onnx.passes.int32_indices)
-        base = (fly * float(self.tex_w) + (flx + float(self.tex_w + 1))).to(torch.int64)
-        # one gather per tap and channel: the batch shares the texture (no copy per frame), and
-        # no split of a (B, 4, H, W) gather; bilinear as two lerps along x, one along y
-        index = [(base + k).reshape(1, -1) for k in (0, 1, self.tex_w, self.tex_w + 1)]
-        out = []
-        for ch in range(3):
-            t = [torch.gather(self.texture[ch], 1, i).reshape_as(fx) for i in index]
-            top = t[0] + fx * (t[1] - t[0])
-            out.append(top + fy * (t[2] + fx * (t[3] - t[2]) - top))
-        return out
+    def read(self, face: torch.Tensor) -> torch.Tensor:
+        """(B, P, 2) -> the warped neutral frame, uint8 (B, 3, H, W): read bilinearly (uint8
+        taps, float lerps) and rounded.
+
+        Band by band of rows (:data:`BAND_PIXELS` pixels each, fixed at export): each band's
+        maps are upsampled from the node maps' x-upsampled rows, read and rounded while they
+        are in the cache; the bands are then concatenated. Memory traffic, not arithmetic, sets
+        a full-frame pass's cost."""
+        m = torch.matmul(mirror(self.node_maps(face), self.uv_max), self.up_x)  # (B, 2, Hn, W)
+        h = self.frame_size[0]
+        edges = np.linspace(0, h, max(1, round(h * self.frame_size[1] / BAND_PIXELS)) + 1).round().astype(int)
+        bands = []
+        for r0, r1 in zip(edges[:-1].tolist(), edges[1:].tolist(), strict=True):
+            m0, m1 = torch.index_select(m, 2, self.up_k0[r0:r1]), torch.index_select(m, 2, self.up_k1[r0:r1])
+            xy = m0 + self.up_fy[:, :, r0:r1] * (m1 - m0)  # (B, 2, rows, W)
+            x, y = xy[:, 0:1], xy[:, 1:2]
+            flx, fly = torch.floor(x), torch.floor(y)
+            fx, fy = x - flx, y - fly
+            # the index in float (exact below 2^24), then one Cast: an index chain the export's
+            # int32 pass rewrites (facesynth.onnx.passes.int32_indices)
+            base = (fly * float(self.tex_w) + (flx + float(self.tex_w + 1))).to(torch.int64)
+            # one gather per tap and channel: the batch shares the texture (no copy per frame);
+            # bilinear as two lerps along x, one along y, plus a half: the Cast rounds
+            index = [(base + k).reshape(1, -1) for k in (0, 1, self.tex_w, self.tex_w + 1)]
+            out = []
+            for ch in range(3):
+                t = [torch.gather(self.texture[ch], 1, i).reshape_as(fx).to(torch.float32) for i in index]
+                top = t[0] + fx * (t[1] - t[0])
+                out.append(top + (fy * (t[2] + fx * (t[3] - t[2]) - top) + 0.5))
+            bands.append(torch.cat([c.to(torch.uint8) for c in out], 1))
+        return torch.cat(bands, 2) if len(bands) > 1 else bands[0]
 
     def forward(self, face: torch.Tensor) -> torch.Tensor:  # noqa: D102  (a different signature from ToTarget's)
-        return torch.floor(torch.cat(self.channels(face), 1))
+        return self.read(face).to(torch.float32)
 
 
 def _blur_matrix(g: np.ndarray, n: int) -> np.ndarray:
@@ -183,16 +199,14 @@ def _blur_matrix(g: np.ndarray, n: int) -> np.ndarray:
 class SeamGraph(nn.Module):
     """:func:`facesynth.compositing.blend_face` (colour matching on) with a fixed feather
     of ``feather`` crop pixels: crop (B, C, Hc, Wc) in [0, 1], mask (B, 1, Hc, Wc), placement
-    (B, 2, 3), the warped frame's colours plus a half (three (B, 1, H, W), 0.5..255.5;
-    :meth:`FrameWarpGraph.channels`) and the face's landmarks (B, P, 2) -> the composited
-    frame, uint8 (B, 3, H, W).
+    (B, 2, 3), the warped frame, uint8 (B, 3, H, W) (:meth:`FrameWarpGraph.read`) and the
+    face's landmarks (B, P, 2) -> the composited frame, uint8 (B, 3, H, W).
 
     The alpha and the seam band are made in the crop's pixels (:func:`seam_layers`); the
     premultiplied face, alpha and band are placed in the frame bilinearly, inside the
     landmarks' bounding box of the batch grown by a crop pixel's size and 2 px (the placed
-    face reaches no further); the frame is rounded to uint8 (a Cast of the values plus a half)
-    and the composited box put in its place by slices and concatenations of uint8: no
-    full-frame float pass after the read."""
+    face reaches no further), composed with the frame's box there, and put in its place by
+    slices and concatenations of uint8: no full-frame float pass after the read."""
 
     CHANNELS = 5  # premultiplied face (3), alpha, band
 
@@ -252,9 +266,9 @@ class SeamGraph(nn.Module):
             out.append(top + fy * (t[2] + fx * (t[3] - t[2]) - top))
         return out
 
-    def forward(self, crop: torch.Tensor, mask: torch.Tensor, placement: torch.Tensor, frame: list[torch.Tensor],
+    def forward(self, crop: torch.Tensor, mask: torch.Tensor, placement: torch.Tensor, frame: torch.Tensor,
                 face: torch.Tensor) -> torch.Tensor:
-        """``frame``: the warped frame's colours plus a half (FrameWarpGraph.channels) -> the
+        """``frame``: the warped frame, uint8 (B, 3, H, W) (FrameWarpGraph.read) -> the
         composited frame, uint8 (B, 3, H, W)."""
         if crop.shape[1] == 1:
             crop = torch.cat([crop, crop, crop], 1)
@@ -275,8 +289,8 @@ class SeamGraph(nn.Module):
         *pre, alpha, band = self._bilinear(layers, u, v)
         # [y0, x0, y1, x1] of the box, and of the frame's parts round it
         y0x0, y1x1 = lo.flip(0).to(torch.int64), hi.flip(0).to(torch.int64)
-        box = torch.cat([y0x0, y1x1])
-        bg = [torch.floor(slice_by_tensor(c, box)) for c in frame]  # the warped frame, 0..255
+        box = slice_by_tensor(frame, torch.cat([y0x0, y1x1])).to(torch.float32)  # the warped frame's box
+        bg = [box[:, k:k + 1] for k in range(3)]
         n = band.sum((2, 3))  # (B, 1)
         sums = torch.cat([(c * band).sum((2, 3)) for c in bg], 1)  # (B, 3)
         shift = sums / torch.clamp(n, min=1.0) - face_mean * 255.0
@@ -284,12 +298,11 @@ class SeamGraph(nn.Module):
         # face + alpha shift + (1 - alpha) frame, plus a half: rounded by the Cast
         inner = torch.cat([torch.clamp(p + (c + 0.5) + alpha * (shift[:, k:k + 1] - c), 0.0, 255.0).to(torch.uint8)
                            for k, (p, c) in enumerate(zip(pre, bg, strict=True))], 1)
-        full = torch.cat([c.to(torch.uint8) for c in frame], 1)  # the warped frame, rounded
         # the frame with the box replaced: rows above it, the box's rows, rows below it
         zero, size = self.zero2.to(torch.int64), self.frame_max.flip(0).to(torch.int64)  # [0, 0], [H, W]
         cut = torch.cat([y0x0[:1], size[1:]])  # [y0, W]
-        top = slice_by_tensor(full, torch.cat([zero, cut]))
-        left = slice_by_tensor(full, torch.cat([y0x0[:1], zero[:1], y1x1[:1], y0x0[1:]]))
-        right = slice_by_tensor(full, torch.cat([y0x0[:1], y1x1[1:], y1x1[:1], size[1:]]))
-        bottom = slice_by_tensor(full, torch.cat([y1x1[:1], zero[:1], size]))
+        top = slice_by_tensor(frame, torch.cat([zero, cut]))
+        left = slice_by_tensor(frame, torch.cat([y0x0[:1], zero[:1], y1x1[:1], y0x0[1:]]))
+        right = slice_by_tensor(frame, torch.cat([y0x0[:1], y1x1[1:], y1x1[:1], size[1:]]))
+        bottom = slice_by_tensor(frame, torch.cat([y1x1[:1], zero[:1], size]))
         return torch.cat([top, torch.cat([left, inner, right], 3), bottom], 2)

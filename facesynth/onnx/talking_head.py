@@ -70,7 +70,7 @@ class TalkingHeadGraph(nn.Module):
     def forward(self, driver: torch.Tensor, neutral: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         face = self.retarget(driver, neutral)
         crop, mask, placement = self.synthesis(face)
-        out = self.seam(crop, mask, placement, self.frame_warp.channels(face), face)  # uint8 (B, 3, H, W)
+        out = self.seam(crop, mask, placement, self.frame_warp.read(face), face)  # uint8 (B, 3, H, W)
         return out.permute(0, 2, 3, 1), face
 
 
