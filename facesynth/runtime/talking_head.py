@@ -163,7 +163,7 @@ class TalkingHead:
     def use_neutral(self, driver_neutral) -> "TalkingHead":
         """Take (P, 2) ``driver_neutral`` as the driver's neutral from now on; returns self."""
         self.driver_neutral = self._points(np.asarray(driver_neutral)[None], "driver_neutral")[0]
-        self._collecting, self._seen = False, []
+        self._online = None  # given: no longer chosen online
         return self
 
     def _points(self, values, field: str) -> np.ndarray:
