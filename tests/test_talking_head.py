@@ -178,4 +178,7 @@ def test_the_reports_talking_head_figures():
     for r in ("static", "warp", "full"):
         assert 0 < figures[r]["ssim_head"] <= 1 and 0 < figures[r]["ssim_frame"] <= 1 and figures[r]["psnr_frame_db"] > 5
     assert figures["full"] != figures["warp"]  # the synthesised face is in it
+    outline = figures["outline"]  # the warp's grid against its exact map (tests/test_jaggedness.py)
+    assert set(outline) == {"map_px_p99", "map_px_max", "staircase"}
+    assert 0 <= outline["map_px_p99"] <= outline["map_px_max"] and outline["staircase"] >= 0
     assert len(tiles) == 3 and tiles[0]["real"].shape == tiles[0]["synth"].shape

@@ -266,6 +266,11 @@ def write_report(metrics: dict, out_dir: str | os.PathLike, plots: list[str], he
                   [[r] + [f"{head[r][k]:.2f}" if k.startswith("psnr") else f"{head[r][k]:.3f}"
                           for k in ("psnr_head_db", "ssim_head", "psnr_frame_db", "ssim_frame")]
                    for r in ("static", "warp", "full")])
+        if "outline" in head:
+            o = head["outline"]
+            doc.para(f"The warp's grid along the head's outline (jaw, hair, neck), against the exact piecewise affine "
+                     f"warp: its map {o['map_px_p99']:.2f} px off (99th percentile; {o['map_px_max']:.2f} px at most), "
+                     f"staircase energy {o['staircase']:.4f} of the edges' (0: none).")
         doc.close_section()
 
     ncc = np.asarray(metrics.get("ncc", []))

@@ -11,7 +11,10 @@ into the warped frame, :func:`facesynth.compositing.blend_face`): the numpy pipe
 shape PCA, that frame as JPEG). Measures: PSNR (dB) and SSIM over the head region (the real
 landmarks' hull grown to hair and neck, :func:`facesynth.runtime.fullframe.head_region`) and
 over the whole frame, mean over up to ``frames`` evenly spaced held-out frames
-(``bench/runtime/talking_head.py`` adds the detector-based figures on other drivers).
+(``bench/runtime/talking_head.py`` adds the detector-based figures on other drivers). The
+*warp*'s outline on up to ``OUTLINE_FRAMES`` of them: how far its grid's map departs from the
+exact piecewise affine map along the head's outline and the staircase energy that draws
+(:func:`facesynth.eval.jaggedness.outline_figures`, medians over the frames).
 """
 
 from __future__ import annotations
@@ -20,6 +23,7 @@ import numpy as np
 import torch
 
 from facesynth.compositing import blend_rendered
+from facesynth.eval.jaggedness import exact_warp, outline_figures
 from facesynth.eval.strip import box_tile
 from facesynth.landmarks import ibug68_view
 from facesynth.metrics import psnr, ssim
@@ -30,6 +34,7 @@ from facesynth.runtime.reenact import Avatar
 
 RENDERERS = ("static", "warp", "full")
 MEASURES = ("psnr_head_db", "ssim_head", "psnr_frame_db", "ssim_frame")
+OUTLINE_FRAMES = 8  # frames the warp's outline is measured on (the exact map costs about a second each)
 
 
 def talking_head_figures(syn, seq, train_rows: np.ndarray, test_rows: np.ndarray, frames: int = 40,
@@ -38,7 +43,8 @@ def talking_head_figures(syn, seq, train_rows: np.ndarray, test_rows: np.ndarray
     when the clip has no frames or its scheme cannot be retargeted.
 
     figures: {"frames": n, "neutral_row": row, "ring_scale": the warp's head ring (chosen on the
-    training frames, :mod:`facesynth.onnx.headmotion`), RENDERER: {MEASURE: mean}}; strip tiles: the
+    training frames, :mod:`facesynth.onnx.headmotion`), RENDERER: {MEASURE: mean}, "outline":
+    {"map_px_p99", "map_px_max", "staircase"} (module docstring)}; strip tiles: the
     :mod:`facesynth.eval.strip` tiles ({"frame", "real", "synth"}: the real held-out frame and
     *full*) of ``strip`` of those frames, one frame box for all, ``height`` px high."""
     scheme = str(getattr(syn, "scheme", "ibug68"))
@@ -51,6 +57,8 @@ def talking_head_figures(syn, seq, train_rows: np.ndarray, test_rows: np.ndarray
     rows = np.asarray(test_rows)[np.unique(np.linspace(0, len(test_rows) - 1, min(frames, len(test_rows))).round().astype(int))]
     shown = set(rows[np.unique(np.linspace(0, len(rows) - 1, min(strip, len(rows))).round().astype(int))].tolist())
     sums = {r: dict.fromkeys(MEASURES, 0.0) for r in RENDERERS}
+    outline_rows = set(rows[np.unique(np.linspace(0, len(rows) - 1, min(OUTLINE_FRAMES, len(rows))).round().astype(int))].tolist())
+    exact, outline = exact_warp(warp), []
     pairs = []
     for row, real in zip(rows, seq.iter_frames(rows), strict=True):
         real = np.asarray(real)
@@ -64,11 +72,14 @@ def talking_head_figures(syn, seq, train_rows: np.ndarray, test_rows: np.ndarray
             for key, value in zip(MEASURES, (psnr(img, real, head), ssim(img, real, head), psnr(img, real),
                                              ssim(img, real)), strict=True):
                 sums[name][key] += float(value)
+        if int(row) in outline_rows:
+            outline.append(outline_figures(warp, a, exact))
         if int(row) in shown:
             pairs.append((int(row), real, full, ibug68_view(seq.landmarks[row])))
     figures = {"frames": len(rows), "neutral_row": int(meta["avatar_neutral_row"]), "ring_scale": warp.ring_scale}
     figures.update({r: {k: round(v / len(rows), 4 if k.startswith("ssim") else 2) for k, v in m.items()}
                     for r, m in sums.items()})
+    figures["outline"] = {k: round(float(np.median([o[k] for o in outline])), 4) for k in outline[0]}
     return figures, _tiles(pairs, height)
 
 

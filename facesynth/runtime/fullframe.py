@@ -50,10 +50,10 @@ Two interpolants of the control points' motion (``method``):
   warped triangle that contains it; a node that no warped triangle contains (a fold's
   gap), or that two contain (where a fold overlaps), keeps its own position. Never a hole:
   every pixel reads some map. The map is continuous, so between nodes the bilinear
-  interpolation departs from the exact piecewise affine map only where neighbouring
-  triangles' maps differ, by a fraction of a pixel (in the face, which the composited
-  face covers); a whole-frame per-pixel triangle search would cost the talking-head
-  graph several times its budget.
+  interpolation departs from the exact map only in cells crossed by a triangle edge where
+  the map's slope jumps (the jaw, the head's ring), by up to a quarter cell times the jump:
+  a staircase of the grid's step along the outline (:mod:`facesynth.eval.jaggedness`). A
+  per-pixel triangle search would cost the talking-head graph several times its budget.
 * ``"tps"``: a thin-plate spline from the warped control points back to the neutral ones
   (so the inverse map is evaluated directly), on a grid of one node per ``TPS_STEP``
   pixels, bilinearly upsampled; smooth, but its bending can overshoot between control
@@ -99,7 +99,7 @@ GUARD = 0.3  # a still guard ring this share of the frame's size outside it (mod
 # the jaw's top points by the ears (the nose tip and the lower jaw turn ahead of the skull)
 HEAD_POINTS = [0, 1, 15, 16, 27, 36, 39, 42, 45]
 TPS_STEP = 8
-GRID_STEP = 8  # the affine warp's grid: exact at its nodes, bilinear between (module docstring)
+GRID_STEP = 4  # the affine warp's grid (module docstring): at 8 px the outline showed a staircase
 
 
 def face_frame(face68: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
@@ -188,13 +188,13 @@ class FrameWarp:
     head's motion ``S`` and of the parallax term ``d`` it follows (default :meth:`prior`,
     ``w`` and ``PARALLAX w``; :mod:`facesynth.onnx.headmotion` learns them from the
     avatar's video); ring_scale : the head's ellipse, ring and falloff, this times its
-    default size (:func:`head_points`; headmotion chooses it per avatar).
+    default size (:func:`head_points`); grid_step : the "affine" grid's node spacing, px (1: exact).
 
     ``__call__(landmarks)``: (P, 2) avatar landmarks in the frame -> uint8 (H, W, 3).
     """
 
     def __init__(self, frame: np.ndarray, neutral: np.ndarray, method: str = "affine",
-                 motion: np.ndarray | None = None, ring_scale: float = RING_SCALE):
+                 motion: np.ndarray | None = None, ring_scale: float = RING_SCALE, grid_step: int = GRID_STEP):
         if method not in METHODS:
             raise FacesynthError(f"full-frame warp: method must be one of {METHODS}, got {method!r}")
         frame = np.asarray(frame)
@@ -211,12 +211,10 @@ class FrameWarp:
         extra, self.weights = head_points(self.neutral68, self.size, self.ring_scale)
         self.src = np.concatenate([self.neutral68, extra])  # (K, 2) control points in the neutral frame
         self.n_face = len(self.neutral68)
-        # (K - 68, 2) the axes a point moves along: an anchor on the left, right or bottom side
-        # keeps the coordinate that puts it there (module docstring)
+        # (K - 68, 2) the axes a point moves along: a side's anchor keeps the coordinate on it
         held = np.stack([(extra[:, 0] == 0.0) | (extra[:, 0] == w - 1.0), extra[:, 1] == h - 1.0], 1)
         self.free = ~held
-        # (K - 68,) the points that follow the head's motion in full: its ring and what lies inside
-        # it (w = 1 up to rounding: the ring's points sit on the ellipse)
+        # (K - 68,) the points that follow the head in full: its ring and inside it (w = 1 up to rounding)
         self.on_ring = self.weights >= 1.0 - 1e-6
         self.motion = self.prior() if motion is None else _checked_motion(motion, len(extra))
         g = GUARD * max(w, h)
@@ -226,7 +224,9 @@ class FrameWarp:
         # how far above the bottom anchors the lowest landmark stays (px; module docstring)
         self.chin_margin = float(min(h - 1.0 - self.neutral68[:, 1].max(), CHIN_MARGIN * face_frame(self.neutral68)[2]))
         self.triangles = Delaunay(self.src).simplices.astype(np.int64)
-        self.nodes = grid_nodes(w), grid_nodes(h)  # (x, y) of the affine warp's grid
+        if isinstance(grid_step, bool) or not isinstance(grid_step, (int, np.integer)) or grid_step < 1:
+            raise FacesynthError(f"full-frame warp: grid_step must be a whole number of pixels >= 1, got {grid_step!r}")
+        self.nodes = grid_nodes(w, int(grid_step)), grid_nodes(h, int(grid_step))  # (x, y) of the affine warp's grid
         # the anchors on the frame's border are pushed a thousandth of a node spacing out when
         # nodes are located (not for the maps): the nodes on the border then lie strictly
         # inside the frame's triangles, never on a tie (the graph's scanline coverage is
