@@ -340,7 +340,7 @@ def test_record_train_drive(tmp_path, camera):
     lib = tmp_path / "lib"
     with studio_served(lib, overrides=SMALL, min_frames=10) as (url, studio), \
             browser.browser_page(camera) as (page, blocked):
-        t = run_flow(page, url, "me-small", 0.12, SHOTS)
+        t = run_flow(page, url, "me-small", 0.2, SHOTS)
         assert t["first_frame"] > t["train_pressed"] > t["record"]
         assert 0 < t["coverage"]["overall"] <= 1 and len(t["coverage"]["prompts"]) == 13
         # the library: the avatar, its run with report.html; listed in the page with its report link
@@ -367,7 +367,7 @@ def test_page_shows_a_failed_training(tmp_path, camera):
     lib = tmp_path / "lib"
     with studio_served(lib, overrides=SMALL, min_frames=100000) as (url, studio), \
             browser.browser_page(camera) as (page, blocked):
-        page.goto(f"{url}?seconds=0.12")
+        page.goto(f"{url}?seconds=0.2")
         page.wait_for_function("!document.getElementById('record').disabled", timeout=120_000)
         page.click("#record")
         page.wait_for_function("!document.getElementById('train').disabled", timeout=120_000)

@@ -27,9 +27,10 @@ const PROMPTS = [
   ['turn', 'Turn your head slowly left, then right', 4, ['turn_left', 'turn_right']],
 ].map(([id, text, seconds, directions]) => ({ id, text, seconds, directions, points: [], frames: null }));
 const JPEG_QUALITY = 0.92;
-// frames kept a second while recording (a camera may give 30-60): the default training needs no
-// more (docs/studio.md: held-out quality against the frames kept), and each one costs ingest time
-const KEEP_FPS = 25;
+// frames kept a second while recording (a camera may give 30-60): half of lp_d6's 30 frames/s
+// cost its held-out PSNR 0.13 dB, and the training's time grows faster than the frame count
+// (docs/studio.md)
+const KEEP_FPS = 15;
 const NEUTRAL_MS = 1000;
 const state = { token: null, schemes: null, worker: null, busy: false, points: null, recording: null, messages: [],
   frames: 0, firstFrameAt: null, avatar: null, neutral: null, neutralSamples: [], neutralStart: null, job: null,
