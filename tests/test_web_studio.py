@@ -370,7 +370,7 @@ def test_page_shows_a_failed_training(tmp_path, camera):
         page.goto(f"{url}?seconds=0.2")
         page.wait_for_function("!document.getElementById('record').disabled", timeout=120_000)
         page.click("#record")
-        page.wait_for_function("!document.getElementById('train').disabled", timeout=120_000)
+        page.wait_for_function("!document.getElementById('train').disabled", timeout=300_000)
         page.click("#train")
         page.wait_for_function("window.studio.state.job && window.studio.state.job.state === 'failed'", timeout=120_000)
         text = page.inner_text("#message")
