@@ -17,8 +17,10 @@ answer (no CORS, ``Cross-Origin-Resource-Policy: same-origin``), so it cannot fo
 - ``POST api/cancel``; ``GET api/progress``: the job's state as Server-Sent Events.
 
 The job (:mod:`facesynth.web.studio_job`) runs in a process of its own (cancel terminates it) in a
-hidden work folder inside the library (``.studio-work-PID-...``), renamed to ``NAME`` when it
-succeeds and removed otherwise: the library never holds a half-made avatar.
+hidden work folder inside the library (``.studio-work-PID-...``), renamed to ``NAME`` once the
+avatar is exported (the job then writes the run's evaluation and report in it while the page
+drives the avatar) and removed when the job fails before that: the library never holds a
+half-made avatar.
 """
 
 from __future__ import annotations
