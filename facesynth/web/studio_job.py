@@ -27,11 +27,11 @@ import time
 from pathlib import Path
 
 # The stages before the avatar goes live, in order, each with its wall-clock seconds in a
-# default-config run of a 40 s recording (535 frames kept) on this 2-core host, shared (load
-# average 5-7): ``bench/bench_studio.py`` (its ``job_s``), docs/studio.md. Only their ratios
+# default-config run of a 40 s recording (558 frames kept) on this 2-core host, shared (load
+# average 2-5): ``bench/bench_studio.py`` (its ``job_s``), docs/studio.md. Only their ratios
 # matter: the percent shown is the share of this total done, and the time left is what remains
 # of it at the speed seen.
-STAGES = (("decode", 2.1), ("ingest", 4.7), ("face model", 17.1), ("SADM fit", 159.7), ("export", 19.7))
+STAGES = (("decode", 1.9), ("ingest", 3.7), ("face model", 12.2), ("SADM fit", 114.4), ("export", 14.3))
 # then, with the avatar live, the run's evaluation and report (run_training's remaining stages)
 REPORT_STAGES = ("evaluation", "talking head", "report")
 VIDEO = "recording.avi"  # the frames, in order: Motion JPEG, quality 95 (OpenCV writes it everywhere)
