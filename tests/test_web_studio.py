@@ -35,9 +35,11 @@ except Exception as exc:  # FacesynthError naming the missing file
 
 SHOTS = Path(os.environ.get("FACESYNTH_WEB_SHOTS", "/tmp"))
 # a small training (the flow test stays short): the linear regressor, a 64 px reference, no
-# augmentation or region folds, the evaluation on clean landmarks only, no frame-level measures
+# augmentation, region folds or gaze path (its folds: 6x the rest of the fit's CPU time on 120
+# frames), the evaluation on clean landmarks only, no frame-level measures
 SMALL = ["regressor=linear", "model.reference_width=64", "sadm.augment_copies=0", "sadm.region_shrink=false",
-         "eval.noise=[0.0]", "eval.frame_level=false", "eval.train_level=false", "eval.talking_head=false"]
+         "sadm.gaze=false", "eval.noise=[0.0]", "eval.frame_level=false", "eval.train_level=false",
+         "eval.talking_head=false"]
 
 
 @contextlib.contextmanager
@@ -192,6 +194,61 @@ def test_bad_inputs_leave_nothing(tmp_path, shared_clip_dir):
         assert request(url, "POST", "/api/cancel", b"", {"X-Facesynth-Token": tok})[0] == 409
 
 
+# -- the progress's percent and time left ---------------------------------------------------------
+@pytest.mark.parametrize("speed", [0.5, 1.0, 3.0])
+def test_time_left_is_exact_for_a_job_at_the_measured_ratios(speed):
+    """A job whose stages take their measured seconds times ``speed`` (a slower or faster host),
+    each moving linearly: from 3 % on, the time left is the true time left; before, the measured
+    seconds; the percent only grows, from 0 to 100."""
+    from facesynth.web.studio_job import STAGES, estimate
+
+    total = sum(s for _, s in STAGES) * speed
+    t, last = 0.0, -1.0
+    for name, seconds in STAGES:
+        for fraction in np.linspace(0, 1, 11):
+            elapsed = t + seconds * speed * fraction
+            percent, left = estimate(name, fraction, elapsed)
+            assert percent >= last and abs(percent - 100 * elapsed / total) < 1e-9
+            last = percent
+            want = total - elapsed if percent >= 3 else total / speed - percent / 100 * total / speed
+            assert abs(left - want) < 1e-6 * total, (name, fraction, left, want)
+        t += seconds * speed
+    assert last == pytest.approx(100.0)
+
+
+def test_time_left_from_the_stages_a_job_reports(tmp_path):
+    """The server's side: the job's reports (stage, fraction) in the state, the percent never
+    going back when a stage's bar restarts, the state ``done`` once the avatar is live while the
+    report is written, then ``written``."""
+    import subprocess
+    import sys
+
+    from facesynth.web.studio_job import MARK
+
+    script = "; ".join([
+        "import json, os",
+        f"m = lambda d: os.write(1, ({MARK!r} + json.dumps(d) + chr(10)).encode())",
+        "m({'stage': 'ingest', 'fraction': 0.5})", "m({'stage': 'face model', 'fraction': 0.2})",
+        "m({'stage': 'ingest', 'fraction': 1.0})", "m({'live': {'frames': 3}})", "m({'stage': 'report', 'fraction': 0})",
+        "m({'done': {'frames': 3}})",
+    ])
+    from facesynth.web.studio_job import estimate
+
+    studio = Studio(tmp_path / "lib")
+    work = tmp_path / "lib" / ".studio-work-x"
+    work.mkdir()
+    seen, set_state = [], studio._set
+    studio._set = lambda **kw: (seen.append(dict(kw)), set_state(**kw))[1]
+    proc = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE)
+    studio._set(state="running")
+    studio._watch(proc, "me", work)
+    percents = [s["percent"] for s in seen if "percent" in s and s.get("state") != "done"]
+    assert percents == [round(estimate("ingest", 0.5, 1)[0], 1)] + [round(estimate("face model", 0.2, 1)[0], 1)] * 2
+    assert studio.state["state"] == "done" and studio.state["report"] == "written"
+    assert library_entries(tmp_path / "lib") == ["me"]
+    assert [s.get("report_stage") for s in seen if "report_stage" in s][-1] == "report"
+
+
 # -- the coverage meter: the page's (coverage.js) against the Python reference --------------------
 def test_coverage_js_matches_python(tmp_path, shared_clip_dir):
     from facesynth.data.ingest import ingest_video
@@ -221,6 +278,30 @@ def test_coverage_js_matches_python(tmp_path, shared_clip_dir):
     for key in want["directions"]:
         assert abs(got["directions"][key] - want["directions"][key]) < 1e-9, key
     assert abs(got["overall"] - want["overall"]) < 1e-9
+    # the summary lists exactly the prompts whose bars are below WEAK, in both
+    assert got["missing"] == want["missing"] == [k for k, v in want["prompts"].items() if v < coverage.WEAK]
+    assert "blink" in want["missing"]
+
+
+def test_reach_against_scikit_learn_neighbours():
+    """The meter's reach: 1 - the mean distance to the NEAREST nearest frames / REACH, clipped,
+    against scikit-learn's exact neighbour search; a clip's own frames reach themselves."""
+    from sklearn.neighbors import NearestNeighbors
+
+    rng = np.random.default_rng(0)
+    frames, shapes = rng.normal(0, 0.2, (300, 8)), rng.normal(0, 0.3, (30, 8))
+    dist, _ = NearestNeighbors(n_neighbors=coverage.NEAREST).fit(frames).kneighbors(shapes)
+    want = np.clip(1 - dist.mean(1) / coverage.REACH, 0, 1)
+    np.testing.assert_allclose(coverage.reach(frames, shapes), want, atol=1e-12)
+    assert ((want > 0) & (want < 1)).sum() > 10  # most inside the clip's range...
+    assert coverage.reach(frames, np.full((1, 8), 9.0))[0] == 0.0  # ...and a shape far from every frame
+    assert coverage.reach(np.zeros((0, 8)), shapes).tolist() == [0.0] * 30
+    # a direction's target shape sits on its feature's axis, target / SCALE from the neutral
+    z = coverage.direction_z("mouth_open")
+    k = coverage.FEATURES.index("mouth_open")
+    assert z[k] == 0.30 / 0.12 and np.isnan(np.delete(z, k)).all()
+    dist, _ = NearestNeighbors(n_neighbors=coverage.NEAREST).fit(frames[:, [k]]).kneighbors(z[None, [k]])
+    assert coverage.reach(frames, z)[0] == np.clip(1 - dist.mean() / coverage.REACH, 0, 1)  # over that feature alone
 
 
 # -- the whole flow in the page ---------------------------------------------------------------
@@ -245,10 +326,14 @@ def run_flow(page, url: str, name: str, seconds: float, shots: Path | None = Non
                            "['failed', 'cancelled'].includes(window.studio.state.job.state))", timeout=timeout_s * 1000)
     job = page.evaluate("window.studio.state.job")
     assert job["state"] == "done", job
+    first_frame = page.evaluate("window.studio.state.firstFrameAt")
     if shots:
         page.screenshot(path=str(shots / "facesynth_studio_drive.png"), full_page=True)
+    # the run's evaluation and report are written while the avatar drives
+    page.wait_for_function("window.studio.state.job.report !== 'writing'", timeout=timeout_s * 1000)
+    job = page.evaluate("window.studio.state.job")
     return {"record": t_record, "recorded": t_recorded, "train_pressed": page.evaluate("window.studio.state.trainPressedAt"),
-            "first_frame": page.evaluate("window.studio.state.firstFrameAt"), "job": job,
+            "first_frame": first_frame, "report_written": page.evaluate("Date.now()"), "job": job,
             "coverage": page.evaluate("window.studio.state.coverage")}
 
 
@@ -256,10 +341,11 @@ def test_record_train_drive(tmp_path, camera):
     lib = tmp_path / "lib"
     with studio_served(lib, overrides=SMALL, min_frames=10) as (url, studio), \
             browser.browser_page(camera) as (page, blocked):
-        t = run_flow(page, url, "me-small", 0.12, SHOTS)
+        t = run_flow(page, url, "me-small", 0.2, SHOTS)
         assert t["first_frame"] > t["train_pressed"] > t["record"]
         assert 0 < t["coverage"]["overall"] <= 1 and len(t["coverage"]["prompts"]) == 13
         # the library: the avatar, its run with report.html; listed in the page with its report link
+        assert t["job"]["report"] == "written", t["job"]
         assert library_entries(lib) == ["me-small"]
         assert {"avatar.onnx", "run", "ingest", "studio.json"} <= set(os.listdir(lib / "me-small"))
         assert (lib / "me-small" / "run" / "report.html").is_file()
@@ -282,10 +368,10 @@ def test_page_shows_a_failed_training(tmp_path, camera):
     lib = tmp_path / "lib"
     with studio_served(lib, overrides=SMALL, min_frames=100000) as (url, studio), \
             browser.browser_page(camera) as (page, blocked):
-        page.goto(f"{url}?seconds=0.12")
+        page.goto(f"{url}?seconds=0.2")
         page.wait_for_function("!document.getElementById('record').disabled", timeout=120_000)
         page.click("#record")
-        page.wait_for_function("!document.getElementById('train').disabled", timeout=120_000)
+        page.wait_for_function("!document.getElementById('train').disabled", timeout=300_000)
         page.click("#train")
         page.wait_for_function("window.studio.state.job && window.studio.state.job.state === 'failed'", timeout=120_000)
         text = page.inner_text("#message")

@@ -1,6 +1,6 @@
 """What the example-based detail costs the exported graphs, interleaved in one run; one JSON line.
 
-    OMP_NUM_THREADS=1 python bench/bench_detail_cost.py [--avatar lp_d3] [--driver lp_d6] [--frames 60]
+    OMP_NUM_THREADS=1 python -m bench.runtime.detail_cost [--avatar lp_d3] [--driver lp_d6] [--frames 60]
 
 Per variant (``--variant NAME=KEY=VALUE[,KEY=VALUE...]`` of the face model's settings; default:
 ``today`` (no setting), ``detail`` (``detail=1``), ``auto_restore_detail``

@@ -58,7 +58,7 @@ def main() -> None:
     ap.add_argument("--quality", type=int, default=80)
     ap.add_argument("--detail", nargs="+", type=float, default=None,
                     help="per run: the example-based detail's strength, its bank fitted on the run's training frames "
-                         "as bench_detail.py does (0: the run as trained)")
+                         "as bench/studies/detail.py does (0: the run as trained)")
     ap.add_argument("--set", action="append", default=[], help="KEY=VALUE of model.detail_* for the banks")
     a = ap.parse_args()
     if len(a.labels) != len(a.runs):

@@ -1,6 +1,6 @@
 """Where the rendered face's flicker comes from, on trained runs; one JSON line.
 
-    OMP_NUM_THREADS=1 python bench/bench_flicker.py RUN [RUN ...] [--min-cutoff 1.0 --beta 0.05]
+    OMP_NUM_THREADS=1 python -m bench.studies.flicker RUN [RUN ...] [--min-cutoff 1.0 --beta 0.05]
 
 Per run (a ``facesynth train`` run on video), on the evaluation's flicker frames
 (:func:`facesynth.eval.flicker.flicker_rows`: 40 consecutive held-out frames), the face's mean

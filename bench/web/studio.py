@@ -9,9 +9,11 @@ flow test's). Prints ONE JSON line:
 
 * ``record_s``: Record pressed -> the last prompt recorded; ``upload_to_live_s``: Train
   pressed -> the first live frame (upload, training job, loading the avatar, the neutral capture);
-  ``total_s``: Record pressed -> the first live frame;
-* ``job_s``: the training job's stages as it measured them (decode, ingest, train, export);
-  ``frames``: the recording's frames; ``coverage``: the page's overall coverage;
+  ``total_s``: Record pressed -> the first live frame; ``report_after_live_s``: the first live
+  frame -> the run's report written (the evaluation and report, made while the avatar drives);
+* ``job_s``, ``job_cpu_s``: the training job's stages as it measured them, wall-clock and CPU
+  seconds (every thread of the job's process); ``frames``: the recording's frames;
+  ``coverage``: the page's overall coverage;
 * ``load``: the host's 1-minute load average at the start and the end (the machine is shared).
 
     python -m bench.web.studio --video CLIP.mp4 [--seconds 1] [--small]
@@ -52,7 +54,8 @@ def main() -> None:
         "record_s": round((t["recorded"] - t["record"]) / 1000, 1),
         "upload_to_live_s": round((t["first_frame"] - t["train_pressed"]) / 1000, 1),
         "total_s": round((t["first_frame"] - t["record"]) / 1000, 1),
-        "job_s": summary.get("seconds"), "frames": summary.get("frames"),
+        "report_after_live_s": round((t["report_written"] - t["first_frame"]) / 1000, 1),
+        "job_s": summary.get("seconds"), "job_cpu_s": summary.get("cpu_seconds"), "frames": summary.get("frames"),
         "coverage": round(t["coverage"]["overall"], 3), "small": a.small, "prompt_scale": a.seconds,
         "offline": not blocked, "load": [round(load0, 1), round(load_average(), 1)],
     }))

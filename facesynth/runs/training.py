@@ -64,8 +64,11 @@ def _dataclass_from(node, cls):
     return cls(**{k: v for k, v in d.items() if k in names})
 
 
-def run_training(cfg, out_dir: str | Path) -> dict:
-    """Train and evaluate one configuration; returns ``metrics`` (also written to disk)."""
+def run_training(cfg, out_dir: str | Path, on_fitted=None) -> dict:
+    """Train and evaluate one configuration; returns ``metrics`` (also written to disk).
+    ``on_fitted``: called once the SADM is saved in ``out_dir`` (face_model/, sadm/), before the
+    evaluation and the report (the studio exports and drives the avatar meanwhile); the run folder
+    is the same in the end."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     seed_everything(cfg.seed)
@@ -103,6 +106,15 @@ def run_training(cfg, out_dir: str | Path) -> dict:
     with progress.stage(f"SADM fit ({name})"):
         sadm = fit_sadm(model, seq, tr, tex_tr, name, params, _dataclass_from(cfg.sadm, SADMConfig), cfg.seed)
     t2 = time.perf_counter()
+    provenance = {
+        "facesynth_version": __version__,
+        "data": {"name": seq.name, "fingerprint": seq.fingerprint, "frames": len(seq)},
+        "packages": package_versions(),
+        "config": container,
+    }
+    if on_fitted is not None:
+        save_sadm(sadm, out, extra=provenance)
+        on_fitted()
     with progress.stage("evaluation"):
         metrics, extras = evaluate_sadm(sadm, seq, tr, te, eval_cfg, cfg.seed, train_textures=tex_tr, common=common)
     if eval_cfg.talking_head and seq.has_frames:
@@ -112,12 +124,6 @@ def run_training(cfg, out_dir: str | Path) -> dict:
         if figures:
             metrics["talking_head"] = figures
     t3 = time.perf_counter()
-    provenance = {
-        "facesynth_version": __version__,
-        "data": {"name": seq.name, "fingerprint": seq.fingerprint, "frames": len(seq)},
-        "packages": package_versions(),
-        "config": container,
-    }
     metrics.update({
         "timings_s": {"face_model": t1 - t0, "sadm_fit": t2 - t1, "evaluate": t3 - t2},
         "regressor_summary": sadm.regressor.summary(),
@@ -127,7 +133,8 @@ def run_training(cfg, out_dir: str | Path) -> dict:
         text = dumps_json(metrics)
     except FacesynthError as exc:
         raise FacesynthError(f"{out / METRICS}: {exc}") from None
-    save_sadm(sadm, out, extra=provenance)  # face_model/ then sadm/ (its manifest, written last, pairs them)
+    if on_fitted is None:
+        save_sadm(sadm, out, extra=provenance)  # face_model/ then sadm/ (its manifest, written last, pairs them)
     write_text(out / METRICS, text)
     with progress.stage("report"):
         plots = write_plots(metrics, extras, out / PLOTS)

@@ -3,7 +3,7 @@ of the expression space an avatar will be driven through a recording covers.
 
 Each frame's 478 tracker points (MediaPipe, the scheme ``mediapipe478``) are read on their iBUG-68
 view (the scheme's table, as the face model sees a 478-point clip) plus the two iris centres.
-Ten features are ratios of distances, so a frame's position, size and in-plane rotation (what
+Eight features are ratios of distances, so a frame's position, size and in-plane rotation (what
 the face model's Procrustes alignment removes) do not change them (``iod``: the outer eye
 corners 36-45; ``u`` the unit vector 36 -> 45, ``v`` its perpendicular, down the face; ``eyes``
 the mean of points 36-47):
@@ -18,17 +18,23 @@ gaze_x, gaze_y  (mean iris centre 468, 473 - eyes) . u (. v) / iod
 yaw             (nose tip 30 - middle of 0 and 16) . u / |16 - 0|
 ==============  =====================================================================
 
-A *direction* is a feature, a sign and a target change from the recording's neutral (the
-per-feature median over the neutral prompt's frames; over every frame when that prompt has none):
-``DIRECTIONS``. Its coverage on some frames is ``clip(mean of the 3 largest signed changes /
-target, 0, 1)`` (the mean of the top 3 rather than the maximum: one mistracked frame does not
-fill a direction). A prompt's coverage is the mean of its directions' coverage on its own frames
-(the neutral prompt: the share of its frames with a face); the recording's is the mean of every
-direction's coverage on all its frames. The targets are set by hand (a wide-open mouth opens by
-about a third of the eye-corner distance). Across the shared clips the measure ranks clips
-opposite to their held-out PSNR (lively clips are both well covered and hard to render:
-``bench/studies/coverage_heldout.py``, docs/studio.md): it says what a recording lacks, not how well its
-avatar will score.
+The meter measures how well the recorded frames cover the expressions the avatar will be asked
+to render, in this feature space: a frame is the vector ``z = (features - neutral) / SCALE``
+(the neutral: the per-feature median over the neutral prompt's frames, over every frame when
+that prompt has none; ``SCALE``: each feature's typical change in an expression), and a shape
+to render is *reached* by frames ``Z`` by ``clip(1 - d / REACH, 0, 1)``, ``d`` the mean distance
+to its ``NEAREST`` nearest frames (three rather than one: a single mistracked frame does not
+reach a shape). The shapes to render are unknown while recording, so the page uses a fixed
+prior, :data:`DIRECTIONS`: a feature, a sign and a target change from the neutral (a wide-open
+mouth opens by about a third of the eye-corner distance), i.e. ``z = sign * target / SCALE`` on
+that feature, the others free (a smile may open the mouth too: the distance is over that
+feature alone). A prompt's coverage is its directions'
+mean reach by its own frames (the neutral prompt: the share of its frames with a face); the
+recording's is every direction's mean reach by all its frames; the prompts whose coverage is
+below :data:`WEAK` are the ones the page lists as missing or weak.
+
+The same reach, with a clip's held-out frames as the shapes to render (:func:`heldout_coverage`),
+predicts held-out quality across the shared clips (``bench/studies/coverage_heldout.py``, docs/studio.md).
 """
 
 from __future__ import annotations
@@ -38,6 +44,8 @@ import numpy as np
 from facesynth.landmarks import get_scheme
 
 FEATURES = ("mouth_open", "mouth_width", "brow_height", "brow_gap", "eye_open", "gaze_x", "gaze_y", "yaw")
+# each feature's typical change in an expression (the unit of its axis)
+SCALE = (0.12, 0.10, 0.05, 0.04, 0.07, 0.03, 0.02, 0.08)
 # name -> (feature, sign, target change from the neutral)
 DIRECTIONS: dict[str, tuple[str, int, float]] = {
     "speech": ("mouth_open", 1, 0.12),
@@ -54,7 +62,9 @@ DIRECTIONS: dict[str, tuple[str, int, float]] = {
     "turn_left": ("yaw", 1, 0.08),
     "turn_right": ("yaw", -1, 0.08),
 }
-TOP = 3  # a direction's reach: the mean of its TOP largest changes
+NEAREST = 3  # a shape's distance: the mean over its NEAREST nearest frames
+REACH = 1.0  # distance (in SCALE units) at which a shape counts as not reached at all
+WEAK = 0.5  # a prompt below this coverage is listed as missing or weak
 IRIS_CENTRES = (468, 473)
 
 
@@ -83,20 +93,50 @@ def features(points: np.ndarray) -> np.ndarray:
     return np.stack(out, -1)
 
 
-def direction_coverage(feats: np.ndarray, neutral: np.ndarray, direction: str) -> float:
-    """Coverage in [0, 1] of ``direction`` by frames ``feats`` (T, F) against ``neutral`` (F,)."""
+def reach(frames_z: np.ndarray, shapes_z: np.ndarray) -> np.ndarray:
+    """How well frames ``frames_z`` (T, F) reach each shape of ``shapes_z`` (S, F), both in SCALE
+    units from the neutral: (S,) in [0, 1] (0 for every shape when there is no frame). A shape's
+    NaN features are free: the distance is over the others."""
+    shapes_z = np.atleast_2d(shapes_z)
+    if len(frames_z) == 0:
+        return np.zeros(len(shapes_z))
+    diff = shapes_z[:, None, :] - frames_z[None]
+    d = np.sqrt(np.where(np.isnan(diff), 0.0, diff ** 2).sum(-1))
+    near = np.sort(d, axis=1)[:, :NEAREST].mean(1)
+    return np.clip(1.0 - near / REACH, 0.0, 1.0)
+
+
+def to_z(feats: np.ndarray, neutral: np.ndarray) -> np.ndarray:
+    return (feats - neutral) / np.asarray(SCALE)
+
+
+def direction_z(direction: str) -> np.ndarray:
+    """A direction's target shape, in SCALE units from the neutral: its feature's target change,
+    the other features free (NaN: a smile may open the mouth too)."""
     name, sign, target = DIRECTIONS[direction]
     k = FEATURES.index(name)
-    if len(feats) == 0:
-        return 0.0
-    change = np.sort(sign * (feats[:, k] - neutral[k]))[::-1][:TOP]
-    return float(np.clip(change.mean() / target, 0.0, 1.0))
+    z = np.full(len(FEATURES), np.nan)
+    z[k] = sign * target / SCALE[k]
+    return z
+
+
+def direction_coverage(feats: np.ndarray, neutral: np.ndarray, direction: str) -> float:
+    """Coverage in [0, 1] of ``direction`` by frames ``feats`` (T, F) against ``neutral`` (F,)."""
+    return float(reach(to_z(feats, neutral), direction_z(direction))[0])
+
+
+def heldout_coverage(train_points: np.ndarray, drive_points: np.ndarray) -> float:
+    """The meter with other frames than the prior as the shapes to render: how well a clip's
+    training frames reach its held-out (or a driver's) frames, each from its own median."""
+    tr, dr = features(train_points), features(drive_points)
+    return float(reach(to_z(tr, np.median(tr, 0)), to_z(dr, np.median(tr, 0))).mean())
 
 
 def coverage(prompts: list[dict]) -> dict:
     """``prompts``: ``[{"id", "directions": [...], "points": [(478, 2) array or None per frame]}]``
     (the first prompt with no directions is the neutral) -> ``{"prompts": {id: coverage},
-    "directions": {name: coverage on every frame}, "overall": mean of the directions}``."""
+    "directions": {name: coverage on every frame}, "overall": mean of the directions,
+    "missing": [ids of the prompts below WEAK, in order]}``."""
     per = []
     for p in prompts:
         pts = [np.asarray(x, np.float64).reshape(-1, 2) for x in p["points"] if x is not None]
@@ -104,7 +144,8 @@ def coverage(prompts: list[dict]) -> dict:
     every = np.concatenate([f for _, f in per]) if per else np.zeros((0, len(FEATURES)))
     neutral_feats = next((f for p, f in per if not p["directions"] and len(f)), every)
     if len(neutral_feats) == 0:
-        return {"prompts": {p["id"]: 0.0 for p in prompts}, "directions": {d: 0.0 for d in DIRECTIONS}, "overall": 0.0}
+        return {"prompts": {p["id"]: 0.0 for p in prompts}, "directions": {d: 0.0 for d in DIRECTIONS}, "overall": 0.0,
+                "missing": [p["id"] for p in prompts]}
     neutral = np.median(neutral_feats, axis=0)
     out = {}
     for p, f in per:
@@ -113,4 +154,5 @@ def coverage(prompts: list[dict]) -> dict:
         else:
             out[p["id"]] = len(f) / max(1, len(p["points"]))
     dirs = {d: direction_coverage(every, neutral, d) for d in DIRECTIONS}
-    return {"prompts": out, "directions": dirs, "overall": float(np.mean(list(dirs.values())))}
+    return {"prompts": out, "directions": dirs, "overall": float(np.mean(list(dirs.values()))),
+            "missing": [p["id"] for p in prompts if out[p["id"]] < WEAK]}

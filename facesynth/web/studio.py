@@ -17,8 +17,10 @@ answer (no CORS, ``Cross-Origin-Resource-Policy: same-origin``), so it cannot fo
 - ``POST api/cancel``; ``GET api/progress``: the job's state as Server-Sent Events.
 
 The job (:mod:`facesynth.web.studio_job`) runs in a process of its own (cancel terminates it) in a
-hidden work folder inside the library (``.studio-work-PID-...``), renamed to ``NAME`` when it
-succeeds and removed otherwise: the library never holds a half-made avatar.
+hidden work folder inside the library (``.studio-work-PID-...``), renamed to ``NAME`` once the
+avatar is exported (the job then writes the run's evaluation and report in it while the page
+drives the avatar) and removed when the job fails before that: the library never holds a
+half-made avatar.
 """
 
 from __future__ import annotations
@@ -98,7 +100,8 @@ class Studio:
             self.state = {**self.state, **kw, "version": self.state["version"] + 1}
 
     def busy(self) -> bool:
-        return self.state["state"] in ("uploading", "running")
+        """A job is uploading, training, or writing the report of the avatar it made."""
+        return self.state["state"] in ("uploading", "running") or self.state.get("report") == "writing"
 
     def start(self, name: str, work: Path) -> None:
         import subprocess
@@ -109,7 +112,7 @@ class Studio:
         self.proc = subprocess.Popen([sys.executable, "-m", "facesynth.web.studio_job", json.dumps(args)],
                                      stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL)
         self._set(state="running", name=name, stage="decode", percent=0.0, eta_s=None, elapsed_s=0.0, message="",
-                  started=time.time())
+                  started=time.time(), report=None, report_stage=None, summary=None)
         threading.Thread(target=self._watch, args=(self.proc, name, work), daemon=True).start()
 
     @staticmethod
@@ -127,51 +130,63 @@ class Studio:
         messages.put(None)
 
     def _watch(self, proc, name: str, work: Path) -> None:
+        """Follows the job: its stages into the state (percent, time left), the work folder renamed
+        to ``name`` when the avatar is live (state ``done``; ``report``: ``writing``, then
+        ``written`` or ``failed``), removed when the job fails or is cancelled before that."""
         import queue
 
-        from facesynth.web.studio_job import STAGES
+        from facesynth.web.studio_job import STAGES, estimate
 
-        weights = dict(STAGES)
         order = [s for s, _ in STAGES]
         t0 = time.time()
-        result = None
+        result, live = None, False
         messages: queue.Queue = queue.Queue()
         threading.Thread(target=self._read, args=(proc, messages), daemon=True).start()
+        at = ("decode", 0.0)
         while True:
             try:
                 msg = messages.get(timeout=0.25)
             except queue.Empty:  # the estimate of the time left moves on between two reports too
-                elapsed = time.time() - t0
-                p = self.state.get("percent", 0.0) / 100
-                self._set(elapsed_s=elapsed, eta_s=elapsed * (1 - p) / p if p >= 0.03 else None)
+                if not live:
+                    elapsed = time.time() - t0
+                    self._set(elapsed_s=elapsed, eta_s=estimate(*at, elapsed)[1])
                 continue
             if msg is None:  # the job's stdout closed: it ended
                 break
-            if "stage" in msg:
-                stage = msg["stage"]
-                done = sum(weights[s] for s in order[:order.index(stage)])
-                p = max(self.state.get("percent", 0.0) / 100, min(0.999, done + weights[stage] * msg["fraction"]))
-                elapsed = time.time() - t0
-                eta = elapsed * (1 - p) / p if p >= 0.03 else None
-                self._set(stage=stage, percent=round(100 * p, 1), eta_s=eta, elapsed_s=elapsed)
+            if "stage" in msg and not live:
+                if msg["stage"] in order:
+                    at = max(at, (msg["stage"], msg["fraction"]), key=lambda x: (order.index(x[0]), x[1]))
+                    elapsed = time.time() - t0
+                    percent, eta = estimate(*at, elapsed)
+                    self._set(stage=at[0], percent=round(min(99.9, percent), 1), eta_s=eta, elapsed_s=elapsed)
+            elif "stage" in msg:
+                self._set(report_stage=msg["stage"])
+            elif "live" in msg:
+                target = self.library / name
+                try:
+                    if target.exists():
+                        raise FileExistsError(f"{target} appeared meanwhile")
+                    os.replace(work, target)  # the job works on in it (its working folder)
+                except OSError as exc:
+                    proc.terminate()
+                    proc.wait()
+                    shutil.rmtree(work, ignore_errors=True)
+                    self._set(state="failed", message=f"The avatar could not be saved: {exc}")
+                    return
+                live = True
+                self._set(state="done", percent=100.0, eta_s=0.0, elapsed_s=time.time() - t0, summary=msg["live"],
+                          report="writing", report_stage="evaluation", message=f"{name} is ready.")
             else:
                 result = msg
         proc.wait()
-        if self.cancelled:
+        if live:
+            ok = bool(result and "done" in result)
+            self._set(report="written" if ok else "failed", report_s=time.time() - t0,
+                      **({"summary": result["done"]} if ok else {}),
+                      report_message="" if ok else (result or {}).get("error", f"exit status {proc.returncode}"))
+        elif self.cancelled:
             shutil.rmtree(work, ignore_errors=True)
             self._set(state="cancelled", message="Training cancelled: nothing was added to the library.", eta_s=None)
-        elif result and "done" in result:
-            target = self.library / name
-            try:
-                if target.exists():
-                    raise FileExistsError(f"{target} appeared meanwhile")
-                os.replace(work, target)
-            except OSError as exc:
-                shutil.rmtree(work, ignore_errors=True)
-                self._set(state="failed", message=f"The avatar could not be saved: {exc}")
-                return
-            self._set(state="done", percent=100.0, eta_s=0.0, elapsed_s=time.time() - t0, summary=result["done"],
-                      message=f"{name} is ready.")
         else:
             shutil.rmtree(work, ignore_errors=True)
             why = result["error"] if result else f"the training process stopped (exit status {proc.returncode})"
@@ -187,7 +202,8 @@ class Studio:
 
     def close(self) -> None:
         self.closing = True
-        self.cancel()
+        if not self.cancel() and self.proc is not None and self.proc.poll() is None:
+            self.proc.terminate()  # a live avatar's report still being written: the avatar stays, without it
         if self.proc is not None:
             try:
                 self.proc.wait(30)
@@ -305,7 +321,7 @@ class Studio:
                              f"{need / 2**30:.2f} GB needed")
         with self.lock:
             if self.busy():
-                return fail(409, "a training is already running: wait for it or cancel it")
+                return fail(409, "a training is already running (or writing its report): wait for it or cancel it")
             self.state = {**self.state, "state": "uploading", "version": self.state["version"] + 1, "name": name,
                           "message": "", "stage": "upload", "percent": 0.0, "eta_s": None}
         try:

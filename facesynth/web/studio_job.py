@@ -2,15 +2,18 @@
 the page's recorded frames (JPEG) -> one video -> ``facesynth ingest --landmarker mediapipe --copy`` ->
 ``facesynth train data=video`` (the default configuration) -> ``facesynth export --talking-head``,
 each by the function its command calls, all inside one work folder (made by the server inside
-the library; renamed to the avatar's name by the server when the job succeeds).
+the library; renamed to the avatar's name by the server once the avatar is exported). The avatar
+is exported as soon as the training has saved its model, before the run's evaluation and
+report: the page drives it while they are written (the run folder ends the same as the CLI's).
 
     python -m facesynth.web.studio_job '{"work": DIR, "overrides": [...], "min_frames": N, "min_face": F}'
 
 Progress goes to the server as JSON lines on stdout, each after :data:`MARK`: ``{"stage",
 "fraction"}`` while a stage runs (the ``[facesynth]`` lines the commands print: their progress
-bars' ``n/total`` and their finished-stage lines), ``{"done": summary}`` or ``{"error": one
-line}`` at the end. A process of its own rather than a ``multiprocessing`` child: it does not
-import the server's ``__main__`` again, whichever way the server was started.
+bars' ``n/total`` and their finished-stage lines), ``{"live": summary}`` once the avatar is
+exported, ``{"done": summary}`` once the report is written, or ``{"error": one line}``. A
+process of its own rather than a ``multiprocessing`` child: it does not import the server's
+``__main__`` again, whichever way the server was started.
 """
 
 from __future__ import annotations
@@ -23,10 +26,14 @@ import sys
 import time
 from pathlib import Path
 
-# the stages in order, with their share of the percent shown (set from a default-config run of a
-# 40 s recording on 2 cores, docs/studio.md); a stage's progress bar moves inside its share
-STAGES = (("decode", 0.04), ("ingest", 0.22), ("face model", 0.08), ("SADM fit", 0.30), ("evaluation", 0.14),
-          ("talking head", 0.08), ("report", 0.03), ("export", 0.11))
+# The stages before the avatar goes live, in order, each with its wall-clock seconds in a
+# default-config run of a 40 s recording (558 frames kept) on this 2-core host, shared (load
+# average 2-5): ``bench/web/studio.py`` (its ``job_s``), docs/studio.md. Only their ratios
+# matter: the percent shown is the share of this total done, and the time left is what remains
+# of it at the speed seen.
+STAGES = (("decode", 1.9), ("ingest", 3.7), ("face model", 12.2), ("SADM fit", 114.4), ("export", 14.3))
+# then, with the avatar live, the run's evaluation and report (run_training's remaining stages)
+REPORT_STAGES = ("evaluation", "talking head", "report")
 VIDEO = "recording.avi"  # the frames, in order: Motion JPEG, quality 95 (OpenCV writes it everywhere)
 UPLOAD = "upload.bin"  # the page's frames as received
 FPS = 30.0
@@ -83,28 +90,60 @@ def decode_upload(upload: Path, out: Path, min_frames: int) -> dict:
     return {"frames": n}
 
 
+def estimate(stage: str, fraction: float, elapsed_s: float, stages=STAGES) -> tuple[float, float]:
+    """(percent done, seconds left) of the job before the avatar goes live, with ``stage`` (one of
+    ``stages``' names) ``fraction`` done after ``elapsed_s`` seconds: the stages' measured seconds
+    give the percent; the time left is the seconds the stages still need at the speed seen so
+    far (the job's elapsed time over the measured seconds done), the measured seconds themselves
+    before 3 % is done (too little to judge the speed)."""
+    names = [n for n, _ in stages]
+    seconds = dict(stages)
+    total = sum(seconds.values())
+    done = sum(seconds[n] for n in names[:names.index(stage)]) + seconds[stage] * max(0.0, min(1.0, fraction))
+    p = done / total
+    left = total - done
+    return 100 * p, (left * elapsed_s / done if p >= 0.03 else left)
+
+
+# a finished stage's line (``[facesynth] NAME...in X s``) -> the stage that starts then, and its fraction
+NEXT = (("ingest", "face model", 0.0), ("face model", "SADM fit", 0.0), ("SADM fit", "export", 0.0),
+        ("ONNX export", "export", 0.7), ("evaluation", "talking head", 0.0), ("talking head", "report", 0.0))
+
+
 def run_job(work: str, overrides: list[str], min_frames: int, min_face: float, queue) -> None:
-    """The job's process: everything inside ``work``; reports on ``queue``."""
-    work_dir = Path(work)
-    os.chdir(work_dir)  # relative paths in the run's config (data.path=ingest): the folder can be renamed
-    current = {"stage": "decode"}
+    """The job's process: everything inside ``work`` (its working folder, so that the server can
+    rename it to the avatar's name once the avatar is live, while the report is written);
+    reports on ``queue``: stages until ``{"live": summary}`` (the avatar exported), then the
+    report's stages until ``{"done": summary}``, or ``{"error": one line}``."""
+    os.chdir(work)  # relative paths from here on (and in the run's config): the folder can be renamed
+    work_dir = Path(".")
+    current = {"stage": "decode", "t": time.perf_counter(), "cpu": time.process_time()}
+    timings: dict[str, float] = {}
+    cpu: dict[str, float] = {}  # each stage's CPU seconds (every thread of the job): the host is shared
+
+    def close_stage() -> None:
+        now, now_cpu = time.perf_counter(), time.process_time()
+        timings[current["stage"]] = timings.get(current["stage"], 0.0) + now - current["t"]
+        cpu[current["stage"]] = cpu.get(current["stage"], 0.0) + now_cpu - current["cpu"]
+        current.update(t=now, cpu=now_cpu)
+
+    names = [n for n, _ in STAGES] + list(REPORT_STAGES)
 
     def report(stage: str, fraction: float) -> None:
-        current["stage"] = stage
+        if stage != current["stage"]:  # each stage's seconds, from its first report to the next stage's
+            close_stage()
+            current["stage"] = stage
         queue.put({"stage": stage, "fraction": max(0.0, min(1.0, fraction))})
 
     def on_line(line: str) -> None:
         if not line.startswith("[facesynth]"):
             return
         text = line[len("[facesynth]"):].strip()
-        names = [n for n, _ in STAGES]
-        for k, name in enumerate(names):
-            if text.startswith(name) and re.search(r" in \d+(\.\d+)? s$", text):  # a stage finished: the next one starts
-                report(names[min(k + 1, len(names) - 1)], 0.0)
-                return
-        if text.startswith("ONNX export") and re.search(r" in \d+(\.\d+)? s$", text):  # then the ONNX Runtime check
-            report("export", 0.7)
-            return
+        if re.search(r" in \d+(\.\d+)? s$", text):
+            for name, nxt, fraction in NEXT:
+                if text.startswith(name):
+                    report(nxt, fraction)
+                    return
         m = BAR.search(text)
         if m and int(m.group(2)) > 0:
             report(current["stage"], int(m.group(1)) / int(m.group(2)))
@@ -116,15 +155,12 @@ def run_job(work: str, overrides: list[str], min_frames: int, min_face: float, q
     from facesynth.io import install_sigterm_handler, is_disk_full
 
     install_sigterm_handler()  # SIGTERM (cancel) unwinds: the commands remove their temporary files
-    timings = {}
+    summary: dict = {}
     try:
-        t0 = time.perf_counter()
         report("decode", 0.0)
         rec = decode_upload(work_dir / UPLOAD, work_dir / VIDEO, min_frames)
         (work_dir / UPLOAD).unlink()
-        timings["decode"] = time.perf_counter() - t0
 
-        t = time.perf_counter()
         report("ingest", 0.0)
         from facesynth.data.ingest import ingest_video
 
@@ -134,28 +170,28 @@ def run_job(work: str, overrides: list[str], min_frames: int, min_face: float, q
         if rate < min_face:
             raise FacesynthError(f"no face in most frames: the tracker found one in {rate:.0%} of "
                                  f"{rec['frames']} frames (at least {min_face:.0%} are needed): face the camera, in good light")
-        timings["ingest"] = time.perf_counter() - t
 
-        t = time.perf_counter()
         report("face model", 0.0)
+        from facesynth.onnx.export import export_talking_head_model
         from facesynth.runs.config import compose_config
         from facesynth.runs.training import run_training
 
+        def go_live() -> None:  # the SADM is saved: export the avatar; the page drives it while the report is made
+            report("export", 0.0)
+            export = export_talking_head_model("run", "avatar.onnx")
+            report("evaluation", 0.0)
+            summary.update({"frames": rec["frames"], "detection_rate": rate, "overrides": list(overrides),
+                            "seconds": {k: round(v, 2) for k, v in timings.items()},
+                            "cpu_seconds": {k: round(v, 2) for k, v in cpu.items()}, "onnx_bytes": export["bytes"]})
+            Path("studio.json").write_text(json.dumps(summary, indent=1))
+            queue.put({"live": summary})
+
         cfg = compose_config(["data=video", "data.path=ingest", *overrides])
-        metrics = run_training(cfg, "run")
-        timings["train"] = time.perf_counter() - t
-
-        t = time.perf_counter()
-        report("export", 0.0)
-        from facesynth.onnx.export import export_talking_head_model
-
-        export = export_talking_head_model("run", "avatar.onnx")
-        timings["export"] = time.perf_counter() - t
-        report("export", 1.0)
-        summary = {"frames": rec["frames"], "detection_rate": rate,
-                   "overrides": list(overrides), "seconds": {k: round(v, 2) for k, v in timings.items()},
-                   "psnr_ref": metrics.get("psnr_ref"), "onnx_bytes": export["bytes"]}
-        (work_dir / "studio.json").write_text(json.dumps(summary, indent=1))
+        metrics = run_training(cfg, "run", on_fitted=go_live)
+        close_stage()
+        summary.update({"seconds": {k: round(v, 2) for k, v in timings.items()},
+                        "cpu_seconds": {k: round(v, 2) for k, v in cpu.items()}, "psnr_ref": metrics.get("psnr_ref")})
+        Path("studio.json").write_text(json.dumps(summary, indent=1))
         queue.put({"done": summary})
     except FacesynthError as exc:
         queue.put({"error": str(exc)})

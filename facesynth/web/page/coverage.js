@@ -1,5 +1,5 @@
-// The studio's coverage meter: how much of the expression space the avatar will be driven
-// through the recording covers, per prompt and overall. Step for step the Python reference
+// The studio's coverage meter: how well the recording reaches the expressions the avatar will be
+// driven through, per prompt and overall, and which prompts are missing or weak. Step for step the Python reference
 // facesynth/web/coverage.py (its docstring gives the measure); tested against it on the same
 // points (tests/test_web_studio.py).
 import { toScheme } from './schemes.js';
@@ -11,7 +11,9 @@ export const DIRECTIONS = {  // name -> [feature, sign, target change from the n
   blink: ['eye_open', -1, 0.07], gaze_left: ['gaze_x', 1, 0.03], gaze_right: ['gaze_x', -1, 0.03],
   gaze_up: ['gaze_y', -1, 0.02], gaze_down: ['gaze_y', 1, 0.02], turn_left: ['yaw', 1, 0.08], turn_right: ['yaw', -1, 0.08],
 };
-const TOP = 3, IRIS = [468, 473];
+export const SCALE = [0.12, 0.10, 0.05, 0.04, 0.07, 0.03, 0.02, 0.08];  // each feature's unit
+export const NEAREST = 3, REACH = 1.0, WEAK = 0.5;
+const IRIS = [468, 473];
 
 // one frame's 478 points (flat) -> its features (FEATURES' order); rows: mediapipe478's to_ibug68
 export function features(points, rows) {
@@ -39,12 +41,22 @@ export function features(points, rows) {
 const median = (xs) => { const s = [...xs].sort((a, b) => a - b), n = s.length; return n % 2 ? s[n >> 1] : (s[n / 2 - 1] + s[n / 2]) / 2; };
 const avg = (xs) => xs.reduce((a, b) => a + b, 0) / xs.length;
 
-// coverage in [0, 1] of a direction by frames' features against the neutral's
+// how well frames (their z: SCALE units from the neutral) reach one shape z: 1 - the mean
+// distance to its NEAREST nearest frames / REACH, clipped to [0, 1]; its NaN features are free
+export function reach(framesZ, shapeZ) {
+  if (!framesZ.length) return 0;
+  const d = framesZ.map((z) => Math.sqrt(z.reduce((acc, v, k) => acc + (Number.isNaN(shapeZ[k]) ? 0 : (shapeZ[k] - v) ** 2), 0)))
+    .sort((a, b) => a - b);
+  return Math.min(1, Math.max(0, 1 - avg(d.slice(0, NEAREST)) / REACH));
+}
+
+const toZ = (f, neutral) => f.map((v, k) => (v - neutral[k]) / SCALE[k]);
+
+// coverage in [0, 1] of a direction (its target shape) by frames' features against the neutral's
 export function directionCoverage(feats, neutral, direction) {
   const [name, sign, target] = DIRECTIONS[direction], k = FEATURES.indexOf(name);
-  if (!feats.length) return 0;
-  const change = feats.map((f) => sign * (f[k] - neutral[k])).sort((a, b) => b - a).slice(0, TOP);
-  return Math.min(1, Math.max(0, avg(change) / target));
+  const shape = FEATURES.map((_, j) => (j === k ? sign * target / SCALE[k] : NaN));
+  return reach(feats.map((f) => toZ(f, neutral)), shape);
 }
 
 // prompts: [{id, directions, points: [flat 478 x 2 or null per frame]}] (the prompt without
@@ -56,7 +68,8 @@ export function coverage(prompts, rows) {
   const neutralFeats = n ? n[1] : every;
   const dirNames = Object.keys(DIRECTIONS);
   if (!neutralFeats.length) {
-    return { prompts: Object.fromEntries(prompts.map((p) => [p.id, 0])), directions: Object.fromEntries(dirNames.map((d) => [d, 0])), overall: 0 };
+    return { prompts: Object.fromEntries(prompts.map((p) => [p.id, 0])), directions: Object.fromEntries(dirNames.map((d) => [d, 0])), overall: 0,
+      missing: prompts.map((p) => p.id) };
   }
   const neutral = FEATURES.map((_, k) => median(neutralFeats.map((f) => f[k])));
   const out = {};
@@ -64,5 +77,5 @@ export function coverage(prompts, rows) {
     out[p.id] = p.directions.length ? avg(p.directions.map((d) => directionCoverage(f, neutral, d))) : f.length / Math.max(1, p.points.length);
   }
   const dirs = Object.fromEntries(dirNames.map((d) => [d, directionCoverage(every, neutral, d)]));
-  return { prompts: out, directions: dirs, overall: avg(Object.values(dirs)) };
+  return { prompts: out, directions: dirs, overall: avg(Object.values(dirs)), missing: prompts.filter((p) => out[p.id] < WEAK).map((p) => p.id) };
 }
