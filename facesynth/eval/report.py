@@ -88,6 +88,15 @@ def below_mean(metrics: dict, noise: str = "0") -> list[str]:
     return out
 
 
+def _region_table(doc: Document, block: dict | None, digits: int, title: str) -> None:
+    """One table of a per-region figure ({region: {row: value}}), under ``title``; nothing when absent."""
+    if not block:
+        return
+    doc.heading(title, 3)
+    names = list(next(iter(block.values())))
+    doc.table(["region"] + names, [[reg] + [f"{v[n]:.{digits}f}" for n in names] for reg, v in block.items()])
+
+
 def face_detail_sections(doc: Document, metrics: dict) -> None:
     """The report's per-part figures: the per-part reference-frame PSNR, the SADM's shrinkage
     weights, the sharpness, LPIPS and flicker tables (the parts below the mean texture are on
@@ -106,18 +115,12 @@ def face_detail_sections(doc: Document, metrics: dict) -> None:
         doc.table(["part", "weight", "val sadm dB", "val mean texture dB", "val shrunk dB"],
                   [[p, f"{w:.2f}"] + [f"{shrink['psnr'][p][r]:.2f}" for r in ("sadm", "mean_texture", "shrunk")]
                    for p, w in shrink["weights"].items()])
-    sharp = metrics.get("sharpness_frame_common")
-    if sharp:
-        doc.heading("Sharpness over the common region (rendered / real Sobel gradient energy, median over frames, "
-                    "sigma 0; 1 = as detailed as the real frame)", 3)
-        names = list(next(iter(sharp.values())))
-        doc.table(["region"] + names, [[reg] + [f"{v[n]:.2f}" for n in names] for reg, v in sharp.items()])
-    lp = metrics.get("lpips_frame_common")
-    if lp:
-        doc.heading("Perceptual distance LPIPS-Alex of the face pasted into the real frame (median over frames, sigma 0; "
-                    "lower is closer, 0 = the real frame)", 3)
-        names = list(next(iter(lp.values())))
-        doc.table(["region"] + names, [[reg] + [f"{v[n]:.4f}" for n in names] for reg, v in lp.items()])
+    _region_table(doc, metrics.get("sharpness_frame_common"), 2,
+                  "Sharpness over the common region (rendered / real Sobel gradient energy, median over frames, "
+                  "sigma 0; 1 = as detailed as the real frame)")
+    _region_table(doc, metrics.get("lpips_frame_common"), 4,
+                  "Perceptual distance LPIPS-Alex of the face pasted into the real frame (median over frames, sigma 0; "
+                  "lower is closer, 0 = the real frame)")
     fl = metrics.get("flicker_frame_common")
     if fl:
         doc.heading(f"Flicker: the face's mean absolute frame-to-frame change on {fl['frames']} consecutive held-out frames "

@@ -57,6 +57,20 @@ def port_number(text: str) -> int:
     return port
 
 
+def add_port(parser) -> None:
+    """The ``--port`` option of each local server's command (``serve``, ``studio``)."""
+    parser.add_argument("--port", type=port_number, default=8000, help="port on 127.0.0.1 (0: any free one; default 8000)")
+
+
+def announce(after: str = ""):
+    """The ``ready`` callback of a local server's command: one line saying where to open it."""
+
+    def ready(url: str) -> None:
+        print(f"open {url} (Ctrl-C stops){after}", flush=True)
+
+    return ready
+
+
 class LocalOnly:
     """ASGI middleware: the checks of this module's docstring, in front of ``app``, for a server
     listening on ``127.0.0.1:port``."""

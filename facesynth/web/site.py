@@ -18,7 +18,7 @@ from facesynth.errors import FacesynthError
 from facesynth.io import atomic_dir, check_writable, refuse_overwriting_inputs, remove_dead_pid_folders, set_default_mode
 
 PAGE = Path(__file__).resolve().parent / "page"  # the page and its npm manifest: package data
-PAGE_FILES = ("index.html", "main.js", "worker.js", "tracker.js", "neutral.js", "schemes.js", "onnxmeta.js",
+PAGE_FILES = ("index.html", "main.js", "workers.js", "worker.js", "tracker.js", "neutral.js", "schemes.js", "onnxmeta.js",
               "style.css")
 NPM_FILES = ("package.json", "package-lock.json")
 ORT_FILES = ("ort.wasm.min.mjs", "ort-wasm-simd-threaded.mjs", "ort-wasm-simd-threaded.wasm")

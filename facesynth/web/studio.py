@@ -49,7 +49,7 @@ DEFAULT_OVERRIDES = ("eval.common_region=false",)  # no dlib landmarks beside a 
 MIN_FRAMES = 150  # frames a recording needs (the page keeps the frames its tracker sees: 10-30 a second)
 MIN_FACE = 0.5
 TOKEN_HEADER = "x-facesynth-token"
-PAGE_FILES = ("worker.js", "tracker.js", "schemes.js", "onnxmeta.js", "neutral.js", "coverage.js", "studio.js",
+PAGE_FILES = ("workers.js", "worker.js", "tracker.js", "schemes.js", "onnxmeta.js", "neutral.js", "coverage.js", "studio.js",
               "studio.css")
 SSE_MAX_S = 15.0  # one progress stream's length (a stopping server waits for it); EventSource reconnects
 

@@ -7,19 +7,17 @@ DEFAULT_LIBRARY = "facesynth-avatars"
 
 
 def add_arguments(parser) -> None:
-    from facesynth.web.server import port_number
+    from facesynth.web.server import add_port
 
     parser.add_argument("--library", default=DEFAULT_LIBRARY, metavar="DIR",
                         help=f"the folder of your avatars: each one's .onnx, training run and report.html "
                              f"(created; default ./{DEFAULT_LIBRARY})")
-    parser.add_argument("--port", type=port_number, default=8000, help="port on 127.0.0.1 (0: any free one; default 8000)")
+    add_port(parser)
 
 
 def run(args) -> int:
+    from facesynth.web.server import announce
     from facesynth.web.studio import run_studio
 
-    def ready(url: str) -> None:
-        print(f"open {url} (Ctrl-C stops); avatars go to {args.library}/", flush=True)
-
-    run_studio(args.library, args.port, ready=ready)
+    run_studio(args.library, args.port, ready=announce(f"; avatars go to {args.library}/"))
     return 0

@@ -7,6 +7,7 @@
 // URL options: ?workers=1|2|auto (default auto) and ?stage_ms=N (auto's budget, default 30).
 import { selectNeutral } from './neutral.js';
 import { onnxMetadata } from './onnxmeta.js';
+import { spawnWorker } from './workers.js';
 
 // auto: the stage is judged on the median of STAGE_FRAMES frames, once WARMUP_FRAMES frames have
 // gone (the first seconds run slower while V8 compiles the hot WebAssembly), every 30 frames
@@ -293,31 +294,22 @@ async function useTwoWorkers() {
 
 // A worker (worker.js): with the tracker (the camera's) or without (a second worker, the avatar's).
 function startWorker(tracker) {
-  const w = new Worker('worker.js', { type: 'module' });
-  w.ready = new Promise((resolve, reject) => { w.started = resolve; w.failed = reject; });
-  w.onmessage = (ev) => {
-    const m = ev.data, p = state.pending.get(m.id);
-    if (m.type === 'ready') w.started();
-    else if (m.type === 'points') onPoints(m);
-    else if (m.type === 'frame') onFrame(m, w);
-    else if (m.type === 'avatar-failed') onAvatarFailed(m, w);
-    else if (p) { state.pending.delete(m.id); if (m.type === 'error') p.reject(new Error(m.message)); else p.resolve(m); }
-    else if (m.type === 'error') {
+  return spawnWorker({
+    base, tracker, pending: state.pending,
+    on: { points: onPoints, frame: onFrame, 'avatar-failed': onAvatarFailed },
+    onError: (m, w) => {
       if (w === state.worker) state.busy = false;
       if (w === state.renderer) state.rendering = false;
       if (w === state.worker || w === state.renderer) message(`Worker error: ${m.message}`, true);  // not from one let go
-      w.failed(new Error(m.message));
-    }
-  };
-  w.onerror = (e) => {  // the worker's script itself failed (a broken or partial page folder)
-    const err = new Error(`The page's worker failed to start (${e.message || 'worker.js'}): rebuild the page.`);
-    for (const p of state.pending.values()) p.reject(err);
-    state.pending.clear();
-    message(err.message, true);
-    w.failed(err);
-  };
-  w.postMessage({ type: 'init', base, tracker });
-  return w;
+    },
+    onStartFailed: (e) => {  // a broken or partial page folder
+      const err = new Error(`The page's worker failed to start (${e.message || 'worker.js'}): rebuild the page.`);
+      for (const p of state.pending.values()) p.reject(err);
+      state.pending.clear();
+      message(err.message, true);
+      return err;
+    },
+  });
 }
 
 // Send the camera's newest frame to the worker when its tracker is idle and the frame is new.

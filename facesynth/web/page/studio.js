@@ -6,6 +6,7 @@
 import { coverage, DIRECTIONS } from './coverage.js';
 import { selectNeutral } from './neutral.js';
 import { onnxMetadata } from './onnxmeta.js';
+import { spawnWorker } from './workers.js';
 
 const $ = (id) => document.getElementById(id);
 const SCALE = Number(new URLSearchParams(location.search).get('seconds') ?? 1);
@@ -57,19 +58,12 @@ function call(type, payload, transfer = []) {
 
 // -- the camera and the tracker (the live page's worker.js) ---------------------------------
 function startWorker() {
-  const w = new Worker('worker.js', { type: 'module' });
-  w.ready = new Promise((resolve, reject) => { w.started = resolve; w.failed = reject; });
-  w.onmessage = (ev) => {
-    const m = ev.data, p = state.pending.get(m.id);
-    if (m.type === 'ready') w.started();
-    else if (m.type === 'points') onPoints(m);
-    else if (m.type === 'frame') onFrame(m);
-    else if (p) { state.pending.delete(m.id); if (m.type === 'error') p.reject(new Error(m.message)); else p.resolve(m); }
-    else if (m.type === 'error') { state.busy = false; message(`Worker error: ${m.message}`, true); w.failed(new Error(m.message)); }
-  };
-  w.onerror = (e) => { message(`The page's worker failed to start (${e.message || 'worker.js'}).`, true); w.failed(e); };
-  w.postMessage({ type: 'init', base, tracker: true });
-  return w;
+  return spawnWorker({
+    base, tracker: true, pending: state.pending,
+    on: { points: onPoints, frame: onFrame },
+    onError: (m) => { state.busy = false; message(`Worker error: ${m.message}`, true); },
+    onStartFailed: (e) => { message(`The page's worker failed to start (${e.message || 'worker.js'}).`, true); return e; },
+  });
 }
 
 function sendFrame() {
