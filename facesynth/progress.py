@@ -43,6 +43,10 @@ def set_json(on: bool) -> None:
     _JSON = bool(on)
 
 
+def is_json() -> bool:
+    return _JSON
+
+
 def json_line(figures: dict) -> str:
     """``figures`` as one line of strict JSON; FacesynthError if a figure is not finite (a
     reader of the JSON never meets ``NaN``)."""

@@ -180,3 +180,25 @@ def test_export_options_are_declared_once():
     front = runpy.run_path(str(PACKAGE.parent / "export" / "export.py"), run_name="export_front_end")
     schema = {f.name for f in fields(front["HydraExportConfig"])}
     assert schema == {f.name for f in fields(ExportConfig)} | {"json"} and "talking_head" in schema
+
+
+def test_train_takes_the_same_json_switch(tmp_path, capsys, monkeypatch):
+    """``facesynth train --json`` (Hydra's app, not argparse) prints its result as one JSON line:
+    the run folder and the headline figures of its metrics.json, equal to them."""
+    import json
+
+    from facesynth import progress
+    from facesynth.runs.train_cli import HEADLINE, main
+
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(progress, "_JSON", False)
+    run = tmp_path / "run"
+    code = main(["--json", f"hydra.run.dir={run}", "quiet=true", "data.n_frames=60", "eval.talking_head=false",
+                 "sadm.region_shrink=false"])
+    assert code == 0
+    lines = capsys.readouterr().out.strip().splitlines()
+    assert len(lines) == 1, lines
+    out = json.loads(lines[0])
+    metrics = json.loads((run / "metrics.json").read_text())
+    assert out["run_dir"] == str(run) and "psnr_ref" in out
+    assert {k: v for k, v in out.items() if k != "run_dir"} == {k: metrics[k] for k in HEADLINE if k in metrics}

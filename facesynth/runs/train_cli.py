@@ -5,6 +5,7 @@
     facesynth train experiment=rigid_features data=video data.path=DIR   # a named study (conf/experiment/)
     facesynth train -m regressor=krr,linear,poly2,mlp,svr data=video data.path=DIR   # sweep + table
     facesynth train model=eri data=video data.path=DIR                          # an ERI model instead
+    facesynth train --json data=video data.path=DIR   # the result as one JSON line (run folder, headline figures)
 
 The arguments are Hydra's (overrides, ``--help``, ``-m``, ``--cfg job``); the configs ship
 inside the package (``facesynth/conf``). Ctrl-C prints "interrupted" and exits 130
@@ -16,6 +17,8 @@ from __future__ import annotations
 
 import sys
 
+HEADLINE = ("psnr_ref", "psnr_frame", "psnr_frame_common", "lpips_frame_common", "sharpness_frame_common",
+            "talking_head")  # metrics.json's figures that --json prints (all of them: the run's metrics.json)
 INFO_FLAGS = ("-h", "--help", "--hydra-help", "-c", "--cfg", "-i", "--info", "-p", "--package", "-sc",
               "--shell-completion", "--version", "-cd", "--config-dir", "-cn", "--config-name")
 
@@ -38,6 +41,7 @@ def _hydra_app() -> None:
     from hydra.core.hydra_config import HydraConfig
     from omegaconf import DictConfig
 
+    from facesynth import progress
     from facesynth.errors import FacesynthError
     from facesynth.eval.summary import summary_lines
     from facesynth.runs.config import CONF_DIR, register_configs
@@ -59,6 +63,9 @@ def _hydra_app() -> None:
             # refused before anything was written: no run folder (only Hydra's own files were there)
             discard_unused_run_dir(out_dir, {".hydra", f"{HydraConfig.get().job.name}.log"})
             sys.exit(2)
+        if progress.is_json():  # --json: the run's folder and its headline figures, one line
+            progress.result("", {"run_dir": out_dir, **{k: metrics[k] for k in HEADLINE if k in metrics}})
+            return
         if "psnr_ref" in metrics:
             print("\n".join(summary_lines(metrics)))
         elif (Path(out_dir) / "eri_report.md").is_file():
@@ -77,8 +84,12 @@ def _hydra_app() -> None:
 
 def main(argv: list[str], prog: str = "facesynth train") -> int:
     """Train with Hydra arguments ``argv``; the exit status (0, 2 bad input, 130 Ctrl-C, 143 SIGTERM)."""
+    from facesynth import progress
     from facesynth.io import Terminated, install_sigterm_handler
 
+    if "--json" in argv:  # ours, not Hydra's: the result as one JSON line (as every command's --json)
+        argv = [a for a in argv if a != "--json"]
+        progress.set_json(True)
     _first_line(argv, prog)
     saved = sys.argv
     sys.argv = [prog, *argv]
