@@ -16,7 +16,7 @@ flow test's). Prints ONE JSON line:
   ``coverage``: the page's overall coverage;
 * ``load``: the host's 1-minute load average at the start and the end (the machine is shared).
 
-    python -m bench.web.studio --video CLIP.mp4 [--seconds 1] [--small]
+    PYTHONPATH=.:tests python -m bench.web.studio --video CLIP.mp4 [--seconds 1] [--small]
 """
 
 from __future__ import annotations

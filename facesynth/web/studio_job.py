@@ -27,11 +27,11 @@ import time
 from pathlib import Path
 
 # The stages before the avatar goes live, in order, each with its wall-clock seconds in a
-# default-config run of a 40 s recording (558 frames kept) on this 2-core host, shared (load
-# average 2-5): ``bench/web/studio.py`` (its ``job_s``), docs/studio.md. Only their ratios
+# default-config run of a 40 s recording (625 frames kept) on this 2-core host, shared (load
+# average 1-3): ``bench/web/studio.py`` (its ``job_s``), docs/studio.md. Only their ratios
 # matter: the percent shown is the share of this total done, and the time left is what remains
 # of it at the speed seen.
-STAGES = (("decode", 1.9), ("ingest", 3.7), ("face model", 12.2), ("SADM fit", 114.4), ("export", 14.3))
+STAGES = (("decode", 1.6), ("ingest", 4.1), ("face model", 10.0), ("SADM fit", 22.3), ("export", 13.0))
 # then, with the avatar live, the run's evaluation and report (run_training's remaining stages)
 REPORT_STAGES = ("evaluation", "talking head", "report")
 VIDEO = "recording.avi"  # the frames, in order: Motion JPEG, quality 95 (OpenCV writes it everywhere)
@@ -218,6 +218,11 @@ def main(argv: list[str] | None = None) -> None:
     args = json.loads((argv if argv is not None else sys.argv[1:])[0])
     out = _Messages(os.dup(sys.stdout.fileno()))
     sys.stdout = sys.__stderr__  # anything a library prints goes elsewhere than the messages
+    import torch
+
+    # torch on one thread: the fit's dense algebra already spreads over the cores through numpy's
+    # BLAS; torch's OpenMP threads on top oversubscribe them (docs/studio.md: SADM fit, threads)
+    torch.set_num_threads(1)
     run_job(args["work"], args["overrides"], args["min_frames"], args["min_face"], out)
 
 
