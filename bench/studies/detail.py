@@ -28,6 +28,7 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 from bench.studies.perceptual import figures as run_figures
+from bench.studies.perceptual import metric_figures as figures
 from bench.studies.perceptual import summary
 from facesynth.eval.common_region import common_landmarks
 from facesynth.eval.sadm_eval import EvalConfig, evaluate_sadm
@@ -35,17 +36,6 @@ from facesynth.landmarks import get_scheme
 from facesynth.model.detail import fit_detail_bank
 from facesynth.rundir import read_config, run_data
 from facesynth.sadm.fit import load_sadm
-
-
-def figures(m: dict) -> dict:
-    lp = m.get("lpips_frame_common") or {}
-    return {
-        "lpips_face": lp.get("face", {}).get("sadm"), "lpips_eyes": lp.get("eyes", {}).get("sadm"),
-        "lpips_mouth": lp.get("mouth", {}).get("sadm"),
-        "psnr_frame_common": m["psnr_frame_common"]["sadm"]["0"],
-        "sharpness": m["sharpness_frame_common"]["whole"]["sadm"],
-        "flicker_ratio": m["flicker_frame_common"]["ratio"]["sadm"],
-    }
 
 
 def attach_bank(sadm, seq, tr, settings: dict, strength: float = 1.0) -> dict:

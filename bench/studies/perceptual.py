@@ -43,16 +43,23 @@ from facesynth.data.shared import shared_data_dir  # noqa: E402
 EVAL = ["eval.noise=[0]", "eval.train_level=false", "eval.talking_head=false"]
 
 
-def figures(run: Path) -> dict:
-    m = json.loads((run / "metrics.json").read_text())
+def metric_figures(m: dict) -> dict:
+    """The acceptance figures of one run's metrics (held out, sigma 0, the prediction's row)."""
     lp = m.get("lpips_frame_common") or {}
-    size = sum(f.stat().st_size for sub in ("face_model", "sadm") for f in (run / sub).rglob("*") if f.is_file())
     return {
         "lpips_face": lp.get("face", {}).get("sadm"), "lpips_eyes": lp.get("eyes", {}).get("sadm"),
         "lpips_mouth": lp.get("mouth", {}).get("sadm"),
         "psnr_frame_common": m["psnr_frame_common"]["sadm"]["0"],
         "sharpness": m["sharpness_frame_common"]["whole"]["sadm"],
         "flicker_ratio": m["flicker_frame_common"]["ratio"]["sadm"],
+    }
+
+
+def figures(run: Path) -> dict:
+    m = json.loads((run / "metrics.json").read_text())
+    size = sum(f.stat().st_size for sub in ("face_model", "sadm") for f in (run / sub).rglob("*") if f.is_file())
+    return {
+        **metric_figures(m),
         "reference_width": m["config"]["model"]["reference_width"],
         "n_appearance": m["n_appearance"],
         "train_s": m["timings_s"]["face_model"] + m["timings_s"]["sadm_fit"],
