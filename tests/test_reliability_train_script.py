@@ -42,8 +42,11 @@ def test_first_line_at_once_and_each_stage_once(tmp_path):
 def test_ctrl_c_is_interrupted_exit_130(tmp_path):
     run = tmp_path / "run"
     # an MLP that would train for ever: Ctrl-C lands while it fits
+    # a terminal's Ctrl-C: SIGINT at its default in the child, whatever this process inherited (a shell's
+    # background job, as CI may run the suite, ignores SIGINT, and Python keeps an ignored SIGINT ignored)
     p = _train("regressor=mlp", "regressor.max_epochs=100000000", "regressor.patience=100000000", "data.n_frames=40",
-               "data.size=128", f"hydra.run.dir={run}")
+               "data.size=128", f"hydra.run.dir={run}",
+               preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     for line in p.stderr:
         if line.startswith("[facesynth] face model:"):  # the run has started: the SADM fit is next
             break
