@@ -13,6 +13,7 @@ from pathlib import Path
 
 import pytest
 from _onnx_models import synthetic_talking_head
+from _page import require_page
 from test_reliability_head import _format_only, _overwrite_weights
 
 from facesynth.cli import main
@@ -49,12 +50,7 @@ def head(tmp_path_factory) -> Path:
 def page_ready(tmp_path, monkeypatch):
     """Skip without what a built page needs (onnxruntime-web from 'facesynth web setup', the
     tracker's converter); the tracker is converted into this test's cache."""
-    pytest.importorskip("tflite")
-    pytest.importorskip("mediapipe")
-    try:
-        site.ort_dist()
-    except Exception as exc:
-        pytest.skip(str(exc))
+    require_page()
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
 
 

@@ -12,22 +12,14 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from _page import require_page
 
-pytest.importorskip("playwright")
-pytest.importorskip("tflite")
-pytest.importorskip("mediapipe")
+require_page(open_in_browser=True)
 
 from bench import browser  # noqa: E402
 from facesynth.contract import SYNTHESIS_FORMAT, TALKING_HEAD_FORMAT  # noqa: E402
 from facesynth.errors import FacesynthError  # noqa: E402
 from facesynth.web import site  # noqa: E402
-
-if browser.chromium_path() is None:
-    pytest.skip("chromium is absent (apt-get install chromium)", allow_module_level=True)
-try:
-    site.ort_dist()
-except Exception as exc:  # FacesynthError naming the missing file
-    pytest.skip(str(exc), allow_module_level=True)
 
 SHOTS = Path(os.environ.get("FACESYNTH_WEB_SHOTS", "/tmp"))
 

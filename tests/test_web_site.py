@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from _page import require_page
 
 from facesynth.cli import main
 from facesynth.contract import SYNTHESIS_FORMAT, TALKING_HEAD_FORMAT
@@ -34,12 +35,7 @@ def _site_avatar(tmp_path):
     MediaPipe for the tracker, onnxruntime-web from ``facesynth web setup``)."""
     from _onnx_models import synthetic_talking_head
 
-    pytest.importorskip("tflite")
-    pytest.importorskip("mediapipe")
-    try:
-        site.ort_dist()
-    except Exception as exc:
-        pytest.skip(str(exc))
+    require_page()
     return synthetic_talking_head(tmp_path)
 
 

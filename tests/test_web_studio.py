@@ -17,21 +17,13 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from _page import require_page
 
-pytest.importorskip("playwright")
-pytest.importorskip("tflite")
-pytest.importorskip("mediapipe")
+require_page(open_in_browser=True)
 
 from bench import browser  # noqa: E402
-from facesynth.web import coverage, server, site  # noqa: E402
+from facesynth.web import coverage, server  # noqa: E402
 from facesynth.web.studio import Studio, create_studio_app  # noqa: E402
-
-if browser.chromium_path() is None:
-    pytest.skip("chromium is absent (apt-get install chromium)", allow_module_level=True)
-try:
-    site.ort_dist()
-except Exception as exc:  # FacesynthError naming the missing file
-    pytest.skip(str(exc), allow_module_level=True)
 
 SHOTS = Path(os.environ.get("FACESYNTH_WEB_SHOTS", "/tmp"))
 # a small training (the flow test stays short): the linear regressor, a 64 px reference, no
