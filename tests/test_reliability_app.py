@@ -14,6 +14,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from _errors import one_error_line
 from _faces import face_sequence_arrays, smooth_image
 from _onnx_models import driving_landmarks, exported, synthetic_synthesizer
 
@@ -83,14 +84,6 @@ def _ingest_folder(tmp_path: Path, n: int = 6, fps: float = 25.0) -> tuple[Path,
 
 def _psnr(a: np.ndarray, b: np.ndarray) -> float:
     return float(10 * np.log10(255**2 / max(np.mean((a.astype(float) - b.astype(float)) ** 2), 1e-9)))
-
-
-def _one_error_line(capsys, *needles: str) -> str:
-    err = capsys.readouterr().err
-    assert err.startswith("error: ") and err.count("\n") == 1 and "Traceback" not in err, err
-    for needle in needles:
-        assert needle in err, err
-    return err
 
 
 def _listing(d: Path) -> list[str]:
@@ -209,9 +202,9 @@ def test_a_video_that_does_not_reopen_whole_is_not_kept(model_path, tmp_path, ca
                  "--out", str(out / "o.mp4"), "--save-landmarks", str(out / "l.npy"), "--contact-sheet",
                  str(out / "s.png")]) == 2
     if disk_full:
-        _one_error_line(capsys, "no space left on device", str(out / "o.mp4"))
+        one_error_line(capsys.readouterr().err, "no space left on device", str(out / "o.mp4"))
     else:
-        _one_error_line(capsys, str(out / "o.mp4"), "does not reopen as 5 frames", "found 1 frames")
+        one_error_line(capsys.readouterr().err, str(out / "o.mp4"), "does not reopen as 5 frames", "found 1 frames")
     assert _listing(out) == []  # no video, no landmarks, no sheet, no temporary file
 
 
@@ -292,7 +285,7 @@ def test_every_output_is_checked_before_rendering(model_path, tmp_path, capsys, 
     out = tmp_path / "O" / "o.mp4"
     assert main(["app", "--model", str(model_path), "--landmarks", str(tmp_path / "lm.npy"), "--no-progress",
                  "--out", str(out), flag, str(bad)]) == 2
-    _one_error_line(capsys, str(bad), "is a file, not a folder")
+    one_error_line(capsys.readouterr().err, str(bad), "is a file, not a folder")
     assert not out.parent.exists() and (tmp_path / "a_file").read_text() == "keep"
 
 
@@ -309,7 +302,7 @@ def test_read_only_folder_for_the_contact_sheet(model_path, tmp_path, capsys):
         out = tmp_path / "O" / "o.mp4"
         assert main(["app", "--model", str(model_path), "--landmarks", str(tmp_path / "lm.npy"), "--no-progress",
                      "--out", str(out), "--contact-sheet", str(ro / "s.png")]) == 2
-        _one_error_line(capsys, str(ro / "s.png"), "not writable")
+        one_error_line(capsys.readouterr().err, str(ro / "s.png"), "not writable")
         assert not out.parent.exists() and _listing(ro) == ["old.png"]
     finally:
         if mounted:
@@ -338,7 +331,7 @@ def test_outputs_that_are_inputs_are_refused(model_path, tmp_path, capsys):
     ]
     for extra, needle in cases:
         assert main([*base, *extra]) == 2
-        _one_error_line(capsys, *([needle, "input"] if needle else ["--contact-sheet"]))
+        one_error_line(capsys.readouterr().err, *([needle, "input"] if needle else ["--contact-sheet"]))
     assert {p: p.read_bytes() for p in before} == before and _listing(tmp_path) == listing
 
 
@@ -359,7 +352,7 @@ def test_landmarks_without_frames_or_faces(model_path, avatar_path, tmp_path, ca
     for model in (model_path, avatar_path):  # absolute and relative motion (a driver neutral is chosen)
         assert main(["app", "--model", str(model), "--landmarks", str(path), "--no-progress",
                      "--out", str(tmp_path / "o.mp4"), *extra]) == 2
-        err = _one_error_line(capsys, str(path))
+        err = one_error_line(capsys.readouterr().err, str(path))
         assert ("holds no frames" in err) if case == "empty" else ("no frame has a face" in err)
         assert "--driver-neutral" not in err and "(0, 68, 2)" not in err
     assert _listing(tmp_path) == ["lm.npy"]
@@ -371,7 +364,7 @@ def test_meaningless_fps_and_max_frames_are_refused(model_path, tmp_path, capsys
     np.save(tmp_path / "lm.npy", driving_landmarks(seed=10, n=3))
     assert main(["app", "--model", str(model_path), "--landmarks", str(tmp_path / "lm.npy"), "--no-progress",
                  "--out", str(tmp_path / "o" / "o.mp4"), option, value]) == 2
-    _one_error_line(capsys, option, value)
+    one_error_line(capsys.readouterr().err, option, value)
     assert _listing(tmp_path) == ["lm.npy"]
 
 
@@ -382,6 +375,6 @@ def test_meta_json_frame_rate_is_checked(model_path, tmp_path, capsys):
     (folder / "meta.json").write_text(json.dumps(meta))
     assert main(["app", "--model", str(model_path), "--landmarks", str(folder), "--no-progress",
                  "--out", str(tmp_path / "o.mp4")]) == 2
-    _one_error_line(capsys, str(folder / "meta.json"), "video.fps")
+    one_error_line(capsys.readouterr().err, str(folder / "meta.json"), "video.fps")
     assert not (tmp_path / "o.mp4").exists()
 

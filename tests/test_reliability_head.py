@@ -21,6 +21,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from _errors import one_error_line
 from _onnx_models import synthetic_talking_head
 
 from facesynth.cli import main
@@ -29,13 +30,6 @@ from facesynth.errors import FacesynthError
 
 ROOT = Path(__file__).resolve().parents[1]
 ENV = {**os.environ, "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1"}
-
-
-def _one_error_line(err: str, *needles: str) -> str:
-    assert err.startswith("error: ") and err.count("\n") == 1 and "Traceback" not in err, err
-    for needle in needles:
-        assert needle in err, err
-    return err
 
 
 def _listing(d: Path) -> list[str]:
@@ -111,7 +105,7 @@ def test_export_refuses_to_overwrite_the_runs_own_files(run_dir, tmp_path, capsy
     flag = ["--talking-head"] if talking_head else []
     for out in (run / "face_model" / "face_model.safetensors", data / "landmarks.npy", run / "config.yaml"):
         assert main(["export", str(run), "--out", str(out), *flag, "--quiet"]) == 2
-        _one_error_line(capsys.readouterr().err, str(out), "the output is the input")
+        one_error_line(capsys.readouterr().err, str(out), "the output is the input")
     assert _snapshot(run) == before and _snapshot(data) == data_before
     load_sadm(run)
 
@@ -129,7 +123,7 @@ def test_export_never_replaces_a_device_or_a_pipe(run_dir, tmp_path, capsys):
     for node in nodes:
         kind = stat.S_IFMT(node.lstat().st_mode)
         assert main(["export", str(run_dir), "--talking-head", "--out", str(node), "--quiet"]) == 2
-        _one_error_line(capsys.readouterr().err, str(node), "not a regular file")
+        one_error_line(capsys.readouterr().err, str(node), "not a regular file")
         assert stat.S_IFMT(node.lstat().st_mode) == kind
     assert sorted(_listing(tmp_path)) == sorted(n.name for n in nodes)
 
@@ -138,7 +132,7 @@ def test_export_out_ending_in_a_slash_is_a_folder_name(run_dir, tmp_path, capsys
     """``--out DIR/newdir/``: exit 2 naming it, and no file (or folder) named newdir."""
     out = f"{tmp_path}/newdir/"
     assert main(["export", str(run_dir), "--talking-head", "--out", out, "--quiet"]) == 2
-    _one_error_line(capsys.readouterr().err, out, "ends with '/'")
+    one_error_line(capsys.readouterr().err, out, "ends with '/'")
     assert _listing(tmp_path) == []
 
 
@@ -160,7 +154,7 @@ def test_export_with_a_broken_config_is_one_line(run_dir, tmp_path, capsys, conf
     out = tmp_path / "new" / "head.onnx"
     for flags in (["--talking-head"], ["--components", "4"]):
         assert main(["export", str(run), *flags, "--out", str(out), "--quiet"]) == 2
-        err = _one_error_line(capsys.readouterr().err, str(run / "config.yaml"))
+        err = one_error_line(capsys.readouterr().err, str(run / "config.yaml"))
         if config == "without_a_data_field":
             assert "data.train_fraction" in err
         assert not (tmp_path / "new").exists()
@@ -173,7 +167,7 @@ def test_a_refused_export_leaves_no_folders(run_dir, tmp_path, capsys):
     run, _ = _video_run(run_dir, tmp_path)
     out = tmp_path / "a" / "b" / "head.onnx"
     assert main(["export", str(run), "--talking-head", "--out", str(out), "--quiet"]) == 2
-    _one_error_line(capsys.readouterr().err, str(run), "no avatar neutral and frame")
+    one_error_line(capsys.readouterr().err, str(run), "no avatar neutral and frame")
     assert not (tmp_path / "a").exists()
 
 
@@ -296,7 +290,7 @@ def test_app_refuses_a_file_that_is_no_talking_head(bad_heads, driver, tmp_path,
     out = tmp_path / "o" / "v.mp4"
     assert main(["app", "--model", str(bad_heads[case]), "--landmarks", str(driver), "--out", str(out),
                  "--no-progress"]) == 2
-    _one_error_line(capsys.readouterr().err, str(bad_heads[case]))
+    one_error_line(capsys.readouterr().err, str(bad_heads[case]))
     assert not out.parent.exists()
 
 
@@ -309,7 +303,7 @@ def test_app_refuses_a_face_collapsed_to_a_point(head, driver, tmp_path, capsys)
     np.save(tmp_path / "dot.npy", np.full_like(lm, 64.0))
     assert main(["app", "--model", str(head), "--landmarks", str(tmp_path / "dot.npy"), "--out",
                  str(tmp_path / "o.mp4"), "--no-progress"]) == 2
-    _one_error_line(capsys.readouterr().err, str(tmp_path / "dot.npy"), "degenerate faces")
+    one_error_line(capsys.readouterr().err, str(tmp_path / "dot.npy"), "degenerate faces")
     th = TalkingHead(head, driver_neutral=lm[0])
     with pytest.raises(FacesynthError, match="driver landmarks: degenerate faces"):
         th.step(np.full(lm.shape[1:], 64.0, np.float32))
@@ -323,7 +317,7 @@ def test_app_refuses_complex_landmarks(head, driver, tmp_path, capsys):
     np.save(tmp_path / "c.npy", np.load(driver).astype(np.complex64))
     assert main(["app", "--model", str(head), "--landmarks", str(tmp_path / "c.npy"), "--out",
                  str(tmp_path / "o.mp4"), "--no-progress"]) == 2
-    _one_error_line(capsys.readouterr().err, str(tmp_path / "c.npy"), "real numbers", "complex64")
+    one_error_line(capsys.readouterr().err, str(tmp_path / "c.npy"), "real numbers", "complex64")
     assert _listing(tmp_path) == ["c.npy"]
 
 
@@ -338,7 +332,7 @@ def test_app_refuses_an_ingest_folder_whose_landmarks_disagree_with_meta_json(he
     (folder / "meta.json").write_text(json.dumps({"landmarks": {"shape": [40, 68, 2]}, "video": {"fps": 25}}))
     assert main(["app", "--model", str(head), "--landmarks", str(folder), "--out", str(tmp_path / "o.mp4"),
                  "--no-progress"]) == 2
-    err = _one_error_line(capsys.readouterr().err, str(folder / "landmarks.npy"), "[10, 68, 2]", "[40, 68, 2]")
+    err = one_error_line(capsys.readouterr().err, str(folder / "landmarks.npy"), "[10, 68, 2]", "[40, 68, 2]")
     with pytest.raises(FacesynthError) as exc:  # training's loader: the same message
         load_sequence(folder)
     assert str(exc.value) == err[len("error: "):].strip()
@@ -454,11 +448,11 @@ def test_a_full_disk_at_the_writers_opening_is_said_so(head, driver, tmp_path, c
     monkeypatch.setattr(videofile, "free_bytes", lambda path: 0)
     out = tmp_path / "o.mp4"
     assert main(["app", "--model", str(head), "--landmarks", str(driver), "--out", str(out), "--no-progress"]) == 2
-    _one_error_line(capsys.readouterr().err, f"no space left on device writing {out}")
+    one_error_line(capsys.readouterr().err, f"no space left on device writing {out}")
     assert _listing(tmp_path) == []
     monkeypatch.setattr(videofile, "free_bytes", lambda path: 1 << 30)  # room: then it is the name's fault
     assert main(["app", "--model", str(head), "--landmarks", str(driver), "--out", str(out), "--no-progress"]) == 2
-    _one_error_line(capsys.readouterr().err, "OpenCV cannot write an mp4v video here")
+    one_error_line(capsys.readouterr().err, "OpenCV cannot write an mp4v video here")
 
 
 @pytest.mark.skipif(not hasattr(os, "geteuid") or os.geteuid() != 0, reason="mounting a tmpfs needs root")

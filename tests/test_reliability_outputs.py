@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from _errors import one_error_line
 from test_reliability_io import fake_ingest  # noqa: F401 - a fixture
 
 from facesynth.cli import main
@@ -22,15 +23,6 @@ from facesynth.cli import main
 
 def _listing(d: Path) -> list[str]:
     return sorted(p.name for p in d.iterdir())
-
-
-def _one_error_line(err: str, *needles: str) -> None:
-    """One ``error: ...`` line with ``needles`` (progress lines ``[facesynth] ...`` aside)."""
-    assert "Traceback" not in err
-    lines = [ln for ln in err.splitlines() if ln.strip() and not ln.startswith("[facesynth] ")]
-    assert len(lines) == 1 and lines[0].startswith("error: "), err
-    for n in needles:
-        assert n in lines[0], (n, lines[0])
 
 
 @pytest.fixture
@@ -65,7 +57,7 @@ def test_codec_decode_onto_its_input_is_refused(stream, tmp_path, capsys, how):
     before, listing = stream.read_bytes(), _listing(tmp_path)
     capsys.readouterr()
     assert main(["codec", "decode", str(stream), str(out)]) == 2
-    _one_error_line(capsys.readouterr().err, str(out), "is the input", str(stream))
+    one_error_line(capsys.readouterr().err, str(out), "is the input", str(stream), progress=True)
     assert stream.read_bytes() == before and _listing(tmp_path) == listing
 
 
@@ -74,14 +66,14 @@ def test_codec_encode_and_rd_outputs_onto_inputs_are_refused(stream, tmp_path, c
     before = v.read_bytes()
     capsys.readouterr()
     assert main(["codec", "encode", str(v), str(v), "--qp", "30"]) == 2
-    _one_error_line(capsys.readouterr().err, str(v), "is the input")
+    one_error_line(capsys.readouterr().err, str(v), "is the input", progress=True)
     assert main(["codec", "encode", str(v), str(tmp_path / "o.fsgv"), "--qp", "30", "--preview", str(v)]) == 2
-    _one_error_line(capsys.readouterr().err, "is the input")
+    one_error_line(capsys.readouterr().err, "is the input", progress=True)
     assert main(["codec", "rd", "--input", str(v), "--plot", str(v)]) == 2
-    _one_error_line(capsys.readouterr().err, "is the input")
+    one_error_line(capsys.readouterr().err, "is the input", progress=True)
     assert main(["codec", "decode", str(stream), str(tmp_path / "d.npy"), "--preview", str(stream),
                  "--reference", str(v)]) == 2
-    _one_error_line(capsys.readouterr().err, "is the input")
+    one_error_line(capsys.readouterr().err, "is the input", progress=True)
     assert v.read_bytes() == before and not (tmp_path / "o.fsgv").exists() and not (tmp_path / "d.npy").exists()
 
 
@@ -92,7 +84,7 @@ def test_ingest_out_holding_its_input_video_is_refused(cli_ingest, tmp_path, cap
     video = folder / "video.avi"
     shutil.copyfile(path, video)
     assert main(["ingest", str(video), "--out", str(folder)]) == 2
-    _one_error_line(capsys.readouterr().err, str(folder), "holds the input")
+    one_error_line(capsys.readouterr().err, str(folder), "holds the input", progress=True)
     assert calls["n"] == 0 and _listing(folder) == ["video.avi"]
     assert main(["ingest", str(path), "--out", str(path)]) == 2  # the video itself as the folder
     assert "error: " in capsys.readouterr().err and path.is_file()
@@ -108,7 +100,7 @@ def test_faked_full_disk_codec_decode(stream, tmp_path, capsys, monkeypatch):
     monkeypatch.setattr(np, "save", _enospc)
     capsys.readouterr()
     assert main(["codec", "decode", str(stream), str(out)]) == 2
-    _one_error_line(capsys.readouterr().err, f"no space left on device writing {out}")
+    one_error_line(capsys.readouterr().err, f"no space left on device writing {out}", progress=True)
     assert not (tmp_path / "M").exists()  # nothing partial, no temporary, not the folder the write made
 
 
@@ -123,7 +115,7 @@ def test_faked_full_disk_ingest(cli_ingest, tmp_path, capsys, monkeypatch, copy)
     else:
         monkeypatch.setattr(ingest.np, "save", _enospc)
     assert main(["ingest", str(path), "--out", str(out)] + (["--copy"] if copy else [])) == 2
-    _one_error_line(capsys.readouterr().err, f"no space left on device writing {out}")
+    one_error_line(capsys.readouterr().err, f"no space left on device writing {out}", progress=True)
     assert calls["n"] == 1 and not (tmp_path / "M").exists()
 
 
@@ -137,7 +129,7 @@ def test_faked_full_disk_outside_the_writers_is_one_line(monkeypatch, capsys):
 
     monkeypatch.setattr(codec_cli, "run", run)
     assert main(["codec", "rd"]) == 2
-    _one_error_line(capsys.readouterr().err, "no space left on device writing /somewhere/x.bin")
+    one_error_line(capsys.readouterr().err, "no space left on device writing /somewhere/x.bin", progress=True)
 
     def other(args):
         raise OSError(errno.EIO, "I/O error")
@@ -171,7 +163,7 @@ def test_full_tmpfs_codec_decode(stream, tmp_path, capsys):
     with _full_tmpfs(tmp_path / "M") as m:
         capsys.readouterr()
         assert main(["codec", "decode", str(stream), str(m / "d.npy")]) == 2
-        _one_error_line(capsys.readouterr().err, f"no space left on device writing {m / 'd.npy'}")
+        one_error_line(capsys.readouterr().err, f"no space left on device writing {m / 'd.npy'}", progress=True)
         assert _listing(m) == ["filler"]
 
 
@@ -181,7 +173,7 @@ def test_full_tmpfs_ingest(cli_ingest, tmp_path, capsys, copy):
     # --copy: room for the landmarks but not the video; without: no room at all
     with _full_tmpfs(tmp_path / "M", leave_kb=12 if copy else 0) as m:
         assert main(["ingest", str(path), "--out", str(m / "d")] + (["--copy"] if copy else [])) == 2
-        _one_error_line(capsys.readouterr().err, f"no space left on device writing {m / 'd'}")
+        one_error_line(capsys.readouterr().err, f"no space left on device writing {m / 'd'}", progress=True)
         assert _listing(m) == ["filler"]
 
 
@@ -194,5 +186,5 @@ def test_full_tmpfs_export(tmp_path, capsys):
     run = save_run_synthesizer(tmp_path / "run", synthetic_model()[0], syn.regressor_)
     with _full_tmpfs(tmp_path / "M", size="3M", leave_kb=256) as m:
         code = main(["export", str(run), "--basis", "float32", "--out", str(m / "m.onnx")])
-        _one_error_line(capsys.readouterr().err, f"no space left on device writing {m / 'm.onnx'}")
+        one_error_line(capsys.readouterr().err, f"no space left on device writing {m / 'm.onnx'}", progress=True)
         assert code == 2 and _listing(m) == ["filler"]

@@ -12,19 +12,13 @@ import stat
 from pathlib import Path
 
 import pytest
+from _errors import one_error_line
 from _onnx_models import synthetic_talking_head
 from _page import require_page
 from test_reliability_head import _format_only, _overwrite_weights
 
 from facesynth.cli import main
 from facesynth.web import site
-
-
-def _one_error_line(err: str, *needles: str) -> str:
-    assert err.startswith("error: ") and err.count("\n") == 1 and "Traceback" not in err, err
-    for needle in needles:
-        assert needle in err, err
-    return err
 
 
 def _tree(folder: Path) -> dict:
@@ -97,7 +91,7 @@ def test_refused_out_is_one_line_and_changes_nothing(head, tmp_path, capsys, mon
     watched = site.PAGE if case == "page_folder" else tmp_path
     before = _tree(watched)
     assert main(["web", "build", str(model), str(out)]) == 2
-    _one_error_line(capsys.readouterr().err, str(out))
+    one_error_line(capsys.readouterr().err, str(out))
     assert _tree(watched) == before
     _no_hidden_temps(work, tmp_path)
 
@@ -113,7 +107,7 @@ def test_a_file_that_cannot_run_is_refused(head, tmp_path, capsys, monkeypatch, 
              "format_only": lambda: _format_only(tmp_path / "bad.onnx")}[case]()
     out = tmp_path / "site"
     assert main(["web", "build", str(model), str(out)]) == 2
-    _one_error_line(capsys.readouterr().err, str(model))
+    one_error_line(capsys.readouterr().err, str(model))
     assert not out.exists()
     _no_hidden_temps(tmp_path)
 
