@@ -21,6 +21,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from _disk import full_tmpfs
 from _errors import one_error_line
 from _onnx_models import synthetic_talking_head
 
@@ -455,7 +456,6 @@ def test_a_full_disk_at_the_writers_opening_is_said_so(head, driver, tmp_path, c
     one_error_line(capsys.readouterr().err, "OpenCV cannot write an mp4v video here")
 
 
-@pytest.mark.skipif(not hasattr(os, "geteuid") or os.geteuid() != 0, reason="mounting a tmpfs needs root")
 @pytest.mark.parametrize("room", ["none", "a_third"])
 def test_a_full_tmpfs_is_one_line(head, driver, tmp_path, room):
     """A real 3 MB tmpfs, filled with dd to leave no room, or a third of the video's size:
@@ -468,16 +468,8 @@ def test_a_full_tmpfs_is_one_line(head, driver, tmp_path, room):
     ok = subprocess.run([*app, "--out", str(tmp_path / "whole.mp4")], capture_output=True, text=True, env=ENV)
     assert ok.returncode == 0, ok.stderr
     need = (tmp_path / "whole.mp4").stat().st_size
-    mnt = tmp_path / "M"
-    mnt.mkdir()
-    if subprocess.run(["mount", "-t", "tmpfs", "-o", "size=3M", "tmpfs", str(mnt)], capture_output=True).returncode:
-        pytest.skip("cannot mount a tmpfs here")
-    try:
-        pages = 768 - (0 if room == "none" else max(1, need // 3 // 4096))
-        subprocess.run(["dd", "if=/dev/zero", f"of={mnt / 'filler'}", "bs=4k", f"count={pages}"], capture_output=True)
+    with full_tmpfs(tmp_path / "M", size="3M", leave_kb=0 if room == "none" else max(4, need // 3 // 1024)) as mnt:
         p = subprocess.run([*app, "--out", str(mnt / "o.mp4")], capture_output=True, text=True, env=ENV)
         assert p.returncode == 2, (p.stdout, p.stderr)
         assert p.stderr == f"error: no space left on device writing {mnt / 'o.mp4'}\n", p.stderr
         assert _listing(mnt) == ["filler"]
-    finally:
-        subprocess.run(["umount", str(mnt)], capture_output=True)

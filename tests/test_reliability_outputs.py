@@ -6,15 +6,14 @@ The full-disk cases run twice: with a faked ENOSPC (everywhere) and, as root, on
 
 from __future__ import annotations
 
-import contextlib
 import errno
 import os
 import shutil
-import subprocess
 from pathlib import Path
 
 import numpy as np
 import pytest
+from _disk import full_tmpfs
 from _errors import one_error_line
 from test_reliability_io import fake_ingest  # noqa: F401 - a fixture
 
@@ -140,27 +139,8 @@ def test_faked_full_disk_outside_the_writers_is_one_line(monkeypatch, capsys):
 
 
 # ------------------------------------------------------------------ a full disk, real (root, tmpfs)
-@contextlib.contextmanager
-def _full_tmpfs(where: Path, size: str = "2M", leave_kb: int = 0):
-    """A small tmpfs at ``where``, filled with dd up to ``leave_kb`` KiB free."""
-    if os.geteuid() != 0:
-        pytest.skip("mounting a tmpfs needs root")
-    where.mkdir()
-    if subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size}", "tmpfs", str(where)],
-                      capture_output=True).returncode != 0:
-        pytest.skip("cannot mount a tmpfs here")
-    try:
-        subprocess.run(["dd", "if=/dev/zero", f"of={where / 'filler'}", "bs=4k"], capture_output=True)
-        if leave_kb:
-            with open(where / "filler", "r+b") as f:
-                f.truncate(max(0, os.path.getsize(where / "filler") - leave_kb * 1024))
-        yield where
-    finally:
-        subprocess.run(["umount", str(where)], capture_output=True)
-
-
 def test_full_tmpfs_codec_decode(stream, tmp_path, capsys):
-    with _full_tmpfs(tmp_path / "M") as m:
+    with full_tmpfs(tmp_path / "M") as m:
         capsys.readouterr()
         assert main(["codec", "decode", str(stream), str(m / "d.npy")]) == 2
         one_error_line(capsys.readouterr().err, f"no space left on device writing {m / 'd.npy'}", progress=True)
@@ -171,7 +151,7 @@ def test_full_tmpfs_codec_decode(stream, tmp_path, capsys):
 def test_full_tmpfs_ingest(cli_ingest, tmp_path, capsys, copy):
     path, det, calls = cli_ingest
     # --copy: room for the landmarks but not the video; without: no room at all
-    with _full_tmpfs(tmp_path / "M", leave_kb=12 if copy else 0) as m:
+    with full_tmpfs(tmp_path / "M", leave_kb=12 if copy else 0) as m:
         assert main(["ingest", str(path), "--out", str(m / "d")] + (["--copy"] if copy else [])) == 2
         one_error_line(capsys.readouterr().err, f"no space left on device writing {m / 'd'}", progress=True)
         assert _listing(m) == ["filler"]
@@ -184,7 +164,7 @@ def test_full_tmpfs_export(tmp_path, capsys):
 
     syn = synthetic_synthesizer("linear")
     run = save_run_synthesizer(tmp_path / "run", synthetic_model()[0], syn.regressor_)
-    with _full_tmpfs(tmp_path / "M", size="3M", leave_kb=256) as m:
+    with full_tmpfs(tmp_path / "M", size="3M", leave_kb=256) as m:
         code = main(["export", str(run), "--basis", "float32", "--out", str(m / "m.onnx")])
         one_error_line(capsys.readouterr().err, f"no space left on device writing {m / 'm.onnx'}", progress=True)
         assert code == 2 and _listing(m) == ["filler"]
