@@ -5,6 +5,8 @@ points (``facesynth ingest --landmarker mediapipe``), split as training splits i
 
 * ``self_reach``: the page's headline, the recording's reach of itself, one-second blocks held
   out in turn (``facesynth.web.coverage.self_reach``);
+* ``self_reach_eighths``: the same with blocks of an eighth of the recording (0.3-3.2 s on
+  these clips, 5 s on a 40 s recording), nearer the held-out split's size;
 * ``prior``: the page's mean reach of its 13 prior directions (the neutral: the median over the
   recording, as for a recording without a neutral prompt);
 * ``spread``: the recording's mean distance from its mean shape, in the meter's units (how lively
@@ -15,8 +17,8 @@ points (``facesynth ingest --landmarker mediapipe``), split as training splits i
 against the clip's held-out quality from the tables of the docs: whole-face PSNR with
 mediapipe478 (sigma 0, docs/landmarks.md) and the default model's ``psnr_frame_common``, face
 LPIPS and mouth LPIPS (docs/eval.md). Prints ONE JSON line: per clip, then per reading and
-target Spearman's and Pearson's correlation with a 95 % bootstrap interval of Spearman's (the
-17 clips resampled 2000 times, seed 0).
+target Spearman's and Pearson's correlation, a 95 % bootstrap interval of Spearman's (the 17
+clips resampled 2000 times, seed 0) and its range leaving one clip out.
 
     python -m bench.studies.coverage_heldout [--ingested DIR]   (DIR/CLIP: ingest folders to reuse)
 """
@@ -78,8 +80,10 @@ def correlations(x: list[float], y: list[float], rng: np.random.Generator, n_boo
         i = rng.integers(0, len(x), len(x))
         if np.ptp(x[i]) > 0 and np.ptp(y[i]) > 0:
             boot.append(spearmanr(x[i], y[i])[0])
+    loo = [spearmanr(np.delete(x, i), np.delete(y, i))[0] for i in range(len(x))]
     return {"spearman": round(float(spearmanr(x, y)[0]), 3), "pearson": round(float(pearsonr(x, y)[0]), 3),
-            "spearman_95": [round(float(v), 2) for v in np.percentile(boot, [2.5, 97.5])]}
+            "spearman_95": [round(float(v), 2) for v in np.percentile(boot, [2.5, 97.5])],
+            "spearman_leave_one_out": [round(float(min(loo)), 2), round(float(max(loo)), 2)]}
 
 
 def main() -> None:
@@ -88,7 +92,7 @@ def main() -> None:
     from facesynth.data import temporal_split
     from facesynth.data.ingest import ingest_video
     from facesynth.data.shared import shared_data_dir
-    from facesynth.web.coverage import KEEP_FPS, SCALE, coverage, features, heldout_coverage
+    from facesynth.web.coverage import KEEP_FPS, SCALE, coverage, features, heldout_coverage, self_reach
 
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--ingested", help="a folder of mediapipe ingest folders, one per clip (made when missing)")
@@ -107,14 +111,16 @@ def main() -> None:
             tr, te = temporal_split(len(lm))
             rec = lm[tr][kept(len(tr), fps, KEEP_FPS)]
             c = coverage([{"id": "recording", "directions": [], "points": list(rec)}])
-            z = features(rec) / np.asarray(SCALE)
-            out[clip] = {"frames_kept": len(rec), "self_reach": round(c["self_reach"], 3), "prior": round(c["overall"], 3),
+            f = features(rec)
+            z = f / np.asarray(SCALE)
+            out[clip] = {"frames_kept": len(rec), "self_reach": round(c["self_reach"], 3),
+                         "self_reach_eighths": round(self_reach(f, -(-len(rec) // 8)), 3), "prior": round(c["overall"], 3),
                          "spread": round(float(np.linalg.norm(z - z.mean(0), axis=1).mean()), 3),
                          "heldout": round(heldout_coverage(lm[tr], lm[te]), 3),
-                         **{k: v[clip] for k, v in tg.items()}}
+                         **{k: v[clip] for k, v in tg.items()}, "directions": {k: round(v, 2) for k, v in c["directions"].items()}}
     rng = np.random.default_rng(0)
     corr = {m: {t: correlations([out[k][m] for k in clips], [out[k][t] for k in clips], rng) for t in tg}
-            for m in ("self_reach", "prior", "spread", "heldout")}
+            for m in ("self_reach", "self_reach_eighths", "prior", "spread", "heldout")}
     emit({"bench": "coverage_heldout", **host(), "n": len(clips), "keep_fps": KEEP_FPS, "clips": out, "correlations": corr})
 
 

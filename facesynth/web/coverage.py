@@ -133,15 +133,15 @@ def direction_coverage(feats: np.ndarray, neutral: np.ndarray, direction: str) -
     return float(reach(to_z(feats, neutral), direction_z(direction))[0])
 
 
-def self_reach(feats: np.ndarray) -> float:
+def self_reach(feats: np.ndarray, block: int = BLOCK) -> float:
     """The recording's reach of itself, cross-validated in time: ``feats`` (T, F) in recording
-    order, cut into consecutive blocks of :data:`BLOCK` frames; each frame's reach by the frames
-    of the other blocks; the mean over the T frames (0 when there is no frame). The neutral
+    order, cut into consecutive blocks of ``block`` frames; each frame's reach by the frames of
+    the other blocks; the mean over the T frames (0 when there is no frame). The neutral
     cancels (only distances between frames count)."""
     z = np.asarray(feats, np.float64) / np.asarray(SCALE)
     if len(z) == 0:
         return 0.0
-    per = [reach(np.concatenate([z[:s], z[s + BLOCK:]]), z[s:s + BLOCK]) for s in range(0, len(z), BLOCK)]
+    per = [reach(np.concatenate([z[:s], z[s + block:]]), z[s:s + block]) for s in range(0, len(z), block)]
     return float(np.concatenate(per).mean())
 
 
