@@ -33,12 +33,12 @@ mean reach by its own frames (the neutral prompt: the share of its frames with a
 recording's is every direction's mean reach by all its frames; the prompts whose coverage is
 below :data:`WEAK` are the ones the page lists as missing or weak.
 
-What predicts an avatar's held-out quality is another reading of the same reach
-(:func:`self_reach`, the page's headline figure): the recording cut into blocks of one second
-(:data:`BLOCK` frames at the page's :data:`KEEP_FPS`), each frame's reach by the frames of the
-other blocks, the mean over the frames. It asks of the recording what held-out frames ask of a
-training clip: are its unseen moments near the ones it has? Across the 17 shared clips it ranks
-held-out PSNR the right way where the prior ranks it the wrong way (``bench/studies/coverage_heldout.py``,
+The page's headline figure is another reading of the same reach (:func:`self_reach`): the
+recording cut into blocks of one second (:data:`BLOCK` frames at the page's :data:`KEEP_FPS`),
+each frame's reach by the frames of the other blocks, the mean over the frames. It asks of the
+recording what held-out frames ask of a training clip: are its unseen moments near the ones it
+has? Across the 17 shared clips it ranks held-out PSNR the right way, weakly (Spearman +0.44),
+where the prior's mean ranks it the wrong way (``bench/studies/coverage_heldout.py``,
 docs/studies/coverage-meter.md). With a clip's held-out frames as the shapes to render
 (:func:`heldout_coverage`, known only after the fact) the reach predicts best.
 """
