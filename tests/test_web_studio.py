@@ -11,6 +11,7 @@ import contextlib
 import http.client
 import json
 import os
+import re
 import time
 from pathlib import Path
 
@@ -257,7 +258,7 @@ def test_coverage_js_matches_python(tmp_path, shared_clip_dir):
         k += n
     want = coverage.coverage([{**p, "points": [None if x is None else np.asarray(x, np.float32).reshape(-1, 2)
                                                 for x in p["points"]]} for p in prompts])
-    assert 0 < want["overall"] < 1 and want["prompts"]["blink"] == 0.0
+    assert 0 < want["overall"] < 1 and want["prompts"]["blink"] == 0.0 and 0 < want["self_reach"] < 1
     with studio_served(tmp_path / "lib") as (url, _), browser.browser_page(camera=False) as (page, blocked):
         page.goto(url)
         page.wait_for_function("window.studio && typeof window.studio.coverage === 'function'")
@@ -270,6 +271,7 @@ def test_coverage_js_matches_python(tmp_path, shared_clip_dir):
     for key in want["directions"]:
         assert abs(got["directions"][key] - want["directions"][key]) < 1e-9, key
     assert abs(got["overall"] - want["overall"]) < 1e-9
+    assert abs(got["self_reach"] - want["self_reach"]) < 1e-9
     # the summary lists exactly the prompts whose bars are below WEAK, in both
     assert got["missing"] == want["missing"] == [k for k, v in want["prompts"].items() if v < coverage.WEAK]
     assert "blink" in want["missing"]
@@ -294,6 +296,32 @@ def test_reach_against_scikit_learn_neighbours():
     assert z[k] == 0.30 / 0.12 and np.isnan(np.delete(z, k)).all()
     dist, _ = NearestNeighbors(n_neighbors=coverage.NEAREST).fit(frames[:, [k]]).kneighbors(z[None, [k]])
     assert coverage.reach(frames, z)[0] == np.clip(1 - dist.mean() / coverage.REACH, 0, 1)  # over that feature alone
+
+
+def test_self_reach_against_scikit_learn_neighbours():
+    """The page's headline: each frame's reach by the frames outside its BLOCK-frame block (in
+    SCALE units), the mean over the frames, against scikit-learn's exact neighbour search block
+    by block; a still recording reaches itself fully, one that never returns to an expression not
+    at all."""
+    from sklearn.neighbors import NearestNeighbors
+
+    rng = np.random.default_rng(1)
+    t = np.arange(70)[:, None]  # blocks of 15, 15, 15, 15 and 10 frames
+    wave = np.sin(2 * np.pi * t / 25) * rng.uniform(0.5, 1.5, 8)  # an expression, again and again
+    feats = (wave + rng.normal(0, 0.15, (70, 8))) * coverage.SCALE
+    z, b = feats / np.asarray(coverage.SCALE), coverage.BLOCK
+    want = []
+    for s in range(0, len(z), b):
+        others = np.concatenate([z[:s], z[s + b:]])
+        dist, _ = NearestNeighbors(n_neighbors=coverage.NEAREST).fit(others).kneighbors(z[s:s + b])
+        want += list(np.clip(1 - dist.mean(1) / coverage.REACH, 0, 1))
+    assert abs(coverage.self_reach(feats) - np.mean(want)) < 1e-12 and 0 < min(want) and max(want) < 1
+    assert coverage.self_reach(np.tile(feats[:1], (40, 1))) == 1.0
+    steps = np.repeat(np.arange(4)[:, None] * 10.0 * np.asarray(coverage.SCALE), b, axis=0)  # 4 expressions, one block each
+    assert coverage.self_reach(steps) == 0.0 and coverage.self_reach(np.zeros((0, 8))) == 0.0
+    # the page keeps KEEP_FPS frames a second: coverage.js's blocks are the same second
+    js = (Path(coverage.__file__).parent / "page" / "coverage.js").read_text()
+    assert re.search(r"KEEP_FPS = (\d+), BLOCK = KEEP_FPS", js).group(1) == str(coverage.KEEP_FPS) == str(coverage.BLOCK)
 
 
 # -- the whole flow in the page ---------------------------------------------------------------
@@ -335,7 +363,7 @@ def test_record_train_drive(tmp_path, camera):
             browser.browser_page(camera) as (page, blocked):
         t = run_flow(page, url, "me-small", 0.2, SHOTS)
         assert t["first_frame"] > t["train_pressed"] > t["record"]
-        assert 0 < t["coverage"]["overall"] <= 1 and len(t["coverage"]["prompts"]) == 13
+        assert 0 < t["coverage"]["overall"] <= 1 and len(t["coverage"]["prompts"]) == 13 and 0 <= t["coverage"]["self_reach"] <= 1
         # the library: the avatar, its run with report.html; listed in the page with its report link
         assert t["job"]["report"] == "written", t["job"]
         assert library_entries(lib) == ["me-small"]

@@ -13,6 +13,8 @@ export const DIRECTIONS = {  // name -> [feature, sign, target change from the n
 };
 export const SCALE = [0.12, 0.10, 0.05, 0.04, 0.07, 0.03, 0.02, 0.08];  // each feature's unit
 export const NEAREST = 3, REACH = 1.0, WEAK = 0.5;
+// selfReach's blocks: one second of the recording at the frames a second the page keeps (studio.js's KEEP_FPS)
+export const KEEP_FPS = 15, BLOCK = KEEP_FPS;
 const IRIS = [468, 473];
 
 // one frame's 478 points (flat) -> its features (FEATURES' order); rows: mediapipe478's to_ibug68
@@ -59,8 +61,23 @@ export function directionCoverage(feats, neutral, direction) {
   return reach(feats.map((f) => toZ(f, neutral)), shape);
 }
 
+// the recording's reach of itself, cross-validated in time: its frames' features in recording
+// order, cut into blocks of BLOCK frames; each frame's reach by the frames of the other blocks;
+// the mean over the frames (0 without a frame). What predicts the avatar's held-out quality.
+export function selfReach(feats) {
+  const z = feats.map((f) => f.map((v, k) => v / SCALE[k]));
+  if (!z.length) return 0;
+  let sum = 0;
+  for (let s = 0; s < z.length; s += BLOCK) {
+    const others = z.slice(0, s).concat(z.slice(s + BLOCK));
+    for (const shape of z.slice(s, s + BLOCK)) sum += reach(others, shape);
+  }
+  return sum / z.length;
+}
+
 // prompts: [{id, directions, points: [flat 478 x 2 or null per frame]}] (the prompt without
-// directions is the neutral) -> {prompts: {id: coverage}, directions: {name: coverage}, overall}
+// directions is the neutral) -> {prompts: {id: coverage}, directions: {name: coverage}, overall,
+// self_reach (selfReach of every frame, prompt after prompt), missing}
 export function coverage(prompts, rows) {
   const per = prompts.map((p) => [p, p.points.filter((x) => x).map((x) => features(x, rows))]);
   const every = per.flatMap(([, f]) => f);
@@ -69,7 +86,7 @@ export function coverage(prompts, rows) {
   const dirNames = Object.keys(DIRECTIONS);
   if (!neutralFeats.length) {
     return { prompts: Object.fromEntries(prompts.map((p) => [p.id, 0])), directions: Object.fromEntries(dirNames.map((d) => [d, 0])), overall: 0,
-      missing: prompts.map((p) => p.id) };
+      self_reach: 0, missing: prompts.map((p) => p.id) };
   }
   const neutral = FEATURES.map((_, k) => median(neutralFeats.map((f) => f[k])));
   const out = {};
@@ -77,5 +94,6 @@ export function coverage(prompts, rows) {
     out[p.id] = p.directions.length ? avg(p.directions.map((d) => directionCoverage(f, neutral, d))) : f.length / Math.max(1, p.points.length);
   }
   const dirs = Object.fromEntries(dirNames.map((d) => [d, directionCoverage(every, neutral, d)]));
-  return { prompts: out, directions: dirs, overall: avg(Object.values(dirs)), missing: prompts.filter((p) => out[p.id] < WEAK).map((p) => p.id) };
+  return { prompts: out, directions: dirs, overall: avg(Object.values(dirs)), self_reach: selfReach(every),
+    missing: prompts.filter((p) => out[p.id] < WEAK).map((p) => p.id) };
 }
