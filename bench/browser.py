@@ -1,6 +1,6 @@
 """Drive the page in headless Chromium (Playwright for Python, the system ``chromium``): a clip as
-the fake camera, every request off 127.0.0.1 blocked and counted. Used by the tests and
-``bench/web/page.py``.
+the fake camera, every request off 127.0.0.1 blocked and counted. Used by the tests,
+``bench/web/page.py`` and ``bench/web/studio.py``.
 """
 
 from __future__ import annotations
@@ -138,3 +138,59 @@ def browser_page(camera_y4m: str | Path | None = None, camera: bool = True, deny
             yield context.new_page(), blocked
         finally:
             browser.close()
+
+
+# -- the studio: record, train, drive (tests/test_web_studio.py and bench/web/studio.py) -------
+# a small training (the flow test stays short): the linear regressor, a 64 px reference, no
+# augmentation, region folds or gaze path (its folds: 6x the rest of the fit's CPU time on 120
+# frames), the evaluation on clean landmarks only, no frame-level measures
+STUDIO_SMALL = ["regressor=linear", "model.reference_width=64", "sadm.augment_copies=0", "sadm.region_shrink=false",
+                "sadm.gaze=false", "eval.noise=[0.0]", "eval.frame_level=false", "eval.train_level=false",
+                "eval.talking_head=false"]
+
+
+@contextlib.contextmanager
+def studio_served(library: Path, **kwargs):
+    """A :class:`~facesynth.web.studio.Studio` on ``library`` served on a free port: ``(url, studio)``."""
+    from facesynth.web import server
+    from facesynth.web.studio import Studio, create_studio_app
+
+    studio = Studio(library, **kwargs)
+    sock = server.listen(0)
+    try:
+        with server.running(create_studio_app(studio, sock.getsockname()[1]), sock) as url:
+            yield url, studio
+    finally:
+        studio.close()
+
+
+def run_studio_flow(page, url: str, name: str, seconds: float, shots: Path | None = None, timeout_s: float = 900) -> dict:
+    """Record (every prompt, ``seconds`` times its duration), train, wait for the first live frame
+    of the new avatar; the page's times (ms since the epoch) of each step."""
+    page.goto(f"{url}?seconds={seconds}")
+    page.wait_for_function("!document.getElementById('record').disabled", timeout=120_000)
+    t_record = page.evaluate("Date.now()")
+    page.click("#record")
+    page.wait_for_function("!document.getElementById('train').disabled", timeout=300_000)
+    t_recorded = page.evaluate("Date.now()")
+    if shots:
+        page.screenshot(path=str(shots / "facesynth_studio_record.png"), full_page=True)
+    page.fill("#name", name)
+    page.click("#train")
+    page.wait_for_function("window.studio.state.job && (window.studio.state.job.percent > 20 || "
+                           "['failed', 'cancelled'].includes(window.studio.state.job.state))", timeout=timeout_s * 1000)
+    if shots:
+        page.screenshot(path=str(shots / "facesynth_studio_train.png"), full_page=True)
+    page.wait_for_function("window.studio.state.frames >= 10 || (window.studio.state.job && "
+                           "['failed', 'cancelled'].includes(window.studio.state.job.state))", timeout=timeout_s * 1000)
+    job = page.evaluate("window.studio.state.job")
+    assert job["state"] == "done", job
+    first_frame = page.evaluate("window.studio.state.firstFrameAt")
+    if shots:
+        page.screenshot(path=str(shots / "facesynth_studio_drive.png"), full_page=True)
+    # the run's evaluation and report are written while the avatar drives
+    page.wait_for_function("window.studio.state.job.report !== 'writing'", timeout=timeout_s * 1000)
+    job = page.evaluate("window.studio.state.job")
+    return {"record": t_record, "recorded": t_recorded, "train_pressed": page.evaluate("window.studio.state.trainPressedAt"),
+            "first_frame": first_frame, "report_written": page.evaluate("Date.now()"), "job": job,
+            "coverage": page.evaluate("window.studio.state.coverage")}

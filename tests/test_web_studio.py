@@ -7,7 +7,6 @@ packages (``facesynth web setup``)."""
 
 from __future__ import annotations
 
-import contextlib
 import http.client
 import json
 import os
@@ -23,29 +22,10 @@ from _page import require_page
 require_page(open_in_browser=True)
 
 from bench import browser  # noqa: E402
-from facesynth.web import coverage, server  # noqa: E402
-from facesynth.web.studio import Studio, create_studio_app  # noqa: E402
+from facesynth.web import coverage  # noqa: E402
+from facesynth.web.studio import Studio  # noqa: E402
 
 SHOTS = Path(os.environ.get("FACESYNTH_WEB_SHOTS", "/tmp"))
-# a small training (the flow test stays short): the linear regressor, a 64 px reference, no
-# augmentation, region folds or gaze path (its folds: 6x the rest of the fit's CPU time on 120
-# frames), the evaluation on clean landmarks only, no frame-level measures
-SMALL = ["regressor=linear", "model.reference_width=64", "sadm.augment_copies=0", "sadm.region_shrink=false",
-         "sadm.gaze=false", "eval.noise=[0.0]", "eval.frame_level=false", "eval.train_level=false",
-         "eval.talking_head=false"]
-
-
-@contextlib.contextmanager
-def studio_served(library: Path, **kwargs):
-    studio = Studio(library, **kwargs)
-    sock = server.listen(0)
-    try:
-        with server.running(create_studio_app(studio, sock.getsockname()[1]), sock) as url:
-            yield url, studio
-    finally:
-        studio.close()
-
-
 def request(url: str, method: str, path: str, body: bytes = b"", headers: dict | None = None, host: str | None = None):
     """(status, JSON or text) of one request with the Host header as given (default: the server's)."""
     netloc = url.split("/")[2]
@@ -115,7 +95,7 @@ def camera(shared_clip_dir, tmp_path_factory):
 def test_foreign_origin_host_and_missing_token_are_refused(tmp_path, shared_clip_dir):
     lib = tmp_path / "lib"
     body = body_of(video_frames(shared_clip_dir("lp_d6") / "video.mp4", 5))
-    with studio_served(lib) as (url, studio):
+    with browser.studio_served(lib) as (url, studio):
         status, session = request(url, "GET", "/api/session")
         assert status == 200 and session["token"] == studio.token and len(studio.token) >= 40
         netloc = url.split("/")[2]
@@ -142,7 +122,7 @@ def test_bad_inputs_leave_nothing(tmp_path, shared_clip_dir):
     frames = video_frames(shared_clip_dir("lp_d6") / "video.mp4", 300)
     rng = np.random.default_rng(0)
     noise = [rng.integers(0, 255, frames[0].shape, np.uint8) for _ in range(60)]
-    with studio_served(lib, min_frames=45, max_upload=50 * 2**20) as (url, studio):
+    with browser.studio_served(lib, min_frames=45, max_upload=50 * 2**20) as (url, studio):
         tok = studio.token
         # refused before anything is written
         assert upload(url, tok, "../x", b"abc")[0] == 400
@@ -259,7 +239,7 @@ def test_coverage_js_matches_python(tmp_path, shared_clip_dir):
     want = coverage.coverage([{**p, "points": [None if x is None else np.asarray(x, np.float32).reshape(-1, 2)
                                                 for x in p["points"]]} for p in prompts])
     assert 0 < want["overall"] < 1 and want["prompts"]["blink"] == 0.0 and 0 < want["self_reach"] < 1
-    with studio_served(tmp_path / "lib") as (url, _), browser.browser_page(camera=False) as (page, blocked):
+    with browser.studio_served(tmp_path / "lib") as (url, _), browser.browser_page(camera=False) as (page, blocked):
         page.goto(url)
         page.wait_for_function("window.studio && typeof window.studio.coverage === 'function'")
         got = page.evaluate("(p) => window.studio.coverage(p)", prompts)
@@ -325,43 +305,11 @@ def test_self_reach_against_scikit_learn_neighbours():
 
 
 # -- the whole flow in the page ---------------------------------------------------------------
-def run_flow(page, url: str, name: str, seconds: float, shots: Path | None = None, timeout_s: float = 900) -> dict:
-    """Record (every prompt, ``seconds`` times its duration), train, wait for the first live frame
-    of the new avatar; the page's times (ms since the epoch) of each step."""
-    page.goto(f"{url}?seconds={seconds}")
-    page.wait_for_function("!document.getElementById('record').disabled", timeout=120_000)
-    t_record = page.evaluate("Date.now()")
-    page.click("#record")
-    page.wait_for_function("!document.getElementById('train').disabled", timeout=300_000)
-    t_recorded = page.evaluate("Date.now()")
-    if shots:
-        page.screenshot(path=str(shots / "facesynth_studio_record.png"), full_page=True)
-    page.fill("#name", name)
-    page.click("#train")
-    page.wait_for_function("window.studio.state.job && (window.studio.state.job.percent > 20 || "
-                           "['failed', 'cancelled'].includes(window.studio.state.job.state))", timeout=timeout_s * 1000)
-    if shots:
-        page.screenshot(path=str(shots / "facesynth_studio_train.png"), full_page=True)
-    page.wait_for_function("window.studio.state.frames >= 10 || (window.studio.state.job && "
-                           "['failed', 'cancelled'].includes(window.studio.state.job.state))", timeout=timeout_s * 1000)
-    job = page.evaluate("window.studio.state.job")
-    assert job["state"] == "done", job
-    first_frame = page.evaluate("window.studio.state.firstFrameAt")
-    if shots:
-        page.screenshot(path=str(shots / "facesynth_studio_drive.png"), full_page=True)
-    # the run's evaluation and report are written while the avatar drives
-    page.wait_for_function("window.studio.state.job.report !== 'writing'", timeout=timeout_s * 1000)
-    job = page.evaluate("window.studio.state.job")
-    return {"record": t_record, "recorded": t_recorded, "train_pressed": page.evaluate("window.studio.state.trainPressedAt"),
-            "first_frame": first_frame, "report_written": page.evaluate("Date.now()"), "job": job,
-            "coverage": page.evaluate("window.studio.state.coverage")}
-
-
 def test_record_train_drive(tmp_path, camera):
     lib = tmp_path / "lib"
-    with studio_served(lib, overrides=SMALL, min_frames=10) as (url, studio), \
+    with browser.studio_served(lib, overrides=browser.STUDIO_SMALL, min_frames=10) as (url, studio), \
             browser.browser_page(camera) as (page, blocked):
-        t = run_flow(page, url, "me-small", 0.2, SHOTS)
+        t = browser.run_studio_flow(page, url, "me-small", 0.2, SHOTS)
         assert t["first_frame"] > t["train_pressed"] > t["record"]
         assert 0 < t["coverage"]["overall"] <= 1 and len(t["coverage"]["prompts"]) == 13 and 0 <= t["coverage"]["self_reach"] <= 1
         # the library: the avatar, its run with report.html; listed in the page with its report link
@@ -386,7 +334,7 @@ def test_record_train_drive(tmp_path, camera):
 def test_page_shows_a_failed_training(tmp_path, camera):
     """A recording the server refuses (here: too short) ends in a one-line message in the page."""
     lib = tmp_path / "lib"
-    with studio_served(lib, overrides=SMALL, min_frames=100000) as (url, studio), \
+    with browser.studio_served(lib, overrides=browser.STUDIO_SMALL, min_frames=100000) as (url, studio), \
             browser.browser_page(camera) as (page, blocked):
         page.goto(f"{url}?seconds=0.2")
         page.wait_for_function("!document.getElementById('record').disabled", timeout=120_000)

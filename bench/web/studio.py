@@ -13,10 +13,10 @@ flow test's). Prints ONE JSON line:
   frame -> the run's report written (the evaluation and report, made while the avatar drives);
 * ``job_s``, ``job_cpu_s``: the training job's stages as it measured them, wall-clock and CPU
   seconds (every thread of the job's process); ``frames``: the recording's frames;
-  ``coverage``: the page's overall coverage;
+  ``coverage``: the prompt bars' mean; ``self_reach``: the page's headline (held-out reach);
 * ``load``: the host's 1-minute load average at the start and the end (the machine is shared).
 
-    PYTHONPATH=.:tests python -m bench.web.studio --video CLIP.mp4 [--seconds 1] [--small]
+    python -m bench.web.studio --video CLIP.mp4 [--seconds 1] [--small]
 """
 
 from __future__ import annotations
@@ -38,17 +38,15 @@ def main() -> None:
     p.add_argument("--shots", default=None, help="folder for the screenshots of each step")
     a = p.parse_args()
 
-    from test_web_studio import SMALL, run_flow, studio_served
-
     from bench import browser
 
     load0 = load_average()
     with tempfile.TemporaryDirectory() as tmp:
         cam = Path(tmp) / "cam.y4m"
         browser.write_y4m(a.video, cam, a.frames, (640, 480))
-        with studio_served(Path(tmp) / "lib", overrides=SMALL if a.small else (), min_frames=10) as (url, _), \
+        with browser.studio_served(Path(tmp) / "lib", overrides=browser.STUDIO_SMALL if a.small else (), min_frames=10) as (url, _), \
                 browser.browser_page(cam) as (page, blocked):
-            t = run_flow(page, url, "bench", a.seconds, Path(a.shots) if a.shots else None, timeout_s=1800)
+            t = browser.run_studio_flow(page, url, "bench", a.seconds, Path(a.shots) if a.shots else None, timeout_s=1800)
     summary = t["job"].get("summary", {})
     print(json.dumps({
         "record_s": round((t["recorded"] - t["record"]) / 1000, 1),
@@ -56,7 +54,8 @@ def main() -> None:
         "total_s": round((t["first_frame"] - t["record"]) / 1000, 1),
         "report_after_live_s": round((t["report_written"] - t["first_frame"]) / 1000, 1),
         "job_s": summary.get("seconds"), "job_cpu_s": summary.get("cpu_seconds"), "frames": summary.get("frames"),
-        "coverage": round(t["coverage"]["overall"], 3), "small": a.small, "prompt_scale": a.seconds,
+        "coverage": round(t["coverage"]["overall"], 3), "self_reach": round(t["coverage"]["self_reach"], 3),
+        "small": a.small, "prompt_scale": a.seconds,
         "offline": not blocked, "load": [round(load0, 1), round(load_average(), 1)],
     }))
 
