@@ -16,7 +16,7 @@ import torch
 from scipy.ndimage import minimum_filter
 
 from facesynth.compositing import blend_face, gaussian_kernel, placed_alpha, seam_layers
-from facesynth.onnx.head_parts import SeamGraph
+from facesynth.onnx.head_parts import BLUR_BLOCK, BandedBlur, SeamGraph
 
 
 def _masks() -> list[np.ndarray]:
@@ -82,6 +82,18 @@ def test_the_graphs_seam_layers_match_numpy(feather):
         want = (crop[i] * band).sum((1, 2)) / max(band.sum(), 1.0)
         np.testing.assert_allclose(face_mean[i].numpy(), want, atol=1e-5)
 
+
+
+@pytest.mark.parametrize("n, sigma", [(1, 1.0), (7, 2.5), (BLUR_BLOCK, 2.5), (BLUR_BLOCK + 1, 2.5), (150, 2.54), (300, 5.1)])
+def test_the_banded_blur_is_opencvs_gaussian(n, sigma):
+    """BandedBlur (the seam's Gaussian as blocks: one Gather, one MatMul) against OpenCV's
+    separable filter with the same border (BORDER_REFLECT_101), axes shorter than the kernel
+    and lengths that leave a partial last block included."""
+    g = gaussian_kernel(sigma)
+    x = np.random.default_rng(n).random((n, 37)).astype(np.float32)
+    want = cv2.filter2D(x, cv2.CV_32F, g.reshape(-1, 1), borderType=cv2.BORDER_REFLECT_101)
+    got = BandedBlur(g, n)(torch.from_numpy(x)[None, None])[0, 0].numpy()
+    np.testing.assert_allclose(got, want, atol=2e-6)
 
 @pytest.mark.parametrize("feather", [None, 3.4])
 def test_placed_alpha_is_the_weight_blend_face_gives_the_face(feather):

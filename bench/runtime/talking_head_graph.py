@@ -4,7 +4,7 @@ one JSON line.
 
     OMP_NUM_THREADS=1 python -m bench.runtime.talking_head_graph [--pairs lp_d3<-lp_d6,...]
         [--frames 0] [--work /tmp/facesynth_th_graph] [--against DIR] [--profile 60]
-        [--page HEAD.onnx,... --page-video CLIP.mp4]
+        [--split 60] [--page HEAD.onnx,... --page-video CLIP.mp4]
 
 Per pair AVATAR<-DRIVER: a linear model of the first 75 % of the avatar's clip (every 3rd
 frame), exported as the synthesis file (with its avatar metadata) and as the talking-head
@@ -25,6 +25,9 @@ with other jobs the CPU time moves less) of
 per operator type, ms per frame and share of the kernels' time (the profiler's own cost
 included; the ranking is the point), the ``against`` file's as ``profile_against``; both also
 printed as a table on stderr.
+
+``split_cpu_ms`` (``--split N``, N frames): where the talking head's time goes, per step
+(:func:`split`: the graph cut after each step, timed interleaved; CPU-time medians).
 
 ``--page``: talking-head files (MediaPipe-scheme avatars, as the live page takes: README step
 5's) run on the live page by ``bench/web/page.py`` (one worker, ``--page-video`` as the
@@ -73,7 +76,7 @@ def build(avatar: str, work: Path) -> tuple[Path, Path]:
     face, head = work / f"{avatar}_face.onnx", work / f"{avatar}_head.onnx"
     export_synthesizer(syn, face, meta)
     export_talking_head(syn, meta, head)
-    return face, head
+    return face, head, syn, meta
 
 
 class BareRead:
@@ -129,6 +132,67 @@ class BareRead:
         return path
 
 
+STEPS = ("retarget", "node_maps", "read", "synthesis", "layers", "placement")
+
+
+def split(syn, meta: dict, work: Path, avatar: str, feeds: list[dict]) -> dict:
+    """Per step of the talking head, ms of CPU time per frame (one thread, medians): the graph
+    cut after each step (:data:`STEPS`: the retargeting; the warp's node maps; the frame read;
+    the synthesis; the seam's layers in the crop; the seam's placement and composite, on a
+    constant frame) exported and timed interleaved, each step's time its cut's less the cut
+    it follows; ``all`` the whole graph's."""
+    import torch
+    from torch import nn
+
+    from facesynth.onnx.common import save_graph
+    from facesynth.onnx.talking_head import INPUTS, OUTPUTS, TalkingHeadGraph
+    from facesynth.runtime.reenact import Avatar
+    from facesynth.runtime.renderer import _session
+
+    graph = TalkingHeadGraph(syn, Avatar(meta, avatar)).eval()
+    h, w = graph.frame_warp.frame_size
+
+    class Cut(nn.Module):
+        def __init__(self, last: str):
+            super().__init__()
+            self.g, self.last = graph, last
+            self.register_buffer("still", torch.zeros((1, 3, h, w), dtype=torch.uint8))
+
+        def forward(self, driver, neutral):
+            g = self.g
+            face = g.retarget(driver, neutral)
+            if self.last in ("retarget", "node_maps", "read"):
+                out = {"retarget": lambda: face * 1.0, "node_maps": lambda: g.frame_warp.node_maps(face),
+                       "read": lambda: g.frame_warp.read(face)}[self.last]()
+                return out, face
+            crop, mask, placement = g.synthesis(face)
+            if self.last == "synthesis":
+                return crop, face
+            if self.last == "layers":
+                return g.seam.layers(crop, mask)
+            frame = g.frame_warp.read(face) if self.last == "all" else self.still.expand(face.shape[0], -1, -1, -1)
+            return g.seam(crop, mask, placement, frame, face), face
+
+    n = np.asarray(meta["avatar_neutral"], np.float32)
+    example = (torch.from_numpy(np.stack([n + 1.5, n * 1.01 - 2.0])), torch.from_numpy(n + 0.5))
+    sessions = {}
+    for last in (*STEPS, "all"):
+        path = work / f"{avatar}_cut_{last}.onnx"
+        save_graph(Cut(last).eval(), example, path, INPUTS, OUTPUTS, {"format": "cut"}, 18, "the talking head cut")
+        sessions[last] = _session(path, 1, False)
+    cpu = {k: [] for k in sessions}
+    for feed in feeds:
+        for k, sess in sessions.items():
+            c0 = time.thread_time()
+            sess.run(None, feed)
+            cpu[k].append(time.thread_time() - c0)
+    ms = {k: 1e3 * float(np.median(v)) for k, v in cpu.items()}
+    after = {"retarget": None, "node_maps": "retarget", "read": "node_maps", "synthesis": "retarget",
+             "layers": "synthesis", "placement": "layers"}
+    out = {k: round(ms[k] - (ms[after[k]] if after[k] else 0.0), 3) for k in STEPS}
+    return {**out, "all": round(ms["all"], 3)}
+
+
 def profile(path: Path, feeds: list[dict]) -> list[dict]:
     """Per ONNX operator type, ms per frame and share of the kernels' time, over ``feeds``
     (ONNX Runtime's profiler, one thread)."""
@@ -182,13 +246,14 @@ def page_step(model: Path, video: Path, seconds: float) -> dict:
     return {"model": str(model), **{k: web.get(k) for k in keep}}
 
 
-def run_pair(avatar: str, driver: str, frames: int, work: Path, against: Path | None = None, n_profile: int = 60) -> dict:
+def run_pair(avatar: str, driver: str, frames: int, work: Path, against: Path | None = None, n_profile: int = 60,
+             n_split: int = 0) -> dict:
     from facesynth.runtime import Reenactor, Renderer
     from facesynth.runtime.reenact import driver_neutral_of
     from facesynth.runtime.renderer import _session
     from facesynth.runtime.talking_head import TalkingHead
 
-    face, head = build(avatar, work)
+    face, head, syn, meta = build(avatar, work)
     lm = np.load(Path("../shared/data/faces") / driver / "landmarks.npy").astype(np.float32)
     neutral, _ = driver_neutral_of(lm)
     picked = range(len(lm)) if frames <= 0 else np.linspace(0, len(lm) - 1, frames).astype(int)
@@ -242,8 +307,11 @@ def run_pair(avatar: str, driver: str, frames: int, work: Path, against: Path | 
                     "speedup": round(cpu_ms["against"] / cpu_ms["talking_head"], 2),
                     "speedup_wall": round(ms["against"] / ms["talking_head"], 2),
                     "ratio_against_to_read": round(cpu_ms["against"] / cpu_ms["frame_read"], 2)})
+    dn = np.asarray(th.driver_neutral, np.float32)
+    if n_split > 0:
+        feeds = [{"driver": lm[i][None], "driver_neutral": dn} for i in np.resize(np.asarray(rows), n_split)]
+        out["split_cpu_ms"] = split(syn, meta, work, avatar, feeds)
     if n_profile > 0:
-        dn = np.asarray(th.driver_neutral, np.float32)
         feeds = [{"driver": lm[i][None], "driver_neutral": dn} for i in np.resize(np.asarray(rows), n_profile)]
         out["profile"] = profile(head, feeds)
         if old is not None:
@@ -261,6 +329,7 @@ def main() -> None:
     ap.add_argument("--against", default=None, help="a folder of AVATAR_head.onnx files exported by another version, "
                                                     "timed interleaved with this one's")
     ap.add_argument("--profile", type=int, default=60, help="frames run with ONNX Runtime's profiler (0: none)")
+    ap.add_argument("--split", type=int, default=0, help="frames timed for the per-step split (0: none)")
     ap.add_argument("--page", default=None, help="talking-head files (MediaPipe avatars) for bench/web/page.py, comma-separated")
     ap.add_argument("--page-video", default="../shared/data/faces/lp_d3/video.mp4", help="the page's camera clip")
     ap.add_argument("--page-seconds", type=float, default=20.0)
@@ -268,7 +337,7 @@ def main() -> None:
     work = Path(args.work)
     work.mkdir(parents=True, exist_ok=True)
     against = Path(args.against) if args.against else None
-    pairs = [run_pair(*p.split("<-"), args.frames, work, against, args.profile) for p in args.pairs.split(",")]
+    pairs = [run_pair(*p.split("<-"), args.frames, work, against, args.profile, args.split) for p in args.pairs.split(",")]
     out = {"cpu_flags": sorted(cpu_flags(Path("/proc/cpuinfo").read_text()) & {"avx2", "avx512_vnni", "avx_vnni"}),
            "load_avg": round(load_average(), 2), "max_pixel_diff": max(p["max_pixel_diff"] for p in pairs),
            "max_landmark_diff_px": max(p["max_landmark_diff_px"] for p in pairs), "pairs": pairs}

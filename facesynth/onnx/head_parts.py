@@ -181,19 +181,45 @@ class FrameWarpGraph(ToTarget):
         return self.read(face).to(torch.float32)
 
 
-def _blur_matrix(g: np.ndarray, n: int) -> np.ndarray:
-    """float32 (n, n) M with ``x @ M`` the 1-D convolution of rows ``x`` (n,) with the centred
-    kernel ``g``, the row mirrored beyond its ends (``BORDER_REFLECT_101``, as often as needed)."""
-    p = len(g) // 2
-    m = np.zeros((n, n), np.float64)
-    out = np.arange(n)
-    for t, gt in enumerate(g):
-        src = out + t - p
-        period = 2 * (n - 1) if n > 1 else 1
-        src = np.abs(np.mod(src, period)) if n > 1 else np.zeros_like(src)
-        src = np.where(src > n - 1, period - src, src)
-        np.add.at(m, (src, out), gt)
-    return m.astype(np.float32)
+def _reflect101(src: np.ndarray, n: int) -> np.ndarray:
+    """Indices ``src`` mirrored into 0..n-1 (``BORDER_REFLECT_101``, as often as needed)."""
+    if n == 1:
+        return np.zeros_like(src)
+    period = 2 * (n - 1)
+    src = np.abs(np.mod(src, period))
+    return np.where(src > n - 1, period - src, src)
+
+
+# the seam blur's blocks of outputs (:class:`BandedBlur`): each block reads its own columns and
+# the kernel's reach either side, so the cost per pixel is the block plus the kernel, not the
+# crop's width
+BLUR_BLOCK = 32
+
+
+class BandedBlur(nn.Module):
+    """The 1-D convolution along the second last axis (n long) with the centred kernel ``g``,
+    mirrored beyond the ends (``BORDER_REFLECT_101``), as one Gather and one MatMul: the axis
+    cut into blocks of :data:`BLUR_BLOCK` outputs, each gathered (whole rows) with the
+    kernel's reach either side (the mirror in the gather's indices), times the constant
+    (block, block + kernel - 1) band of the kernel. A block plus the kernel's length of
+    multiply-adds per output, where a dense (n, n) matrix costs n."""
+
+    def __init__(self, g: np.ndarray, n: int):
+        super().__init__()
+        p, b = len(g) // 2, min(BLUR_BLOCK, n)
+        nb = -(-n // b)
+        self.n = n
+        src = np.arange(nb)[:, None] * b - p + np.arange(b + 2 * p)[None]  # (blocks, b + 2p) source rows
+        self.register_buffer("index", torch.from_numpy(_reflect101(src, n).astype(np.int64)))
+        k = np.zeros((b, b + 2 * p), np.float32)
+        for o in range(b):
+            k[o, o:o + 2 * p + 1] = g
+        self.register_buffer("band", torch.from_numpy(k))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """(..., n, W) -> the same shape, blurred along the n axis."""
+        y = torch.matmul(self.band, x[..., self.index, :])  # (..., blocks, b, W)
+        return y.flatten(-3, -2)[..., :self.n, :]
 
 
 class SeamGraph(nn.Module):
@@ -216,12 +242,12 @@ class SeamGraph(nn.Module):
         self.feather = float(feather)
         self.r = max(1, int(math.ceil(self.feather)))
         g = gaussian_kernel(self.feather / 2)
-        # the separable Gaussian (mirrored at the crop's edge, BORDER_REFLECT_101) as two
-        # MatMuls by constant (n, n) matrices: a one-channel Conv runs 16 channels wide in ONNX
-        # Runtime's blocked layout
+        # the separable Gaussian (mirrored at the crop's edge, BORDER_REFLECT_101) as banded
+        # MatMuls along rows (BandedBlur; along x on the transposed crop): a one-channel Conv
+        # runs 16 channels wide in ONNX Runtime's blocked layout, and a dense (n, n) matrix
+        # costs the crop's width per pixel (the auto reference width doubles it)
         ch, cw = crop_size  # (H, W), as the synthesis' canvas
-        self.register_buffer("blur_x", torch.from_numpy(_blur_matrix(g, cw)))  # rows @ blur_x
-        self.register_buffer("blur_y", torch.from_numpy(_blur_matrix(g, ch).T.copy()))  # blur_y @ columns
+        self.blur_x, self.blur_y = BandedBlur(g, cw), BandedBlur(g, ch)
         self.register_buffer("frame_max", torch.tensor([float(w), float(h)]))
         self.register_buffer("zero2", torch.zeros(2))
         self.register_buffer("to255", _const(np.array([255.0] * 3 + [1.0, 1.0]).reshape(1, 5, 1, 1)))
@@ -242,7 +268,7 @@ class SeamGraph(nn.Module):
         """(B, 5, Hc, Wc) premultiplied face, alpha, band (:func:`seam_layers`) and the face's
         mean colour in the band (B, 3)."""
         hard = (mask > 0.5).to(crop.dtype)
-        alpha = torch.matmul(self.blur_y, torch.matmul(self._erode(hard, self.r), self.blur_x)) * hard
+        alpha = self.blur_y(self.blur_x(self._erode(hard, self.r).transpose(2, 3)).transpose(2, 3)) * hard
         band = hard * (1.0 - self._erode(hard, 2 * self.r))
         face_mean = (crop * band).sum((2, 3)) / torch.clamp(band.sum((2, 3)), min=1.0)
         return torch.cat([crop * alpha, alpha, band], 1), face_mean
