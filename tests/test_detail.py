@@ -51,6 +51,9 @@ def brute_force(bank, k, strength, texture, aligned):
                 add[:, j] = m
         replace = float(bank.get("detail_replace", [False])[0])  # a texture bank: towards the frames' own pixels
         add = add - bank.get("detail_alpha", np.full(len(cols), replace)) * out[b][:, cols]
+        reach = float(bank.get("detail_reach", [0.0])[0])
+        if reach > 0:  # faded out far from every key
+            add = add / (1 + (d[order[0]] / reach) ** 2)
         out[b][:, cols] += strength * add
     return np.clip(out, 0, 1)
 
@@ -68,7 +71,8 @@ def test_retrieval_equals_a_brute_force_nearest_neighbour():
     assert got == pytest.approx(brute_force(texture_bank, 4, 0.5, tex, aligned), abs=1e-5)
     # a texture bank blended by the per-pixel median, feathered at its edge
     median_bank = {**texture_bank, "detail_median": np.asarray([True]),
-                   "detail_alpha": rng.uniform(0, 1, 20).astype(np.float32)}
+                   "detail_alpha": rng.uniform(0, 1, 20).astype(np.float32),
+                   "detail_reach": np.asarray([5.0], np.float32)}
     for k in (1, 4, 7):
         got = DetailTransfer(median_bank, k, 0.8, 50)(torch.from_numpy(tex), torch.from_numpy(aligned)).numpy()
         assert got == pytest.approx(brute_force(median_bank, k, 0.8, tex, aligned), abs=1e-5)
@@ -122,7 +126,7 @@ def interior():
     frames, lm = face_sequence_arrays(n=24, seed=2)
     seq = FaceSequence.from_arrays(lm, ArrayFrames(frames), name="unit")
     cfg = FaceModelConfig(reference_width=64, appearance_variance=0.95, detail=1.0, detail_k=3, detail_parts="interior",
-                          detail_band="texture", detail_blend="median", detail_feather=1.0)
+                          detail_band="texture", detail_blend="median", detail_feather=1.0, detail_reach=10.0)
     model, tex = FaceModel.fit_with_textures(seq, cfg, progress=False)
     return seq, model, tex
 
@@ -148,6 +152,10 @@ def test_the_interior_bank_holds_the_frames_pixels_under_a_feathered_mask(interi
     blur = blur.reshape(-1)[index]
     assert alpha == pytest.approx(np.minimum(blur[cols] / blur.max(), 1), abs=1e-5)
     assert set(np.flatnonzero(mouth[index])) <= set(cols.tolist()) and len(cols) > mouth[index].sum()
+    # the reach: 10 times the 90th percentile of the keys' nearest-neighbour squared distances (brute force)
+    keys = bank["detail_keys"].astype(np.float64)
+    nn = [min(((keys[i] - keys[j]) ** 2).sum() for j in range(len(keys)) if j != i) for i in range(len(keys))]
+    assert float(bank["detail_reach"][0]) == pytest.approx(10 * np.quantile(nn, 0.9), rel=1e-5)
     # keyed by the inner lips only
     assert np.array_equal(bank["detail_points"], np.sort(get_scheme(model.scheme).region("inner_lips")))
 
@@ -266,7 +274,8 @@ def test_the_artifact_and_the_exported_graph_keep_the_detail(detailed, tmp_path)
 
 def test_bad_settings_are_refused():
     for field, value in (("detail", 1.5), ("detail_k", 0), ("detail_parts", "nose"), ("detail_sigma", 0.0),
-                         ("detail_band", "low"), ("detail_blend", "mode"), ("detail_feather", -1.0)):
+                         ("detail_band", "low"), ("detail_blend", "mode"), ("detail_feather", -1.0),
+                         ("detail_reach", -1.0)):
         with pytest.raises(FacesynthError, match=f"model.{field}"):
             check_detail(dataclasses.replace(FaceModelConfig(), **{field: value}))
 

@@ -80,7 +80,8 @@ def sweep(run: Path, strengths: list[float], settings: dict, frames: int | None 
         out[str(float(s))] = figures(metrics)
         print(json.dumps({"run": run.name, "detail": s, **out[str(float(s))]}), file=sys.stderr, flush=True)
     return {"bank": bank, "settings": {k: getattr(model.config, k) for k in ("detail_k", "detail_parts", "detail_sigma",
-                                                                                "detail_band", "detail_blend", "detail_feather")},
+                                                                                "detail_band", "detail_blend", "detail_feather",
+                                                                                "detail_reach")},
             "reference_width": model.reference.size[1], "strengths": out}
 
 

@@ -8,10 +8,12 @@ where the shape says which frames look alike:
 * **Bank.** At most :data:`BANK_FRAMES` evenly spaced training frames. For each, the high band
   of its reference-frame texture, ``texture - blur(texture)`` (a Gaussian of ``sigma`` =
   ``detail_sigma`` x reference width / 128 px, normalised inside the face mask so the border
-  does not leak in), on the pixels of the chosen parts (``detail_parts``: ``mouth`` = mouth
-  interior and lips, ``mouth+eyes``, or ``face``). Stored as int8 codes with one float scale per
+  does not leak in), or its own pixels (see Blend), on the pixels of the chosen parts
+  (``detail_parts``: ``interior`` = the mouth interior, ``mouth`` = mouth interior and lips,
+  ``mouth+eyes``, or ``face``). Stored as int8 codes with one float scale per
   frame (the graph's compressed texture bank), beside the key of each frame: its aligned key
-  points (the inner and outer lips; with ``eyes`` or ``face`` the eye contours too), in the
+  points (the inner and outer lips; the inner lips alone for ``interior``; with ``eyes`` or
+  ``face`` the eye contours too), in the
   face model's normalised frame (the same similarity alignment as the regressor's input).
   Since every texture lives in the reference frame, the bank is already aligned to the
   prediction point by point through the piecewise-affine warp.
@@ -21,12 +23,25 @@ where the shape says which frames look alike:
   zero as its frame becomes the (k+1)-th, so the blend is a continuous function of the
   landmarks (no popping when the nearest frames change), and at a training frame's own shape
   it is that frame's detail.
-* **Blend.** ``texture + detail * sum_i w_i high_i`` on the parts' pixels (clipped to [0, 1]):
-  the regressor gives the coarse band, the subject's retrieved frames the fine one.
-  ``detail_band`` picks what the bank holds: ``high`` (the high band above), ``residual``
-  (the texture minus its appearance-PCA reconstruction: what the PCA cannot hold) or
-  ``texture`` (the frames' own pixels; the blend then moves the prediction towards their
-  weighted mean, ``texture + detail * (sum_i w_i t_i - texture)``).
+* **Blend.** ``texture + detail * (sum_i w_i b_i - alpha * texture)`` on the parts' pixels
+  (clipped to [0, 1]), where each bank row ``b_i`` holds, per pixel, ``alpha`` times the frame's
+  own pixels plus ``1 - alpha`` times its band. ``detail_band`` picks them: ``high`` (alpha 0:
+  the texture minus its blur; the regressor gives the coarse band, the retrieved frames the fine
+  one), ``residual`` (alpha 0: the texture minus its appearance-PCA reconstruction),
+  ``texture`` (alpha 1: the frames' own pixels replace the prediction) or ``interior`` (alpha =
+  the mouth interior's mask, blurred by ``detail_feather``: the whole interior, teeth and
+  tongue, from the retrieved frames, faded into the high band of the lips around it, as
+  Face2Face and "Synthesizing Obama" copy the mouth from the subject's own video). With
+  ``detail_feather`` the parts' own edge is blurred the same way.
+* **Reach.** Far from every training shape (a mouth opened wider than any in training) the
+  retrieved frames are stretched over a shape they never had. ``detail_reach`` (0 = off) fades
+  the detail out there: times ``1 / (1 + (d_1 / r)^2)``, with ``d_1`` the nearest key's squared
+  distance and ``r`` = ``detail_reach`` times the bank's own spacing (:func:`bank_spacing`).
+* **Median.** ``detail_blend=median`` replaces the weighted mean by a per-pixel weighted
+  geometric median of the k colours (:func:`weighted_median`): where two neighbours show teeth
+  and three a dark open mouth, the blend is a dark mouth, not a grey smear. It is computed by
+  a few Weiszfeld steps from the mean, so it stays a continuous function of the weights (no
+  popping) and runs in the graph as plain arithmetic.
 
 :class:`DetailTransfer` is the torch form (TopK, Gather over the int8 bank, a batched matmul,
 one Gather that spreads the parts' pixels over the texture) used by the synthesiser, the
@@ -54,7 +69,7 @@ MEDIAN_STEPS = 3  # Weiszfeld steps of the "median" blend (from the weighted mea
 MEDIAN_EPS = 0.02  # its smoothing: colour distance (0..1 units) below which a neighbour counts as agreeing
 EPS = 1e-12  # added to the squared key distances (aligned shapes have unit norm: neighbours lie ~1e-5 apart)
 BANK_TENSORS = ("detail_replace", "detail_keys", "detail_codes", "detail_scale", "detail_columns", "detail_points",
-                "detail_alpha", "detail_median")  # the last two absent in older banks: alpha 1, the mean
+                "detail_alpha", "detail_median", "detail_reach")  # the last three absent in older banks
 
 
 def check_detail(cfg) -> None:
@@ -71,6 +86,8 @@ def check_detail(cfg) -> None:
         raise FacesynthError(f"model.detail_blend must be one of {BLENDS}, got {cfg.detail_blend!r}")
     if not float(cfg.detail_feather) >= 0:
         raise FacesynthError(f"model.detail_feather must be >= 0 (px at a 128 px reference), got {cfg.detail_feather}")
+    if not float(cfg.detail_reach) >= 0:
+        raise FacesynthError(f"model.detail_reach must be >= 0 (0 = no gate), got {cfg.detail_reach}")
     if not float(cfg.detail_sigma) > 0:
         raise FacesynthError(f"model.detail_sigma must be positive (px at a 128 px reference), got {cfg.detail_sigma}")
 
@@ -166,9 +183,19 @@ def fit_detail_bank(model, landmarks: np.ndarray, textures: np.ndarray) -> tuple
     bank = {"detail_replace": np.asarray([bool((alpha > 0).any())], np.bool_), "detail_keys": keys,
             "detail_codes": codes, "detail_scale": scale, "detail_columns": cols,
             "detail_points": points, "detail_alpha": (part * alpha).astype(np.float32),
-            "detail_median": np.asarray([cfg.detail_blend == "median"], np.bool_)}
+            "detail_median": np.asarray([cfg.detail_blend == "median"], np.bool_),
+            "detail_reach": np.asarray([float(cfg.detail_reach) * bank_spacing(keys)], np.float32)}
     nbytes = int(sum(v.nbytes for v in bank.values()))
     return bank, {"frames": int(len(pick)), "pixels": int(len(cols)), "sigma_px": sigma, "bytes": nbytes}
+
+
+def bank_spacing(keys: np.ndarray) -> float:
+    """The 90th percentile over the bank's keys of the squared distance to the nearest other
+    key: how far apart neighbouring training shapes lie (the unit of ``detail_reach``)."""
+    k = np.asarray(keys, np.float64)
+    d = ((k[:, None] - k[None]) ** 2).sum(-1)
+    np.fill_diagonal(d, np.inf)
+    return float(np.quantile(d.min(1), 0.9)) if len(k) > 1 else 0.0
 
 
 def check_bank(bank: dict, n_points: int, n_channels: int, n_pixels: int) -> None:
@@ -185,6 +212,9 @@ def check_bank(bank: dict, n_points: int, n_channels: int, n_pixels: int) -> Non
     alpha = bank.get("detail_alpha")
     if alpha is not None and (alpha.shape != cols.shape or not np.all((alpha >= 0) & (alpha <= 1))):
         raise ValueError(f"detail_alpha: expected {cols.shape} weights in [0, 1], got shape {alpha.shape}")
+    reach = bank.get("detail_reach")
+    if reach is not None and (reach.shape != (1,) or not float(reach[0]) >= 0):
+        raise ValueError(f"detail_reach: expected one squared distance >= 0, got {reach}")
 
 
 class DetailTransfer(nn.Module):
@@ -214,18 +244,26 @@ class DetailTransfer(nn.Module):
         alpha = np.asarray(bank.get("detail_alpha", np.full(len(cols), float(replace), np.float32)), np.float32)
         self.replace = bool((alpha > 0).any())
         self.register_buffer("alpha", torch.from_numpy(alpha.copy()))
+        self.reach = float(np.asarray(bank.get("detail_reach", [0.0]), np.float64).reshape(-1)[0])  # 0: no gate
 
     def weights(self, aligned: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """(B, k) bank rows and their (B, k) weights (rows sum to 1, or 0 when every key ties)."""
+        idx, w, _ = self.retrieve(aligned)
+        return idx, w
+
+    def retrieve(self, aligned: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """:meth:`weights` and the (B, 1, 1) gate ``1 / (1 + (d_1 / reach)^2)`` of the nearest
+        key's squared distance ``d_1`` (1 without a reach)."""
         q = aligned[:, self.points].flatten(1)
         diff = q.unsqueeze(1) - self.keys  # (B, N, F): direct differences, no cancellation
         neg, idx = torch.topk(-(diff * diff).sum(2), self.k + 1, dim=1)
         d = -neg
         w = torch.relu(1 / (d[:, : self.k] + EPS) - 1 / (d[:, self.k :] + EPS))
-        return idx[:, : self.k], w / (w.sum(1, keepdim=True) + 1e-12)
+        gate = 1 / (1 + (d[:, :1, None] / self.reach) ** 2) if self.reach > 0 else torch.ones_like(d[:, :1, None])
+        return idx[:, : self.k], w / (w.sum(1, keepdim=True) + 1e-12), gate
 
     def forward(self, texture: torch.Tensor, aligned: torch.Tensor) -> torch.Tensor:
-        idx, w = self.weights(aligned)
+        idx, w, gate = self.retrieve(aligned)
         rows = self.codes[idx].to(torch.float32) * self.scale[idx]  # (B, k, C * Mr)
         if self.median:
             high = weighted_median(rows.reshape(rows.shape[0], self.k, texture.shape[1], self.n_cols), w)
@@ -233,6 +271,8 @@ class DetailTransfer(nn.Module):
             high = torch.matmul(w.unsqueeze(1), rows).reshape(texture.shape[0], texture.shape[1], self.n_cols)
         if self.replace:
             high = high - self.alpha * texture[:, :, self.cols]
+        if self.reach > 0:
+            high = high * gate
         high = torch.cat([high, torch.zeros_like(high[:, :, :1])], 2)[:, :, self.spread]
         return torch.clamp(texture + self.strength * high, 0.0, 1.0)
 
