@@ -104,7 +104,8 @@ def test_the_blend_is_continuous_when_the_neighbours_change(median):
     rng = np.random.default_rng(1)
     bank = random_bank(rng, n=30)
     if median:
-        bank.update(detail_replace=np.asarray([True]), detail_median=np.asarray([True]))
+        bank.update(detail_replace=np.asarray([True]), detail_median=np.asarray([True]),
+                    detail_reach=np.asarray([3.0], np.float32))
     det = DetailTransfer(bank, 3, 1.0, 50)
     tex = torch.full((1, 3, 50), 0.5)
     a, b = rng.normal(size=(2, 10, 2)).astype(np.float32)
