@@ -281,7 +281,9 @@ def test_bad_settings_are_refused():
             check_detail(dataclasses.replace(FaceModelConfig(), **{field: value}))
 
 
-def test_the_talking_head_graph_carries_the_detail(shared_clip_dir, tmp_path):
+@pytest.mark.parametrize("settings", [{}, {"detail_parts": "interior", "detail_band": "texture", "detail_blend": "median",
+                                       "detail_feather": 1.0, "detail_reach": 10.0}], ids=["high", "interior"])
+def test_the_talking_head_graph_carries_the_detail(shared_clip_dir, tmp_path, settings):
     """A talking head with a detail bank matches the numpy pipeline on its face-only file (which
     test_the_artifact_and_the_exported_graph_keep_the_detail holds to the torch path), and
     the bank changes the frames."""
@@ -298,7 +300,7 @@ def test_the_talking_head_graph_carries_the_detail(shared_clip_dir, tmp_path):
     seq = load_sequence(shared_clip_dir("lp_d10"))
     train, _ = temporal_split(len(seq))
     rows = train[::3]
-    model = FaceModel.fit(seq, FaceModelConfig(detail=1.0), rows=rows, progress=False)
+    model = FaceModel.fit(seq, FaceModelConfig(detail=1.0, **settings), rows=rows, progress=False)
     assert model.detail_bank is not None
     x = model.shape_params(seq.landmarks[rows], clamp=True)
     y = model.appearance_params(model.sample_textures(seq, rows), clamp=True)
