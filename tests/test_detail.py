@@ -188,6 +188,18 @@ def test_the_mixed_bank_holds_the_interior_pixels_and_the_lips_high_band(interio
         [get_scheme(model.scheme).region(r) for r in ("outer_lips", "inner_lips")])))
 
 
+def test_a_closed_reference_mouth_gives_no_interior_bank(interior):
+    from facesynth.model.detail import fit_detail_bank
+
+    seq, model, tex = interior
+    pts = model.reference.points.copy()
+    pts[[65, 66, 67]] = pts[[63, 62, 61]]  # the inner lips closed: the interior has no pixel
+    closed = dataclasses.replace(model, reference=dataclasses.replace(model.reference, points=pts))
+    with np.errstate(invalid="ignore"):  # the closed mouth's triangles are degenerate
+        bank, report = fit_detail_bank(closed, seq.landmarks, tex)
+    assert bank is None and report["pixels"] == 0
+
+
 def test_the_interior_graph_matches_torch(interior, tmp_path):
     from facesynth.onnx.synthesis import check_export, export_synthesizer
     from facesynth.regressors import REGISTRY

@@ -145,13 +145,16 @@ def high_band(model, textures: np.ndarray, sigma: float) -> np.ndarray:
 def fit_detail_bank(model, landmarks: np.ndarray, textures: np.ndarray) -> tuple[dict, dict]:
     """The bank (name -> array, :data:`BANK_TENSORS`) of a face model ``model`` from its training
     frames' (N, P, 2) ``landmarks`` and (N, C * M) ``textures``, and a report (frames, pixels,
-    bytes)."""
+    bytes). The bank is None when the parts hold no pixel of the reference frame (the interior
+    of a reference shape whose mouth is closed)."""
     cfg = model.config
     check_detail(cfg)
     pick = np.unique(np.linspace(0, len(textures) - 1, min(BANK_FRAMES, len(textures))).round().astype(np.int64))
     px = model.reference.size[1] / 128.0  # settings in px at a 128 px reference -> this reference's px
     cols, part = part_columns(model, cfg.detail_parts, float(cfg.detail_feather) * px)
     sigma = float(cfg.detail_sigma) * px
+    if len(cols) == 0:  # e.g. the interior of a reference shape whose mouth is closed: nothing to keep
+        return None, {"frames": 0, "pixels": 0, "bytes": 0}
     tex = np.asarray(textures[pick], np.float32)
     own = tex.reshape(len(pick), model.n_channels, -1)[:, :, cols]  # the frames' own pixels
     if cfg.detail_band == "texture":
