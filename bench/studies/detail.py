@@ -14,7 +14,7 @@ strength 0 is read from the run's own ``metrics.json`` when it holds these figur
 evaluation of training), else evaluated. The last line (stdout) holds them all, and with
 ``--today DIR`` (``DIR/CLIP__today``: the runs of today's default, as ``bench/studies/perceptual.py
 --out DIR`` leaves them; a run folder is named ``CLIP__VARIANT``) the issue's acceptance per
-strength against today's figures (``bench_perceptual.summary``).
+strength against today's figures (``bench.studies.perceptual.summary``).
 """
 
 from __future__ import annotations
@@ -79,7 +79,9 @@ def sweep(run: Path, strengths: list[float], settings: dict, frames: int | None 
         metrics, _ = evaluate_sadm(sadm, seq, tr, te, ecfg, int(cfg.seed), test_textures=tex_te, common=common)
         out[str(float(s))] = figures(metrics)
         print(json.dumps({"run": run.name, "detail": s, **out[str(float(s))]}), file=sys.stderr, flush=True)
-    return {"bank": bank, "settings": {k: getattr(model.config, k) for k in ("detail_k", "detail_parts", "detail_sigma")},
+    return {"bank": bank, "settings": {k: getattr(model.config, k) for k in ("detail_k", "detail_parts", "detail_sigma",
+                                                                                "detail_band", "detail_blend", "detail_feather",
+                                                                                "detail_reach")},
             "reference_width": model.reference.size[1], "strengths": out}
 
 
@@ -113,7 +115,7 @@ def parse_settings(pairs: list[str]) -> dict:
     settings = {}
     for kv in pairs:
         k, _, v = kv.partition("=")
-        settings[k] = v if k in ("detail_parts", "detail_band") else (int(v) if k == "detail_k" else float(v))
+        settings[k] = v if k in ("detail_parts", "detail_band", "detail_blend") else (int(v) if k == "detail_k" else float(v))
     return settings
 
 

@@ -70,7 +70,7 @@ def main() -> None:
     for r, strength in zip(a.runs, a.detail or [0.0] * len(a.runs), strict=True):
         sadm = load_sadm(r)
         if strength > 0:
-            from bench_detail import attach_bank, parse_settings
+            from bench.studies.detail import attach_bank, parse_settings
 
             rseq, tr, _ = run_data(read_config(r))
             attach_bank(sadm, rseq, tr, parse_settings(a.set), strength)

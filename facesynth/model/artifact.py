@@ -97,7 +97,7 @@ def load_face_model(directory: str | os.PathLike) -> FaceModel:
                 t["denoise_mean"], t["denoise_components"], t["denoise_eigenvalues"],
                 float(manifest_field(manifest, "denoise_total_variance", where))),
             restore_kernel=t.get("restore_kernel"),
-            detail_bank={k: t[k] for k in BANK_TENSORS} if BANK_TENSORS[0] in t else None,
+            detail_bank={k: t[k] for k in BANK_TENSORS if k in t} if BANK_TENSORS[0] in t else None,
         )
         check_face_model(model)
         return model

@@ -75,6 +75,9 @@ class FaceModelConfig:
     detail_parts: str = "mouth"  # "mouth" (interior and lips), "mouth+eyes" or "face"
     detail_band: str = "high"  # "high" (texture - blur), "residual" (- its PCA reconstruction), "texture" (blend to it)
     detail_sigma: float = 2.0  # the high band's Gaussian, px at a 128 px reference (scaled with its width)
+    detail_blend: str = "mean"  # the k neighbours per pixel: "mean" (weighted) or "median" (weighted, Weiszfeld)
+    detail_feather: float = 0.0  # the parts' mask blurred by this sigma (px at a 128 px reference); 0 = hard edge
+    detail_reach: float = 0.0  # fade the detail out beyond this many bank spacings from every training shape; 0 = off
 
 
 # The settings whose default depends on the landmark scheme (config None): a dense mesh (a
