@@ -1,0 +1,87 @@
+"""Held-out figures of trained runs with the landmarks as tracked and zero-phase smoothed; one JSON line.
+
+    OMP_NUM_THREADS=1 python -m bench.studies.landmark_smoothing RUN [RUN ...] [--cache DIR]
+
+Each RUN (a ``facesynth train`` run on a shared clip) is evaluated twice on its held-out
+frames (temporal split, sigma 0, the evaluation of ``bench.studies.perceptual``:
+``eval.noise=[0]``, no training-level or talking-head rows): ``tracked``, the test landmarks
+as the tracker gave them, and ``smoothed``, the test landmarks smoothed as
+``data.smooth_landmarks=true`` does (:mod:`facesynth.data.smoothing`, the test part alone).
+The model is the run's own: a run trained with ``data.smooth_landmarks=true`` learnt from
+smoothed training landmarks (``trained_smoothed``). Per evaluation, as the perceptual bench
+reports them: ``flicker_ratio`` (``flicker_frame_common``), ``psnr_frame_common`` (dB),
+``lpips_face`` / ``lpips_mouth`` / ``lpips_eyes`` (median over frames), ``sharpness``; and the
+test landmarks' frame-to-frame motion (px, median over points and the flicker frames) and
+the inner mouth opening's largest value (points 62-66, px) over the test part.
+
+``--cache DIR``: keep each evaluation's figures in DIR (``<run name>__<mode>.json``) and reuse
+them, so the table is printed again without re-evaluating.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from bench.harness import emit, host, load
+from bench.studies.perceptual import metric_figures
+from facesynth.eval.common_region import common_landmarks
+from facesynth.eval.flicker import flicker_rows
+from facesynth.eval.sadm_eval import EvalConfig, evaluate_sadm
+from facesynth.rundir import read_config, run_data
+from facesynth.sadm.fit import load_sadm
+
+MODES = {"tracked": False, "smoothed": True}
+
+
+def evaluate(run: Path, smoothed: bool) -> dict:
+    cfg = read_config(run)
+    trained_smoothed = bool(cfg.data.smooth_landmarks)
+    cfg.data.smooth_landmarks = smoothed
+    seq, tr, te = run_data(cfg)
+    ecfg = EvalConfig(noise=[0.0], train_level=False, talking_head=False,
+                      flicker_frames=int(cfg.eval.get("flicker_frames", 40)))
+    common = common_landmarks(seq, None)
+    metrics, _ = evaluate_sadm(load_sadm(run), seq, tr, te, ecfg, int(cfg.seed), common=common)
+    lm = seq.landmarks[te]
+    fl = lm[flicker_rows(len(te), ecfg.flicker_frames)]
+    return {**metric_figures(metrics), "trained_smoothed": trained_smoothed,
+            "landmark_motion_px": float(np.median(np.linalg.norm(np.diff(fl, axis=0), axis=-1))),
+            "mouth_open_max_px": float(np.linalg.norm(lm[:, 66] - lm[:, 62], axis=-1).max())}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("runs", nargs="+", type=Path)
+    ap.add_argument("--cache", type=Path, help="keep and reuse each evaluation's figures here")
+    ap.add_argument("--modes", default="tracked,smoothed", help="comma-separated: tracked, smoothed")
+    args = ap.parse_args()
+    modes = [m for m in args.modes.split(",") if m]
+    bad = [m for m in modes if m not in MODES]
+    if bad:
+        sys.exit(f"landmark_smoothing: unknown mode(s) {bad} (known: {', '.join(MODES)})")
+    if args.cache:
+        args.cache.mkdir(parents=True, exist_ok=True)
+    out, runs = {"bench": "landmark_smoothing", **host()}, {}
+    with load() as around:
+        for run in args.runs:
+            runs[run.name] = {}
+            for mode in modes:
+                cached = args.cache / f"{run.name}__{mode}.json" if args.cache else None
+                if cached is not None and cached.is_file():
+                    fig = json.loads(cached.read_text())
+                else:
+                    fig = evaluate(run, MODES[mode])
+                    if cached is not None:
+                        cached.write_text(json.dumps(fig))
+                runs[run.name][mode] = fig
+                print(json.dumps({"run": run.name, "mode": mode, **fig}), file=sys.stderr, flush=True)
+    emit({**out, "runs": runs, "load": around})
+
+
+if __name__ == "__main__":
+    main()
