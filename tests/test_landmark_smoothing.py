@@ -138,3 +138,11 @@ def test_bad_tracks_are_refused():
         smooth_track(np.zeros((5, 68)), RATE)
     with pytest.raises(FacesynthError, match="rate"):
         smooth_track(face(5), 0.0)
+
+
+def test_the_segment_ends_are_smoothed_too():
+    true = face(60)
+    tracked = jitter(true, seed=4)
+    out = smooth_track(tracked, RATE)
+    for end in (0, -1):
+        assert np.abs(out[end] - true[end]).mean() < 0.8 * np.abs(tracked[end] - true[end]).mean()

@@ -12,8 +12,10 @@ with symmetric kernels, so nothing lags:
   ``w = min(1, speed / FAST_RADII_S)``, ``out = strong + w (light - strong)``, so a still
   face gets the strong filter and a fast lip the light one;
 * both kernels are symmetric and centred (zero phase): a linear ramp passes unchanged
-  whatever the weights; segment ends are padded by odd reflection about the end point
-  (as :func:`scipy.signal.filtfilt`'s default ``padtype='odd'``), which keeps a ramp there too.
+  whatever the weights; segment ends are padded by odd reflection (as
+  :func:`scipy.signal.filtfilt`'s default ``padtype='odd'``) about the end of a straight line
+  fitted to the last few rows (a pivot on the end row itself would leave its jitter), which
+  keeps a ramp there too.
 
 Each segment is smoothed alone (:func:`segments`): the training and test parts of the
 temporal split, and stretches of video separated by a break in the frame numbers, never see
@@ -35,14 +37,24 @@ SIGMA_MOVING_S = 0.02  # Gaussian sigma (s) of a fast point: 0.6 frames at 30 fr
 FAST_RADII_S = 0.5  # point speed (face radii per second) from which the light filter alone applies
 
 
+def _line_end(x: np.ndarray) -> np.ndarray:
+    """The value at row 0 of the least-squares line through the rows of ``x`` (axis 0): the
+    pivot of the odd reflection, so that the end row is smoothed too and a ramp is kept."""
+    t = np.arange(len(x), dtype=np.float64) - (len(x) - 1) / 2
+    mean = x.mean(axis=0)
+    slope = np.tensordot(t, x - mean, axes=(0, 0)) / max(float((t ** 2).sum()), 1e-12)
+    return (mean - slope * (len(x) - 1) / 2)[None]
+
+
 def _gauss(x: np.ndarray, sigma: float, pad: int) -> np.ndarray:
     """Gaussian along axis 0 of float64 ``x`` with odd reflection about the ends (ramps kept)."""
     if sigma <= 0:
         return x.copy()
     pad = min(pad, len(x) - 1)
     if pad > 0:
-        head = 2 * x[:1] - x[pad:0:-1]
-        tail = 2 * x[-1:] - x[-2:-pad - 2:-1]
+        m = min(len(x), 4 * int(np.ceil(sigma)) + 1)
+        head = 2 * _line_end(x[:m]) - x[pad:0:-1]
+        tail = 2 * _line_end(x[::-1][:m]) - x[-2:-pad - 2:-1]
         xp = np.concatenate([head, x, tail])
     else:
         xp = x
