@@ -65,7 +65,7 @@ def load_data(data_cfg, seed: int) -> FaceSequence:
         raise FacesynthError(f"data.kind must be 'synthetic' or 'video', got {data_cfg.kind!r}")
     if data_cfg.max_frames:
         seq = seq.subset(np.arange(min(len(seq), data_cfg.max_frames)))
-    if getattr(data_cfg, "smooth_landmarks", False):  # zero phase, each part of the split alone
+    if data_cfg.kind == "video" and getattr(data_cfg, "smooth_landmarks", False):  # tracked: zero phase, per part
         seq = smooth_sequence(seq, split_bounds(len(seq), float(data_cfg.train_fraction), int(data_cfg.gap)))
     return seq
 

@@ -113,15 +113,26 @@ def test_training_and_test_parts_never_see_each_other():
     np.testing.assert_array_equal(out.subset([3, 80]).tracked, seq.landmarks[[3, 80]])
 
 
-def test_load_data_smooths_and_the_judged_region_stays_on_tracked_points():
-    cfg = OmegaConf.structured(DataConf(kind="synthetic", n_frames=40, size=128))
+def test_load_data_smooths_a_video_and_the_judged_region_stays_on_tracked_points(tmp_path):
+    n = 40
+    np.save(tmp_path / "landmarks.npy", jitter(face(n)).astype(np.float32))
+    (tmp_path / "meta.json").write_text('{"video": {"fps": 25.0}}')
+    cfg = OmegaConf.structured(DataConf(kind="video", path=str(tmp_path), smooth_landmarks=False))
     plain = load_data(cfg, 0)
+    assert plain.tracked is None
     cfg.smooth_landmarks = True
     smoothed = load_data(cfg, 0)
     np.testing.assert_array_equal(smoothed.tracked, plain.landmarks)
-    assert not np.array_equal(smoothed.landmarks, plain.landmarks)
-    np.testing.assert_array_equal(smoothed.landmarks[:30], smooth_track(plain.landmarks[:30], plain.fps))
+    np.testing.assert_array_equal(smoothed.landmarks[:30], smooth_track(plain.landmarks[:30], 25.0))
+    np.testing.assert_array_equal(smoothed.landmarks[30:], smooth_track(plain.landmarks[30:], 25.0))
     np.testing.assert_array_equal(common_landmarks(smoothed), plain.landmarks)
+    assert DataConf().smooth_landmarks  # the default
+
+
+def test_the_synthetic_subject_is_never_smoothed():
+    cfg = OmegaConf.structured(DataConf(kind="synthetic", n_frames=40, size=128, smooth_landmarks=True))
+    seq = load_data(cfg, 0)
+    assert seq.tracked is None and "landmark_smoothing" not in seq.meta
 
 
 def test_a_run_from_before_the_setting_reads_as_unsmoothed(tmp_path):

@@ -14,6 +14,9 @@ reports them: ``flicker_ratio`` (``flicker_frame_common``), ``psnr_frame_common`
 test landmarks' frame-to-frame motion (px, median over points and the flicker frames) and
 the inner mouth opening's largest value (points 62-66, px) over the test part.
 
+``summary``: over the runs evaluated both ways, the largest flicker ratio each way, the
+smallest PSNR change and the largest relative LPIPS changes (face, mouth).
+
 ``--cache DIR``: keep each evaluation's figures in DIR (``<run name>__<mode>.json``) and reuse
 them, so the table is printed again without re-evaluating.
 """
@@ -54,6 +57,22 @@ def evaluate(run: Path, smoothed: bool) -> dict:
             "mouth_open_max_px": float(np.linalg.norm(lm[:, 66] - lm[:, 62], axis=-1).max())}
 
 
+def summary(runs: dict) -> dict:
+    """Over the runs evaluated both ways: the largest flicker ratio each way, the smallest
+    PSNR change (dB) and the largest relative LPIPS changes (face, mouth) from tracked to smoothed."""
+    both = [r for r in runs.values() if "tracked" in r and "smoothed" in r]
+    if not both:
+        return {}
+
+    def rel(key):
+        return max(r["smoothed"][key] / r["tracked"][key] - 1 for r in both if r["tracked"][key])
+
+    return {"runs": len(both), "flicker_ratio_max_tracked": max(r["tracked"]["flicker_ratio"] for r in both),
+            "flicker_ratio_max_smoothed": max(r["smoothed"]["flicker_ratio"] for r in both),
+            "psnr_change_min_db": min(r["smoothed"]["psnr_frame_common"] - r["tracked"]["psnr_frame_common"] for r in both),
+            "lpips_face_change_max": rel("lpips_face"), "lpips_mouth_change_max": rel("lpips_mouth")}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("runs", nargs="+", type=Path)
@@ -80,7 +99,7 @@ def main() -> None:
                         cached.write_text(json.dumps(fig))
                 runs[run.name][mode] = fig
                 print(json.dumps({"run": run.name, "mode": mode, **fig}), file=sys.stderr, flush=True)
-    emit({**out, "runs": runs, "load": around})
+    emit({**out, "runs": runs, "summary": summary(runs), "load": around})
 
 
 if __name__ == "__main__":
