@@ -17,6 +17,8 @@ the inner mouth opening's largest value (points 62-66, px) over the test part.
 ``summary``: over the runs evaluated both ways, the largest flicker ratio each way, the
 smallest PSNR change and the largest relative LPIPS changes (face, mouth).
 
+``--plot FILE``: a tracked and a smoothed track (lp_d19's chin, vrt_face2's lower inner lip).
+
 ``--cache DIR``: keep each evaluation's figures in DIR (``<run name>__<mode>.json``) and reuse
 them, so the table is printed again without re-evaluating.
 """
@@ -73,12 +75,45 @@ def summary(runs: dict) -> dict:
             "lpips_face_change_max": rel("lpips_face"), "lpips_mouth_change_max": rel("lpips_mouth")}
 
 
+def plot(path: Path) -> None:
+    """The tracked and smoothed track of a still clip's chin (lp_d19) and a talking clip's lower
+    inner lip (vrt_face2), the first 3 s of their training parts."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from facesynth.data import load_sequence, shared_clip
+    from facesynth.data.smoothing import smooth_track, split_bounds
+
+    fig, axes = plt.subplots(1, 2, figsize=(10, 3.2), dpi=90)
+    for ax, (clip, point, what) in zip(axes, [("lp_d19", 8, "chin (point 8)"), ("vrt_face2", 66, "lower inner lip (point 66)")],
+                                       strict=True):
+        seq = load_sequence(shared_clip(clip))
+        train = seq.landmarks[:split_bounds(len(seq), 0.75, 0)[0]]
+        smooth = smooth_track(train, seq.fps)
+        n = min(len(train), int(3 * seq.fps))
+        t = np.arange(n) / seq.fps
+        ax.plot(t, train[:n, point, 1], ".-", color="0.6", lw=0.8, ms=3, label="tracked (dlib)")
+        ax.plot(t, smooth[:n, point, 1], "-", color="C3", lw=1.5, label="data.smooth_landmarks")
+        ax.set_title(f"{clip}: {what}, y", fontsize=9)
+        ax.set_xlabel("s")
+        ax.set_ylabel("px")
+        ax.invert_yaxis()
+    axes[0].legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("runs", nargs="+", type=Path)
+    ap.add_argument("runs", nargs="*", type=Path)
+    ap.add_argument("--plot", type=Path, help="also draw a tracked and a smoothed track (PNG) here")
     ap.add_argument("--cache", type=Path, help="keep and reuse each evaluation's figures here")
     ap.add_argument("--modes", default="tracked,smoothed", help="comma-separated: tracked, smoothed")
     args = ap.parse_args()
+    if args.plot:
+        plot(args.plot)
     modes = [m for m in args.modes.split(",") if m]
     bad = [m for m in modes if m not in MODES]
     if bad:
