@@ -12,7 +12,8 @@ smoothed training landmarks (``trained_smoothed``). Per evaluation, as the perce
 reports them: ``flicker_ratio`` (``flicker_frame_common``), ``psnr_frame_common`` (dB),
 ``lpips_face`` / ``lpips_mouth`` / ``lpips_eyes`` (median over frames), ``sharpness``; and the
 test landmarks' frame-to-frame motion (px, median over points and the flicker frames) and
-the inner mouth opening's largest value (points 62-66, px) over the test part.
+the inner mouth opening's largest value (points 62-66, px) over the test part; smoothed:
+``smoothing_s``, the smoothing's own time on the run's whole clip (median of 5).
 
 ``summary``: over the runs evaluated both ways, the largest flicker ratio each way, the
 smallest PSNR change and the largest relative LPIPS changes (face, mouth).
@@ -28,12 +29,14 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
 
 from bench.harness import emit, host, load
 from bench.studies.perceptual import metric_figures
+from facesynth.data.smoothing import smooth_sequence, split_bounds
 from facesynth.eval.common_region import common_landmarks
 from facesynth.eval.flicker import flicker_rows
 from facesynth.eval.sadm_eval import EvalConfig, evaluate_sadm
@@ -53,10 +56,19 @@ def evaluate(run: Path, smoothed: bool) -> dict:
     common = common_landmarks(seq, None)
     metrics, _ = evaluate_sadm(load_sadm(run), seq, tr, te, ecfg, int(cfg.seed), common=common)
     lm = seq.landmarks[te]
+    if smoothed:  # what the smoothing itself costs on this clip (median of 5, seconds)
+        times = []
+        for _ in range(5):
+            t0 = time.perf_counter()
+            smooth_sequence(seq, split_bounds(len(seq), float(cfg.data.train_fraction), int(cfg.data.gap)))
+            times.append(time.perf_counter() - t0)
+        extra = {"smoothing_s": float(np.median(times)), "frames": len(seq)}
+    else:
+        extra = {}
     fl = lm[flicker_rows(len(te), ecfg.flicker_frames)]
     return {**metric_figures(metrics), "trained_smoothed": trained_smoothed,
             "landmark_motion_px": float(np.median(np.linalg.norm(np.diff(fl, axis=0), axis=-1))),
-            "mouth_open_max_px": float(np.linalg.norm(lm[:, 66] - lm[:, 62], axis=-1).max())}
+            "mouth_open_max_px": float(np.linalg.norm(lm[:, 66] - lm[:, 62], axis=-1).max()), **extra}
 
 
 def summary(runs: dict) -> dict:
