@@ -126,6 +126,7 @@ def test_load_data_smooths_a_video_and_the_judged_region_stays_on_tracked_points
     np.testing.assert_array_equal(smoothed.landmarks[:30], smooth_track(plain.landmarks[:30], 25.0))
     np.testing.assert_array_equal(smoothed.landmarks[30:], smooth_track(plain.landmarks[30:], 25.0))
     np.testing.assert_array_equal(common_landmarks(smoothed), plain.landmarks)
+    assert smoothed.fingerprint == plain.fingerprint  # the data; the run's config records the smoothing
     assert DataConf().smooth_landmarks  # the default
 
 

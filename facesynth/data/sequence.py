@@ -176,9 +176,10 @@ class FaceSequence:
 
     @property
     def fingerprint(self) -> str:
-        """Hash of the landmarks and frame numbers (and source file hash, when known)."""
+        """Hash of the landmarks as loaded (``tracked``, when smoothed: the data, whose smoothing
+        the run's config records) and frame numbers (and source file hash, when known)."""
         extra = np.frombuffer(str(self.meta.get("source_sha256", "")).encode(), dtype=np.uint8)
-        return array_fingerprint(self.landmarks, self.frame_index, extra)
+        return array_fingerprint(self.landmarks if self.tracked is None else self.tracked, self.frame_index, extra)
 
     def iter_frames(self, rows: Sequence[int] | None = None) -> Iterator[np.ndarray]:
         """Yield uint8 RGB (H, W, 3) images for sequence rows (default: all), in order."""
