@@ -18,6 +18,9 @@ the inner mouth opening's largest value (points 62-66, px) over the test part; s
 ``summary``: over the runs evaluated both ways, the largest flicker ratio each way, the
 smallest PSNR change and the largest relative LPIPS changes (face, mouth).
 
+``--fast-radii-s X``: the smoothed evaluation with another motion threshold (the filter's
+trade-off between still and fast-moving clips; cached apart).
+
 ``--plot FILE``: a tracked and a smoothed track (lp_d19's chin, vrt_face2's lower inner lip).
 
 ``--cache DIR``: keep each evaluation's figures in DIR (``<run name>__<mode>.json``) and reuse
@@ -36,7 +39,7 @@ import numpy as np
 
 from bench.harness import emit, host, load
 from bench.studies.perceptual import metric_figures
-from facesynth.data.smoothing import smooth_sequence, split_bounds
+from facesynth.data.smoothing import FAST_RADII_S, smooth_sequence, split_bounds
 from facesynth.eval.common_region import common_landmarks
 from facesynth.eval.flicker import flicker_rows
 from facesynth.eval.sadm_eval import EvalConfig, evaluate_sadm
@@ -46,11 +49,14 @@ from facesynth.sadm.fit import load_sadm
 MODES = {"tracked": False, "smoothed": True}
 
 
-def evaluate(run: Path, smoothed: bool) -> dict:
+def evaluate(run: Path, smoothed: bool, fast_radii_s: float = FAST_RADII_S) -> dict:
     cfg = read_config(run)
     trained_smoothed = bool(cfg.data.smooth_landmarks)
-    cfg.data.smooth_landmarks = smoothed
+    cfg.data.smooth_landmarks = False
     seq, tr, te = run_data(cfg)
+    bounds = split_bounds(len(seq), float(cfg.data.train_fraction), int(cfg.data.gap))
+    if smoothed:  # as data.smooth_landmarks=true does (load_data), with this motion threshold
+        seq = smooth_sequence(seq, bounds, fast_radii_s=fast_radii_s)
     ecfg = EvalConfig(noise=[0.0], train_level=False, talking_head=False,
                       flicker_frames=int(cfg.eval.get("flicker_frames", 40)))
     common = common_landmarks(seq, None)
@@ -60,7 +66,7 @@ def evaluate(run: Path, smoothed: bool) -> dict:
         times = []
         for _ in range(5):
             t0 = time.perf_counter()
-            smooth_sequence(seq, split_bounds(len(seq), float(cfg.data.train_fraction), int(cfg.data.gap)))
+            smooth_sequence(seq, bounds, fast_radii_s=fast_radii_s)
             times.append(time.perf_counter() - t0)
         extra = {"smoothing_s": float(np.median(times)), "frames": len(seq)}
     else:
@@ -123,6 +129,8 @@ def main() -> None:
     ap.add_argument("--plot", type=Path, help="also draw a tracked and a smoothed track (PNG) here")
     ap.add_argument("--cache", type=Path, help="keep and reuse each evaluation's figures here")
     ap.add_argument("--modes", default="tracked,smoothed", help="comma-separated: tracked, smoothed")
+    ap.add_argument("--fast-radii-s", type=float, default=FAST_RADII_S,
+                    help=f"the smoothing's motion threshold, face radii/s (default {FAST_RADII_S}, data.smooth_landmarks')")
     args = ap.parse_args()
     if args.plot:
         plot(args.plot)
@@ -137,16 +145,17 @@ def main() -> None:
         for run in args.runs:
             runs[run.name] = {}
             for mode in modes:
-                cached = args.cache / f"{run.name}__{mode}.json" if args.cache else None
+                tag = mode if mode == "tracked" or args.fast_radii_s == FAST_RADII_S else f"{mode}_{args.fast_radii_s:g}"
+                cached = args.cache / f"{run.name}__{tag}.json" if args.cache else None
                 if cached is not None and cached.is_file():
                     fig = json.loads(cached.read_text())
                 else:
-                    fig = evaluate(run, MODES[mode])
+                    fig = evaluate(run, MODES[mode], args.fast_radii_s)
                     if cached is not None:
                         cached.write_text(json.dumps(fig))
                 runs[run.name][mode] = fig
                 print(json.dumps({"run": run.name, "mode": mode, **fig}), file=sys.stderr, flush=True)
-    emit({**out, "runs": runs, "summary": summary(runs), "load": around})
+    emit({**out, "fast_radii_s": args.fast_radii_s, "runs": runs, "summary": summary(runs), "load": around})
 
 
 if __name__ == "__main__":

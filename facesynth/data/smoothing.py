@@ -107,19 +107,21 @@ def split_bounds(n: int, train_fraction: float, gap: int) -> list[int]:
     return [len(tr), int(te[0])]
 
 
-def smooth_sequence(seq: FaceSequence, bounds: list[int] = ()) -> FaceSequence:
+def smooth_sequence(seq: FaceSequence, bounds: list[int] = (), sigma_still_s: float = SIGMA_STILL_S,
+                    sigma_moving_s: float = SIGMA_MOVING_S, fast_radii_s: float = FAST_RADII_S) -> FaceSequence:
     """``seq`` with its landmarks smoothed per segment (:func:`segments` of its frame numbers
-    and ``bounds``), the tracked ones kept as ``seq.tracked``; ``meta['landmark_smoothing']``
-    records the filter. The rows' rate is ``seq.fps`` over the median frame step."""
+    and ``bounds``; the filter's settings as :func:`smooth_track`'s), the tracked ones kept as
+    ``seq.tracked``; ``meta['landmark_smoothing']`` records the filter. The rows' rate is
+    ``seq.fps`` over the median frame step."""
     fi = np.asarray(seq.frame_index)
     step = float(np.median(np.diff(fi))) if len(fi) > 1 else 1.0
     rate = float(seq.fps) / max(step, 1.0)
     out = np.empty_like(seq.landmarks)
     for rows in segments(fi, list(bounds)):
-        out[rows] = smooth_track(seq.landmarks[rows], rate)
+        out[rows] = smooth_track(seq.landmarks[rows], rate, sigma_still_s, sigma_moving_s, fast_radii_s)
     meta = {**seq.meta, "landmark_smoothing": {
-        "filter": "zero-phase motion-adaptive Gaussian (facesynth.data.smoothing)", "sigma_still_s": SIGMA_STILL_S,
-        "sigma_moving_s": SIGMA_MOVING_S, "fast_radii_s": FAST_RADII_S, "rate": rate,
+        "filter": "zero-phase motion-adaptive Gaussian (facesynth.data.smoothing)", "sigma_still_s": sigma_still_s,
+        "sigma_moving_s": sigma_moving_s, "fast_radii_s": fast_radii_s, "rate": rate,
         "bounds": [int(b) for b in bounds]}}
     return FaceSequence(out, seq.frame_index, seq.frames, seq.fps, seq.name, meta, seq.scheme,
                         tracked=seq.tracked if seq.tracked is not None else seq.landmarks)
