@@ -26,6 +26,7 @@ from omegaconf.errors import OmegaConfBaseException
 from facesynth.data import FaceSequence, load_sequence, temporal_split
 from facesynth.data.config import DataConf
 from facesynth.data.readers import ingest_video
+from facesynth.data.smoothing import smooth_sequence, split_bounds
 from facesynth.data.synthetic import make_synthetic_sequence
 from facesynth.errors import FacesynthError
 from facesynth.sadm.fit import SADM, SADMConfig, load_sadm, save_sadm
@@ -36,6 +37,7 @@ METRICS = "metrics.json"
 REPORT = "report.md"
 PLOTS = "plots"
 ERI_DIR = "eri"
+LEGACY_DATA = {"smooth_landmarks": False}  # data settings newer than some runs, with the value those runs had
 
 
 def check_data_config(data_cfg) -> None:
@@ -63,6 +65,8 @@ def load_data(data_cfg, seed: int) -> FaceSequence:
         raise FacesynthError(f"data.kind must be 'synthetic' or 'video', got {data_cfg.kind!r}")
     if data_cfg.max_frames:
         seq = seq.subset(np.arange(min(len(seq), data_cfg.max_frames)))
+    if data_cfg.kind == "video" and getattr(data_cfg, "smooth_landmarks", False):  # tracked: zero phase, per part
+        seq = smooth_sequence(seq, split_bounds(len(seq), float(data_cfg.train_fraction), int(data_cfg.gap)))
     return seq
 
 
@@ -83,6 +87,9 @@ def read_config(run_dir: str | os.PathLike, hint: str = "not a train.py run dire
         raise FacesynthError(f"{path}: expected a mapping of settings (train.py's config), got a {type(cfg).__name__}")
     if not isinstance(cfg.get("data"), DictConfig):
         raise FacesynthError(f"{path}: no 'data' settings (the run's data and split); not a train.py config?")
+    for name, value in LEGACY_DATA.items():  # settings added since: a run without one was trained without it
+        if name not in cfg.data:
+            cfg.data[name] = value
     missing = [f"data.{f.name}" for f in fields(DataConf) if f.name not in cfg.data] + \
         (["seed"] if "seed" not in cfg else [])
     if missing:

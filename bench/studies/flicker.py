@@ -46,6 +46,7 @@ def predict(syn, lm: np.ndarray) -> np.ndarray:
 def one(run: Path, min_cutoff: float, beta: float) -> dict:
     sadm = load_sadm(run)
     cfg = read_config(run)
+    cfg.data.smooth_landmarks = False  # the landmarks as tracked (this study's starting point)
     seq, _, te = run_data(cfg)
     model, syn = sadm.model, sadm.synthesizer()
     rows = te[flicker_rows(len(te), 40)]

@@ -14,7 +14,10 @@ from facesynth.data.splits import TRAIN_FRACTION
 class DataConf:
     """kind: 'synthetic' (the embedded default subject) or 'video' (``path``: a folder in
     the ingest layout, a folder of images + .pts, or .npy/.npz). Temporal split:
-    the first ``train_fraction`` trains, the rest (after ``gap`` frames) tests."""
+    the first ``train_fraction`` trains, the rest (after ``gap`` frames) tests.
+    ``smooth_landmarks``: smooth a video's tracked landmarks along time, zero phase, each part
+    of the split alone (:mod:`facesynth.data.smoothing`), for training and evaluation alike; the
+    synthetic subject's landmarks are exact and never smoothed."""
 
     kind: str = "synthetic"
     path: Optional[str] = None
@@ -23,3 +26,4 @@ class DataConf:
     max_frames: Optional[int] = None
     train_fraction: float = TRAIN_FRACTION
     gap: int = 0
+    smooth_landmarks: bool = True

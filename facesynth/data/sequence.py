@@ -114,6 +114,9 @@ class FaceSequence:
         Free-form provenance (source file, detector, ...).
     scheme : str
         Landmark scheme name (facesynth/landmarks.py ``SCHEMES``).
+    tracked : np.ndarray or None
+        The landmarks as tracked when ``landmarks`` were smoothed (``data.smooth_landmarks``,
+        :mod:`facesynth.data.smoothing`), same shape; ``None`` otherwise.
     """
 
     landmarks: np.ndarray
@@ -123,6 +126,7 @@ class FaceSequence:
     name: str = "sequence"
     meta: dict = field(default_factory=dict)
     scheme: str = DEFAULT_SCHEME.name
+    tracked: np.ndarray | None = None
 
     @classmethod
     def from_arrays(
@@ -172,9 +176,10 @@ class FaceSequence:
 
     @property
     def fingerprint(self) -> str:
-        """Hash of the landmarks and frame numbers (and source file hash, when known)."""
+        """Hash of the landmarks as loaded (``tracked``, when smoothed: the data, whose smoothing
+        the run's config records) and frame numbers (and source file hash, when known)."""
         extra = np.frombuffer(str(self.meta.get("source_sha256", "")).encode(), dtype=np.uint8)
-        return array_fingerprint(self.landmarks, self.frame_index, extra)
+        return array_fingerprint(self.landmarks if self.tracked is None else self.tracked, self.frame_index, extra)
 
     def iter_frames(self, rows: Sequence[int] | None = None) -> Iterator[np.ndarray]:
         """Yield uint8 RGB (H, W, 3) images for sequence rows (default: all), in order."""
@@ -195,7 +200,7 @@ class FaceSequence:
         """A sequence of the given rows (frames stay lazily referenced)."""
         rows = np.asarray(rows)
         return FaceSequence(self.landmarks[rows], self.frame_index[rows], self.frames, self.fps, self.name, dict(self.meta),
-                            self.scheme)
+                            self.scheme, None if self.tracked is None else self.tracked[rows])
 
     def require_scheme(self, scheme: str, stage: str) -> None:
         """FacesynthError unless the landmarks are in ``scheme`` (for stages that take one scheme
@@ -216,10 +221,12 @@ class FaceSequence:
         if source.base == target.name:  # exact: the first points are the base scheme's (ibug68+iris -> ibug68)
             meta = {**self.meta, "mapped_from_scheme": self.scheme}
             return FaceSequence(np.ascontiguousarray(self.landmarks[:, : target.n_points]), self.frame_index,
-                                self.frames, self.fps, self.name, meta, scheme)
+                                self.frames, self.fps, self.name, meta, scheme,
+                                None if self.tracked is None else np.ascontiguousarray(self.tracked[:, : target.n_points]))
         if target.name != "ibug68" or source.ibug68 is None:
             raise FacesynthError(f"{self.name}: {self.scheme} landmarks cannot be mapped to {scheme} "
                                  "(only mappings to ibug68 exist)")
         log.info("%s: %s landmarks mapped to ibug68 (approximate, see docs/landmarks.md)", self.name, self.scheme)
         meta = {**self.meta, "mapped_from_scheme": self.scheme}
-        return FaceSequence(source.to_ibug68(self.landmarks), self.frame_index, self.frames, self.fps, self.name, meta, scheme)
+        return FaceSequence(source.to_ibug68(self.landmarks), self.frame_index, self.frames, self.fps, self.name, meta, scheme,
+                            None if self.tracked is None else source.to_ibug68(self.tracked))

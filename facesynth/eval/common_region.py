@@ -13,7 +13,8 @@ use in the reference frame, cut to the common region.
 Where the dlib landmarks come from (:func:`common_landmarks`): ``eval.common_landmarks``
 when set (a ``.npy`` (T, 68, 2) indexed by video frame, or a clip folder holding one);
 otherwise an ``ibug68`` sequence that was not mapped from another scheme uses its own
-landmarks, and any other sequence the ``landmarks.npy`` beside the source video that its
+landmarks (as tracked, when ``data.smooth_landmarks`` smoothed them: the judged pixels do not
+depend on the smoothing), and any other sequence the ``landmarks.npy`` beside the source video that its
 ``meta.json`` records (``video.path``, as ``facesynth ingest`` writes it), when that holds
 68 points per frame of the video. Anything else is a FacesynthError naming the setting.
 """
@@ -41,7 +42,7 @@ def common_landmarks(seq, path: str | None = None) -> np.ndarray:
         source = Path(path)
         lm = _load68(source, "eval.common_landmarks")
     elif seq.scheme == "ibug68" and "mapped_from_scheme" not in seq.meta:
-        return np.asarray(seq.landmarks, np.float32)
+        return np.asarray(seq.landmarks if seq.tracked is None else seq.tracked, np.float32)
     else:
         video = seq.meta.get("video", {}) if isinstance(seq.meta.get("video"), dict) else {}
         source = Path(video["path"]).parent / "landmarks.npy" if video.get("path") else None

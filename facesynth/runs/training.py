@@ -108,7 +108,8 @@ def run_training(cfg, out_dir: str | Path, on_fitted=None) -> dict:
     t2 = time.perf_counter()
     provenance = {
         "facesynth_version": __version__,
-        "data": {"name": seq.name, "fingerprint": seq.fingerprint, "frames": len(seq)},
+        "data": {"name": seq.name, "fingerprint": seq.fingerprint, "frames": len(seq),
+                 "landmark_smoothing": seq.meta.get("landmark_smoothing")},  # the filter, when data.smooth_landmarks
         "packages": package_versions(),
         "config": container,
     }

@@ -1,0 +1,160 @@
+"""Zero-phase smoothing of tracked landmarks (facesynth.data.smoothing, data.smooth_landmarks)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from omegaconf import OmegaConf
+from scipy.signal import lfilter, savgol_filter
+
+from facesynth.data import FaceSequence
+from facesynth.data.config import DataConf
+from facesynth.data.smoothing import SIGMA_STILL_S, segments, smooth_sequence, smooth_track, split_bounds
+from facesynth.errors import FacesynthError
+from facesynth.eval.common_region import common_landmarks
+from facesynth.rundir import load_data, read_config
+
+RATE = 30.0
+
+
+def face(n: int, seed: int = 0) -> np.ndarray:
+    """(n, 68, 2) a still face: 68 points on a ring of radius 60 px around (240, 240)."""
+    rng = np.random.default_rng(seed)
+    ang = np.linspace(0, 2 * np.pi, 68, endpoint=False)
+    pts = np.stack([240 + 60 * np.cos(ang), 240 + 60 * np.sin(ang)], -1) + rng.normal(0, 3, (68, 2))
+    return np.repeat(pts[None], n, 0)
+
+
+def jitter(lm: np.ndarray, seed: int = 1) -> np.ndarray:
+    """A tracker's whole pixels: the true points moved by 0.4 px noise, then rounded."""
+    return np.round(lm + np.random.default_rng(seed).normal(0, 0.4, lm.shape))
+
+
+def motion(x: np.ndarray) -> float:
+    return float(np.median(np.linalg.norm(np.diff(x, axis=0), axis=-1)))
+
+
+def test_a_ramp_passes_without_lag_as_savitzky_golay_keeps_it():
+    t = np.arange(90, dtype=np.float64)
+    lm = face(90) + t[:, None, None] * np.array([1.5, -0.7])  # the whole face drifts at constant speed
+    out = smooth_track(lm, RATE)
+    ref = savgol_filter(lm, 15, 2, axis=0)  # polynomial smoothing reproduces a ramp exactly, ends included
+    np.testing.assert_allclose(ref, lm, atol=1e-9)
+    np.testing.assert_allclose(out, ref, atol=2e-4)  # float32 output: no lag, at the ends too
+
+
+def test_zero_phase_on_a_sine_where_a_causal_filter_lags():
+    t = np.arange(300, dtype=np.float64)
+    x = 5 * np.sin(2 * np.pi * t / 60)  # 0.5 Hz at 30 frames/s
+    lm = face(300) + x[:, None, None]
+    out = smooth_track(lm, RATE, fast_radii_s=1e9)[:, 0, 0] - lm[0, 0, 0]  # the strong filter alone
+    causal = lfilter([0.2], [1, -0.8], x)  # a one-pole smoother: lags
+
+    def lag(y):  # the shift (frames) of y against x, from the cross-correlation's peak in the interior
+        c = [np.dot(x[50:250], y[50 + k:250 + k]) for k in range(-10, 11)]
+        return int(np.argmax(c)) - 10
+
+    assert lag(out) == 0
+    assert lag(causal) >= 2
+    assert np.abs(out - x)[30:-30].max() < 0.05 * 5  # the amplitude of a slow move is kept
+
+
+def test_a_still_face_loses_its_jitter():
+    true = face(120)
+    tracked = jitter(true)
+    out = smooth_track(tracked, RATE)
+    assert motion(tracked) >= 0.5
+    assert motion(out) < 0.3 * motion(tracked)
+    assert np.abs(out - true).mean() < 0.6 * np.abs(tracked - true).mean()  # closer to the truth, not only calmer
+
+
+def test_a_fast_mouth_move_is_kept_where_a_fixed_filter_flattens_it():
+    n = 90
+    true = face(n)
+    k = np.arange(n)
+    pulse = 20 * np.where(np.abs(k - 45) < 5, 0.5 + 0.5 * np.cos(np.pi * (k - 45) / 5), 0.0)  # 9 frames, 20 px
+    lips = np.arange(48, 68)
+    true[:, lips, 1] += pulse[:, None]
+    tracked = jitter(true)
+    adaptive = smooth_track(tracked, RATE)
+    fixed = smooth_track(tracked, RATE, fast_radii_s=1e9)
+
+    def peak(y):
+        return float((y[:, lips, 1] - true[0, lips, 1]).mean(1).max())
+
+    assert peak(fixed) < 0.8 * 20
+    assert peak(adaptive) > 0.9 * 20
+    assert np.argmax((adaptive[:, lips, 1]).mean(1)) == 45  # no lag at the peak
+    still = np.setdiff1d(np.arange(68), lips)
+    assert motion(adaptive[:, still]) < 0.3 * motion(tracked[:, still])  # the rest of the face is still smoothed
+
+
+def test_segments_cut_at_split_and_breaks():
+    fi = np.array([0, 1, 2, 3, 4, 5, 6, 20, 21, 22])
+    assert [s.tolist() for s in segments(fi, [3])] == [[0, 1, 2], [3, 4, 5, 6], [7, 8, 9]]
+    assert [s.tolist() for s in segments(np.arange(0, 20, 2), [])] == [list(range(10))]  # every 2nd frame: no break
+    assert split_bounds(100, 0.75, 4) == [75, 79]
+
+
+def test_training_and_test_parts_never_see_each_other():
+    n = 100
+    tracked = jitter(face(n))
+    seq = FaceSequence.from_arrays(tracked.astype(np.float32), fps=RATE, name="s")
+    bounds = split_bounds(n, 0.75, 0)
+    out = smooth_sequence(seq, bounds)
+    changed = tracked.copy()
+    changed[75:] += 7.0  # another test part
+    out2 = smooth_sequence(FaceSequence.from_arrays(changed.astype(np.float32), fps=RATE, name="s"), bounds)
+    np.testing.assert_array_equal(out.landmarks[:75], out2.landmarks[:75])
+    np.testing.assert_array_equal(out.landmarks[:75], smooth_track(tracked[:75], RATE))
+    np.testing.assert_array_equal(out.landmarks[75:], smooth_track(tracked[75:], RATE))
+    np.testing.assert_array_equal(out.tracked, seq.landmarks)
+    assert out.meta["landmark_smoothing"]["sigma_still_s"] == SIGMA_STILL_S
+    np.testing.assert_array_equal(out.subset([3, 80]).tracked, seq.landmarks[[3, 80]])
+
+
+def test_load_data_smooths_a_video_and_the_judged_region_stays_on_tracked_points(tmp_path):
+    n = 40
+    np.save(tmp_path / "landmarks.npy", jitter(face(n)).astype(np.float32))
+    (tmp_path / "meta.json").write_text('{"video": {"fps": 25.0}}')
+    cfg = OmegaConf.structured(DataConf(kind="video", path=str(tmp_path), smooth_landmarks=False))
+    plain = load_data(cfg, 0)
+    assert plain.tracked is None
+    cfg.smooth_landmarks = True
+    smoothed = load_data(cfg, 0)
+    np.testing.assert_array_equal(smoothed.tracked, plain.landmarks)
+    np.testing.assert_array_equal(smoothed.landmarks[:30], smooth_track(plain.landmarks[:30], 25.0))
+    np.testing.assert_array_equal(smoothed.landmarks[30:], smooth_track(plain.landmarks[30:], 25.0))
+    np.testing.assert_array_equal(common_landmarks(smoothed), plain.landmarks)
+    assert smoothed.fingerprint == plain.fingerprint  # the data; the run's config records the smoothing
+    assert DataConf().smooth_landmarks  # the default
+
+
+def test_the_synthetic_subject_is_never_smoothed():
+    cfg = OmegaConf.structured(DataConf(kind="synthetic", n_frames=40, size=128, smooth_landmarks=True))
+    seq = load_data(cfg, 0)
+    assert seq.tracked is None and "landmark_smoothing" not in seq.meta
+
+
+def test_a_run_from_before_the_setting_reads_as_unsmoothed(tmp_path):
+    cfg = OmegaConf.to_container(OmegaConf.structured(DataConf()))
+    del cfg["smooth_landmarks"]
+    (tmp_path / "config.yaml").write_text(OmegaConf.to_yaml({"seed": 0, "data": cfg}))
+    assert read_config(tmp_path).data.smooth_landmarks is False
+
+
+def test_bad_tracks_are_refused():
+    with pytest.raises(FacesynthError, match="NaN"):
+        smooth_track(np.full((5, 68, 2), np.nan), RATE)
+    with pytest.raises(FacesynthError, match=r"\(T, P, 2\)"):
+        smooth_track(np.zeros((5, 68)), RATE)
+    with pytest.raises(FacesynthError, match="rate"):
+        smooth_track(face(5), 0.0)
+
+
+def test_the_segment_ends_are_smoothed_too():
+    true = face(60)
+    tracked = jitter(true, seed=4)
+    out = smooth_track(tracked, RATE)
+    for end in (0, -1):
+        assert np.abs(out[end] - true[end]).mean() < 0.8 * np.abs(tracked[end] - true[end]).mean()
