@@ -1,19 +1,17 @@
 """The restoration filter's strength chosen on held-out predictions, on trained runs; one JSON line.
 
-    OMP_NUM_THREADS=1 python -m bench.studies.restore_strength RUN [RUN ...] [--guard 0.05] [--jobs 2] \
-        [--today DIR]
+    OMP_NUM_THREADS=1 python -m bench.studies.restore_strength RUN [RUN ...] [--guard 0.05] \
+        [--variants guarded,full,none] [--jobs 2] [--today DIR]
 
-Each RUN is a ``facesynth train`` run with ``model.restore=true``. The run's SADM is refitted
-(without its region shrinkage) on the first ``1 - sadm.val_fraction`` of the training frames and
-predicts the rest (the validation slice, the training frames nearest the test segment in time);
-:func:`facesynth.model.restore.strength_curve` gives the PSNR change of those predictions, pasted
-into their real frames, along the filter's strength ``s`` (``K_s = delta + s (K - delta)``), and
-:func:`~facesynth.model.restore.choose_strength` the largest strength within ``--guard`` dB. The
-run is evaluated held out (sigma 0, the face pasted into the real frame, the figures of
-``bench/studies/perceptual.py``) with: ``guarded`` (K at the chosen strength) and ``fitted_on_val``
-(a kernel fitted by :func:`~facesynth.model.restore.fit_restoration` on the predictions
-themselves instead of on the frames' own textures). Per run, a line on stderr; the last line
-(stdout) holds them all and, with ``--today DIR`` (``DIR/CLIP__today``), the acceptance per variant.
+Each RUN is a ``facesynth train`` run with ``model.restore=true`` trained before the strength
+was chosen (its filter at full strength). The strength is chosen as ``facesynth train`` now
+chooses it (:func:`facesynth.model.restore.guard_restoration`: the SADM refitted without its
+shrinkage on the training rows before the validation slice and a gap as long, the slice's
+predictions pasted into their real frames, the largest strength whose PSNR cost there is at
+most ``--guard`` dB), and the run is evaluated held out (sigma 0, the face pasted into the real
+frame, the figures of ``bench/studies/perceptual.py``) with the filter ``guarded`` (at that
+strength), ``full`` (as trained) or ``none``. Per run, lines on stderr; the last line (stdout)
+holds them all and, with ``--today DIR`` (``DIR/CLIP__today``), the acceptance per variant.
 """
 
 from __future__ import annotations
@@ -26,30 +24,15 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import replace
 from pathlib import Path
 
-import numpy as np
-import torch
-
 from bench.studies.perceptual import figures as run_figures
 from bench.studies.perceptual import metric_figures as figures
 from bench.studies.perceptual import summary
 from facesynth.eval.common_region import common_landmarks
 from facesynth.eval.sadm_eval import EvalConfig, evaluate_sadm
 from facesynth.landmarks import get_scheme
-from facesynth.model.restore import STRENGTHS, choose_strength, fit_restoration, strength_curve, with_strength
+from facesynth.model.restore import guard_restoration
 from facesynth.rundir import read_config, run_data
 from facesynth.sadm.fit import fit_sadm, load_sadm
-
-
-def held_out_predictions(sadm, seq, tr, tex_tr, seed: int) -> tuple[np.ndarray, np.ndarray]:
-    """(validation rows, their textures predicted by the SADM refitted without them)."""
-    n_val = max(2, int(round(len(tr) * sadm.config.val_fraction)))
-    probe_cfg = replace(sadm.config, region_shrink=False, search=False, gaze_folds=0)
-    params = {k: v for k, v in sadm.regressor_config.items() if k != "info"}  # info: what the fit found, not a setting
-    probe = fit_sadm(sadm.model, seq, tr[:-n_val], tex_tr[:-n_val], sadm.name, params, probe_cfg, seed)
-    val = tr[-n_val:]
-    with torch.no_grad():
-        pred = probe.synthesizer().texture(torch.from_numpy(seq.landmarks[val]))
-    return val, pred.reshape(len(val), -1).numpy()
 
 
 def study(run: Path, guard: float, variants: list[str]) -> dict:
@@ -61,22 +44,24 @@ def study(run: Path, guard: float, variants: list[str]) -> dict:
     if kernel is None:
         raise SystemExit(f"{run}: no restoration filter (train with model.restore=true)")
     model_seq = seq.to_scheme(get_scheme(seq.scheme).base_scheme().name)
-    model.restore_kernel = None
     t0 = time.perf_counter()
+    model.restore_kernel = None
     tex_tr = model.sample_textures(model_seq, tr)
-    val, pred = held_out_predictions(sadm, seq, tr, tex_tr, int(cfg.seed))
-    t1 = time.perf_counter()
-    curve = strength_curve(model, model_seq, val, pred, kernel)
-    strength = choose_strength(curve, STRENGTHS, guard)
-    t2 = time.perf_counter()
-    kernels = {"guarded": with_strength(kernel, strength)}
-    if "fitted_on_val" in variants:
-        kernels["fitted_on_val"], _ = fit_restoration(model, model_seq, val, pred)
-    out = {"strength": strength, "curve": {f"{s:.3f}": float(c) for s, c in zip(STRENGTHS, curve, strict=True)},
-           "val_frames": int(len(val)), "predict_s": t1 - t0, "curve_s": t2 - t1, "variants": {}}
-    print(json.dumps({"run": run.name, "strength": strength, "curve_at_1": float(curve[-1])}), file=sys.stderr, flush=True)
+    model.restore_kernel = kernel
+    n_val = int(round(len(tr) * sadm.config.val_fraction))
+    params = {k: v for k, v in sadm.regressor_config.items() if k != "info"}  # info: what the fit found
+    probe = replace(sadm.config, region_shrink=False, search=False, gaze_folds=0, restore_guard=None)
+
+    def refit(i):  # as fit_sadm refits it
+        return fit_sadm(model, seq, tr[i], tex_tr[i], sadm.name, params, probe, int(cfg.seed)).synthesizer()
+
+    report = guard_restoration(refit, model, seq, tr, n_val, guard)
+    kernels = {"guarded": model.restore_kernel, "full": kernel, "none": None}
+    out = {**report, "guard_seconds": time.perf_counter() - t0, "variants": {}}
+    print(json.dumps({"run": run.name, **{k: v for k, v in report.items() if k != "curve_db"}}), file=sys.stderr, flush=True)
     ecfg = EvalConfig(noise=[0.0], train_level=False, talking_head=False)
     common = common_landmarks(seq, None)
+    model.restore_kernel = None
     tex_te = model.sample_textures(model_seq, te)
     for name in variants:
         model.restore_kernel = kernels[name]
@@ -90,7 +75,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("runs", nargs="+", type=Path)
     ap.add_argument("--guard", type=float, default=0.05, help="PSNR loss (dB) allowed on the validation predictions")
-    ap.add_argument("--variants", default="guarded", help="comma-separated: guarded, fitted_on_val")
+    ap.add_argument("--variants", default="guarded", help="comma-separated: guarded, full, none")
     ap.add_argument("--today", type=Path, default=None, help="folder of today's runs, CLIP__today")
     ap.add_argument("--jobs", type=int, default=1)
     args = ap.parse_args()
