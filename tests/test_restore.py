@@ -14,7 +14,7 @@ from _faces import face_sequence_arrays
 from facesynth.data import FaceSequence
 from facesynth.data.frames import ArrayFrames
 from facesynth.model import FaceModel, FaceModelConfig
-from facesynth.model.restore import Restore
+from facesynth.model.restore import GUARD_DB, Restore, choose_strength, strength_curve, with_strength
 
 
 def test_restore_equals_opencv():
@@ -100,3 +100,96 @@ def test_the_artifact_and_the_exported_graph_keep_the_filter(restored, tmp_path)
     import onnx
 
     assert sum(n.op_type == "Conv" for n in onnx.load(str(path)).graph.node) == 3
+
+
+def _pasted_sse(model, textures, seq, rows):
+    """Per frame: the squared error (0-1 scale) of the rendered face pasted into the real frame,
+    over the face where the paste reads only face pixels (eroded by the fit's 2 px feather)."""
+    crops, masks, places = model.render(textures, seq.landmarks[rows])
+    out = []
+    for j, frame in enumerate(seq.iter_frames(rows)):
+        h, w = frame.shape[:2]
+        face = cv2.warpAffine(crops[j], places[j], (w, h), flags=cv2.INTER_LINEAR)
+        inside = cv2.erode((cv2.warpAffine(masks[j], places[j], (w, h)) > 0.999).astype(np.uint8), np.ones((5, 5))) > 0
+        out.append(float(((face.astype(np.float64) - frame / 255.0)[inside] ** 2).sum()))
+    return np.array(out)
+
+
+def test_strength_zero_is_no_filter_and_one_is_the_kernel(restored):
+    _, model, _ = restored
+    k = model.restore_kernel
+    zero = with_strength(k, 0.0)
+    delta = np.zeros_like(k)
+    delta[k.shape[0] // 2, k.shape[1] // 2] = 1
+    assert np.array_equal(zero, delta)
+    assert with_strength(k, 1.0) == pytest.approx(k, abs=1e-7)
+    assert with_strength(k, 0.5) == pytest.approx((delta + k) / 2, abs=1e-7)
+    rng = np.random.default_rng(3)
+    mask = np.zeros((30, 30), np.float32)
+    mask[5:25, 4:26] = 1
+    img = torch.from_numpy(rng.uniform(0, 1, (1, 3, 30, 30)).astype(np.float32) * mask)
+    assert Restore(zero)(img, torch.from_numpy(mask)[None, None]).numpy() == pytest.approx(img.numpy(), abs=1e-6)
+
+
+def test_strength_curve_is_the_rendered_psnr_change_and_the_guard_holds(restored):
+    """The closed-form curve (quadratic per frame in the strength) against rendering each strength
+    through the face model (torch Restore, clamp and all) and pasting it with OpenCV; the chosen
+    strength is the largest within the guard, and its rendered PSNR cost is within it."""
+    seq, model, tex = restored
+    plain = dataclasses.replace(model, restore_kernel=None)
+    rows = np.arange(1, 24, 3)
+    pred = np.clip(tex[rows] + np.random.default_rng(0).normal(0, 0.03, tex[rows].shape), 0, 1).astype(np.float32)
+    strengths = np.linspace(0, 1, 11)
+    curve = strength_curve(plain, seq, rows, pred, model.restore_kernel, strengths)
+    assert curve[0] == pytest.approx(0.0, abs=1e-9)
+    base = _pasted_sse(plain, pred, seq, rows)
+    for i in (4, 10):
+        m = dataclasses.replace(model, restore_kernel=with_strength(model.restore_kernel, strengths[i]))
+        direct = float(np.mean(-10 * np.log10(_pasted_sse(m, pred, seq, rows) / base)))
+        assert curve[i] == pytest.approx(direct, abs=0.02)
+    for guard in (0.0, 0.05, 0.2):
+        s = choose_strength(curve, strengths, guard)
+        at = int(np.flatnonzero(strengths == s)[0])
+        assert curve[at] >= -guard and (curve[at + 1 :] < -guard).all()
+        m = dataclasses.replace(model, restore_kernel=with_strength(model.restore_kernel, s))
+        assert float(np.mean(-10 * np.log10(_pasted_sse(m, pred, seq, rows) / base))) >= -guard - 0.02
+
+
+def test_fit_matches_a_direct_least_squares_solve(restored):
+    """The kernel from the summed normal equations equals numpy's lstsq on the stacked design
+    (the ridge as extra rows pulling towards no filter) for the chosen size and ridge."""
+    from facesynth.model.restore import FIT_FRAMES, SIZES, _designs, _taps, fit_restoration
+
+    seq, model, tex = restored
+    plain = dataclasses.replace(model, restore_kernel=None)
+    rows = np.arange(24)
+    kernel, report = fit_restoration(plain, seq, rows, tex)
+    assert kernel is not None
+    pick = np.unique(np.linspace(0, len(rows) - 1, min(FIT_FRAMES, len(rows))).round().astype(int))
+    full = max(SIZES)
+    taps = _taps(report["size"], full)
+    parts = list(_designs(plain, seq, rows[pick], tex[pick], 2.0, full))
+    a = np.concatenate([p[1] for p in parts])
+    b = np.concatenate([p[2] for p in parts])
+    lam = report["ridge"] * len(b) * float(np.mean(np.sum(a * a, 0))) / len(b)
+    delta = (taps == full * full // 2).astype(np.float64)
+    aa = np.concatenate([a[:, taps], np.sqrt(lam) * np.eye(len(taps))])
+    bb = np.concatenate([b, np.sqrt(lam) * delta])
+    want = np.linalg.lstsq(aa, bb, rcond=None)[0]
+    assert kernel.reshape(-1) == pytest.approx(want, abs=1e-4)
+
+
+def test_sadm_fit_scales_the_filter_within_the_guard(restored):
+    from facesynth.sadm.fit import SADMConfig, fit_sadm
+
+    seq, model, tex = restored
+    m = dataclasses.replace(model)
+    full = m.restore_kernel.copy()
+    sadm = fit_sadm(m, seq, np.arange(24), tex, "linear", {}, SADMConfig(region_shrink=False, val_fraction=0.25,
+                                                                          restore_guard=GUARD_DB))
+    r = sadm.restore
+    assert 0.0 <= r["strength"] <= 1.0 and r["psnr_change_db"] >= -r["guard_db"] and r["val_frames"] == 6
+    assert np.array_equal(m.restore_kernel, with_strength(full, r["strength"]))
+    off = dataclasses.replace(model)
+    fit_sadm(off, seq, np.arange(24), tex, "linear", {}, SADMConfig(region_shrink=False, restore_guard=None))
+    assert np.array_equal(off.restore_kernel, full)

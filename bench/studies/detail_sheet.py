@@ -3,7 +3,7 @@ synthesized from the frame's landmarks, pasted into the real frame with blend_fa
 app shows it, the face box cut at the video's own resolution, no scaling).
 
     python -m bench.studies.detail_sheet --runs RUN_TODAY RUN_NEW --labels today new \\
-        --out docs/detail_lp_d3.jpg [--frames 4] [--quality 80]
+        --out docs/detail_interior_lp_d3.jpg [--frames 4] [--quality 80]
 
 The runs are train.py runs of one clip (the first run's config names the data and the
 split). The frames, from the held-out segment, show what the face is judged on: the widest

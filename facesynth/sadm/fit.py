@@ -10,6 +10,10 @@ References
 ----------
 The linear SADM (A = G S^T (S S^T)^-1) is Eq. 5 of the shape-appearance dependence paper
 this project builds on; the other regressors replace that map.
+
+One fit holds the regressor and what is chosen on held-out predictions of the same training
+rows by refitting it on a part of them (the gaze path, the per-region shrinkage, the
+restoration filter's strength), and the artifact round trip, hence its length.
 """
 
 from __future__ import annotations
@@ -30,6 +34,7 @@ from facesynth.landmarks import get_scheme
 from facesynth.model.artifact import load_face_model, save_face_model
 from facesynth.model.artifact import read_manifest as face_model_manifest
 from facesynth.model.face_model import FaceModel
+from facesynth.model.restore import guard_restoration
 from facesynth.regressors import REGISTRY, Regressor, search
 from facesynth.sadm.compress import compress_synthesizer
 from facesynth.sadm.gaze import TARGETS as GAZE_TARGETS
@@ -72,6 +77,11 @@ class SADMConfig:
         chosen on held-out training frames (:mod:`facesynth.sadm.regions`)
     shrink_folds : blocked cross-validation over this many contiguous blocks of the training
         segment, or (< 2) the validation slice (at least :data:`MIN_SHRINK_FRAMES` frames)
+    restore_guard : with a face model holding a restoration filter (``model.restore=true``),
+        the PSNR (dB) the filter may cost on the validation slice's held-out predictions: its
+        strength is the largest that costs no more (:func:`facesynth.model.restore.choose_strength`);
+        None (default) = the filter at full strength; :data:`~facesynth.model.restore.GUARD_DB` (0.05)
+        trades some of its LPIPS gain for PSNR (docs/studies/example-detail.md)
     """
 
     features: str = "landmarks"
@@ -87,6 +97,7 @@ class SADMConfig:
     gaze_folds: int = 5
     region_shrink: bool = True
     shrink_folds: int = 5
+    restore_guard: Optional[float] = None  # GUARD_DB (0.05) caps the filter's PSNR cost; off: it costs mouth LPIPS and sharpness
 
 
 @dataclass
@@ -102,6 +113,7 @@ class SADM:
     scheme: str = "ibug68"
     gaze: GazePath | None = None
     region_shrink: dict | None = None  # {"weights": {part: w}, "psnr": ..., "val_frames": n}; None: no shrinkage
+    restore: dict | None = None  # the restoration filter's strength and its validation figures; None: not chosen
 
     def appearance(self) -> GlobalAppearance:
         app = GlobalAppearance(self.model, self.regressor, self.config.features, gaze=self.gaze,
@@ -267,14 +279,20 @@ def fit_sadm(
     if use_gaze and cfg.gaze_mode in ("path", "both"):
         gaze = _fit_gaze(model, cfg, scheme, name, params, reg.eval(), x, yy, model_input(model, lm_all), pos, len(rows), seed)
         log.info("gaze path: alpha %g", gaze.alpha)
+    probe = replace(cfg, region_shrink=False, search=False, gaze_folds=0, restore_guard=None)  # in-sample gaze residuals
+
+    def refit(i):  # the mapping fitted on rows[i] alone, for held-out predictions of the others
+        return fit_sadm(model, seq, rows[i], textures[i], name, params, probe, seed).synthesizer()
+
     shrink = None
     if cfg.region_shrink and (cfg.shrink_folds >= 2 or n_val >= MIN_SHRINK_FRAMES):
-        probe = replace(cfg, region_shrink=False, search=False, gaze_folds=0)  # in-sample gaze residuals: one fit
-        shrink = fit_region_shrink(
-            lambda i: fit_sadm(model, seq, rows[i], textures[i], name, params, probe, seed).synthesizer(),
-            model, lm, textures, cfg.shrink_folds, n_val)
+        shrink = fit_region_shrink(refit, model, lm, textures, cfg.shrink_folds, n_val)
         log.info("region shrinkage: %s", shrink["weights"])
-    return SADM(model, reg.eval(), name, cfg, reg.config_dict(), table, scheme.name, gaze, shrink)
+    restore = None
+    if model.restore_kernel is not None and cfg.restore_guard is not None and n_val >= 2 and seq.has_frames:
+        restore = guard_restoration(refit, model, seq, rows, n_val, cfg.restore_guard)
+        log.info("restoration filter: strength %g (validation PSNR %+.3f dB)", restore["strength"], restore["psnr_change_db"])
+    return SADM(model, reg.eval(), name, cfg, reg.config_dict(), table, scheme.name, gaze, shrink, restore)
 
 
 def _predict(reg, x: np.ndarray, batch: int = 4096) -> np.ndarray:
@@ -323,6 +341,7 @@ def save_sadm(sadm: SADM, run_dir: str | os.PathLike, extra: dict | None = None)
         "sadm": asdict(sadm.config),
         "search_table": sadm.search_table,
         "region_shrink": sadm.region_shrink,  # per-part weights towards the mean texture (None: none)
+        "restore": sadm.restore,  # the restoration filter's strength (face_model holds the scaled kernel; None: not chosen)
         "data_fingerprint": sadm.model.fingerprint,
         "face_model_sha256": face_model_manifest(d / "face_model")["tensors_sha256"],
         **(extra or {}),
@@ -374,7 +393,7 @@ def load_sadm(run_dir: str | os.PathLike) -> SADM:
                                        str(manifest_field(gaze_meta, "target", where))).eval()
         cfg = SADMConfig(**{k: v for k, v in dict(sadm_conf).items() if k in SADMConfig.__dataclass_fields__})
         sadm = SADM(model, reg.eval(), name, cfg, conf, meta.get("search_table", []), scheme.name, gaze,
-                    check_shrink(meta.get("region_shrink"), where))
+                    check_shrink(meta.get("region_shrink"), where), meta.get("restore"))
         _smoke_test(sadm)
         return sadm
 
