@@ -27,9 +27,8 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
-from bench.studies.perceptual import figures as run_figures
+from bench.studies.perceptual import against_today
 from bench.studies.perceptual import metric_figures as figures
-from bench.studies.perceptual import summary
 from facesynth.eval.common_region import common_landmarks
 from facesynth.eval.sadm_eval import EvalConfig, evaluate_sadm
 from facesynth.landmarks import get_scheme
@@ -146,18 +145,8 @@ def main() -> None:
             result = dict(ex.map(one, args.runs))
     if args.plot is not None:
         plot(result, args.plot)
-    acceptance = {}
-    if args.today is not None:
-        per_clip = {}
-        for name, r in result.items():
-            clip = name.split("__")[0]
-            today = args.today / f"{clip}__today"
-            if (today / "metrics.json").is_file():
-                per_clip[clip] = {"today": run_figures(today), **{f"detail={k}": v for k, v in r["strengths"].items()}}
-        names = sorted({n for fig in per_clip.values() for n in fig if n != "today"})
-        acceptance = {n: summary(per_clip, n) for n in names}
-        for clip, fig in per_clip.items():
-            print(json.dumps({"clip": clip, "today": fig["today"]}), file=sys.stderr, flush=True)
+    acceptance = (against_today(args.today, {n: {f"detail={k}": v for k, v in r["strengths"].items()} for n, r in result.items()})
+                  if args.today else {})
     print(json.dumps({"bench": "detail", "settings": settings, "runs": result, "acceptance": acceptance}))
 
 

@@ -24,9 +24,8 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import replace
 from pathlib import Path
 
-from bench.studies.perceptual import figures as run_figures
+from bench.studies.perceptual import against_today
 from bench.studies.perceptual import metric_figures as figures
-from bench.studies.perceptual import summary
 from facesynth.eval.common_region import common_landmarks
 from facesynth.eval.sadm_eval import EvalConfig, evaluate_sadm
 from facesynth.landmarks import get_scheme
@@ -83,15 +82,7 @@ def main() -> None:
     with ThreadPoolExecutor(args.jobs) as ex:
         result = dict(zip((r.name for r in args.runs), ex.map(lambda r: study(r, args.guard, variants), args.runs),
                           strict=True))
-    acceptance = {}
-    if args.today is not None:
-        per_clip = {}
-        for name, r in result.items():
-            clip = name.split("__")[0]
-            today = args.today / f"{clip}__today"
-            if (today / "metrics.json").is_file():
-                per_clip[clip] = {"today": run_figures(today), **r["variants"]}
-        acceptance = {v: summary(per_clip, v) for v in variants}
+    acceptance = against_today(args.today, {n: r["variants"] for n, r in result.items()}) if args.today else {}
     print(json.dumps({"bench": "restore_strength", "guard_db": args.guard, "runs": result, "acceptance": acceptance}))
 
 
