@@ -87,3 +87,30 @@ def ratio(a, b, rounds: int = 10, reps: int = 20) -> dict:
             times[name].append((time.perf_counter() - t0) / reps)
     med = {k: statistics.median(v) for k, v in times.items()}
     return {"a_s": med["a"], "b_s": med["b"], "ratio_b_over_a": med["b"] / med["a"], "rounds": rounds, "reps": reps}
+
+
+def add_scheme_pairs(parser, dense: str = "the dense scheme") -> None:
+    """``--dense RUN ...`` and ``--base RUN ...``: runs of one clip each, in the same clip order."""
+    parser.add_argument("--dense", nargs="+", required=True, help=f"run folders of {dense}, one per clip")
+    parser.add_argument("--base", nargs="+", required=True, help="run folders of ibug68, in the same clip order")
+
+
+def scheme_pairs(args):
+    """Each (dense run, base run, dense metrics, base metrics) of :func:`add_scheme_pairs`'s
+    options; a count that differs or a metrics file that cannot be read is one error line, exit 2."""
+    import sys
+
+    from facesynth.errors import FacesynthError
+    from facesynth.io import read_json_object
+
+    if len(args.dense) != len(args.base):
+        print(f"error: --dense has {len(args.dense)} runs but --base has {len(args.base)}: give one of each per clip",
+              file=sys.stderr)
+        sys.exit(2)
+    for d, b in zip(args.dense, args.base, strict=True):
+        try:
+            md, mb = (read_json_object(Path(r) / "metrics.json") for r in (d, b))
+        except FacesynthError as exc:
+            print(f"error: {exc}", file=sys.stderr)
+            sys.exit(2)
+        yield d, b, md, mb

@@ -20,22 +20,17 @@ from pathlib import Path
 
 
 def main() -> None:
+    from bench.harness import add_scheme_pairs, scheme_pairs
     from facesynth.errors import FacesynthError
     from facesynth.eval.regions_gap import scheme_gap
-    from facesynth.io import read_json_object
 
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    p.add_argument("--dense", nargs="+", required=True, help="run folders of the dense scheme, one per clip")
-    p.add_argument("--base", nargs="+", required=True, help="run folders of ibug68, in the same clip order")
+    add_scheme_pairs(p)
     p.add_argument("--margin", type=float, default=1.0, help="dB the dense scheme must gain (issue 14: 1.0)")
     a = p.parse_args()
-    if len(a.dense) != len(a.base):
-        print(f"--dense has {len(a.dense)} runs but --base has {len(a.base)}: give one of each per clip", file=sys.stderr)
-        sys.exit(2)
     out = {}
-    for d, b in zip(a.dense, a.base, strict=True):
+    for d, b, md, mb in scheme_pairs(a):
         try:
-            md, mb = (read_json_object(Path(r) / "metrics.json") for r in (d, b))
             gap = scheme_gap(md, mb, a.margin, where=(f"{d}/metrics.json", f"{b}/metrics.json"))
         except FacesynthError as exc:
             print(f"error: {exc}", file=sys.stderr)

@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -86,18 +85,13 @@ def outline_check(base_run: str, dense_run: str, step: int) -> dict:
 
 
 def main() -> None:
-    from facesynth.io import read_json_object
+    from bench.harness import add_scheme_pairs, scheme_pairs
 
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    p.add_argument("--dense", nargs="+", required=True, help="run folders of mediapipe478, one per clip")
-    p.add_argument("--base", nargs="+", required=True, help="run folders of ibug68, in the same clip order")
+    add_scheme_pairs(p, "mediapipe478")
     p.add_argument("--outline", type=int, default=0, help="also render every Nth held-out frame (0: off)")
     a = p.parse_args()
-    if len(a.dense) != len(a.base):
-        print(f"error: --dense has {len(a.dense)} runs but --base has {len(a.base)}", file=sys.stderr)
-        sys.exit(2)
-    for d, b in zip(a.dense, a.base, strict=True):
-        md, mb = (read_json_object(Path(r) / "metrics.json") for r in (d, b))
+    for d, b, md, mb in scheme_pairs(a):
         line = {"bench": "scheme_perceptual", "clip": md.get("data", {}).get("name", Path(d).name),
                 "schemes": [mb.get("landmark_scheme"), md.get("landmark_scheme")],
                 "ibug68": figures(mb), "mediapipe478": figures(md)}
