@@ -179,7 +179,7 @@ class FaceSequence:
         """Hash of the landmarks as loaded (``tracked``, when smoothed: the data, whose smoothing
         the run's config records) and frame numbers (and source file hash, when known)."""
         extra = np.frombuffer(str(self.meta.get("source_sha256", "")).encode(), dtype=np.uint8)
-        return array_fingerprint(self.landmarks if self.tracked is None else self.tracked, self.frame_index, extra)
+        return array_fingerprint(self.as_tracked, self.frame_index, extra)
 
     def iter_frames(self, rows: Sequence[int] | None = None) -> Iterator[np.ndarray]:
         """Yield uint8 RGB (H, W, 3) images for sequence rows (default: all), in order."""
@@ -200,7 +200,16 @@ class FaceSequence:
         """A sequence of the given rows (frames stay lazily referenced)."""
         rows = np.asarray(rows)
         return FaceSequence(self.landmarks[rows], self.frame_index[rows], self.frames, self.fps, self.name, dict(self.meta),
-                            self.scheme, None if self.tracked is None else self.tracked[rows])
+                            self.scheme, self._tracked(lambda t: t[rows]))
+
+    @property
+    def as_tracked(self) -> np.ndarray:
+        """The landmarks as the tracker gave them: ``tracked`` when smoothed, else ``landmarks``."""
+        return self.landmarks if self.tracked is None else self.tracked
+
+    def _tracked(self, change):
+        """``change`` applied to the tracked landmarks too, when the sequence keeps them."""
+        return None if self.tracked is None else change(self.tracked)
 
     def require_scheme(self, scheme: str, stage: str) -> None:
         """FacesynthError unless the landmarks are in ``scheme`` (for stages that take one scheme
@@ -222,11 +231,11 @@ class FaceSequence:
             meta = {**self.meta, "mapped_from_scheme": self.scheme}
             return FaceSequence(np.ascontiguousarray(self.landmarks[:, : target.n_points]), self.frame_index,
                                 self.frames, self.fps, self.name, meta, scheme,
-                                None if self.tracked is None else np.ascontiguousarray(self.tracked[:, : target.n_points]))
+                                self._tracked(lambda t: np.ascontiguousarray(t[:, : target.n_points])))
         if target.name != "ibug68" or source.ibug68 is None:
             raise FacesynthError(f"{self.name}: {self.scheme} landmarks cannot be mapped to {scheme} "
                                  "(only mappings to ibug68 exist)")
         log.info("%s: %s landmarks mapped to ibug68 (approximate, see docs/landmarks.md)", self.name, self.scheme)
         meta = {**self.meta, "mapped_from_scheme": self.scheme}
         return FaceSequence(source.to_ibug68(self.landmarks), self.frame_index, self.frames, self.fps, self.name, meta, scheme,
-                            None if self.tracked is None else source.to_ibug68(self.tracked))
+                            self._tracked(source.to_ibug68))

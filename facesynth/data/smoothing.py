@@ -124,4 +124,4 @@ def smooth_sequence(seq: FaceSequence, bounds: list[int] = (), sigma_still_s: fl
         "sigma_moving_s": sigma_moving_s, "fast_radii_s": fast_radii_s, "rate": rate,
         "bounds": [int(b) for b in bounds]}}
     return FaceSequence(out, seq.frame_index, seq.frames, seq.fps, seq.name, meta, seq.scheme,
-                        tracked=seq.tracked if seq.tracked is not None else seq.landmarks)
+                        tracked=seq.as_tracked)

@@ -42,7 +42,7 @@ def common_landmarks(seq, path: str | None = None) -> np.ndarray:
         source = Path(path)
         lm = _load68(source, "eval.common_landmarks")
     elif seq.scheme == "ibug68" and "mapped_from_scheme" not in seq.meta:
-        return np.asarray(seq.landmarks if seq.tracked is None else seq.tracked, np.float32)
+        return np.asarray(seq.as_tracked, np.float32)
     else:
         video = seq.meta.get("video", {}) if isinstance(seq.meta.get("video"), dict) else {}
         source = Path(video["path"]).parent / "landmarks.npy" if video.get("path") else None
