@@ -173,11 +173,17 @@ GUARD_DB = 0.05  # the PSNR (dB) the restoration may cost on held-out prediction
 STRENGTHS = np.linspace(0.0, 1.0, 41)  # the strengths choose_strength tries
 
 
+def _identity(size: int) -> np.ndarray:
+    """float64 (size, size): the kernel that leaves an image as it is (``delta``)."""
+    delta = np.zeros((size, size))
+    delta[size // 2, size // 2] = 1.0
+    return delta
+
+
 def with_strength(kernel: np.ndarray, strength: float) -> np.ndarray:
     """``delta + strength * (kernel - delta)``: 0 = no filter, 1 = ``kernel``."""
     k = np.asarray(kernel, np.float64)
-    delta = np.zeros_like(k)
-    delta[k.shape[0] // 2, k.shape[1] // 2] = 1.0
+    delta = _identity(k.shape[0])
     return (delta + float(strength) * (k - delta)).astype(np.float32)
 
 
@@ -190,8 +196,7 @@ def strength_curve(model, seq, rows: np.ndarray, textures: np.ndarray, kernel: n
     ``|e0 + s d|^2`` with ``e0 = render - frame`` and ``d = (kernel - delta) * render``."""
     k = np.asarray(kernel, np.float64)
     full = k.shape[0]
-    delta = np.zeros(full * full)
-    delta[full * full // 2] = 1.0
+    delta = _identity(full).reshape(-1)
     step = k.reshape(-1) - delta
     strengths = np.asarray(strengths, np.float64)
     change = []
