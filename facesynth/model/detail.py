@@ -160,10 +160,7 @@ def fit_detail_bank(model, landmarks: np.ndarray, textures: np.ndarray) -> tuple
     if cfg.detail_band == "texture":
         alpha = np.ones(len(cols), np.float32)
     elif cfg.detail_band == "interior":  # the interior's own pixels, feathered into the high band around it
-        if cfg.detail_feather > 0:
-            icols, iw = part_columns(model, cfg.detail_parts, float(cfg.detail_feather) * px, names=("mouth_interior",))
-        else:
-            icols, iw = part_columns(model, cfg.detail_parts, names=("mouth_interior",))
+        icols, iw = part_columns(model, cfg.detail_parts, float(cfg.detail_feather) * px, names=("mouth_interior",))
         weight = np.zeros(model.n_pixels, np.float32)
         weight[icols] = iw
         alpha = weight[cols]
