@@ -3,7 +3,7 @@ synthesized from the frame's landmarks, pasted into the real frame with blend_fa
 app shows it, the face box cut at the video's own resolution, no scaling).
 
     python -m bench.studies.detail_sheet --runs RUN_TODAY RUN_NEW --labels today new \\
-        --out docs/detail_interior_lp_d3.jpg [--frames 4] [--quality 80]
+        --out docs/detail_interior_lp_d3.jpg [--frames 4] [--quality 80] [--driver CLIP]
 
 The runs are train.py runs of one clip (the first run's config names the data and the
 split). The frames, from the held-out segment, show what the face is judged on: the widest
@@ -11,6 +11,13 @@ open mouth (teeth), the largest head turn (nose off the jaw's centre line), and 
 others; at least 8 frames apart. Each row is labelled with its video frame and each tile's
 LPIPS (the tile against the real one, resized to 224 px) when the perceptual
 extra is installed. Prints one JSON line.
+
+``--driver CLIP``: each run driven by another person instead (a shared clip's tracked
+landmarks, relative motion, the driver's neutral from its own frames): the runs exported
+(default export) and played through the full-frame talking head
+(:class:`facesynth.runtime.Reenactor`), at the driver's widest open mouth, largest head turn
+and evenly spaced frames; per row the driver's face (scaled to the tile's height) | each run's
+frame, cut to the avatar's head at the video's resolution. No real frame, so no LPIPS.
 """
 
 from __future__ import annotations
@@ -49,6 +56,46 @@ def pick(lm: np.ndarray, n: int, gap: int = 8) -> list[tuple[int, str]]:
     return out[:n]
 
 
+def driven_rows(runs: list[str], driver: str, n: int) -> tuple[list[np.ndarray], list[dict]]:
+    """The ``--driver`` sheet's rows: (tiles of the driver and each run, their frame's info)."""
+    import tempfile
+
+    from facesynth.data import load_sequence
+    from facesynth.data.shared import shared_data_dir
+    from facesynth.onnx.export import export_model
+    from facesynth.runtime import Reenactor
+    from facesynth.runtime.reenact import driver_neutral_of
+
+    if shared_data_dir() is None:
+        raise SystemExit("detail_sheet: ../shared/data/faces is absent")
+    dseq = load_sequence(shared_data_dir() / "faces" / driver)
+    neutral, _ = driver_neutral_of(dseq.landmarks)
+    with tempfile.TemporaryDirectory() as tmp:
+        players = []
+        for k, r in enumerate(runs):
+            export_model(r, Path(tmp) / f"{k}.onnx", check=False)
+            players.append(Reenactor(Path(tmp) / f"{k}.onnx", driver_neutral=neutral, full_frame=True))
+        rows, info = [], []
+        for row, why in pick(dseq.landmarks[:, :68], n):
+            outs = [p.step(dseq.landmarks[row]) for p in players]
+            lo, hi = outs[0][1].min(0), outs[0][1].max(0)  # the first run's avatar landmarks
+            pad = 0.25 * float((hi - lo).max())
+            x0, y0 = np.maximum(np.floor(lo - pad).astype(int), 0)
+            h, w = outs[0][0].shape[:2]
+            x1, y1 = np.minimum(np.ceil(hi + pad).astype(int), [w, h])
+            d = dseq.landmarks[row, :68]
+            dlo, dhi = d.min(0), d.max(0)
+            dpad = 0.25 * float((dhi - dlo).max())
+            frame = dseq.frame(row)
+            dx0, dy0 = np.maximum(np.floor(dlo - dpad).astype(int), 0)
+            dx1, dy1 = np.minimum(np.ceil(dhi + dpad).astype(int), [frame.shape[1], frame.shape[0]])
+            face = frame[dy0:dy1, dx0:dx1]
+            face = cv2.resize(face, (round(face.shape[1] * (y1 - y0) / face.shape[0]), y1 - y0), interpolation=cv2.INTER_AREA)
+            rows.append([face] + [o[0][y0:y1, x0:x1] for o in outs])
+            info.append({"frame": int(dseq.frame_index[row]), "why": why})
+    return rows, info
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--runs", nargs="+", required=True)
@@ -60,9 +107,15 @@ def main() -> None:
                     help="per run: the example-based detail's strength, its bank fitted on the run's training frames "
                          "as bench/studies/detail.py does (0: the run as trained)")
     ap.add_argument("--set", action="append", default=[], help="KEY=VALUE of model.detail_* for the banks")
+    ap.add_argument("--driver", help="a shared clip that drives every run through the talking head (no real frame)")
     a = ap.parse_args()
     if len(a.labels) != len(a.runs):
         raise SystemExit("error: give one --labels entry per run")
+    if a.driver:
+        tiles, info = driven_rows(a.runs, a.driver, a.frames)
+        rows = [_row(t, f"{a.driver} frame {i['frame']} ({i['why']})", [a.driver] + a.labels) for t, i in zip(tiles, info, strict=True)]
+        _write(rows, a.out, a.quality, {"driver": a.driver, "frames": info, "labels": a.labels})
+        return
     seq, _, te = run_data(read_config(a.runs[0]))
     lm_te = seq.landmarks[te][:, :68]
     chosen = pick(lm_te, a.frames)
@@ -94,25 +147,34 @@ def main() -> None:
             if perceptual.available():
                 scores.append(float(perceptual.lpips(perceptual.region_crop(tiles[0], (0, y1 - y0, 0, x1 - x0)),
                                                      perceptual.region_crop(shown, (0, y1 - y0, 0, x1 - x0)))[0]))
-        strip = np.concatenate([np.pad(t, ((0, 0), (0, 4), (0, 0)), constant_values=255) for t in tiles], 1)
-        label = f"frame {int(seq.frame_index[row])} ({why})"
         labels = ["real"] + [f"{n}" + (f"  LPIPS {s:.3f}" if scores else "") for n, s in zip(a.labels, scores or [0] * len(syns),
                                                                                             strict=True)]
-        head = np.full((42, strip.shape[1], 3), 255, np.uint8)
-        cv2.putText(head, label, (6, 16), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (0, 0, 0), 1, cv2.LINE_AA)
-        w = tiles[0].shape[1] + 4
-        for k, t in enumerate(labels):
-            cv2.putText(head, t, (k * w + 6, 36), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (0, 0, 160), 1, cv2.LINE_AA)
-        rows.append(np.concatenate([head, strip], 0))
+        rows.append(_row(tiles, f"frame {int(seq.frame_index[row])} ({why})", labels))
         info.append({"frame": int(seq.frame_index[row]), "why": why, "lpips_face": scores})
+    _write(rows, a.out, a.quality, {"data": seq.name, "frames": info, "labels": a.labels})
+
+
+def _row(tiles: list[np.ndarray], label: str, labels: list[str]) -> np.ndarray:
+    """One labelled row of the sheet: the tiles side by side (equal heights) under a white band."""
+    strip = np.concatenate([np.pad(t, ((0, 0), (0, 4), (0, 0)), constant_values=255) for t in tiles], 1)
+    head = np.full((42, strip.shape[1], 3), 255, np.uint8)
+    cv2.putText(head, label, (6, 16), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (0, 0, 0), 1, cv2.LINE_AA)
+    x = 0
+    for t, text in zip(tiles, labels, strict=True):
+        cv2.putText(head, text, (x + 6, 36), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (0, 0, 160), 1, cv2.LINE_AA)
+        x += t.shape[1] + 4
+    return np.concatenate([head, strip], 0)
+
+
+def _write(rows: list[np.ndarray], out, quality: int, info: dict) -> None:
+    """The rows one under the other as a JPEG at ``out`` (atomically); prints the JSON line."""
     width = max(r.shape[1] for r in rows)
     sheet = np.concatenate([np.pad(r, ((0, 4), (0, width - r.shape[1]), (0, 0)), constant_values=255) for r in rows], 0)
-    out = Path(a.out)
+    out = Path(out)
     with atomic_path(out) as tmp:
-        ok, buf = cv2.imencode(".jpg", cv2.cvtColor(sheet, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, a.quality])
+        ok, buf = cv2.imencode(".jpg", cv2.cvtColor(sheet, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, quality])
         Path(tmp).write_bytes(buf.tobytes())
-    print(json.dumps({"data": seq.name, "frames": info, "labels": a.labels, "bytes": out.stat().st_size,
-                      "size": list(sheet.shape[:2])}))
+    print(json.dumps({**info, "bytes": out.stat().st_size, "size": list(sheet.shape[:2])}))
 
 
 if __name__ == "__main__":
