@@ -23,7 +23,8 @@ trade-off between still and fast-moving clips; cached apart).
 
 ``--plot FILE``: a tracked and a smoothed track (lp_d19's chin, vrt_face2's lower inner lip).
 
-``--cache DIR``: keep each evaluation's figures in DIR (``<run name>__<mode>.json``) and reuse
+``--cache DIR``: keep each evaluation's figures in DIR (``<run name>__tracked.json``,
+``<run name>__smoothed_<threshold>.json``) and reuse
 them, so the table is printed again without re-evaluating.
 """
 
@@ -145,7 +146,7 @@ def main() -> None:
         for run in args.runs:
             runs[run.name] = {}
             for mode in modes:
-                tag = mode if mode == "tracked" or args.fast_radii_s == FAST_RADII_S else f"{mode}_{args.fast_radii_s:g}"
+                tag = mode if mode == "tracked" else f"{mode}_{args.fast_radii_s:g}"  # the threshold in the name
                 cached = args.cache / f"{run.name}__{tag}.json" if args.cache else None
                 if cached is not None and cached.is_file():
                     fig = json.loads(cached.read_text())
