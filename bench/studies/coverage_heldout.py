@@ -3,7 +3,7 @@ points (``facesynth ingest --landmarker mediapipe``), split as training splits i
 75 % trains: the "recording"), the recording thinned to the frames the page keeps (at most
 ``KEEP_FPS`` a second, the page's rule); and the clip's trained default run (``--runs``, only
 read), evaluated per frame (:func:`evaluate_per_frame`: every held-out frame and
-:data:`RUN_FRAMES` training frames rendered, pasted into the real frame and compared over the
+up to :data:`RUN_FRAMES` training frames rendered, pasted into the real frame and compared over the
 common region: PSNR, face and mouth LPIPS).
 
 ``per_frame``, within each clip: each held-out frame's distance to the recording as the meter
@@ -113,7 +113,7 @@ def run_dir(runs: Path, clip: str) -> Path:
 
 def evaluate_per_frame(run: Path, out: Path) -> None:
     """Per-frame figures of a trained run (the run folder is only read): the held-out frames
-    (every one) and :data:`RUN_FRAMES` evenly spaced training frames, each rendered, pasted into
+    (every one) and up to :data:`RUN_FRAMES` evenly spaced training frames, each rendered, pasted into
     its real frame and compared over the common region (``psnr_frame_common``'s measure, and
     its face and mouth LPIPS), rows sadm and oracle, written to ``out`` (.npz, by video frame)."""
     from facesynth.eval.common_region import common_landmarks
