@@ -168,11 +168,20 @@ def test_lpips_and_flicker_in_an_evaluation():
     model, tex = FaceModel.fit_with_textures(seq, FaceModelConfig(reference_width=64), rows=tr, progress=False)
     sadm = fit_sadm(model, seq, tr, tex, "linear")
     cfg = EvalConfig(noise=[0.0], max_test_frames=6, train_level=False, talking_head=False, flicker_frames=5)
-    metrics, _ = evaluate_sadm(sadm, seq, tr, te, cfg, 0, train_textures=tex, common=seq.landmarks)
+    metrics, extras = evaluate_sadm(sadm, seq, tr, te, cfg, 0, train_textures=tex, common=seq.landmarks)
     json.dumps(metrics)
     lp = metrics["lpips_frame_common"]
     assert set(lp) == {"face", "eyes", "mouth"} and all(set(v) == {"sadm", "oracle", "rewarp"} for v in lp.values())
     assert all(0 <= x < 1 for v in lp.values() for x in v.values())
+    # the per-frame figures (extras): their median is the table's, and the common region's
+    # per-frame PSNR brackets its pooled figure
+    per = extras["per_frame"]
+    for reg, rows_ in lp.items():
+        for row, v in rows_.items():
+            assert per["lpips_frame_common"][reg][row].shape == (6,)
+            assert np.nanmedian(per["lpips_frame_common"][reg][row]) == pytest.approx(v, abs=1e-7)
+    for row, v in metrics["psnr_frame_common"].items():
+        assert per["psnr_frame_common"][row].min() <= v["0"] <= per["psnr_frame_common"][row].max()
     fl = metrics["flicker_frame_common"]
     assert fl["frames"] == 5 and set(fl["ratio"]) == {"sadm", "rewarp"}
     assert fl["ratio"]["sadm"] == pytest.approx(fl["sadm"] / fl["real"])

@@ -31,13 +31,14 @@ LPIPS_ROWS = ("sadm", "oracle", "rewarp")
 
 class _LpipsPool:
     """Per-frame LPIPS of rendered-over-real region crops against the real ones, scored in
-    batches (each real crop's features computed once for every row)."""
+    batches (each real crop's features computed once for every row); ``scores``: {region:
+    {row: [(frame position, LPIPS)]}}."""
 
     def __init__(self, batch: int = 16):
         self.batch, self.pending, self.scores = batch, [], {}
 
-    def add(self, region: str, real: np.ndarray, shown: dict[str, np.ndarray]) -> None:
-        self.pending.append((region, real, shown))
+    def add(self, region: str, j: int, real: np.ndarray, shown: dict[str, np.ndarray]) -> None:
+        self.pending.append((region, j, real, shown))
         if len(self.pending) >= self.batch:
             self.flush()
 
@@ -45,18 +46,29 @@ class _LpipsPool:
         if not self.pending:
             return
         net = perceptual.load()
-        rows = list(self.pending[0][2])
+        rows = list(self.pending[0][3])
         with torch.no_grad():
-            real = net.features(perceptual.to_tensor(np.stack([p[1] for p in self.pending])))
+            real = net.features(perceptual.to_tensor(np.stack([p[2] for p in self.pending])))
             for row in rows:
-                d = net.distance(real, net.features(perceptual.to_tensor(np.stack([p[2][row] for p in self.pending]))))
-                for (region, *_), v in zip(self.pending, d.numpy(), strict=True):
-                    self.scores.setdefault(region, {}).setdefault(row, []).append(float(v))
+                d = net.distance(real, net.features(perceptual.to_tensor(np.stack([p[3][row] for p in self.pending]))))
+                for (region, j, *_), v in zip(self.pending, d.numpy(), strict=True):
+                    self.scores.setdefault(region, {}).setdefault(row, []).append((j, float(v)))
         self.pending = []
 
     def medians(self) -> dict[str, dict[str, float]]:
         self.flush()
-        return {reg: {row: float(np.median(v)) for row, v in rows.items()} for reg, rows in self.scores.items()}
+        return {reg: {row: float(np.median([s for _, s in v])) for row, v in rows.items()} for reg, rows in self.scores.items()}
+
+    def per_frame(self, n: int) -> dict[str, dict[str, np.ndarray]]:
+        """{region: {row: (n,) LPIPS per frame position, NaN where the region has no pixels}}."""
+        self.flush()
+        out = {}
+        for reg, rows in self.scores.items():
+            for row, v in rows.items():
+                a = np.full(n, np.nan)
+                a[[j for j, _ in v]] = [s for _, s in v]
+                out.setdefault(reg, {})[row] = a
+        return out
 
 
 def subset(n: int, max_frames: int | None) -> np.ndarray:
@@ -123,7 +135,9 @@ def frame_level(model, predict, seq, rows, tex_te, oracle, cfg, seed, keys, nois
         frame) of the face pasted as for PSNR (feathered, no colour match) against the real
         frame's, both resized to 224 px (the caller pops all four); a region with no pixels in
         any evaluated frame is left out of all of them
-    per_frame : {"index": (n,) test-row positions evaluated, "psnr": {row: (n,) dB at sigma 0}}
+    per_frame : {"index": (n,) test-row positions evaluated, "psnr": {row: (n,) dB at sigma 0}};
+        with ``common`` also "psnr_common": {row: (n,) dB over the whole common region} and,
+        with LPIPS, "lpips": {face, eyes, mouth: {row: (n,) LPIPS, NaN where the region is empty}}
     grid : list of dicts (real, synth uint8 crops, frame row, psnr)
     """
     pick = subset(len(rows), cfg.max_test_frames)
@@ -201,7 +215,7 @@ def frame_level(model, predict, seq, rows, tex_te, oracle, cfg, seed, keys, nois
                         grid.append({"real": sub[crop_box].copy(), "synth": out[crop_box].copy(), "frame": int(rows[pick[j]]),
                                      "psnr": _db(*sq[name][k][j])})
             for reg, (_, real_crop) in boxes.items():
-                lp.add(reg, real_crop, shown_crops[reg])
+                lp.add(reg, j, real_crop, shown_crops[reg])
             bar.update(1)
     bar.close()
     pooled = {name: {k: _db(*v.sum(0)) for k, v in d_.items()} for name, d_ in sq.items()}
@@ -217,6 +231,10 @@ def frame_level(model, predict, seq, rows, tex_te, oracle, cfg, seed, keys, nois
         if lp is not None:
             pooled["lpips"] = lp.medians()
     per_frame = {"index": pick, "psnr": {name: np.array([_db(*r) for r in d_[k0]]) for name, d_ in sq.items()}}
+    if common is not None:
+        per_frame["psnr_common"] = {name: np.array([_db(*r) for r in d_[k0]]) for name, d_ in sq_common["whole"].items()}
+        if lp is not None:
+            per_frame["lpips"] = lp.per_frame(n)
     return pooled, per_frame, grid
 
 

@@ -143,7 +143,8 @@ def evaluate_sadm(
         Arrays for plots: ``err_map`` (H, W) mean squared error per reference pixel at
         sigma 0; ``per_frame``: ``frame`` (N_test,) frame rows, ``psnr_ref`` (N_test,) dB
         at sigma 0, and for the frame level ``frame_index`` (n,) positions evaluated and
-        ``psnr_frame`` {row: (n,) dB}; ``grid`` list of dicts (``real``, ``synth`` uint8
+        ``psnr_frame`` {row: (n,) dB}, with ``common`` ``psnr_frame_common`` {row: (n,) dB}
+        and, with LPIPS, ``lpips_frame_common`` {region: {row: (n,)}}; ``grid`` list of dicts (``real``, ``synth`` uint8
         crops, ``frame`` row, ``psnr`` dB) for evenly spaced frame-level test frames; ``strip``:
         consecutive held-out frames, real and rendered (:mod:`facesynth.eval.strip`).
     """
@@ -236,6 +237,10 @@ def evaluate_sadm(
         metrics["frame_level_frames"] = {"evaluated": n, "test_frames": int(len(test_rows)),
                                          "max_test_frames": cfg.max_test_frames, "spacing": "evenly spaced"}
         extras["per_frame"].update(frame_index=per_frame["index"], psnr_frame=per_frame["psnr"])
+        if "psnr_common" in per_frame:
+            extras["per_frame"]["psnr_frame_common"] = per_frame["psnr_common"]
+        if "lpips" in per_frame:
+            extras["per_frame"]["lpips_frame_common"] = per_frame["lpips"]
         extras["strip"] = strip_tiles(syn, seq, test_rows[strip_rows(len(test_rows))])
     return metrics, extras
 
