@@ -9,7 +9,7 @@ from scipy.signal import lfilter, savgol_filter
 
 from facesynth.data import FaceSequence
 from facesynth.data.config import DataConf
-from facesynth.data.smoothing import SIGMA_STILL_S, segments, smooth_sequence, smooth_track, split_bounds
+from facesynth.data.smoothing import FAST_RADII_S, SIGMA_STILL_S, segments, smooth_sequence, smooth_track, split_bounds
 from facesynth.errors import FacesynthError
 from facesynth.eval.common_region import common_landmarks
 from facesynth.rundir import load_data, read_config
@@ -141,6 +141,24 @@ def test_a_run_from_before_the_setting_reads_as_unsmoothed(tmp_path):
     del cfg["smooth_landmarks"]
     (tmp_path / "config.yaml").write_text(OmegaConf.to_yaml({"seed": 0, "data": cfg}))
     assert read_config(tmp_path).data.smooth_landmarks is False
+
+
+def test_the_threshold_is_a_data_setting_and_a_smoothed_run_without_it_reads_as_0_35(tmp_path):
+    n = 40
+    np.save(tmp_path / "landmarks.npy", jitter(face(n)).astype(np.float32))
+    (tmp_path / "meta.json").write_text('{"video": {"fps": 25.0}}')
+    cfg = OmegaConf.structured(DataConf(kind="video", path=str(tmp_path), smooth_fast_radii_s=0.5))
+    seq = load_data(cfg, 0)
+    np.testing.assert_array_equal(seq.landmarks[:30], smooth_track(seq.tracked[:30], 25.0, fast_radii_s=0.5))
+    assert seq.meta["landmark_smoothing"]["fast_radii_s"] == 0.5
+    assert DataConf().smooth_fast_radii_s == FAST_RADII_S
+    run = OmegaConf.to_container(OmegaConf.structured(DataConf(kind="video", path=str(tmp_path))))
+    del run["smooth_fast_radii_s"]
+    (tmp_path / "config.yaml").write_text(OmegaConf.to_yaml({"seed": 0, "data": run}))
+    assert read_config(tmp_path).data.smooth_fast_radii_s == 0.35
+    cfg.smooth_fast_radii_s = 0.0
+    with pytest.raises(FacesynthError, match=r"^data.smooth_fast_radii_s must be > 0"):
+        load_data(cfg, 0)
 
 
 def test_bad_tracks_are_refused():

@@ -7,6 +7,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Optional
 
+from facesynth.data.smoothing import FAST_RADII_S
 from facesynth.data.splits import TRAIN_FRACTION
 
 
@@ -17,7 +18,8 @@ class DataConf:
     the first ``train_fraction`` trains, the rest (after ``gap`` frames) tests.
     ``smooth_landmarks``: smooth a video's tracked landmarks along time, zero phase, each part
     of the split alone (:mod:`facesynth.data.smoothing`), for training and evaluation alike; the
-    synthetic subject's landmarks are exact and never smoothed."""
+    synthetic subject's landmarks are exact and never smoothed. ``smooth_fast_radii_s``: the
+    point speed (face radii per second) from which the smoothing's light filter alone applies."""
 
     kind: str = "synthetic"
     path: Optional[str] = None
@@ -27,3 +29,4 @@ class DataConf:
     train_fraction: float = TRAIN_FRACTION
     gap: int = 0
     smooth_landmarks: bool = True
+    smooth_fast_radii_s: float = FAST_RADII_S

@@ -34,7 +34,9 @@ from facesynth.errors import FacesynthError
 
 SIGMA_STILL_S = 0.1  # Gaussian sigma (s) of a still point: 3 frames at 30 frames/s
 SIGMA_MOVING_S = 0.02  # Gaussian sigma (s) of a fast point: 0.6 frames at 30 frames/s
-FAST_RADII_S = 0.35  # point speed (face radii per second) from which the light filter alone applies
+FAST_RADII_S = 0.25  # point speed (face radii per second) from which the light filter alone applies
+# (17 shared clips, docs/studies/flicker.md: 0.25 keeps every clip's flicker <= 1.2 x the real frames', with
+# auto + filter too, and costs talking clips less PSNR than 0.35)
 
 
 def _line_end(x: np.ndarray) -> np.ndarray:
