@@ -7,7 +7,9 @@ Per variant (``--variant NAME=KEY=VALUE[,KEY=VALUE...]`` of the face model's set
 ``today`` (no setting), ``detail`` (``detail=1``), ``auto_restore_detail``
 (``reference_width=auto,restore=true,detail=1``)): a linear model of the first 75 % of the
 avatar's clip (every 3rd frame, as ``bench_talking_head_graph.py`` builds it), exported as the
-face-only synthesis file and as the talking-head file. Timing: ONNX Runtime, one intra-op
+face-only synthesis file and as the talking-head file (``--product``: compressed to
+``DEFAULT_COMPONENTS`` components and quantized to the ``DEFAULT_BASIS`` basis first, as
+``facesynth export`` writes them; else all components, float32). Timing: ONNX Runtime, one intra-op
 thread, batch 1, every variant's two graphs and the floor at its reference size
 (``bench_render_floor.floor_step``: one 40-component matmul and one bilinear remap) called in
 turn frame by frame; medians of wall time (``*_ms``) and of the calling thread's CPU time
@@ -47,7 +49,8 @@ from facesynth.data import load_sequence, temporal_split
 from facesynth.data.shared import shared_data_dir
 from facesynth.model import FaceModel, FaceModelConfig
 from facesynth.onnx.avatar import avatar_metadata
-from facesynth.onnx.synthesis import export_synthesizer
+from facesynth.onnx.config import DEFAULT_BASIS, DEFAULT_COMPONENTS
+from facesynth.onnx.synthesis import compress_for_export, export_synthesizer, quantize_for_export
 from facesynth.onnx.talking_head import TalkingHeadGraph, export_talking_head
 from facesynth.regressors import REGISTRY
 from facesynth.runtime import Renderer
@@ -61,7 +64,7 @@ def parse(v: str):
     return {"true": True, "false": False}.get(v, v if not v.replace(".", "", 1).isdigit() else (float(v) if "." in v else int(v)))
 
 
-def build(seq, settings: dict, work: Path, name: str):
+def build(seq, settings: dict, work: Path, name: str, product: bool = False):
     train, _ = temporal_split(len(seq))
     rows = train[::3]
     t0 = time.perf_counter()
@@ -71,6 +74,10 @@ def build(seq, settings: dict, work: Path, name: str):
     syn = Synthesizer(model, GlobalAppearance(model, REGISTRY["linear"].fit(x, y, seed=0))).eval()
     fit_s = time.perf_counter() - t0
     meta = avatar_metadata(syn, seq.landmarks[train], train, seq)
+    if product:  # as `facesynth export` writes it: the components of largest predicted variance, the int8 basis
+        syn, info = compress_for_export(syn, seq.landmarks[rows], DEFAULT_COMPONENTS)
+        syn, _ = quantize_for_export(syn, seq.landmarks[rows], DEFAULT_BASIS)
+        meta = {**meta, **info}
     face, head = work / f"{name}_face.onnx", work / f"{name}_head.onnx"
     export_synthesizer(syn, face, meta)
     export_talking_head(syn, meta, head)
@@ -83,6 +90,8 @@ def main() -> None:
     ap.add_argument("--driver", default="lp_d6")
     ap.add_argument("--frames", type=int, default=60)
     ap.add_argument("--variant", action="append", default=[])
+    ap.add_argument("--product", action="store_true", help="export as `facesynth export` does (DEFAULT_COMPONENTS "
+                                                             "components, DEFAULT_BASIS basis)")
     ap.add_argument("--keep", default=None, help="write the exported files to this folder and keep them")
     ap.add_argument("--against", default=None, help="a folder of NAME_face.onnx / NAME_head.onnx timed in the same loop")
     ap.add_argument("--split", type=int, default=0, help="frames for the talking head's per-step split (0: none)")
@@ -102,13 +111,14 @@ def main() -> None:
     lm = np.load(faces / args.driver / "landmarks.npy").astype(np.float32)
     neutral, _ = driver_neutral_of(lm)
     rows = [int(i) for i in np.linspace(0, len(lm) - 1, args.frames).astype(int) if np.isfinite(lm[i]).all()]
-    out = {"bench": "detail_cost", "avatar": args.avatar, "driver": args.driver, "frames": len(rows), "threads": 1, "variants": {}}
+    out = {"bench": "detail_cost", "product": args.product, "avatar": args.avatar, "driver": args.driver,
+           "frames": len(rows), "threads": 1, "variants": {}}
     against = Path(args.against) if args.against else None
     with (contextlib.nullcontext(args.keep) if args.keep else tempfile.TemporaryDirectory()) as tmp:
         Path(tmp).mkdir(parents=True, exist_ok=True)
         built, old, extra = {}, {}, {}
         for name, settings in variants.items():
-            model, syn, meta, face, head, fit_s = build(seq, settings, Path(tmp), name)
+            model, syn, meta, face, head, fit_s = build(seq, settings, Path(tmp), name, args.product)
             extra[name] = (syn, meta, face, head)
             if against is not None:
                 old[name] = (TalkingHead(against / f"{name}_head.onnx", driver_neutral=neutral, threads=1),
