@@ -103,10 +103,10 @@ def test_the_artifact_and_the_exported_graph_keep_the_filter(restored, tmp_path)
     assert check_export(syn, path, seq.landmarks[:6]) < 1e-4
     import onnx
 
-    # the fill's box sums and the filter: one depthwise Conv each over the strips (image and mask, image)
+    # depthwise Convs over the strips: the fill's box sums along x and y (image and mask), the filter (image)
     groups = sorted(next(a.i for a in n.attribute if a.name == "group")
                     for n in onnx.load(str(path)).graph.node if n.op_type == "Conv")
-    assert groups == [3 * STRIPS, 4 * STRIPS]
+    assert groups == [3 * STRIPS, 4 * STRIPS, 4 * STRIPS]
 
 
 def _pasted_sse(model, textures, seq, rows):

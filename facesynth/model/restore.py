@@ -21,8 +21,9 @@ filled with the mean of the face pixels around them (a normalised box filter), a
 result is cut back to the face: the convolution never reads black.
 
 At render time :class:`Restore` runs inside the warp (:class:`facesynth.model.warp.ToTarget`),
-so the evaluation, the torch synthesiser and the exported face-only graph (three Conv nodes:
-the two of the fill and the filter) all show the filtered face.
+so the evaluation, the torch synthesiser and the exported face-only graph (three depthwise Conv
+nodes over row strips: the fill's box sums along x and along y, and the filter) all show the
+filtered face.
 """
 
 from __future__ import annotations
@@ -65,10 +66,10 @@ class Restore(nn.Module):
     outside ``mask``.
 
     The image's rows are cut into :data:`STRIPS` strips with the kernel's reach either side (one
-    row gather), the strips stacked as channels, and the fill's box sums and the filter are each
-    one depthwise Conv over them (every channel the same kernel): in ONNX Runtime a Conv of C
-    channels costs about as much as one of 16, and 3 x 16 strips use what a one-channel Conv
-    wastes (5x faster on a 300 px crop than three one-channel Convs)."""
+    row gather), the strips stacked as channels, and the fill's box sums (a 1 x k, then a k x 1
+    box) and the filter are depthwise Convs over them (every channel the same kernel): in ONNX
+    Runtime a Conv of fewer than 16 channels costs as much as one of 16, and 3 x 16 strips use
+    what a one-channel Conv wastes (on a 300 px crop 5x faster than three one-channel Convs)."""
 
     def __init__(self, kernel: np.ndarray):
         super().__init__()
@@ -86,7 +87,9 @@ class Restore(nn.Module):
         x = F.pad(torch.cat([img, mask], 1), (0, 0, 0, 1))  # (B, C + 1, H + 1, W), a zero row last
         n, tall = STRIPS, len(rows) // STRIPS  # strips, rows per strip with the halo
         s = torch.index_select(x, 2, torch.from_numpy(rows)).reshape(-1, (c + 1) * n, tall, w)
-        sums = F.conv2d(s, self.box.expand((c + 1) * n, -1, -1, -1), padding=(0, r), groups=(c + 1) * n)
+        m = (c + 1) * n  # the box sums separably: along x, then along y
+        sums = F.conv2d(s, self.box[:, :, :1].expand(m, -1, -1, -1), padding=(0, r), groups=m)
+        sums = F.conv2d(sums, self.box[:, :, :, :1].expand(m, -1, -1, -1), groups=m)
         sums = sums.reshape(-1, c + 1, n, tall - 2 * r, w)  # num (C), den (1)
         inner = s.reshape(-1, c + 1, n, tall, w)[:, :, :, r:tall - r]
         valid = torch.from_numpy(np.ascontiguousarray(inside[:, r:tall - r]))  # 1 inside the image
