@@ -14,28 +14,32 @@ from _faces import face_sequence_arrays
 from facesynth.data import FaceSequence
 from facesynth.data.frames import ArrayFrames
 from facesynth.model import FaceModel, FaceModelConfig
-from facesynth.model.restore import GUARD_DB, Restore, choose_strength, strength_curve, with_strength
+from facesynth.model.restore import GUARD_DB, STRIPS, Restore, choose_strength, strength_curve, with_strength
 
 
-def test_restore_equals_opencv():
+@pytest.mark.parametrize(("h", "w", "size", "channels"), [(40, 52, 5, 3), (9, 30, 7, 3), (151, 77, 7, 1), (64, 64, 3, 3)])
+def test_restore_equals_opencv(h, w, size, channels):
     """Fill (a box mean of the face pixels around each outside pixel) then a correlation with
-    the kernel, clamped and cut to the face: cv2.boxFilter and cv2.filter2D, zero borders."""
-    rng = np.random.default_rng(0)
-    h, w = 40, 52
+    the kernel, clamped and cut to the face: cv2.boxFilter and cv2.filter2D, zero borders. Heights
+    below, at and off a multiple of the strips (:data:`facesynth.model.restore.STRIPS`), and a face
+    that touches the image's edge."""
+    rng = np.random.default_rng(h)
     mask = np.zeros((h, w), np.float32)
-    cv2.ellipse(mask, (26, 20), (20, 14), 0, 0, 360, 1.0, -1)
-    img = rng.uniform(0, 1, (h, w, 3)).astype(np.float32) * mask[..., None]
-    kernel = rng.normal(0, 0.2, (5, 5)).astype(np.float32)
-    kernel[2, 2] += 1.0
+    cv2.ellipse(mask, (w // 2, h // 2), (w // 2 - 2, h // 2 + 1), 0, 0, 360, 1.0, -1)
+    img = rng.uniform(0, 1, (h, w, channels)).astype(np.float32) * mask[..., None]
+    kernel = rng.normal(0, 0.2, (size, size)).astype(np.float32)
+    kernel[size // 2, size // 2] += 1.0
     got = Restore(kernel)(torch.from_numpy(img).permute(2, 0, 1)[None], torch.from_numpy(mask)[None, None])
     got = got[0].permute(1, 2, 0).numpy()
-    box = dict(ddepth=-1, ksize=(5, 5), normalize=False, borderType=cv2.BORDER_CONSTANT)
-    num = cv2.boxFilter(img.astype(np.float64), **box)
+    box = dict(ddepth=-1, ksize=(size, size), normalize=False, borderType=cv2.BORDER_CONSTANT)
+    num = cv2.boxFilter(img.astype(np.float64), **box).reshape(img.shape)
     den = np.maximum(cv2.boxFilter(mask.astype(np.float64), **box), 1.0)
     filled = img + (1 - mask[..., None]) * num / den[..., None]
-    want = cv2.filter2D(filled, -1, kernel.astype(np.float64), borderType=cv2.BORDER_CONSTANT)
+    want = cv2.filter2D(filled, -1, kernel.astype(np.float64), borderType=cv2.BORDER_CONSTANT).reshape(filled.shape)
     want = np.clip(want, 0, 1) * mask[..., None]
     assert got == pytest.approx(want, abs=1e-5)
+    assert Restore(kernel).fill(torch.from_numpy(img).permute(2, 0, 1)[None], torch.from_numpy(mask)[None, None])[0] \
+        .permute(1, 2, 0).numpy() == pytest.approx(filled, abs=1e-5)
     # the identity kernel leaves the face as it was
     same = Restore(np.pad(np.ones((1, 1), np.float32), 1))(torch.from_numpy(img).permute(2, 0, 1)[None],
                                                              torch.from_numpy(mask)[None, None])
@@ -99,7 +103,10 @@ def test_the_artifact_and_the_exported_graph_keep_the_filter(restored, tmp_path)
     assert check_export(syn, path, seq.landmarks[:6]) < 1e-4
     import onnx
 
-    assert sum(n.op_type == "Conv" for n in onnx.load(str(path)).graph.node) == 3
+    # depthwise Convs over the strips: the fill's box sums along x and y (image and mask), the filter (image)
+    groups = sorted(next(a.i for a in n.attribute if a.name == "group")
+                    for n in onnx.load(str(path)).graph.node if n.op_type == "Conv")
+    assert groups == [3 * STRIPS, 4 * STRIPS, 4 * STRIPS]
 
 
 def _pasted_sse(model, textures, seq, rows):

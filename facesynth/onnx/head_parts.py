@@ -250,28 +250,30 @@ class SeamGraph(nn.Module):
         self.blur_x, self.blur_y = BandedBlur(g, cw), BandedBlur(g, ch)
         self.register_buffer("frame_max", torch.tensor([float(w), float(h)]))
         self.register_buffer("zero2", torch.zeros(2))
-        self.register_buffer("to255", _const(np.array([255.0] * 3 + [1.0, 1.0]).reshape(1, 5, 1, 1)))
 
     @staticmethod
-    def _erode(x: torch.Tensor, r: int) -> torch.Tensor:
+    def _erode_t(x: torch.Tensor, r: int) -> torch.Tensor:
         """Square (2r + 1) erosion of a {0, 1} (B, 1, h, w) map, the outside of the map
-        counted as 0 (:func:`facesynth.compositing.seam_layers`): no hole (0) within r
-        pixels, counted by running sums (CumSum), whose cost does not grow with r as
-        MaxPool's does."""
+        counted as 0 (:func:`facesynth.compositing.seam_layers`), transposed: (B, 1, w, h). No
+        hole (0) within r pixels, counted by running sums (CumSum), whose cost does not grow
+        with r as MaxPool's does; both along the second last axis (a CumSum along the last
+        axis runs several times slower in ONNX Runtime), the map transposed between them."""
         k = 2 * r + 1
-        c = torch.cumsum(F.pad(1.0 - x, (r + 1, r), value=1.0), 3)
-        holes = c[..., k:] - c[..., :-k]
+        c = torch.cumsum(F.pad(1.0 - x, (0, 0, r + 1, r), value=1.0), 2)
+        holes = (c[:, :, k:] - c[:, :, :-k]).transpose(2, 3)  # holes per column window, (B, 1, w, h)
         c = torch.cumsum(F.pad(holes, (0, 0, r + 1, r), value=float(k)), 2)
         return ((c[:, :, k:] - c[:, :, :-k]) < 0.5).to(x.dtype)
 
-    def layers(self, crop: torch.Tensor, mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """(B, 5, Hc, Wc) premultiplied face, alpha, band (:func:`seam_layers`) and the face's
-        mean colour in the band (B, 3)."""
+    def layers(self, crop: torch.Tensor, mask: torch.Tensor, scale: float = 1.0) -> tuple[torch.Tensor, torch.Tensor]:
+        """(B, 5, Hc, Wc) premultiplied face (times ``scale``), alpha, band (:func:`seam_layers`)
+        and the face's mean colour in the band (B, 3)."""
         hard = (mask > 0.5).to(crop.dtype)
-        alpha = self.blur_y(self.blur_x(self._erode(hard, self.r).transpose(2, 3)).transpose(2, 3)) * hard
-        band = hard * (1.0 - self._erode(hard, 2 * self.r))
-        face_mean = (crop * band).sum((2, 3)) / torch.clamp(band.sum((2, 3)), min=1.0)
-        return torch.cat([crop * alpha, alpha, band], 1), face_mean
+        alpha = self.blur_y(self.blur_x(self._erode_t(hard, self.r)).transpose(2, 3)) * hard
+        band = hard * (1.0 - self._erode_t(hard, 2 * self.r).transpose(2, 3))
+        # the band's colour sums as one MatMul (B, 3, N) x (B, N, 1): no full-crop product
+        sums = torch.matmul(crop.flatten(2), band.reshape(band.shape[0], -1, 1))[:, :, 0]
+        face_mean = sums / torch.clamp(band.sum((2, 3)), min=1.0)
+        return torch.cat([crop * (alpha * scale if scale != 1.0 else alpha), alpha, band], 1), face_mean
 
     def _bilinear(self, images: torch.Tensor, u: torch.Tensor, v: torch.Tensor) -> list[torch.Tensor]:
         """(B, 5, h, w) images read at (B, 1, Hb, Wb) pixel positions u, v -> five (B, 1, Hb, Wb):
@@ -298,8 +300,7 @@ class SeamGraph(nn.Module):
         composited frame, uint8 (B, 3, H, W)."""
         if crop.shape[1] == 1:
             crop = torch.cat([crop, crop, crop], 1)
-        layers, face_mean = self.layers(crop, mask)
-        layers = layers * self.to255  # the premultiplied face in 0..255, as the frame
+        layers, face_mean = self.layers(crop, mask, 255.0)  # the premultiplied face in 0..255, as the frame
         # the box: the landmarks' bounding box grown by the largest crop pixel (placed) and 2 px
         reach = torch.ceil(torch.sqrt((placement[:, :, 0] ** 2).sum(1)).amax()) + 2.0
         xy = face.reshape(-1, 2)
