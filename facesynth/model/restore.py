@@ -216,6 +216,21 @@ def choose_strength(curve: np.ndarray, strengths: np.ndarray = STRENGTHS, guard_
     return float(np.max(np.asarray(strengths)[ok])) if ok.any() else 0.0
 
 
+def validation_predictions(fit, seq, rows: np.ndarray, n_val: int) -> tuple[int, np.ndarray, np.ndarray]:
+    """``(before, val, pred)``: the validation slice ``val`` (the last ``n_val`` of ``rows``) and its
+    textures ``pred`` (n_val, C * M) predicted by ``fit(np.arange(before))``, a synthesiser fitted on
+    the first ``before`` rows: those before a gap of ``n_val`` rows (none when the rows are too few
+    for one), so that the slice's frames lie beyond the fit's as the test frames lie beyond the
+    training frames (see :func:`guard_restoration`)."""
+    rows = np.asarray(rows)
+    before = len(rows) - 2 * n_val if len(rows) - 2 * n_val >= n_val else len(rows) - n_val  # short: no gap
+    syn = fit(np.arange(before))
+    val = rows[len(rows) - n_val :]
+    with torch.no_grad():
+        pred = syn.texture(torch.from_numpy(seq.landmarks[val])).reshape(n_val, -1).numpy()
+    return before, val, pred
+
+
 def guard_restoration(fit, model, seq, rows: np.ndarray, n_val: int, guard_db: float = GUARD_DB) -> dict:
     """Scale ``model``'s restoration filter (in place) to the largest strength whose PSNR cost on
     the validation slice (the last ``n_val`` of ``rows``) is at most ``guard_db``, the slice's
@@ -226,12 +241,7 @@ def guard_restoration(fit, model, seq, rows: np.ndarray, n_val: int, guard_db: f
     segment's 0.35 dB on lp_d13). Returns the report: ``strength``, ``psnr_change_db`` at it,
     ``psnr_change_full_db`` at strength 1 and ``curve_db`` (the change at :data:`STRENGTHS`)."""
     kernel = model.restore_kernel
-    rows = np.asarray(rows)
-    before = len(rows) - 2 * n_val if len(rows) - 2 * n_val >= n_val else len(rows) - n_val  # short: no gap
-    syn = fit(np.arange(before))
-    val = rows[len(rows) - n_val :]
-    with torch.no_grad():
-        pred = syn.texture(torch.from_numpy(seq.landmarks[val])).reshape(n_val, -1).numpy()
+    before, val, pred = validation_predictions(fit, seq, rows, n_val)
     model.restore_kernel = None
     try:
         curve = strength_curve(model, seq, val, pred, kernel)

@@ -1,0 +1,117 @@
+"""A reference width guarded on validation PSNR (``model.width_guard``).
+
+A wider reference frame (``model.reference_width=auto``: the faces' width in the video, up to
+256 px) keeps detail that the 128 px default blurs, but on some clips its mean texture renders
+the held-out frames a few tenths of a dB lower. With ``model.width_guard=G`` (dB) the training
+app fits the face model at each candidate width (:func:`candidate_widths`: 128, the one asked
+for, and one half-way between when there is room), predicts the SADM's validation slice with
+each (the mapping refitted on the rows before the slice and a gap, as the restoration filter's
+guard does: :func:`facesynth.sadm.fit.held_out_predictions`), scores the slice's PSNR in the
+frame over the common region (:func:`facesynth.eval.frame_level.psnr_common`, what
+``psnr_frame_common`` measures on the test frames) and keeps the widest width whose PSNR is at
+most ``G`` below 128's (:func:`choose_width`). The restoration filter is off while the widths
+are scored (its own guard is ``sadm.restore_guard``), so on validation the two costs add up to
+at most the sum of the guards. The choice and the figures are recorded in ``metrics.json``
+(``width_guard``) and in the face model's meta.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from dataclasses import replace
+
+import numpy as np
+
+from facesynth.errors import FacesynthError
+from facesynth.eval.frame_level import psnr_common
+from facesynth.model.face_model import FaceModel, FaceModelConfig
+from facesynth.model.reference import AUTO_WIDTH, reference_width
+from facesynth.sadm.fit import SADMConfig, held_out_predictions
+
+log = logging.getLogger(__name__)
+BASE_WIDTH = AUTO_WIDTH[0]  # the width every candidate's PSNR is compared with (today's default)
+
+
+def check_width_guard(value) -> float | None:
+    """``model.width_guard`` as a float (dB, >= 0), or None (off); FacesynthError naming the field otherwise."""
+    if value is None:
+        return None
+    try:
+        guard = float(value)
+    except (TypeError, ValueError):
+        guard = math.nan
+    if isinstance(value, bool) or not math.isfinite(guard) or guard < 0:
+        raise FacesynthError(f"model.width_guard must be a PSNR cost in dB (a number >= 0) or null (off), got {value!r}")
+    return guard
+
+
+def candidate_widths(width: int) -> list[int]:
+    """The widths tried for a requested ``width`` (px), narrowest first: :data:`BASE_WIDTH`, the
+    multiple of :data:`AUTO_WIDTH`'s step half-way to ``width`` (when it lies strictly between),
+    and ``width``; ``[width]`` alone when it is not wider than the base."""
+    if width <= BASE_WIDTH:
+        return [int(width)]
+    step = AUTO_WIDTH[2]
+    mid = int(round((BASE_WIDTH + width) / 2 / step)) * step
+    return [BASE_WIDTH] + ([mid] if BASE_WIDTH < mid < width else []) + [int(width)]
+
+
+def choose_width(widths, psnr_db, guard_db: float) -> int:
+    """The widest of ``widths`` (the first is the base) whose ``psnr_db`` (validation PSNR, dB,
+    one per width) is at most ``guard_db`` below the base's; the base when none is."""
+    widths, psnr = list(widths), np.asarray(psnr_db, np.float64)
+    if len(widths) != len(psnr) or not widths:
+        raise ValueError(f"{len(widths)} widths for {len(psnr)} PSNR figures")
+    ok = [w for w, p in zip(widths, psnr, strict=True) if p - psnr[0] >= -float(guard_db) - 1e-9]  # a cost of exactly the guard is in
+    return max(ok) if ok else widths[0]
+
+
+def guard_width(seq, model_seq, rows: np.ndarray, model_cfg: FaceModelConfig, name: str, params: dict,
+                sadm_cfg: SADMConfig, common: np.ndarray, feather: float, seed: int = 0
+                ) -> tuple[FaceModel, np.ndarray, dict | None]:
+    """The face model and its training textures (as :meth:`FaceModel.fit_with_textures` on
+    ``model_seq`` and ``rows``) at the width chosen under ``model_cfg.width_guard`` (off: the
+    width asked for, no report), and the report: ``guard_db``, ``requested``, ``chosen``, the
+    candidates' ``width`` / ``psnr_db`` / ``cost_db`` (against the base), ``val_frames``,
+    ``fit_frames``, ``seconds``. ``seq``: the training sequence (its landmarks drive the SADM);
+    ``common``: (len(seq), 68, 2) dlib landmarks of the common region."""
+    guard = check_width_guard(model_cfg.width_guard)
+    rows = np.asarray(rows)
+    width = reference_width(model_cfg.reference_width, model_seq.landmarks[rows])
+    widths = candidate_widths(width)
+    if guard is None or len(widths) == 1:  # nothing to guard: the width asked for
+        model, tex = FaceModel.fit_with_textures(model_seq, model_cfg, rows=rows)
+        if guard is None:
+            return model, tex, None
+        model.meta["width_guard"] = report = _report(guard, model_cfg, widths, [None], width, 0, 0, 0.0)
+        return model, tex, report
+    if common is None:
+        raise FacesynthError("model.width_guard needs the common region's landmarks (eval.common_region=true and "
+                             "a sequence with frames)")
+    t0 = time.perf_counter()
+    fitted, psnr, val, before = {}, [], [], 0
+    for w in widths:
+        model, tex = FaceModel.fit_with_textures(model_seq, replace(model_cfg, reference_width=w), rows=rows)
+        kernel, model.restore_kernel = model.restore_kernel, None  # the width's own cost: the filter has its guard
+        try:
+            before, val, pred = held_out_predictions(model, seq, rows, tex, name, params, sadm_cfg, seed)
+            psnr.append(psnr_common(model, pred, seq, val, common[val], feather))
+        finally:
+            model.restore_kernel = kernel
+        fitted[w] = (model, tex)
+        log.info("width guard: %d px: validation PSNR %.3f dB", w, psnr[-1])
+    chosen = choose_width(widths, psnr, guard)
+    report = _report(guard, model_cfg, widths, psnr, chosen, len(val), before, time.perf_counter() - t0)
+    model, tex = fitted[chosen]
+    model.meta["width_guard"] = report
+    return model, tex, report
+
+
+def _report(guard, model_cfg, widths, psnr, chosen, n_val, before, seconds) -> dict:
+    base = psnr[0]
+    return {"guard_db": guard, "requested": model_cfg.reference_width, "chosen": int(chosen),
+            "candidates": [{"width": int(w), "psnr_db": p, "cost_db": None if p is None else base - p}
+                           for w, p in zip(widths, psnr, strict=True)],
+            "val_frames": int(n_val), "fit_frames": int(before), "seconds": float(seconds)}
