@@ -216,6 +216,12 @@ def choose_strength(curve: np.ndarray, strengths: np.ndarray = STRENGTHS, guard_
     return float(np.max(np.asarray(strengths)[ok])) if ok.any() else 0.0
 
 
+def fit_size(n_rows: int, n_val: int) -> int:
+    """How many leading rows of ``n_rows`` a validation fit sees: those before the last ``n_val``
+    (the validation slice) and a gap as long (no gap when the rows are too few for one)."""
+    return n_rows - 2 * n_val if n_rows - 2 * n_val >= n_val else n_rows - n_val
+
+
 def validation_predictions(fit, seq, rows: np.ndarray, n_val: int) -> tuple[int, np.ndarray, np.ndarray]:
     """``(before, val, pred)``: the validation slice ``val`` (the last ``n_val`` of ``rows``) and its
     textures ``pred`` (n_val, C * M) predicted by ``fit(np.arange(before))``, a synthesiser fitted on
@@ -223,7 +229,7 @@ def validation_predictions(fit, seq, rows: np.ndarray, n_val: int) -> tuple[int,
     for one), so that the slice's frames lie beyond the fit's as the test frames lie beyond the
     training frames (see :func:`guard_restoration`)."""
     rows = np.asarray(rows)
-    before = len(rows) - 2 * n_val if len(rows) - 2 * n_val >= n_val else len(rows) - n_val  # short: no gap
+    before = fit_size(len(rows), n_val)
     syn = fit(np.arange(before))
     val = rows[len(rows) - n_val :]
     with torch.no_grad():
