@@ -99,8 +99,7 @@ def guard_width(seq, model_seq, rows: np.ndarray, model_cfg: FaceModelConfig, na
     psnr, val = [], rows[len(rows) - n_val :]
     for w in widths:
         # the face model too sees only the rows before the gap: one fitted on the slice's frames
-        # holds their detail in its mean and components, and favours the wider widths (vrt_face5:
-        # +0.44 dB at 256 px on validation, -0.6 dB on the test frames)
+        # holds their detail in its mean and components, more of it the wider it is
         cfg_w = replace(model_cfg, reference_width=w, restore=False, detail=0.0)  # the filter has its own guard
         model, tex = FaceModel.fit_with_textures(model_seq, cfg_w, rows=rows[:before])
         _, val, pred = held_out_predictions(model, seq, rows, tex, name, params, sadm_cfg, seed)
