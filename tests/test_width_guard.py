@@ -38,6 +38,20 @@ def test_choose_width_on_hand_made_curves(psnr, guard, want):
     assert wg.choose_width([128, 176, 224], psnr, guard) == want
 
 
+def test_choose_width_takes_the_worst_slice():
+    psnr = [[30.0, 28.0, 31.0], [29.95, 28.2, 31.5], [30.5, 27.8, 32.0]]  # per width, per slice
+    assert wg.choose_width([128, 192, 256], psnr, 0.1) == 192  # 256 gains on two slices, loses 0.2 dB on one
+    assert wg.choose_width([128, 192, 256], psnr, 0.2) == 256
+
+
+def test_slice_stops():
+    assert wg.slice_stops(100, 15) == [55, 70, 85, 100]  # the last four blocks of 15 rows
+    assert wg.slice_stops(60, 10) == [30, 40, 50, 60]
+    assert wg.slice_stops(40, 10) == [30, 40]  # too few rows for a fit before the earlier blocks
+    assert wg.slice_stops(25, 10) == [25]  # the filter guard's one slice (and gap)
+    assert wg.slice_stops(20, 10) == [20]  # its slice without a gap
+
+
 def test_candidate_widths():
     assert wg.candidate_widths(256) == [128, 192, 256]
     assert wg.candidate_widths(176) == [128, 160, 176]
@@ -84,20 +98,30 @@ def test_the_guard_falls_back_to_128_when_the_wider_width_costs_more(synthetic, 
     seq, rows = synthetic
     want = reference_width("auto", seq.landmarks[rows])
     assert want > 128  # the synthetic faces are wider than the base: two candidates at least
-    scores = iter([30.0] + [29.0] * 5)  # the base, then every wider candidate 1 dB lower
-    monkeypatch.setattr(wg, "psnr_common", lambda *a, **k: next(scores))
+    seen = []
+
+    def fake(model, pred, seq_, val, common, feather):  # the base 30 dB, every wider width `lose` dB lower
+        seen.append((model.config.reference_width, model.meta["train_frames"], tuple(val)))
+        return 30.0 - (lose if model.config.reference_width > 128 else 0.0)
+
+    monkeypatch.setattr(wg, "psnr_common", fake)
     cfg = FaceModelConfig(reference_width="auto", width_guard=0.2)
-    model, tex, report = wg.guard_width(seq, seq, rows, cfg, "linear", {}, SADMConfig(augment_sigma=0.0,
-                                        region_shrink=False), seq.landmarks, 2.0)
+    sadm_cfg = SADMConfig(augment_sigma=0.0, region_shrink=False)
+    lose = 1.0
+    model, tex, report = wg.guard_width(seq, seq, rows, cfg, "linear", {}, sadm_cfg, seq.landmarks, 2.0)
     assert report["chosen"] == 128 and model.config.reference_width == 128
-    assert tex.shape == (len(rows), model.n_channels * model.n_pixels)
-    assert [c["width"] for c in report["candidates"]] == wg.candidate_widths(want)
-    assert [c["cost_db"] for c in report["candidates"]] == [0.0] + [1.0] * (len(report["candidates"]) - 1)
-    assert report["val_frames"] == round(len(rows) * 0.15) and model.meta["width_guard"] == report
-    # a cost within the guard keeps the widest
-    scores = iter([30.0] + [29.9] * 5)
-    model, _, report = wg.guard_width(seq, seq, rows, cfg, "linear", {}, SADMConfig(augment_sigma=0.0,
-                                      region_shrink=False), seq.landmarks, 2.0)
+    assert tex.shape == (len(rows), model.n_channels * model.n_pixels) and model.meta["train_frames"] == len(rows)
+    widths = wg.candidate_widths(want)
+    assert [c["width"] for c in report["candidates"]] == widths
+    assert [c["cost_db"] for c in report["candidates"]] == [0.0] + [1.0] * (len(widths) - 1)
+    n_val = round(len(rows) * 0.15)
+    stops = wg.slice_stops(len(rows), n_val)
+    assert report["slices"] == [{"val_rows": [s - n_val, s], "fit_frames": s - 2 * n_val} for s in stops]
+    # every slice scored by a model fitted on the rows before it and its gap, never on the slice
+    assert seen == [(w, s - 2 * n_val, tuple(rows[s - n_val : s])) for w in widths for s in stops]
+    assert model.meta["width_guard"] == report
+    lose = 0.1  # within the guard: the widest
+    model, _, report = wg.guard_width(seq, seq, rows, cfg, "linear", {}, sadm_cfg, seq.landmarks, 2.0)
     assert report["chosen"] == want and model.config.reference_width == want
 
 
@@ -111,7 +135,7 @@ def test_the_recorded_choice_round_trips(tmp_path):
     assert model.meta["width_guard"] == report and model.config.reference_width == report["chosen"]
     assert model.config.width_guard == 0.1 and yaml.safe_load((tmp_path / "config.yaml").read_text())["model"]["width_guard"] == 0.1
     widths = [c["width"] for c in report["candidates"]]
-    psnr = [c["psnr_db"] for c in report["candidates"]]
-    assert len(widths) >= 2 and all(np.isfinite(psnr))
+    psnr = np.array([c["psnr_db"] for c in report["candidates"]])
+    assert len(widths) >= 2 and psnr.shape == (len(widths), len(report["slices"])) and np.isfinite(psnr).all()
     assert report["chosen"] == wg.choose_width(widths, psnr, 0.1)
-    assert [c["cost_db"] for c in report["candidates"]] == pytest.approx([psnr[0] - p for p in psnr])
+    assert [c["cost_db"] for c in report["candidates"]] == pytest.approx((psnr[0] - psnr).max(1))

@@ -311,14 +311,16 @@ def refitter(model: FaceModel, seq: FaceSequence, rows: np.ndarray, textures: np
 
 
 def held_out_predictions(model: FaceModel, seq: FaceSequence, rows: np.ndarray, textures: np.ndarray, name: str,
-                         params: dict | None = None, config: SADMConfig | None = None, seed: int = 0):
+                         params: dict | None = None, config: SADMConfig | None = None, seed: int = 0,
+                         n_val: int | None = None):
     """``(before, val, pred)`` of :func:`facesynth.model.restore.validation_predictions` for the
     mapping ``fit_sadm(model, seq, rows, textures, name, params, config, seed)`` would fit: its
-    validation slice (the last ``sadm.val_fraction`` of ``rows``) predicted by the mapping refitted
-    (:func:`refitter`) on the rows before the slice and a gap as long as it."""
+    validation slice (the last ``n_val`` of ``rows``; default :func:`validation_size`) predicted
+    by the mapping refitted (:func:`refitter`) on the rows before the slice and a gap as long as
+    it (``textures``: of those rows at least)."""
     cfg = resolve_sadm_config(name, config)
     fit = refitter(model, seq, rows, textures, name, dict(params or {}), cfg, seed)
-    return validation_predictions(fit, seq, rows, validation_size(cfg, len(rows)))
+    return validation_predictions(fit, seq, rows, validation_size(cfg, len(rows)) if n_val is None else n_val)
 
 
 def _predict(reg, x: np.ndarray, batch: int = 4096) -> np.ndarray:
