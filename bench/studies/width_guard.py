@@ -1,6 +1,6 @@
 """Does a validation slice predict the test frames' PSNR cost of a wider reference frame? One JSON line.
 
-    OMP_NUM_THREADS=1 python -m bench.studies.width_guard [--clips vrt_face5,lp_d13] [--ends 0.55,0.7,0.85,1]
+    OMP_NUM_THREADS=1 python -m bench.studies.width_guard [--clips vrt_face5,lp_d13]
 
 Per shared clip (default configuration, temporal split 75/25, ``data.smooth_landmarks`` as the
 default has it), at 128 px and at ``model.reference_width=auto``, without the restoration filter:
@@ -8,9 +8,10 @@ the face model and the SADM (the regressor as ``model.width_guard`` refits it:
 :func:`facesynth.sadm.fit.refitter`) fitted
 
 * on every training row, its predictions of the **test** frames;
-* for each ``--ends`` fraction ``e`` of the training rows, on the rows before a slice of the
-  validation's length (``sadm.val_fraction``) that ends at ``e`` and a gap as long, its
-  predictions of that **slice** (``e = 1`` is the slice ``model.width_guard`` scores);
+* for each validation slice ``model.width_guard`` scores (:func:`facesynth.runs.width_guard.slice_stops`:
+  the last four blocks of the validation's length, ``sadm.val_fraction``), on the rows before
+  the slice and a gap as long, its predictions of that **slice** (``slice_K``: the slice ends
+  at training row K; the last one is the restoration filter's guard's slice);
 
 each pasted into the real frames and scored over the common region
 (:func:`facesynth.eval.frame_level.psnr_common`). ``cost_db``: 128 px's PSNR minus the auto
@@ -35,12 +36,14 @@ from facesynth.eval.frame_level import psnr_common
 from facesynth.landmarks import get_scheme
 from facesynth.model.face_model import FaceModel, FaceModelConfig
 from facesynth.model.reference import reference_width
+from facesynth.model.restore import fit_size
 from facesynth.rundir import run_data
 from facesynth.runs.config import compose_config, regressor_params
+from facesynth.runs.width_guard import slice_stops
 from facesynth.sadm.fit import SADMConfig, refitter, resolve_sadm_config, validation_size
 
 
-def clip_costs(clip: str, ends: list[float]) -> dict:
+def clip_costs(clip: str) -> dict:
     cfg = compose_config(["data=video", f"data.path={shared_data_dir() / 'faces' / clip}"])
     seq, tr, te = run_data(cfg)
     common = common_landmarks(seq, None)
@@ -62,10 +65,8 @@ def clip_costs(clip: str, ends: list[float]) -> dict:
         return psnr_common(model, pred, seq, rows, common[rows], 2.0)
 
     segments = {"test": (tr, te)}
-    for e in ends:
-        stop = int(round(e * len(tr)))
-        if stop - 2 * n_val > 0:
-            segments[f"slice_{e:g}"] = (tr[: stop - 2 * n_val], tr[stop - n_val : stop])
+    for stop in slice_stops(len(tr), n_val):
+        segments[f"slice_{stop}"] = (tr[: fit_size(stop, n_val)], tr[stop - n_val : stop])
     out = {"clip": clip, "auto_width": auto, "train": len(tr), "test": len(te), "val_frames": n_val, "segments": {}}
     for seg, (fit_rows, rows) in segments.items():
         base, wide = score(128, fit_rows, rows), score(auto, fit_rows, rows)
@@ -77,12 +78,10 @@ def clip_costs(clip: str, ends: list[float]) -> dict:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--clips", default="vrt_face5,lp_d13", help="comma-separated shared clip names")
-    ap.add_argument("--ends", default="0.55,0.7,0.85,1", help="where the validation slices end (fractions of the training rows)")
     args = ap.parse_args()
     if shared_data_dir() is None:
         sys.exit("bench_width_guard: ../shared/data is absent")
-    ends = [float(e) for e in args.ends.split(",")]
-    emit({"bench": "width_guard", "clips": [clip_costs(c, ends) for c in args.clips.split(",")]})
+    emit({"bench": "width_guard", "clips": [clip_costs(c) for c in args.clips.split(",")]})
 
 
 if __name__ == "__main__":
