@@ -17,6 +17,7 @@ from facesynth.eval.sadm_eval import EvalConfig
 from facesynth.model import FaceModel, FaceModelConfig
 from facesynth.model.artifact import load_face_model
 from facesynth.model.reference import reference_width
+from facesynth.model.restore import slice_stops
 from facesynth.runs import width_guard as wg
 from facesynth.runs.config import compose_config
 from facesynth.runs.training import run_training
@@ -45,11 +46,11 @@ def test_choose_width_takes_the_worst_slice():
 
 
 def test_slice_stops():
-    assert wg.slice_stops(100, 15) == [55, 70, 85, 100]  # the last four blocks of 15 rows
-    assert wg.slice_stops(60, 10) == [30, 40, 50, 60]
-    assert wg.slice_stops(40, 10) == [30, 40]  # too few rows for a fit before the earlier blocks
-    assert wg.slice_stops(25, 10) == [25]  # the filter guard's one slice (and gap)
-    assert wg.slice_stops(20, 10) == [20]  # its slice without a gap
+    assert slice_stops(100, 15) == [55, 70, 85, 100]  # the last four blocks of 15 rows
+    assert slice_stops(60, 10) == [30, 40, 50, 60]
+    assert slice_stops(40, 10) == [30, 40]  # too few rows for a fit before the earlier blocks
+    assert slice_stops(25, 10) == [25]  # the filter guard's one slice (and gap)
+    assert slice_stops(20, 10) == [20]  # its slice without a gap
 
 
 def test_candidate_widths():
@@ -115,7 +116,7 @@ def test_the_guard_falls_back_to_128_when_the_wider_width_costs_more(synthetic, 
     assert [c["width"] for c in report["candidates"]] == widths
     assert [c["cost_db"] for c in report["candidates"]] == [0.0] + [1.0] * (len(widths) - 1)
     n_val = round(len(rows) * 0.15)
-    stops = wg.slice_stops(len(rows), n_val)
+    stops = slice_stops(len(rows), n_val)
     assert report["slices"] == [{"val_rows": [s - n_val, s], "fit_frames": s - 2 * n_val} for s in stops]
     # every slice scored by a model fitted on the rows before it and its gap, never on the slice
     assert seen == [(w, s - 2 * n_val, tuple(rows[s - n_val : s])) for w in widths for s in stops]

@@ -8,7 +8,7 @@ the face model and the SADM (the regressor as ``model.width_guard`` refits it:
 :func:`facesynth.sadm.fit.refitter`) fitted
 
 * on every training row, its predictions of the **test** frames;
-* for each validation slice ``model.width_guard`` scores (:func:`facesynth.runs.width_guard.slice_stops`:
+* for each validation slice ``model.width_guard`` scores (:func:`facesynth.model.restore.slice_stops`:
   the last four blocks of the validation's length, ``sadm.val_fraction``), on the rows before
   the slice and a gap as long, its predictions of that **slice** (``slice_K``: the slice ends
   at training row K; the last one is the restoration filter's guard's slice);
@@ -36,10 +36,9 @@ from facesynth.eval.frame_level import psnr_common
 from facesynth.landmarks import get_scheme
 from facesynth.model.face_model import FaceModel, FaceModelConfig
 from facesynth.model.reference import reference_width
-from facesynth.model.restore import fit_size
+from facesynth.model.restore import fit_size, slice_stops
 from facesynth.rundir import run_data
 from facesynth.runs.config import compose_config, regressor_params
-from facesynth.runs.width_guard import slice_stops
 from facesynth.sadm.fit import SADMConfig, refitter, resolve_sadm_config, validation_size
 
 

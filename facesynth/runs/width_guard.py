@@ -10,7 +10,8 @@ fitted on the training rows before a slice and a gap as long
 (:func:`facesynth.sadm.fit.held_out_predictions`), the slice's predictions pasted into their
 real frames and scored over the common region (:func:`facesynth.eval.frame_level.psnr_common`,
 what ``psnr_frame_common`` measures on the test frames). The slices are the last
-:data:`SLICES` blocks of the validation's length (:func:`slice_stops`): one slice misjudges
+blocks of the validation's length (:func:`facesynth.model.restore.slice_stops`, the filter's
+guard's too): one slice misjudges
 clips whose cost changes along the video (vrt_face5: 0.43 dB better at 256 px on the last
 slice, 0.66 dB worse on the test frames, 0.57 dB worse on the earliest slice;
 ``bench/studies/width_guard.py``). It keeps the widest width whose PSNR is at most ``G`` below
@@ -33,12 +34,11 @@ from facesynth.errors import FacesynthError
 from facesynth.eval.frame_level import psnr_common
 from facesynth.model.face_model import FaceModel, FaceModelConfig
 from facesynth.model.reference import AUTO_WIDTH, reference_width
-from facesynth.model.restore import fit_size
+from facesynth.model.restore import fit_size, slice_stops
 from facesynth.sadm.fit import SADMConfig, held_out_predictions, resolve_sadm_config, validation_size
 
 log = logging.getLogger(__name__)
 BASE_WIDTH = AUTO_WIDTH[0]  # the width every candidate's PSNR is compared with (today's default)
-SLICES = 4  # validation slices: the last SLICES blocks of the validation's length (slice_stops)
 
 
 def check_width_guard(value) -> float | None:
@@ -63,14 +63,6 @@ def candidate_widths(width: int) -> list[int]:
     step = AUTO_WIDTH[2]
     mid = int(round((BASE_WIDTH + width) / 2 / step)) * step
     return [BASE_WIDTH] + ([mid] if BASE_WIDTH < mid < width else []) + [int(width)]
-
-
-def slice_stops(n_rows: int, n_val: int, slices: int = SLICES) -> list[int]:
-    """Where the validation slices end (row counts, earliest first): the last ``slices`` blocks
-    of ``n_val`` rows, each kept only when the rows before it and a gap as long number at least
-    ``n_val`` (the last one always, as the filter's guard has it: without a gap when too few)."""
-    stops = [n_rows - k * n_val for k in range(slices - 1, 0, -1)]
-    return [stop for stop in stops if stop - 2 * n_val >= n_val] + [n_rows]
 
 
 def choose_width(widths, psnr_db, guard_db: float) -> int:

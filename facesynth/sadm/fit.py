@@ -78,8 +78,9 @@ class SADMConfig:
     shrink_folds : blocked cross-validation over this many contiguous blocks of the training
         segment, or (< 2) the validation slice (at least :data:`MIN_SHRINK_FRAMES` frames)
     restore_guard : with a face model holding a restoration filter (``model.restore=true``),
-        the PSNR (dB) the filter may cost on the validation slice's held-out predictions: its
-        strength is the largest that costs no more (:func:`facesynth.model.restore.choose_strength`);
+        the PSNR (dB) the filter may cost on held-out predictions of every validation slice
+        (:func:`facesynth.model.restore.slice_stops`): its strength is the largest that costs no
+        more (:func:`facesynth.model.restore.guard_restoration`);
         None (default) = the filter at full strength; :data:`~facesynth.model.restore.GUARD_DB` (0.05)
         trades some of its LPIPS gain for PSNR (docs/studies/example-detail.md)
     """
