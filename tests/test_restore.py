@@ -196,6 +196,9 @@ def test_sadm_fit_scales_the_filter_within_the_guard(restored):
                                                                           restore_guard=GUARD_DB))
     r = sadm.restore
     assert 0.0 <= r["strength"] <= 1.0 and r["psnr_change_db"] >= -r["guard_db"] and r["val_frames"] == 6
+    # every slice (blocks of 6 rows at the end of the 18 training rows, each after a gap of 6) within the guard
+    assert [sl["val_rows"] for sl in r["slices"]] == [[12, 18], [18, 24]] and r["fit_frames"] == 12
+    assert r["psnr_change_db"] == min(sl["psnr_change_db"] for sl in r["slices"]) >= -r["guard_db"]
     assert np.array_equal(m.restore_kernel, with_strength(full, r["strength"]))
     off = dataclasses.replace(model)
     fit_sadm(off, seq, np.arange(24), tex, "linear", {}, SADMConfig(region_shrink=False, restore_guard=None))

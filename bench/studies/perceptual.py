@@ -14,7 +14,10 @@ variant, held out, sigma 0, row ``sadm``, the face pasted into the real frame:
   frames (``lpips_frame_common``; needs the ``perceptual`` extra);
 * ``psnr_frame_common`` (dB), ``sharpness`` (the whole common region's, ``sharpness_frame_common``);
 * ``flicker_ratio``: the face's frame-to-frame change over the real frames' (``flicker_frame_common``);
-* ``train_s``: face model + SADM fit seconds (``timings_s``), ``model_mb``: the run's model files.
+* ``train_s``: face model + SADM fit seconds (``timings_s``; the width guard's fits included),
+  ``model_mb``: the run's model files;
+* ``width_px``: the reference width trained (``auto`` resolved, or the width guard's choice), and
+  ``width_guard``: the guard's report (``metrics.json``; None when off).
 
 The summary holds, per variant against ``today``, the issue's acceptance: the median over
 clips of the per-clip relative LPIPS change (face, mouth), the clips whose face LPIPS did not
@@ -61,6 +64,8 @@ def figures(run: Path) -> dict:
     return {
         **metric_figures(m),
         "reference_width": m["config"]["model"]["reference_width"],
+        "width_px": json.loads((run / "face_model" / "face_model.json").read_text())["config"]["reference_width"],
+        "width_guard": m.get("width_guard"),  # model.width_guard's choice and validation figures (None: off)
         "n_appearance": m["n_appearance"],
         "train_s": m["timings_s"]["face_model"] + m["timings_s"]["sadm_fit"],
         "model_mb": size / 1e6,

@@ -238,6 +238,31 @@ def frame_level(model, predict, seq, rows, tex_te, oracle, cfg, seed, keys, nois
     return pooled, per_frame, grid
 
 
+def psnr_common(model, textures: np.ndarray, seq, rows: np.ndarray, common: np.ndarray, feather: float = 2.0,
+                batch: int = 32) -> float:
+    """Pooled PSNR (dB) of ``textures`` (len(rows), C * M) rendered by ``model`` at the landmarks of
+    ``rows`` of ``seq``, pasted (feathered, as :func:`frame_level`) into their real frames, over the
+    common region (``whole``) of the rows' (len(rows), 68, 2) dlib landmarks ``common``:
+    ``psnr_frame_common``'s figure at sigma 0 for one row of textures. The region does not depend
+    on the model, so models at different reference widths are judged on the same pixels."""
+    rows = np.asarray(rows)
+    n_model = model.mean_shape.shape[0]
+    sum_sq, count = 0.0, 0
+    frames = seq.iter_frames(rows)
+    for start in range(0, len(rows), batch):
+        idx = np.arange(start, min(start + batch, len(rows)))
+        img, msk, plc = model.render(textures[idx], seq.landmarks[rows[idx]][:, :n_model])
+        for b, j in enumerate(idx):
+            frame = next(frames)
+            y0, y1, x0, x1 = box = hull_box(common[j], frame.shape[:2], MARGIN)
+            whole = region_masks(common[j], box)["whole"]
+            sub = frame[y0:y1, x0:x1]
+            out = composite(img[b], msk[b], _shift(plc[b], y0, x0), sub, feather)
+            sum_sq += float(((out - sub.astype(np.float64)) ** 2).sum(-1)[whole].sum())
+            count += 3 * int(whole.sum())
+    return _db(sum_sq, count)
+
+
 def _db(sum_sq: float, count: float) -> float:
     """PSNR (peak 255) of a summed squared error over ``count`` values."""
     return float(10 * np.log10(255.0**2 / (sum_sq / max(count, 1)))) if sum_sq > 0 else float("inf")

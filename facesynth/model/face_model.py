@@ -44,6 +44,7 @@ class FaceModelConfig:
     n_appearance: int | None = None
     appearance_variance: float = 0.98
     reference_width: int | str = 128  # px, or "auto": the training faces' width in the video (reference.py)
+    width_guard: float | None = None  # dB a width > 128 px may cost on validation (runs/width_guard.py); None = off
     margin: float = 0.1
     grey: bool = False
     antialias: bool = True  # Gaussian prefilter sigma = scale / 2 when the face is larger than the reference

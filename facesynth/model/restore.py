@@ -262,30 +262,69 @@ def choose_strength(curve: np.ndarray, strengths: np.ndarray = STRENGTHS, guard_
     return float(np.max(np.asarray(strengths)[ok])) if ok.any() else 0.0
 
 
-def guard_restoration(fit, model, seq, rows: np.ndarray, n_val: int, guard_db: float = GUARD_DB) -> dict:
-    """Scale ``model``'s restoration filter (in place) to the largest strength whose PSNR cost on
-    the validation slice (the last ``n_val`` of ``rows``) is at most ``guard_db``, the slice's
-    textures predicted by ``fit(indices into rows)``: a synthesiser fitted on the rows before it
-    and before a gap of ``n_val`` rows (what the filter will filter at run time, predictions of
-    frames that lie beyond the training frames, not the frames' own textures; without the gap the
-    slice's frames are too near the fit's, and the cost is underestimated: 0.16 against the test
-    segment's 0.35 dB on lp_d13). Returns the report: ``strength``, ``psnr_change_db`` at it,
-    ``psnr_change_full_db`` at strength 1 and ``curve_db`` (the change at :data:`STRENGTHS`)."""
-    kernel = model.restore_kernel
+def fit_size(n_rows: int, n_val: int) -> int:
+    """How many leading rows of ``n_rows`` a validation fit sees: those before the last ``n_val``
+    (the validation slice) and a gap as long (no gap when the rows are too few for one)."""
+    return n_rows - 2 * n_val if n_rows - 2 * n_val >= n_val else n_rows - n_val
+
+
+def validation_predictions(fit, seq, rows: np.ndarray, n_val: int) -> tuple[int, np.ndarray, np.ndarray]:
+    """``(before, val, pred)``: the validation slice ``val`` (the last ``n_val`` of ``rows``) and its
+    textures ``pred`` (n_val, C * M) predicted by ``fit(np.arange(before))``, a synthesiser fitted on
+    the first ``before`` rows: those before a gap of ``n_val`` rows (none when the rows are too few
+    for one), so that the slice's frames lie beyond the fit's as the test frames lie beyond the
+    training frames (see :func:`guard_restoration`)."""
     rows = np.asarray(rows)
-    before = len(rows) - 2 * n_val if len(rows) - 2 * n_val >= n_val else len(rows) - n_val  # short: no gap
+    before = fit_size(len(rows), n_val)
     syn = fit(np.arange(before))
     val = rows[len(rows) - n_val :]
     with torch.no_grad():
         pred = syn.texture(torch.from_numpy(seq.landmarks[val])).reshape(n_val, -1).numpy()
+    return before, val, pred
+
+
+VALIDATION_SLICES = 4  # the guards' validation slices (slice_stops)
+
+
+def slice_stops(n_rows: int, n_val: int, slices: int = VALIDATION_SLICES) -> list[int]:
+    """Where the guards' validation slices end (row counts, earliest first): the last ``slices``
+    blocks of ``n_val`` rows, each kept only when the rows before it and a gap as long number at
+    least ``n_val`` (the last one always: without a gap when the rows are too few for one). One
+    slice misjudges clips whose cost changes along the video: on vrt_face5 the filter at full
+    strength gains 0.50 dB on the last slice, loses 0.60 dB on the first and 0.56 dB on the test
+    frames (``bench/studies/width_guard.py`` shows the same for the reference width)."""
+    stops = [n_rows - k * n_val for k in range(slices - 1, 0, -1)]
+    return [stop for stop in stops if stop - 2 * n_val >= n_val] + [n_rows]
+
+
+def guard_restoration(fit, model, seq, rows: np.ndarray, n_val: int, guard_db: float = GUARD_DB) -> dict:
+    """Scale ``model``'s restoration filter (in place) to the largest strength whose PSNR cost is
+    at most ``guard_db`` on every validation slice (:func:`slice_stops`: blocks of ``n_val`` at
+    the end of ``rows``), each slice's textures predicted by ``fit(indices into rows)``: a
+    synthesiser fitted on the rows before it and before a gap of ``n_val`` rows (what the filter
+    will filter at run time, predictions of frames that lie beyond the training frames, not the
+    frames' own textures; without the gap the slice's frames are too near the fit's, and the cost
+    is underestimated: 0.16 against the test segment's 0.35 dB on lp_d13). Returns the report:
+    ``strength``, ``psnr_change_db`` at it, ``psnr_change_full_db`` at strength 1 and ``curve_db``
+    (the change at :data:`STRENGTHS`), each the worst slice's, and per slice (``slices``) its
+    ``val_rows`` [start, stop), ``fit_frames`` and ``psnr_change_db`` at the strength."""
+    kernel = model.restore_kernel
+    rows = np.asarray(rows)
+    curves, slices = [], []
     model.restore_kernel = None
     try:
-        curve = strength_curve(model, seq, val, pred, kernel)
+        for stop in slice_stops(len(rows), n_val):
+            before, val, pred = validation_predictions(fit, seq, rows[:stop], n_val)
+            curves.append(strength_curve(model, seq, val, pred, kernel))
+            slices.append({"val_rows": [stop - n_val, stop], "fit_frames": int(before)})
     finally:
         model.restore_kernel = kernel
+    curve = np.min(curves, 0)  # the worst slice at every strength
     strength = choose_strength(curve, STRENGTHS, guard_db)
     model.restore_kernel = with_strength(kernel, strength)
     at = int(np.flatnonzero(STRENGTHS == strength)[0])
-    return {"strength": strength, "guard_db": float(guard_db), "val_frames": int(n_val), "fit_frames": int(before),
+    for sl, c in zip(slices, curves, strict=True):
+        sl["psnr_change_db"] = float(c[at])
+    return {"strength": strength, "guard_db": float(guard_db), "val_frames": int(n_val), "fit_frames": slices[-1]["fit_frames"],
             "psnr_change_db": float(curve[at]), "psnr_change_full_db": float(curve[-1]),
-            "curve_db": [round(float(c), 4) for c in curve]}
+            "curve_db": [round(float(c), 4) for c in curve], "slices": slices}

@@ -28,10 +28,11 @@ from facesynth.eval.sadm_eval import EvalConfig, evaluate_sadm
 from facesynth.eval.talking_head import talking_head_figures
 from facesynth.io import dumps_json, write_text
 from facesynth.landmarks import get_scheme
-from facesynth.model.face_model import FaceModel, FaceModelConfig
+from facesynth.model.face_model import FaceModelConfig
 from facesynth.provenance import package_versions
 from facesynth.rundir import CONFIG, METRICS, PLOTS, load_data
 from facesynth.runs.config import regressor_params
+from facesynth.runs.width_guard import check_width_guard, guard_width
 from facesynth.sadm.fit import SADMConfig, fit_sadm, save_sadm
 
 log = logging.getLogger(__name__)
@@ -69,6 +70,7 @@ def run_training(cfg, out_dir: str | Path, on_fitted=None) -> dict:
     ``on_fitted``: called once the SADM is saved in ``out_dir`` (face_model/, sadm/), before the
     evaluation and the report (the studio exports and drives the avatar meanwhile); the run folder
     is the same in the end."""
+    check_width_guard(cfg.model.get("width_guard"))  # a bad setting fails before anything is written
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     seed_everything(cfg.seed)
@@ -93,18 +95,24 @@ def run_training(cfg, out_dir: str | Path, on_fitted=None) -> dict:
     # the common region's landmarks are found (or their absence reported) before any training
     common = (common_landmarks(seq, eval_cfg.common_landmarks)
               if eval_cfg.common_region and eval_cfg.frame_level and seq.has_frames else None)
+    model_cfg = _dataclass_from(cfg.model, FaceModelConfig)
+    name, params = regressor_params(cfg.regressor)
+    sadm_cfg = _dataclass_from(cfg.sadm, SADMConfig)
     with progress.stage("face model") as st:  # on the scheme's base points (ibug68+iris: the 68 dlib points)
         model_seq = seq.to_scheme(get_scheme(seq.scheme).base_scheme().name)
-        model, tex_tr = FaceModel.fit_with_textures(model_seq, _dataclass_from(cfg.model, FaceModelConfig), rows=tr)
+        guard_common = common
+        if model_cfg.width_guard is not None and common is None and seq.has_frames:
+            guard_common = common_landmarks(seq, eval_cfg.common_landmarks)
+        model, tex_tr, width_report = guard_width(seq, model_seq, tr, model_cfg, name, params, sadm_cfg, guard_common,
+                                                  eval_cfg.feather, cfg.seed)
         st.set(f"{len(tr)} training frames, {model.shape_pca.n_components} shape / "
                f"{model.appearance_pca.n_components} appearance components")
     if float(np.ptp(tex_tr)) < 0.5 / 255:  # below half a grey level: float rounding of one colour
         raise FacesynthError(f"{seq.name}: the training frames have the same colour everywhere on the face "
                              "(a plain-colour video?): there is no appearance to learn")
     t1 = time.perf_counter()
-    name, params = regressor_params(cfg.regressor)
     with progress.stage(f"SADM fit ({name})"):
-        sadm = fit_sadm(model, seq, tr, tex_tr, name, params, _dataclass_from(cfg.sadm, SADMConfig), cfg.seed)
+        sadm = fit_sadm(model, seq, tr, tex_tr, name, params, sadm_cfg, cfg.seed)
     t2 = time.perf_counter()
     provenance = {
         "facesynth_version": __version__,
@@ -128,6 +136,7 @@ def run_training(cfg, out_dir: str | Path, on_fitted=None) -> dict:
     metrics.update({
         "timings_s": {"face_model": t1 - t0, "sadm_fit": t2 - t1, "evaluate": t3 - t2},
         "regressor_summary": sadm.regressor.summary(),
+        **({"width_guard": width_report} if width_report is not None else {}),
         **provenance,
     })
     try:  # a figure that is not valid JSON fails here, before any artifact is written

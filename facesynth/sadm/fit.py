@@ -34,7 +34,7 @@ from facesynth.landmarks import get_scheme
 from facesynth.model.artifact import load_face_model, save_face_model
 from facesynth.model.artifact import read_manifest as face_model_manifest
 from facesynth.model.face_model import FaceModel
-from facesynth.model.restore import guard_restoration
+from facesynth.model.restore import guard_restoration, validation_predictions
 from facesynth.regressors import REGISTRY, Regressor, search
 from facesynth.sadm.compress import compress_synthesizer
 from facesynth.sadm.gaze import TARGETS as GAZE_TARGETS
@@ -78,8 +78,9 @@ class SADMConfig:
     shrink_folds : blocked cross-validation over this many contiguous blocks of the training
         segment, or (< 2) the validation slice (at least :data:`MIN_SHRINK_FRAMES` frames)
     restore_guard : with a face model holding a restoration filter (``model.restore=true``),
-        the PSNR (dB) the filter may cost on the validation slice's held-out predictions: its
-        strength is the largest that costs no more (:func:`facesynth.model.restore.choose_strength`);
+        the PSNR (dB) the filter may cost on held-out predictions of every validation slice
+        (:func:`facesynth.model.restore.slice_stops`): its strength is the largest that costs no
+        more (:func:`facesynth.model.restore.guard_restoration`);
         None (default) = the filter at full strength; :data:`~facesynth.model.restore.GUARD_DB` (0.05)
         trades some of its LPIPS gain for PSNR (docs/studies/example-detail.md)
     """
@@ -237,7 +238,7 @@ def fit_sadm(
     def features(landmarks):
         return main_features(model, cfg, scheme, landmarks)
 
-    n_val = int(round(len(rows) * cfg.val_fraction))
+    n_val = validation_size(cfg, len(rows))
     fit_idx, val_idx = np.arange(len(rows) - n_val), np.arange(len(rows) - n_val, len(rows))
     rng = np.random.default_rng(seed)
     rng_extra = np.random.default_rng([seed, 1])  # noise on points beyond the model's: the model's own draws unchanged
@@ -279,11 +280,7 @@ def fit_sadm(
     if use_gaze and cfg.gaze_mode in ("path", "both"):
         gaze = _fit_gaze(model, cfg, scheme, name, params, reg.eval(), x, yy, model_input(model, lm_all), pos, len(rows), seed)
         log.info("gaze path: alpha %g", gaze.alpha)
-    probe = replace(cfg, region_shrink=False, search=False, gaze_folds=0, restore_guard=None)  # in-sample gaze residuals
-
-    def refit(i):  # the mapping fitted on rows[i] alone, for held-out predictions of the others
-        return fit_sadm(model, seq, rows[i], textures[i], name, params, probe, seed).synthesizer()
-
+    refit = refitter(model, seq, rows, textures, name, params, cfg, seed)
     shrink = None
     if cfg.region_shrink and (cfg.shrink_folds >= 2 or n_val >= MIN_SHRINK_FRAMES):
         shrink = fit_region_shrink(refit, model, lm, textures, cfg.shrink_folds, n_val)
@@ -293,6 +290,38 @@ def fit_sadm(
         restore = guard_restoration(refit, model, seq, rows, n_val, cfg.restore_guard)
         log.info("restoration filter: strength %g (validation PSNR %+.3f dB)", restore["strength"], restore["psnr_change_db"])
     return SADM(model, reg.eval(), name, cfg, reg.config_dict(), table, scheme.name, gaze, shrink, restore)
+
+
+def validation_size(cfg: SADMConfig, n_rows: int) -> int:
+    """The validation slice's length (rows at the end of the training rows) under ``cfg.val_fraction``."""
+    return int(round(n_rows * cfg.val_fraction))
+
+
+def refitter(model: FaceModel, seq: FaceSequence, rows: np.ndarray, textures: np.ndarray, name: str, params: dict,
+             cfg: SADMConfig, seed: int = 0):
+    """``fit(i)``: the synthesiser of the mapping fitted on ``rows[i]`` alone (``textures[i]``), for
+    held-out predictions of the other rows: ``cfg`` without the search, the per-region shrinkage
+    and the filter's guard, the gaze path on in-sample residuals."""
+    probe = replace(cfg, region_shrink=False, search=False, gaze_folds=0, restore_guard=None)
+    rows = np.asarray(rows)
+
+    def fit(i):
+        return fit_sadm(model, seq, rows[i], textures[i], name, params, probe, seed).synthesizer()
+
+    return fit
+
+
+def held_out_predictions(model: FaceModel, seq: FaceSequence, rows: np.ndarray, textures: np.ndarray, name: str,
+                         params: dict | None = None, config: SADMConfig | None = None, seed: int = 0,
+                         n_val: int | None = None):
+    """``(before, val, pred)`` of :func:`facesynth.model.restore.validation_predictions` for the
+    mapping ``fit_sadm(model, seq, rows, textures, name, params, config, seed)`` would fit: its
+    validation slice (the last ``n_val`` of ``rows``; default :func:`validation_size`) predicted
+    by the mapping refitted (:func:`refitter`) on the rows before the slice and a gap as long as
+    it (``textures``: of those rows at least)."""
+    cfg = resolve_sadm_config(name, config)
+    fit = refitter(model, seq, rows, textures, name, dict(params or {}), cfg, seed)
+    return validation_predictions(fit, seq, rows, validation_size(cfg, len(rows)) if n_val is None else n_val)
 
 
 def _predict(reg, x: np.ndarray, batch: int = 4096) -> np.ndarray:
