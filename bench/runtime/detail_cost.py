@@ -33,7 +33,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import json
 import sys
 import tempfile
 import time
@@ -42,7 +41,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from bench.harness import load_average
+from bench.harness import emit
 from bench.runtime.render_floor import floor_step
 from bench.runtime.talking_head_graph import profile, profile_table, split
 from facesynth.data import load_sequence, temporal_split
@@ -54,7 +53,6 @@ from facesynth.onnx.synthesis import compress_for_export, export_synthesizer, qu
 from facesynth.onnx.talking_head import TalkingHeadGraph, export_talking_head
 from facesynth.regressors import REGISTRY
 from facesynth.runtime import Renderer
-from facesynth.runtime.cpu import cpu_flags
 from facesynth.runtime.reenact import Avatar, driver_neutral_of
 from facesynth.runtime.talking_head import TalkingHead
 from facesynth.sadm.synthesis import GlobalAppearance, Synthesizer
@@ -193,9 +191,7 @@ def main() -> None:
                 print(f"{name}: talking head, ms per frame with the profiler on\n" + profile_table(o["profile_head"]),
                       file=sys.stderr)
                 print(f"{name}: face-only graph\n" + profile_table(o["profile_face"]), file=sys.stderr)
-    out["cpu_flags"] = sorted(cpu_flags(Path("/proc/cpuinfo").read_text()) & {"avx2", "avx512_vnni", "avx_vnni", "amx_int8"})
-    out["load_avg"] = round(load_average(), 2)
-    print(json.dumps(out))
+    emit(out)  # with the host (CPU model, flags, cores) and the load average at the end
 
 
 if __name__ == "__main__":

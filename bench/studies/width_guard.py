@@ -27,7 +27,6 @@ from dataclasses import replace
 
 import numpy as np
 import torch
-from omegaconf import OmegaConf
 
 from bench.harness import emit
 from facesynth.data.shared import shared_data_dir
@@ -38,7 +37,7 @@ from facesynth.model.face_model import FaceModel, FaceModelConfig
 from facesynth.model.reference import reference_width
 from facesynth.model.restore import fit_size, slice_stops
 from facesynth.rundir import run_data
-from facesynth.runs.config import compose_config, regressor_params
+from facesynth.runs.config import compose_config, dataclass_from, regressor_params
 from facesynth.sadm.fit import SADMConfig, refitter, resolve_sadm_config, validation_size
 
 
@@ -47,10 +46,8 @@ def clip_costs(clip: str) -> dict:
     seq, tr, te = run_data(cfg)
     common = common_landmarks(seq, None)
     name, params = regressor_params(cfg.regressor)
-    node = OmegaConf.to_container(cfg, resolve=True)
-    sadm_cfg = resolve_sadm_config(name, SADMConfig(**{k: v for k, v in node["sadm"].items()
-                                                        if k in SADMConfig.__dataclass_fields__}))
-    model_cfg = FaceModelConfig(**{k: v for k, v in node["model"].items() if k in FaceModelConfig.__dataclass_fields__})
+    sadm_cfg = resolve_sadm_config(name, dataclass_from(cfg.sadm, SADMConfig))
+    model_cfg = dataclass_from(cfg.model, FaceModelConfig)
     model_seq = seq.to_scheme(get_scheme(seq.scheme).base_scheme().name)
     auto = reference_width("auto", model_seq.landmarks[tr])
     n_val = validation_size(sadm_cfg, len(tr))

@@ -113,6 +113,14 @@ def register_configs() -> None:
         cs.store(group="regressor_schema", name=name, node=regressor_schema(name))
 
 
+def dataclass_from(node, cls):
+    """An instance of the config dataclass ``cls`` from a config node (or dict) holding its
+    fields, among others (a ``model`` or ``sadm`` node of the training config)."""
+    d = OmegaConf.to_container(node, resolve=True) if not isinstance(node, dict) else node
+    names = {f.name for f in dataclasses.fields(cls)}
+    return cls(**{k: v for k, v in d.items() if k in names})
+
+
 def regressor_params(node) -> tuple[str, dict]:
     """(name, hyper-parameters) from a ``regressor`` config node."""
     d = OmegaConf.to_container(node, resolve=True) if not isinstance(node, dict) else dict(node)

@@ -9,7 +9,6 @@ from __future__ import annotations
 import logging
 import random
 import time
-from dataclasses import fields
 from pathlib import Path
 
 import numpy as np
@@ -31,7 +30,7 @@ from facesynth.landmarks import get_scheme
 from facesynth.model.face_model import FaceModelConfig
 from facesynth.provenance import package_versions
 from facesynth.rundir import CONFIG, METRICS, PLOTS, load_data
-from facesynth.runs.config import regressor_params
+from facesynth.runs.config import dataclass_from, regressor_params
 from facesynth.runs.width_guard import check_width_guard, guard_width
 from facesynth.sadm.fit import SADMConfig, fit_sadm, save_sadm
 
@@ -57,12 +56,6 @@ def check_training_data(seq: FaceSequence, data_cfg) -> None:
                              f"{lm_file or seq.name}: landmarks only, no frames to train on (give an ingest folder "
                              "with its video, a folder of images + .pts, or an .npz with frames)")
     check_face_size(seq.landmarks, str(lm_file or seq.name))
-
-
-def _dataclass_from(node, cls):
-    d = OmegaConf.to_container(node, resolve=True) if not isinstance(node, dict) else node
-    names = {f.name for f in fields(cls)}
-    return cls(**{k: v for k, v in d.items() if k in names})
 
 
 def run_training(cfg, out_dir: str | Path, on_fitted=None) -> dict:
@@ -91,13 +84,13 @@ def run_training(cfg, out_dir: str | Path, on_fitted=None) -> dict:
         return metrics
     if cfg.model.kind != "aam":
         raise FacesynthError(f"model.kind must be 'aam' or 'eri', got {cfg.model.kind!r}")
-    eval_cfg = _dataclass_from(cfg.eval, EvalConfig)
+    eval_cfg = dataclass_from(cfg.eval, EvalConfig)
     # the common region's landmarks are found (or their absence reported) before any training
     common = (common_landmarks(seq, eval_cfg.common_landmarks)
               if eval_cfg.common_region and eval_cfg.frame_level and seq.has_frames else None)
-    model_cfg = _dataclass_from(cfg.model, FaceModelConfig)
+    model_cfg = dataclass_from(cfg.model, FaceModelConfig)
     name, params = regressor_params(cfg.regressor)
-    sadm_cfg = _dataclass_from(cfg.sadm, SADMConfig)
+    sadm_cfg = dataclass_from(cfg.sadm, SADMConfig)
     with progress.stage("face model") as st:  # on the scheme's base points (ibug68+iris: the 68 dlib points)
         model_seq = seq.to_scheme(get_scheme(seq.scheme).base_scheme().name)
         guard_common = common
