@@ -62,9 +62,10 @@ ERI_METADATA_KEYS = (
 # optional keys of a synthesis file that can be driven by another face (written by
 # facesynth.onnx.avatar, read by facesynth.runtime.reenact): the avatar's neutral landmarks
 # (68, 2) frame px, their clip row, the shape PCA {mean, components, limit}, the avatar's
-# own frame (base64 JPEG) and its size [W, H]
+# own frame (base64 JPEG) and its size [W, H], and (478-point avatars) the training frames as the
+# studio's coverage meter reads them (facesynth.coverage.recording_entry; read by the live page)
 AVATAR_METADATA_KEYS = ("avatar_neutral", "avatar_neutral_row", "avatar_neutral_rule", "shape_pca", "background_jpeg",
-                        "frame_size")
+                        "frame_size", "coverage_recording")
 
 # Every metadata field of every file kind: its order and unit, written once. Sizes of a frame
 # (what a person calls "W x H") are [W, H]; sizes of the arrays a model renders into (the
@@ -89,6 +90,10 @@ METADATA_FIELDS = {
     "avatar_neutral_rule": "str: how the neutral was chosen (facesynth.neutral.select_neutral)",
     "shape_pca": "{mean (2P,), components (K, 2P), limit (K,)}: the avatar's shape PCA, (x, y) interleaved",
     "background_jpeg": "str: base64 JPEG of the avatar's neutral frame, frame_size [W, H]",
+    "coverage_recording": "{features [F names], scale (F,), neutral (F,), keep_fps int or null, z (T, F)}: the training "
+                          "frames kept at keep_fps frames/s (all when null), T <= 1000, as the coverage meter's F features "
+                          "(facesynth.coverage.FEATURES: ratios of distances), z = (features - neutral) / scale, neutral "
+                          "the features of avatar_neutral; 478-point avatars only",
     "frame_motion": "{coefficients (K - P, 2), ...}: the full-frame warp's learned motion (facesynth.onnx.headmotion)",
     "kind": "str: 'eri'",
     "driver": "str: the ERI model's SVR variant",

@@ -1,5 +1,5 @@
 """The coverage meter's study (bench/studies/coverage_heldout.py) and the meter's distance
-(facesynth.web.coverage.distance), against independent references: scikit-learn's
+(facesynth.coverage.distance), against independent references: scikit-learn's
 neighbours, scipy's Spearman correlation and sign test, the textbook partial correlation."""
 
 from __future__ import annotations
@@ -10,8 +10,8 @@ from scipy.stats import binomtest, spearmanr
 from sklearn.neighbors import NearestNeighbors
 
 from bench.studies.coverage_heldout import partial_spearman, per_frame_study, shape_distance, within_clips
+from facesynth import coverage
 from facesynth.geometry import apply_affine, generalised_procrustes, similarity_fit
-from facesynth.web import coverage
 
 
 def test_distance_is_the_mean_over_the_nearest_frames_and_reach_its_clipped_complement():

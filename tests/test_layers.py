@@ -2,7 +2,7 @@
 module, those inside functions included, must go down or sideways within its own part.
 
 ground   errors, io, metrics, landmarks, landmark_tables, geometry, compositing, provenance, contract, artifact, ops,
-         progress, neutral, faps, shape_space, retarget, videofile, sheet
+         progress, neutral, coverage, faps, shape_space, retarget, videofile, sheet
 stages   data; model (data); regressors; sadm (data, model, regressors); eri (data, model, regressors);
          mesh (data); codec (data): siblings never import each other
 runtime  torch-free: the runtime, the data layer and the ground only
@@ -26,7 +26,7 @@ import pytest
 PACKAGE = Path(__file__).resolve().parents[1] / "facesynth"
 
 GROUND = {"facesynth", "errors", "io", "metrics", "landmarks", "landmark_tables", "geometry", "compositing", "provenance",
-          "contract", "artifact", "ops", "progress", "neutral", "faps", "shape_space", "retarget", "videofile", "sheet"}
+          "contract", "artifact", "ops", "progress", "neutral", "coverage", "faps", "shape_space", "retarget", "videofile", "sheet"}
 # the top floor, lowest first: a part may import the parts of lower ranks (and the stages and the ground)
 TOP_RANKS = [{"rundir"}, {"onnx"}, {"eval"}, {"runs"}, {"batch", "web"}, {"cli"}]
 RANK = {p: i for i, parts in enumerate(TOP_RANKS) for p in parts}

@@ -22,7 +22,7 @@ from _page import require_page
 require_page(open_in_browser=True)
 
 from bench import browser  # noqa: E402
-from facesynth.web import coverage  # noqa: E402
+from facesynth import coverage  # noqa: E402
 from facesynth.web.studio import Studio  # noqa: E402
 
 SHOTS = Path(os.environ.get("FACESYNTH_WEB_SHOTS", "/tmp"))
@@ -300,7 +300,7 @@ def test_self_reach_against_scikit_learn_neighbours():
     steps = np.repeat(np.arange(4)[:, None] * 10.0 * np.asarray(coverage.SCALE), b, axis=0)  # 4 expressions, one block each
     assert coverage.self_reach(steps) == 0.0 and coverage.self_reach(np.zeros((0, 8))) == 0.0
     # the page keeps KEEP_FPS frames a second: coverage.js's blocks are the same second
-    js = (Path(coverage.__file__).parent / "page" / "coverage.js").read_text()
+    js = (Path(coverage.__file__).parent / "web" / "page" / "coverage.js").read_text()
     assert re.search(r"KEEP_FPS = (\d+), BLOCK = KEEP_FPS", js).group(1) == str(coverage.KEEP_FPS) == str(coverage.BLOCK)
 
 

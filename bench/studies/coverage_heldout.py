@@ -16,7 +16,7 @@ clip's own difficulty (lighting, texture, camera). The other readings: the same 
 after the recording held fixed (partial Spearman: later frames are farther in shape and in
 lighting alike); two baselines, time alone and the distance from the recording's median (how
 unusual a frame is rather than how far from the nearest recorded ones); two variants of the
-distance, the 10 nearest frames instead of :data:`~facesynth.web.coverage.NEAREST`, and the
+distance, the 10 nearest frames instead of :data:`~facesynth.coverage.NEAREST`, and the
 68-point shape (MediaPipe's iBUG-68 view, Procrustes-aligned to the recording) instead of the
 8 features; and the dlib 68 points the model is trained on, aligned alike (not known to the
 page).
@@ -50,18 +50,6 @@ from bench.harness import emit, host
 
 RUN_FRAMES = 100  # training frames evaluated per run (evenly spaced): the training-level figure
 N_BOOT = 2000
-
-
-def kept(n: int, fps: float, keep_fps: float) -> np.ndarray:
-    """Indices of the frames the page keeps of ``n`` camera frames at ``fps``: a frame when at
-    least 1/keep_fps - 2 ms passed since the last kept one (studio.js's rule)."""
-    out, last = [], -1e9
-    for i in range(n):
-        t = i / fps
-        if t - last >= 1 / keep_fps - 0.002:
-            out.append(i)
-            last = t
-    return np.asarray(out)
 
 
 def correlations(x: list[float], y: list[float], rng: np.random.Generator, n_boot: int = N_BOOT) -> dict:
@@ -154,8 +142,8 @@ def frame_readings(lm: np.ndarray, dlib: np.ndarray, rec: np.ndarray, frames: np
     """Per held-out frame (video frames ``frames``), distances to the recording (video frames
     ``rec``): larger is farther, i.e. expected worse. ``lm``: the clip's MediaPipe points,
     ``dlib``: its dlib 68 points."""
+    from facesynth.coverage import SCALE, distance, features
     from facesynth.landmarks import get_scheme
-    from facesynth.web.coverage import SCALE, distance, features
 
     z = features(lm) / np.asarray(SCALE)
     mp68 = np.einsum("kp,tpc->tkc", get_scheme("mediapipe478").ibug68_matrix(), lm.astype(np.float64))
@@ -193,10 +181,10 @@ def per_frame_study(data: dict, rng: np.random.Generator) -> dict:
 def main() -> None:
     import argparse
 
+    from facesynth.coverage import KEEP_FPS, SCALE, coverage, features, heldout_coverage, kept, self_reach
     from facesynth.data import temporal_split
     from facesynth.data.ingest import ingest_video
     from facesynth.data.shared import shared_data_dir
-    from facesynth.web.coverage import KEEP_FPS, SCALE, coverage, features, heldout_coverage, self_reach
 
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--runs", required=True, help="a folder of trained default runs, DIR/CLIP or DIR/CLIP__* (only read)")
@@ -224,7 +212,7 @@ def main() -> None:
             tr, te = temporal_split(len(lm))
             if not np.array_equal(np.sort(ev["test_frame"]), te):
                 raise SystemExit(f"{found[clip]}: its held-out frames are not the last 25 % of {clip}'s {len(lm)} frames")
-            rec = tr[kept(len(tr), fps, KEEP_FPS)]
+            rec = tr[kept(np.arange(len(tr)) / fps)]
             c = coverage([{"id": "recording", "directions": [], "points": list(lm[rec])}])
             f = features(lm[rec])
             z = f / np.asarray(SCALE)

@@ -18,7 +18,9 @@ into its ONNX metadata at export time (torch-side; the runtime reads it with
   head's ring, chosen on ``headmotion.VALIDATION`` others
   (:func:`facesynth.onnx.headmotion.fit_frame_motion`: ``coefficients`` (K - 68, 2),
   ``frames``, ``lambda``, ``points_fitted``, ``ring_scale``, ``ring_scores``,
-  ``validation_frames``).
+  ``validation_frames``);
+* ``coverage_recording`` (478-point avatars): the training frames as the studio's coverage
+  meter reads them (:func:`facesynth.coverage.recording_entry`), for the page's live reach.
 """
 
 from __future__ import annotations
@@ -30,6 +32,7 @@ import logging
 import cv2
 import numpy as np
 
+from facesynth.coverage import RECORDING_KEY, recording_entry
 from facesynth.errors import FacesynthError
 from facesynth.landmarks import eye_openings
 from facesynth.neutral import select_neutral
@@ -73,7 +76,9 @@ def shape_space(syn, landmarks: np.ndarray | None = None, neutral: np.ndarray | 
 def avatar_metadata(syn, landmarks: np.ndarray, rows: np.ndarray | None = None, sequence=None) -> dict:
     """Metadata entries for reenactment: the neutral among ``landmarks`` (N, P, 2) (the
     training frames; ``rows`` their indices in ``sequence``), the shape PCA and, when
-    ``sequence`` has frames, the neutral frame as background."""
+    ``sequence`` has frames, the neutral frame as background; for 478-point (MediaPipe)
+    landmarks, the training frames as the coverage meter reads them, kept at its frame rate
+    when ``sequence`` gives their times."""
     lm = np.asarray(landmarks, np.float32)
     idx, info = select_neutral(lm)
     row = int(rows[idx]) if rows is not None else idx
@@ -84,6 +89,13 @@ def avatar_metadata(syn, landmarks: np.ndarray, rows: np.ndarray | None = None, 
         meta["background_jpeg"] = encode_jpeg(frame)
         meta["frame_size"] = [int(frame.shape[1]), int(frame.shape[0])]
         meta["frame_motion"] = frame_motion(frame, lm[idx], lm, rows, sequence)
+    if lm.shape[1] == 478 and getattr(syn, "scheme", "ibug68") == "mediapipe478":
+        times = None
+        if sequence is not None and sequence.fps:
+            times = np.asarray(sequence.frame_index)[np.arange(len(lm)) if rows is None else np.asarray(rows)] / float(sequence.fps)
+        entry = recording_entry(lm, meta["avatar_neutral"], times)
+        if entry is not None:
+            meta[RECORDING_KEY] = entry
     return meta
 
 

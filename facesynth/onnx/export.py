@@ -143,11 +143,13 @@ def brief(meta: dict) -> dict:
     """The metadata for the summary: the avatar's bulky entries (its neutral
     landmarks, shape PCA, neutral frame as base64 JPEG: tens of kB) are stored in the model
     but only described here."""
-    out = {k: v for k, v in meta.items() if k not in ("avatar_neutral", "shape_pca", "background_jpeg")}
+    out = {k: v for k, v in meta.items() if k not in ("avatar_neutral", "shape_pca", "background_jpeg", "coverage_recording")}
     if "shape_pca" in meta:
         out["shape_pca_components"] = len(meta["shape_pca"]["limit"])
     if "background_jpeg" in meta:
         out["background_jpeg_chars"] = len(meta["background_jpeg"])
+    if "coverage_recording" in meta:
+        out["coverage_recording_frames"] = len(meta["coverage_recording"]["z"])
     return out
 
 

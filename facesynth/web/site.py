@@ -19,7 +19,7 @@ from facesynth.io import atomic_dir, check_writable, refuse_overwriting_inputs, 
 
 PAGE = Path(__file__).resolve().parent / "page"  # the page and its npm manifest: package data
 PAGE_FILES = ("index.html", "main.js", "workers.js", "worker.js", "tracker.js", "neutral.js", "schemes.js", "onnxmeta.js",
-              "style.css")
+              "coverage.js", "style.css")
 NPM_FILES = ("package.json", "package-lock.json")
 ORT_FILES = ("ort.wasm.min.mjs", "ort-wasm-simd-threaded.mjs", "ort-wasm-simd-threaded.wasm")
 AVATAR, AVATAR_DATA = "avatar.onnx", "avatar.onnx.data"  # the page's avatar: graph, weights

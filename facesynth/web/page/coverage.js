@@ -1,6 +1,6 @@
 // The studio's coverage meter: how well the recording reaches the expressions the avatar will be
 // driven through, per prompt and overall, and which prompts are missing or weak. Step for step the Python reference
-// facesynth/web/coverage.py (its docstring gives the measure); tested against it on the same
+// facesynth/coverage.py (its docstring gives the measure); tested against it on the same
 // points (tests/test_web_studio.py).
 import { toScheme } from './schemes.js';
 
@@ -96,4 +96,68 @@ export function coverage(prompts, rows) {
   const dirs = Object.fromEntries(dirNames.map((d) => [d, directionCoverage(every, neutral, d)]));
   return { prompts: out, directions: dirs, overall: avg(Object.values(dirs)), self_reach: selfReach(every),
     missing: prompts.filter((p) => out[p.id] < WEAK).map((p) => p.id) };
+}
+
+// -- the live reach: how well the avatar's recording reaches the driver's expression -----------
+// The avatar's file carries its training frames as this meter reads them (metadata
+// coverage_recording, facesynth/coverage.py recording_entry: z from the avatar's neutral); a
+// driver frame's z is taken from the driver's neutral. Python reference: driver_reach.
+export const RECORDING_KEY = 'coverage_recording';
+
+// an avatar's coverage_recording entry, checked -> {z: [[F numbers]], scale: [F]}; throws an
+// Error naming the field for a malformed entry (read_recording's checks)
+export function readRecording(entry) {
+  const bad = (what) => new Error(`${RECORDING_KEY}: ${what} (re-export the avatar)`);
+  if (!entry || typeof entry !== 'object' || Array.isArray(entry)) throw bad('expected an object');
+  if (JSON.stringify(entry.features) !== JSON.stringify(FEATURES)) throw bad(`its features are not the meter's ${FEATURES.join(', ')}`);
+  const num = (v) => typeof v === 'number' && Number.isFinite(v);
+  const vec = (key, v) => {
+    if (!Array.isArray(v) || v.length !== FEATURES.length) throw bad(`${key} must hold ${FEATURES.length} numbers`);
+    if (!v.every(num)) throw bad(`${key} has values that are not finite`);
+    return v;
+  };
+  const scale = vec('scale', entry.scale);
+  vec('neutral', entry.neutral);
+  if (!scale.every((s) => s > 0)) throw bad('scale has values that are not positive');
+  if (!Array.isArray(entry.z) || !entry.z.length) throw bad('z must hold at least one row');
+  return { z: entry.z.map((row) => vec('z', row)), scale };
+}
+
+// a driver frame's reach by a recording (readRecording's): points and the driver's neutral, both
+// 478 x 2 flat (the tracker's), rows: mediapipe478's to_ibug68; NaN when its features are not finite
+export function driverReach(rec, points, neutral, rows, neutralFeatures = features(neutral, rows)) {
+  const f = features(points, rows), z = f.map((v, k) => (v - neutralFeatures[k]) / rec.scale[k]);
+  return z.every(Number.isFinite) ? reach(rec.z, z) : NaN;
+}
+
+// The readout beside the avatar: the current frame's reach (a <meter>) and the mean over the
+// drive so far (since the avatar or the driver's neutral changed); hidden without an entry.
+export class ReachReadout {
+  constructor(el, rows) {
+    Object.assign(this, { el, rows, rec: null, neutral: null, now: NaN, sum: 0, n: 0 });
+  }
+
+  // an avatar's metadata -> null, or the one-line message for a malformed entry (readout hidden)
+  setAvatar(meta) {
+    this.rec = null; this.neutral = null;
+    this.el.hidden = true;
+    if (!meta || !(RECORDING_KEY in meta)) return null;  // exported before the entry (or an iBUG-68 avatar)
+    try { this.rec = readRecording(meta[RECORDING_KEY]); return null; }
+    catch (e) { return `No reach readout: ${e.message}. The avatar drives as usual.`; }
+  }
+
+  // a tracked frame (and the driver's neutral, null while it is captured) -> the readout
+  update(points, neutral) {
+    if (!this.rec || !points || !neutral) return;
+    if (neutral !== this.neutral) { this.neutral = neutral; this.nf = features(neutral, this.rows); this.sum = 0; this.n = 0; }
+    const r = driverReach(this.rec, points, neutral, this.rows, this.nf);
+    if (Number.isNaN(r)) return;
+    this.now = r; this.sum += r; this.n++;
+    const pct = (v) => `${Math.round(100 * v)} %`, mean = this.sum / this.n;
+    this.el.querySelector('meter').value = r;
+    this.el.querySelector('.now').textContent = pct(r);
+    this.el.querySelector('.mean').textContent = pct(mean);
+    this.el.classList.toggle('weak', r < WEAK);
+    this.el.hidden = false;
+  }
 }

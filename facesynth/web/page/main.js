@@ -5,6 +5,7 @@
 // the current one (loadAvatar): a file that fails leaves with its worker, memory and all. Where that worker's stage (tracker + avatar) takes longer than a frame's
 // budget, the avatar moves to a second worker and renders beside the tracker (docs/web.md).
 // URL options: ?workers=1|2|auto (default auto) and ?stage_ms=N (auto's budget, default 30).
+import { driverReach, ReachReadout, readRecording } from './coverage.js';
 import { selectNeutral } from './neutral.js';
 import { onnxMetadata } from './onnxmeta.js';
 import { spawnWorker } from './workers.js';
@@ -149,6 +150,7 @@ async function swapInAvatar(files, name) {
   state.ctx = cv.getContext('2d');
   state.ctx.drawImage(g.bg, 0, 0);
   $('avatarname').textContent = `avatar: ${name} (${g.scheme})`;
+  reachNote(state.reach.setAvatar(g.meta));
   if (state.ready) sendFrame();
 }
 
@@ -191,8 +193,23 @@ window.facesynth.track = async (width, height, frames, region = false) => {
   return out;
 };
 
+// the reach readout's note: why an avatar has none (a malformed entry), or nothing
+function reachNote(text) {
+  $('reach-note').textContent = text ?? '';
+  $('reach-note').hidden = !text;
+  if (text) state.messages.push({ text, error: false });
+}
+
+// replay hook for tests and tools: an avatar's coverage_recording entry, frames and the driver's
+// neutral (each 478 x 2 flat, the tracker's points) -> each frame's reach (coverage.js), null for NaN
+window.facesynth.driverReach = (entry, frames, neutral) => {
+  const rec = readRecording(entry), rows = state.schemes.mediapipe478.to_ibug68;
+  return frames.map((f) => driverReach(rec, f, neutral, rows));
+};
+
 function captureNeutral() {
   state.neutral = null; state.neutralSamples = []; state.neutralStart = null;
+  state.reach.el.hidden = true;
   state.renderer.postMessage({ type: 'neutral', points: null });
   message('Look at the camera with a neutral face...');
 }
@@ -228,6 +245,9 @@ function onPoints(msg) {
     }
     return;
   }
+  // the reach readout, here on the main thread: 8 features and a few hundred distances (~0.1 ms),
+  // while the worker renders this frame (docs/studio.md)
+  state.reach.update(msg.points, state.neutral);
   if (state.renderer !== state.worker) {  // two workers: the renderer takes the newest points when idle
     state.latest = msg;
     feedRenderer();
@@ -393,6 +413,7 @@ async function main() {
   const site = await (await fetch('site.json')).json();
   state.schemes = await (await fetch('schemes.json')).json();
   state.formats = site.formats;
+  state.reach = new ReachReadout($('reach'), state.schemes.mediapipe478.to_ibug68);
   // the avatar as built: its graph and its weights apart (ONNX external data), so that ONNX Runtime
   // reads each weight straight into its tensor instead of copying and parsing one whole file in a
   // WebAssembly heap that never shrinks (the page's memory, docs/web.md)

@@ -3,7 +3,7 @@
 // drive it live with the same worker. Every request stays on 127.0.0.1; the server's writes need
 // the token this page reads from api/session (docs/studio.md).
 // URL option: ?seconds=F multiplies each prompt's duration (the tests' short recordings).
-import { coverage, DIRECTIONS, KEEP_FPS } from './coverage.js';
+import { coverage, DIRECTIONS, KEEP_FPS, ReachReadout } from './coverage.js';
 import { selectNeutral } from './neutral.js';
 import { onnxMetadata } from './onnxmeta.js';
 import { spawnWorker } from './workers.js';
@@ -104,6 +104,7 @@ function onPoints(m) {
       message(`Live: ${state.avatar.name} follows your face.`);
     }
   }
+  if (state.avatar && m.points) state.reach.update(m.points, state.neutral);  // the live page's readout (main.js)
   sendFrame();
 }
 
@@ -298,6 +299,9 @@ async function drive(name) {
     await bg.decode();
     ctx.drawImage(bg, 0, 0);
     state.avatar = { name, width, height, ctx, rgba: new ImageData(width, height) };
+    const note = state.reach.setAvatar(meta);
+    $('reach-note').textContent = note ?? '';
+    $('reach-note').hidden = !note;
     state.neutral = null; state.neutralSamples = []; state.neutralStart = null; state.frames = 0; state.firstFrameAt = null;
     state.worker.postMessage({ type: 'neutral', points: null });
     message(`Look at the camera with a neutral face: ${name} starts in a second...`);
@@ -308,6 +312,7 @@ async function main() {
   const session = await (await fetch('api/session')).json();
   state.token = session.token;
   state.schemes = await (await fetch('schemes.json')).json();
+  state.reach = new ReachReadout($('reach'), state.schemes.mediapipe478.to_ibug68);
   window.studio.coverage = (prompts) => coverage(prompts, state.schemes.mediapipe478.to_ibug68);  // the tests' hook
   window.studio.directions = Object.keys(DIRECTIONS);
   drawPrompts();

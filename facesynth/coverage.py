@@ -43,12 +43,19 @@ headline ranks held-out quality only weakly, no better than how little the recor
 (``bench/studies/coverage_heldout.py``, docs/studies/coverage-meter.md). With a clip's
 held-out frames as the shapes to render (:func:`heldout_coverage`, known only after the fact)
 the reach predicts best.
+
+The avatar knows those shapes while it is driven: its file carries its training frames as the
+meter reads them (the metadata entry :data:`RECORDING_KEY`, :func:`recording_entry`, written at
+export; z from the avatar's own neutral, the one the retargeting uses), and the live page and
+the studio show each driver frame's reach by them (:func:`driver_reach`, the driver's z from the
+driver's neutral).
 """
 
 from __future__ import annotations
 
 import numpy as np
 
+from facesynth.errors import FacesynthError
 from facesynth.landmarks import get_scheme
 
 FEATURES = ("mouth_open", "mouth_width", "brow_height", "brow_gap", "eye_open", "gaze_x", "gaze_y", "yaw")
@@ -76,6 +83,10 @@ WEAK = 0.5  # a prompt below this coverage is listed as missing or weak
 KEEP_FPS = 15  # frames a second the page keeps while recording (studio.js's KEEP_FPS)
 BLOCK = KEEP_FPS  # self_reach's blocks: one second of the recording
 IRIS_CENTRES = (468, 473)
+RECORDING_KEY = "coverage_recording"  # the avatar's metadata entry (facesynth.contract)
+MAX_RECORDED = 1000  # rows of that entry at most (evenly spaced): ~50 kB of JSON
+DECIMALS = 4  # its z, rounded (1e-4 of a feature's unit)
+N_POINTS = 478
 
 
 def features(points: np.ndarray) -> np.ndarray:
@@ -152,6 +163,92 @@ def self_reach(feats: np.ndarray, block: int = BLOCK) -> float:
         return 0.0
     per = [reach(np.concatenate([z[:s], z[s + block:]]), z[s:s + block]) for s in range(0, len(z), block)]
     return float(np.concatenate(per).mean())
+
+
+def kept(times: np.ndarray, keep_fps: float = KEEP_FPS) -> np.ndarray:
+    """Indices of the frames the page keeps of frames taken at ``times`` (seconds): in time order,
+    a frame when at least ``1 / keep_fps`` - 2 ms passed since the last kept one (studio.js's
+    rule); returned in increasing index order."""
+    times = np.asarray(times, np.float64)
+    out, last = [], -np.inf
+    for i in np.argsort(times, kind="stable"):
+        if times[i] - last >= 1 / keep_fps - 0.002:
+            out.append(i)
+            last = times[i]
+    return np.sort(np.asarray(out, np.int64))
+
+
+def recording_entry(landmarks: np.ndarray, neutral: np.ndarray, times: np.ndarray | None = None) -> dict | None:
+    """The avatar's :data:`RECORDING_KEY` metadata entry: its training frames ``landmarks``
+    (N, 478, 2) as the meter reads them, kept as the page keeps frames (:func:`kept`, at
+    :data:`KEEP_FPS`) when their ``times`` (N,) in seconds are known (else every frame), those
+    whose features are not finite dropped, at most :data:`MAX_RECORDED` of them (evenly spaced);
+    ``{"features": FEATURES, "scale": SCALE, "neutral": the features of ``neutral`` (478, 2),
+    "keep_fps": KEEP_FPS or None, "z": (T, F) their z from that neutral, rounded}``. None when no
+    frame is left or the neutral's features are not finite."""
+    lm = np.asarray(landmarks, np.float64)
+    if times is not None:
+        lm = lm[kept(times)]
+    with np.errstate(invalid="ignore", divide="ignore"):  # a degenerate face: not finite, dropped
+        ref = features(np.asarray(neutral, np.float64)[None])[0]
+        z = to_z(features(lm), ref) if len(lm) else np.zeros((0, len(FEATURES)))
+    if not np.isfinite(ref).all():
+        return None
+    z = z[np.isfinite(z).all(1)]
+    if not len(z):
+        return None
+    z = z[np.unique(np.linspace(0, len(z) - 1, min(MAX_RECORDED, len(z))).round().astype(int))]
+    return {"features": list(FEATURES), "scale": list(SCALE), "neutral": np.round(ref, 6).tolist(),
+            "keep_fps": KEEP_FPS if times is not None else None, "z": np.round(z, DECIMALS).tolist()}
+
+
+def read_recording(entry, where: str = RECORDING_KEY) -> tuple[np.ndarray, np.ndarray]:
+    """An avatar's :data:`RECORDING_KEY` entry, checked -> (its z (T, F), its scale (F,));
+    FacesynthError naming ``where`` for a malformed entry."""
+    def bad(what: str):
+        return FacesynthError(f"{where}: {what} (re-export the avatar)")
+
+    if not isinstance(entry, dict):
+        raise bad(f"expected an object, got {type(entry).__name__}")
+    if entry.get("features") != list(FEATURES):
+        raise bad(f"its features {entry.get('features')!r} are not the meter's {list(FEATURES)}")
+    arrays = {}
+    for key, shape in (("scale", (len(FEATURES),)), ("neutral", (len(FEATURES),)), ("z", (-1, len(FEATURES)))):
+        try:
+            a = np.asarray(entry.get(key))
+        except ValueError:  # ragged rows
+            a = np.asarray(None)
+        if a.dtype.kind not in "iuf":
+            raise bad(f"{key} is not an array of numbers")
+        a = a.astype(np.float64)
+        if a.ndim != len(shape) or any(w != -1 and n != w for n, w in zip(a.shape, shape, strict=False)) or not a.size:
+            want = " x ".join("T" if w == -1 else str(w) for w in shape)
+            raise bad(f"{key} has shape {' x '.join(map(str, a.shape))}, expected {want} (T >= 1)")
+        if not np.isfinite(a).all():
+            raise bad(f"{key} has values that are not finite")
+        arrays[key] = a
+    if not (arrays["scale"] > 0).all():
+        raise bad("scale has values that are not positive")
+    return arrays["z"], arrays["scale"]
+
+
+def driver_reach(entry, driver: np.ndarray, driver_neutral: np.ndarray) -> np.ndarray | float:
+    """How well an avatar's recording (its :data:`RECORDING_KEY` entry) reaches a driver's
+    expression: ``driver`` (478, 2) or (T, 478, 2) tracker points, ``driver_neutral`` (478, 2) the
+    driver's neutral; the driver's z ``(features(driver) - features(driver_neutral)) / scale``
+    reached by the recording's z (:func:`reach`). A float, or (T,); NaN for a frame whose
+    features are not finite."""
+    rec, scale = read_recording(entry)
+    d, n = np.asarray(driver, np.float64), np.asarray(driver_neutral, np.float64)
+    if d.shape[-2:] != (N_POINTS, 2) or d.ndim not in (2, 3) or n.shape != (N_POINTS, 2):
+        raise FacesynthError(f"driver_reach: the driver {d.shape} and its neutral {n.shape} must be 478-point frames ((T,) 478 x 2)")
+    with np.errstate(invalid="ignore", divide="ignore"):  # a degenerate face: NaN
+        z = (features(d.reshape(-1, N_POINTS, 2)) - features(n[None])[0]) / scale
+    ok = np.isfinite(z).all(1)
+    out = np.full(len(z), np.nan)
+    if ok.any():
+        out[ok] = reach(rec, z[ok])
+    return float(out[0]) if d.ndim == 2 else out
 
 
 def heldout_coverage(train_points: np.ndarray, drive_points: np.ndarray) -> float:
