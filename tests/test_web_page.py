@@ -73,6 +73,11 @@ def test_camera_drives_the_avatar_offline_and_matches_python(page_site, camera, 
         assert frames >= 100
         stats = page.inner_text("#stats")
         assert "frames/s" in stats
+        # the reach readout (the avatar carries its recording): the current frame's and the mean, in %
+        page.wait_for_function("!document.getElementById('reach').hidden")
+        assert re.fullmatch(r"Reach:\s+\d+ %\s+\(mean \d+ %\)", page.inner_text("#reach").strip())
+        assert 0 <= float(page.get_attribute("#reach meter", "value")) <= 1
+        assert "render worse" in page.get_attribute("#reach", "title") and page.is_hidden("#reach-note")
         page.screenshot(path=str(SHOTS / "facesynth_web_live.png"))
         assert not [m for m in page.evaluate("window.facesynth.state.messages") if m["error"]]
 
@@ -121,7 +126,77 @@ def test_camera_drives_the_avatar_offline_and_matches_python(page_site, camera, 
         assert np.abs(got.astype(int) - th.run(x[None])[0]).max() <= 2
         frames = page.evaluate("window.facesynth.state.frames")
         page.wait_for_function(f"window.facesynth.state.frames > {frames + 10}", timeout=30000)  # still live
+
+        # a file exported before the readout (no coverage_recording): no readout, no message; one with a
+        # malformed entry: a one-line note, no readout; both drive
+        for name, entry, note in (("old.onnx", None, None), ("bad.onnx", {"z": "x"}, "No reach readout: coverage_recording: ")):
+            _with_recording(path, page_site / name, entry)
+            page.evaluate(f"async () => window.facesynth.loadFile(new File([await (await fetch('{name}')).arrayBuffer()], '{name}'))")
+            assert f"Loaded {name}." in _messages(page)
+            frames = page.evaluate("window.facesynth.state.frames")
+            page.wait_for_function(f"window.facesynth.state.frames > {frames + 10}", timeout=30000)
+            assert page.is_hidden("#reach")
+            if note is None:
+                assert page.is_hidden("#reach-note")
+            else:
+                text = page.inner_text("#reach-note")
+                assert text.startswith(note) and text.endswith("The avatar drives as usual.") and "\n" not in text
     assert blocked == []
+
+
+def _with_recording(path: Path, out: Path, entry) -> None:
+    """The avatar ``path`` again at ``out``, its coverage_recording metadata replaced by ``entry`` (JSON),
+    or removed (None: a file exported before the readout)."""
+    import json
+
+    import onnx
+
+    m = onnx.load(str(path))
+    props = {p.key: p.value for p in m.metadata_props if p.key != "coverage_recording"}
+    if entry is not None:
+        props["coverage_recording"] = json.dumps(entry)
+    del m.metadata_props[:]
+    onnx.helper.set_model_props(m, props)
+    onnx.save(m, str(out))
+
+
+def test_page_reach_matches_python(page_site, avatar):
+    """The readout's reach (coverage.js) against facesynth.coverage.driver_reach on lp_d10's held-out
+    MediaPipe points, from their own neutral, by the avatar's exported recording; the exported
+    entry against the training frames' features computed apart; a malformed entry refused by both."""
+    from facesynth import coverage
+    from facesynth.data import temporal_split
+    from facesynth.neutral import select_neutral
+    from facesynth.runtime.renderer import read_metadata
+
+    path, seq = avatar
+    meta = read_metadata(path)
+    entry = meta["coverage_recording"]
+    train, test = temporal_split(len(seq))
+    lm = seq.landmarks.astype(np.float64)
+    # the training frames kept at 15 a second (every other one of this 30 frames/s clip), from the avatar's neutral
+    assert seq.fps == 30 and np.array_equal(seq.frame_index, np.arange(len(seq)))
+    neutral = np.asarray(meta["avatar_neutral"], np.float64)
+    assert np.abs(neutral - lm[train][select_neutral(lm[train])[0]]).max() <= 5e-4
+    want = (coverage.features(lm[train][::2]) - coverage.features(neutral[None])[0]) / np.asarray(coverage.SCALE)
+    assert np.abs(np.asarray(entry["z"]) - want).max() <= 5e-5 and entry["keep_fps"] == 15
+    driver = lm[test][::4]
+    driver_neutral = driver[select_neutral(driver)[0]]
+    py = coverage.driver_reach(entry, driver, driver_neutral)
+    assert 0 < py.mean() < 1
+    bad = {**entry, "scale": entry["scale"][:7]}
+    with browser.served(page_site) as url, browser.browser_page(camera=False) as (page, blocked):
+        page.goto(url)
+        page.wait_for_function("window.facesynth && window.facesynth.state.schemes")
+        js = page.evaluate("([e, f, n]) => window.facesynth.driverReach(e, f, n)",
+                           [entry, driver.reshape(len(driver), -1).tolist(), driver_neutral.ravel().tolist()])
+        err = page.evaluate("([e, n]) => { try { window.facesynth.driverReach(e, [n], n); return null; } catch (x) { return x.message; } }",
+                            [bad, driver_neutral.ravel().tolist()])
+    assert blocked == []
+    assert np.abs(np.asarray(js) - py).max() < 1e-9
+    with pytest.raises(FacesynthError, match="coverage_recording: scale has shape 7"):
+        coverage.driver_reach(bad, driver, driver_neutral)
+    assert err == "coverage_recording: scale must hold 8 numbers (re-export the avatar)"
 
 
 @pytest.mark.parametrize("query", ["?workers=2", "?stage_ms=0"])

@@ -324,6 +324,11 @@ def test_record_train_drive(tmp_path, camera):
         n = page.evaluate("window.studio.state.frames")
         page.wait_for_function(f"window.studio.state.frames >= {n + 10}", timeout=60_000)
         assert not [m for m in page.evaluate("window.studio.state.messages") if m["error"]]
+        # the live reach readout: the new avatar carries its recording (coverage.js, as the live page's)
+        page.wait_for_function("!document.getElementById('reach').hidden", timeout=30_000)
+        assert re.fullmatch(r"Reach:\s+\d+ %\s+\(mean \d+ %\)", page.inner_text("#reach").strip())
+        assert page.evaluate("window.studio.state.reach.n") > 0 and page.is_hidden("#reach-note")
+        page.screenshot(path=str(SHOTS / "facesynth_studio_reach.png"), full_page=True)
         # a name already in the library: a one-line message in the page, nothing started
         page.click("#train")
         page.wait_for_function("document.getElementById('message').className === 'error'")
