@@ -19,12 +19,13 @@ unusual a frame is rather than how far from the nearest recorded ones); two vari
 distance, the 10 nearest frames instead of :data:`~facesynth.coverage.NEAREST`, and the
 68-point shape (MediaPipe's iBUG-68 view, Procrustes-aligned to the recording) instead of the
 8 features; and the dlib 68 points the model is trained on, aligned alike (not known to the
-page).
+page); and the live page's reach readout (:func:`live_readout`, 1 - the reach shown).
 
 ``clips`` and ``correlations``, across clips: readings of the recording (``self_reach``, the
 page's headline, with blocks of 1 s, 0.5 s and 2 s and of an eighth of the recording; ``prior``,
 the mean of the 13 prompt bars, each bar in ``directions``; ``spread``, the mean distance from the mean shape; ``heldout``,
-the reach of the real held-out frames, not known while recording) against the held-out
+the reach of the real held-out frames, not known while recording; ``readout``, the mean of the
+live page's reach readout over them, :func:`live_readout`) against the held-out
 PSNR and face LPIPS (means over the held-out frames) and the generalisation gap (held-out mean
 minus the mean over the run's training frames, same measure; and the training frames' own PSNR), with Spearman's and Pearson's
 correlation, a 95 % bootstrap interval of Spearman's and its range leaving one clip out.
@@ -154,6 +155,28 @@ def frame_readings(lm: np.ndarray, dlib: np.ndarray, rec: np.ndarray, frames: np
             "shape_68": shape_distance(mp68[rec], mp68[frames], 3), "dlib_68": shape_distance(dlib[rec], dlib[frames], 3)}
 
 
+def live_readout(lm: np.ndarray, train: np.ndarray, frames: np.ndarray, fps: float) -> tuple[dict[str, np.ndarray], float]:
+    """The live page's reach readout on each held-out frame (video frames ``frames``), as a 478-point
+    avatar of the clip's training frames ``train`` would show it: the recording its export writes
+    (:func:`facesynth.coverage.recording_entry`: kept at KEEP_FPS, z from the avatar's neutral,
+    ``select_neutral`` over the training frames, rounded as the metadata rounds it) reaching each
+    frame from the driver's neutral (:func:`~facesynth.coverage.driver_reach`). ``readout``: that
+    neutral as the page captures it, ``select_neutral`` over the first second of the held-out frames;
+    ``readout_avatar_neutral``: the avatar's own neutral (the neutral cancels: the meter's reach).
+    And how far the first neutral is from the avatar's (the norm of their z difference)."""
+    from facesynth.coverage import SCALE, driver_reach, features, recording_entry
+    from facesynth.neutral import select_neutral
+
+    lm = np.asarray(lm, np.float64)
+    neutral = np.round(lm[train][select_neutral(lm[train])[0]], 3)
+    entry = recording_entry(lm[train], neutral, train / fps)
+    first = lm[np.sort(frames)[:round(fps)]]
+    driver_neutral = first[select_neutral(first)[0]]
+    offset = (features(driver_neutral[None]) - features(neutral[None]))[0] / np.asarray(SCALE)
+    return {"readout": driver_reach(entry, lm[frames], driver_neutral),
+            "readout_avatar_neutral": driver_reach(entry, lm[frames], neutral)}, float(np.linalg.norm(offset))
+
+
 def per_frame_study(data: dict, rng: np.random.Generator) -> dict:
     """``data``: {clip: (readings, targets)}, each {name: (S,) per held-out frame} -> {reading:
     {target: :func:`within_clips`}}; targets signed so that larger is better, readings so that
@@ -230,11 +253,18 @@ def main() -> None:
             dlib = np.load(faces / clip / "landmarks.npy")
             targets = {"psnr": ev["test_psnr_sadm"], "lpips_face": -ev["test_lpips_face_sadm"],
                        "lpips_mouth": -ev["test_lpips_mouth_sadm"], "psnr_over_oracle": ev["test_psnr_sadm"] - ev["test_psnr_oracle"]}
-            frames_data[clip] = (frame_readings(lm, dlib, rec, ev["test_frame"], fps), targets)
+            readings = frame_readings(lm, dlib, rec, ev["test_frame"], fps)
+            live, out[clip]["readout_neutral_offset"] = live_readout(lm, tr, ev["test_frame"], fps)
+            for name, r in live.items():
+                readings[name] = 1.0 - r  # larger is worse, as the other readings
+                out[clip][name] = round(float(r.mean()), 3)
+            out[clip]["readout_neutral_offset"] = round(out[clip]["readout_neutral_offset"], 2)
+            frames_data[clip] = (readings, targets)
     rng = np.random.default_rng(0)
     corr = {m: {t: correlations([out[k][m] for k in clips], [out[k][t] for k in clips], rng)
                 for t in ("psnr", "psnr_gap", "psnr_train", "lpips_face", "lpips_face_gap")}
-            for m in ("self_reach", "self_reach_0.5s", "self_reach_2s", "self_reach_eighths", "prior", "spread", "heldout")}
+            for m in ("self_reach", "self_reach_0.5s", "self_reach_2s", "self_reach_eighths", "prior", "spread", "heldout",
+                      "readout", "readout_avatar_neutral")}
     emit({"bench": "coverage_heldout", **host(), "n": len(clips), "keep_fps": KEEP_FPS, "run_frames": RUN_FRAMES,
           "per_frame": per_frame_study(frames_data, rng), "clips": out, "correlations": corr})
 

@@ -12,6 +12,8 @@ blocks every request off 127.0.0.1, waits for the first avatar frame, then measu
   whose CPU time (``worker_cpu_ms``, all worker threads) is split between them in proportion to
   their wall times (``cpu_is`` says so); the composite's is the page's main thread
   (``main_cpu_ms``: drawing, neutral capture, messages). ``--workers`` / ``--stage-ms`` set the page's mode.
+  ``reach_ms``: the reach readout's update per tracked frame, on the main thread (None for an
+  avatar without its recording);
   ``renderer_cpu_ms``: all renderer threads, ``chromium_cpu_ms``: every Chromium process;
 * ``e2e_fps``: rendered avatar frames per second of wall time; ``frames``: frames rendered;
 * ``load_s``: page open -> first avatar frame (includes the ~1 s neutral capture, ``neutral_s``);
@@ -54,8 +56,8 @@ from facesynth.web import site  # noqa: E402
 TICK = os.sysconf("SC_CLK_TCK")
 # the page's figures, and only them: serialising the whole state (the avatar's metadata, its
 # neutral frame as JPEG) made 25 MB of garbage in the page being measured
-STATS = """(({ frames, firstFrameMs, trackerMs, avatarMs, compositeMs, latencyMs, messages, workers }) =>
-    ({ frames, firstFrameMs, trackerMs, avatarMs, compositeMs, latencyMs, messages, workers }))(window.facesynth.state)"""
+STATS = """(({ frames, firstFrameMs, trackerMs, avatarMs, compositeMs, latencyMs, reachMs, messages, workers }) =>
+    ({ frames, firstFrameMs, trackerMs, avatarMs, compositeMs, latencyMs, reachMs, messages, workers }))(window.facesynth.state)"""
 
 
 def thread_cpu(pid: int) -> dict[str, float]:
@@ -165,6 +167,7 @@ def main() -> None:
         "tracker_ms": {"wall": med("trackerMs"), "cpu": round(worker * share, 2), "cpu_is": split},
         "avatar_ms": {"wall": med("avatarMs"), "cpu": round(worker * (1 - share), 2), "cpu_is": split},
         "composite_ms": {"wall": med("compositeMs"), "cpu": round(main_thread, 2), "cpu_is": "the page's main thread"},
+        "reach_ms": round(float(np.median(st["reachMs"][-n:])), 3) if st["reachMs"] else None,
         "worker_cpu_ms": round(worker, 2), "main_cpu_ms": round(main_thread, 2), "workers": st["workers"],
         "latency_ms": med("latencyMs"),
         "renderer_cpu_ms": round(sum(d.values()), 2),

@@ -17,7 +17,7 @@ const base = new URL('.', location.href).href;
 const options = new URLSearchParams(location.search);
 const WORKERS = options.get('workers') ?? 'auto', STAGE_MS = Number(options.get('stage_ms') ?? 30);
 const $ = (id) => document.getElementById(id);
-const state = { frames: 0, trackerMs: [], avatarMs: [], compositeMs: [], latencyMs: [], messages: [], firstFrameMs: null,
+const state = { frames: 0, trackerMs: [], avatarMs: [], compositeMs: [], latencyMs: [], reachMs: [], messages: [], firstFrameMs: null,
   avatar: null, neutral: null, neutralSamples: [], neutralStart: null, noFace: 0, busy: false, ready: false,
   calls: 0, pending: new Map(), workers: 1, latest: null, rendering: false, previous: null, loading: Promise.resolve(),
   camera: false, live: false };
@@ -247,7 +247,9 @@ function onPoints(msg) {
   }
   // the reach readout, here on the main thread: 8 features and a few hundred distances (~0.1 ms),
   // while the worker renders this frame (docs/studio.md)
+  const t0 = performance.now();
   state.reach.update(msg.points, state.neutral);
+  if (state.reach.rec) recent(state.reachMs, performance.now() - t0);
   if (state.renderer !== state.worker) {  // two workers: the renderer takes the newest points when idle
     state.latest = msg;
     feedRenderer();
