@@ -60,6 +60,13 @@ def test_every_metadata_field_is_declared(files, kind):
     assert undeclared == set()
 
 
+def test_an_ibug68_avatar_carries_no_coverage_recording(files):
+    """The live reach readout needs the irises: 68-point avatars have no coverage_recording (the page
+    hides the readout; tests/test_web_page.py)."""
+    head = read_metadata(files["head"])
+    assert head["landmark_scheme"] == "ibug68" and "coverage_recording" not in head
+
+
 def test_frame_size_is_width_then_height_in_every_file(files):
     face, head, eri = (read_metadata(files[k]) for k in ("face", "head", "eri"))
     h, w = files["target"].shape[:2]

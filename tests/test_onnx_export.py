@@ -159,6 +159,8 @@ def test_printed_summary_describes_the_bulky_avatar_metadata():
     from facesynth.onnx.export import brief
 
     meta = {"regressor": "linear", "avatar_neutral": [[1.0, 2.0]] * 68, "avatar_neutral_row": 3,
-            "shape_pca": {"mean": [0.0] * 136, "components": [[0.0] * 136] * 2, "limit": [0.1, 0.2]}, "background_jpeg": "x" * 5000}
+            "shape_pca": {"mean": [0.0] * 136, "components": [[0.0] * 136] * 2, "limit": [0.1, 0.2]}, "background_jpeg": "x" * 5000,
+            "coverage_recording": {"z": [[0.0] * 8] * 7}}
     out = brief(meta)
-    assert out == {"regressor": "linear", "avatar_neutral_row": 3, "shape_pca_components": 2, "background_jpeg_chars": 5000}
+    assert out == {"regressor": "linear", "avatar_neutral_row": 3, "shape_pca_components": 2, "background_jpeg_chars": 5000,
+                   "coverage_recording_frames": 7}

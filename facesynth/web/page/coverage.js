@@ -130,20 +130,26 @@ export function driverReach(rec, points, neutral, rows, neutralFeatures = featur
   return z.every(Number.isFinite) ? reach(rec.z, z) : NaN;
 }
 
-// The readout beside the avatar: the current frame's reach (a <meter>) and the mean over the
-// drive so far (since the avatar or the driver's neutral changed); hidden without an entry.
+// The readout beside the avatar (the live page's and the studio's): the current frame's reach
+// (a <meter>) and the mean over the drive so far (since the avatar or the driver's neutral
+// changed); hidden without an entry; `note` shows why a malformed entry has none.
 export class ReachReadout {
-  constructor(el, rows) {
-    Object.assign(this, { el, rows, rec: null, neutral: null, now: NaN, sum: 0, n: 0 });
+  constructor(el, note, rows) {
+    Object.assign(this, { el, note, rows, rec: null, neutral: null, now: NaN, sum: 0, n: 0 });
   }
 
-  // an avatar's metadata -> null, or the one-line message for a malformed entry (readout hidden)
+  // an avatar's metadata -> null, or the one-line note for a malformed entry (readout hidden)
   setAvatar(meta) {
     this.rec = null; this.neutral = null;
     this.el.hidden = true;
-    if (!meta || !(RECORDING_KEY in meta)) return null;  // exported before the entry (or an iBUG-68 avatar)
-    try { this.rec = readRecording(meta[RECORDING_KEY]); return null; }
-    catch (e) { return `No reach readout: ${e.message}. The avatar drives as usual.`; }
+    let text = null;
+    if (meta && RECORDING_KEY in meta) {  // absent: exported before the entry, or an iBUG-68 avatar
+      try { this.rec = readRecording(meta[RECORDING_KEY]); }
+      catch (e) { text = `No reach readout: ${e.message}. The avatar drives as usual.`; }
+    }
+    this.note.textContent = text ?? '';
+    this.note.hidden = !text;
+    return text;
   }
 
   // a tracked frame (and the driver's neutral, null while it is captured) -> the readout
@@ -153,11 +159,15 @@ export class ReachReadout {
     const r = driverReach(this.rec, points, neutral, this.rows, this.nf);
     if (Number.isNaN(r)) return;
     this.now = r; this.sum += r; this.n++;
-    const pct = (v) => `${Math.round(100 * v)} %`, mean = this.sum / this.n;
-    this.el.querySelector('meter').value = r;
-    this.el.querySelector('.now').textContent = pct(r);
-    this.el.querySelector('.mean').textContent = pct(mean);
-    this.el.classList.toggle('weak', r < WEAK);
-    this.el.hidden = false;
+    // the page changes only when a shown percent does (each change costs the page a style and paint pass)
+    const shown = [Math.round(100 * r), Math.round(100 * this.sum / this.n)];
+    if (this.el.hidden || shown.join() !== this.shown?.join()) {
+      this.shown = shown;
+      this.el.querySelector('meter').value = shown[0] / 100;
+      this.el.querySelector('.now').textContent = `${shown[0]} %`;
+      this.el.querySelector('.mean').textContent = `${shown[1]} %`;
+      this.el.classList.toggle('weak', shown[0] < 100 * WEAK);
+      this.el.hidden = false;
+    }
   }
 }

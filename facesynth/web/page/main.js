@@ -150,7 +150,8 @@ async function swapInAvatar(files, name) {
   state.ctx = cv.getContext('2d');
   state.ctx.drawImage(g.bg, 0, 0);
   $('avatarname').textContent = `avatar: ${name} (${g.scheme})`;
-  reachNote(state.reach.setAvatar(g.meta));
+  const note = state.reach.setAvatar(g.meta);
+  if (note) state.messages.push({ text: note, error: false });
   if (state.ready) sendFrame();
 }
 
@@ -192,13 +193,6 @@ window.facesynth.track = async (width, height, frames, region = false) => {
   }
   return out;
 };
-
-// the reach readout's note: why an avatar has none (a malformed entry), or nothing
-function reachNote(text) {
-  $('reach-note').textContent = text ?? '';
-  $('reach-note').hidden = !text;
-  if (text) state.messages.push({ text, error: false });
-}
 
 // replay hook for tests and tools: an avatar's coverage_recording entry, frames and the driver's
 // neutral (each 478 x 2 flat, the tracker's points) -> each frame's reach (coverage.js), null for NaN
@@ -245,8 +239,8 @@ function onPoints(msg) {
     }
     return;
   }
-  // the reach readout, here on the main thread: 8 features and a few hundred distances (~0.1 ms),
-  // while the worker renders this frame (docs/studio.md)
+  // the reach readout, here on the main thread while the worker renders this frame: 8 features and
+  // up to 1000 distances, 0.2-0.5 ms (bench/web/page.py's reach_ms)
   const t0 = performance.now();
   state.reach.update(msg.points, state.neutral);
   if (state.reach.rec) recent(state.reachMs, performance.now() - t0);
@@ -415,7 +409,7 @@ async function main() {
   const site = await (await fetch('site.json')).json();
   state.schemes = await (await fetch('schemes.json')).json();
   state.formats = site.formats;
-  state.reach = new ReachReadout($('reach'), state.schemes.mediapipe478.to_ibug68);
+  state.reach = new ReachReadout($('reach'), $('reach-note'), state.schemes.mediapipe478.to_ibug68);
   // the avatar as built: its graph and its weights apart (ONNX external data), so that ONNX Runtime
   // reads each weight straight into its tensor instead of copying and parsing one whole file in a
   // WebAssembly heap that never shrinks (the page's memory, docs/web.md)

@@ -104,8 +104,8 @@ function onPoints(m) {
       message(`Live: ${state.avatar.name} follows your face.`);
     }
   }
-  if (state.avatar && m.points) state.reach.update(m.points, state.neutral);  // the live page's readout (main.js)
   sendFrame();
+  if (state.avatar && m.points) state.reach.update(m.points, state.neutral);  // the live page's readout (main.js)
 }
 
 function onFrame(m) {
@@ -299,9 +299,7 @@ async function drive(name) {
     await bg.decode();
     ctx.drawImage(bg, 0, 0);
     state.avatar = { name, width, height, ctx, rgba: new ImageData(width, height) };
-    const note = state.reach.setAvatar(meta);
-    $('reach-note').textContent = note ?? '';
-    $('reach-note').hidden = !note;
+    state.reach.setAvatar(meta);
     state.neutral = null; state.neutralSamples = []; state.neutralStart = null; state.frames = 0; state.firstFrameAt = null;
     state.worker.postMessage({ type: 'neutral', points: null });
     message(`Look at the camera with a neutral face: ${name} starts in a second...`);
@@ -312,7 +310,7 @@ async function main() {
   const session = await (await fetch('api/session')).json();
   state.token = session.token;
   state.schemes = await (await fetch('schemes.json')).json();
-  state.reach = new ReachReadout($('reach'), state.schemes.mediapipe478.to_ibug68);
+  state.reach = new ReachReadout($('reach'), $('reach-note'), state.schemes.mediapipe478.to_ibug68);
   window.studio.coverage = (prompts) => coverage(prompts, state.schemes.mediapipe478.to_ibug68);  // the tests' hook
   window.studio.directions = Object.keys(DIRECTIONS);
   drawPrompts();
