@@ -84,7 +84,7 @@ KEEP_FPS = 15  # frames a second the page keeps while recording (studio.js's KEE
 BLOCK = KEEP_FPS  # self_reach's blocks: one second of the recording
 IRIS_CENTRES = (468, 473)
 RECORDING_KEY = "coverage_recording"  # the avatar's metadata entry (facesynth.contract)
-MAX_RECORDED = 1000  # rows of that entry at most (evenly spaced): ~50 kB of JSON
+MAX_RECORDED = 1000  # rows of that entry at most (evenly spaced): ~70 kB of JSON
 DECIMALS = 4  # its z, rounded (1e-4 of a feature's unit)
 N_POINTS = 478
 
