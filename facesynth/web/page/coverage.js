@@ -132,7 +132,10 @@ export function driverReach(rec, points, neutral, rows, neutralFeatures = featur
 
 // The readout beside the avatar (the live page's and the studio's): the current frame's reach
 // (a <meter>) and the mean over the drive so far (since the avatar or the driver's neutral
-// changed); hidden without an entry; `note` shows why a malformed entry has none.
+// changed); hidden without an entry; `note` shows why a malformed entry has none. No colour
+// marks a low reading: the prompts' WEAK level does not carry over (on the shared clips,
+// self-driven, 61-67 % of held-out frames read below it, and a level taken from the
+// recording's own self-reach is 0 on half of them).
 export class ReachReadout {
   constructor(el, note, rows) {
     Object.assign(this, { el, note, rows, rec: null, neutral: null, now: NaN, sum: 0, n: 0 });
@@ -166,7 +169,6 @@ export class ReachReadout {
       this.el.querySelector('meter').value = shown[0] / 100;
       this.el.querySelector('.now').textContent = `${shown[0]} %`;
       this.el.querySelector('.mean').textContent = `${shown[1]} %`;
-      this.el.classList.toggle('weak', shown[0] < 100 * WEAK);
       this.el.hidden = false;
     }
   }
