@@ -79,6 +79,11 @@ DIRECTIONS: dict[str, tuple[str, int, float]] = {
 }
 NEAREST = 3  # a shape's distance: the mean over its NEAREST nearest frames
 REACH = 1.0  # distance (in SCALE units) at which a shape counts as not reached at all
+# the same for a driver's frame (driver_reach): read from the driver's own neutral, a whole frame lies
+# farther from the recording's than a prompt's one feature does (the page's neutral sits a median 1.4
+# units from the avatar's on the shared clips), and at 1.0 the readout sat at 0 on most frames;
+# doubled, it ranks the clips' held-out PSNR as well (docs/studio.md)
+DRIVE_REACH = 2.0
 WEAK = 0.5  # a prompt below this coverage is listed as missing or weak
 KEEP_FPS = 15  # frames a second the page keeps while recording (studio.js's KEEP_FPS)
 BLOCK = KEEP_FPS  # self_reach's blocks: one second of the recording
@@ -124,14 +129,14 @@ def distance(frames_z: np.ndarray, shapes_z: np.ndarray) -> np.ndarray:
     return np.sort(d, axis=1)[:, :NEAREST].mean(1)
 
 
-def reach(frames_z: np.ndarray, shapes_z: np.ndarray) -> np.ndarray:
+def reach(frames_z: np.ndarray, shapes_z: np.ndarray, scale: float = REACH) -> np.ndarray:
     """How well frames ``frames_z`` (T, F) reach each shape of ``shapes_z`` (S, F), both in SCALE
-    units from the neutral: (S,) in [0, 1], ``1 - distance / REACH`` clipped (0 for every shape
-    when there is no frame)."""
+    units from the neutral: (S,) in [0, 1], ``1 - distance / scale`` clipped (0 for every shape
+    when there is no frame); ``scale``: :data:`REACH`, or :data:`DRIVE_REACH` for a driver's frames."""
     shapes_z = np.atleast_2d(shapes_z)
     if len(frames_z) == 0:
         return np.zeros(len(shapes_z))
-    return np.clip(1.0 - distance(frames_z, shapes_z) / REACH, 0.0, 1.0)
+    return np.clip(1.0 - distance(frames_z, shapes_z) / scale, 0.0, 1.0)
 
 
 def to_z(feats: np.ndarray, neutral: np.ndarray) -> np.ndarray:
@@ -236,8 +241,8 @@ def driver_reach(entry, driver: np.ndarray, driver_neutral: np.ndarray) -> np.nd
     """How well an avatar's recording (its :data:`RECORDING_KEY` entry) reaches a driver's
     expression: ``driver`` (478, 2) or (T, 478, 2) tracker points, ``driver_neutral`` (478, 2) the
     driver's neutral; the driver's z ``(features(driver) - features(driver_neutral)) / scale``
-    reached by the recording's z (:func:`reach`). A float, or (T,); NaN for a frame whose
-    features are not finite."""
+    reached by the recording's z (:func:`reach` with :data:`DRIVE_REACH`). A float, or (T,); NaN
+    for a frame whose features are not finite."""
     rec, scale = read_recording(entry)
     d, n = np.asarray(driver, np.float64), np.asarray(driver_neutral, np.float64)
     if d.shape[-2:] != (N_POINTS, 2) or d.ndim not in (2, 3) or n.shape != (N_POINTS, 2):
@@ -247,7 +252,7 @@ def driver_reach(entry, driver: np.ndarray, driver_neutral: np.ndarray) -> np.nd
     ok = np.isfinite(z).all(1)
     out = np.full(len(z), np.nan)
     if ok.any():
-        out[ok] = reach(rec, z[ok])
+        out[ok] = reach(rec, z[ok], DRIVE_REACH)
     return float(out[0]) if d.ndim == 2 else out
 
 

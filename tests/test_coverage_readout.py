@@ -59,12 +59,12 @@ def test_recording_entry_against_the_frames_features(clip):
 
 def _brute_reach(rows: list[list[float]], scale: list[float], driver, neutral) -> float:
     """One driver frame's reach, written out: its z, the sorted distances to every recorded row,
-    the mean of the NEAREST smallest, 1 - that / REACH, clipped to [0, 1]."""
+    the mean of the NEAREST smallest, 1 - that / DRIVE_REACH, clipped to [0, 1]."""
     f, n = coverage.features(driver[None])[0], coverage.features(neutral[None])[0]
     z = [(float(f[k]) - float(n[k])) / scale[k] for k in range(len(scale))]
     dists = sorted(math.sqrt(sum((a - b) ** 2 for a, b in zip(z, row, strict=True))) for row in rows)
     d = sum(dists[:coverage.NEAREST]) / len(dists[:coverage.NEAREST])
-    return min(1.0, max(0.0, 1.0 - d / coverage.REACH))
+    return min(1.0, max(0.0, 1.0 - d / coverage.DRIVE_REACH))
 
 
 def test_driver_reach_against_brute_force(clip):
@@ -88,7 +88,8 @@ def test_driver_reach_against_brute_force(clip):
     move = lambda p: 1.7 * p @ np.array([[c, -s], [s, c]]).T + [40.0, -25.0]  # noqa: E731
     np.testing.assert_allclose(coverage.driver_reach(entry, move(driver), move(driver_neutral)), got, atol=1e-9)
     # the driver's own neutral reaches what the avatar's neutral does
-    assert coverage.driver_reach(entry, driver_neutral, driver_neutral) == coverage.reach(np.asarray(entry["z"]), np.zeros(8))[0]
+    at_neutral = coverage.reach(np.asarray(entry["z"]), np.zeros(8), coverage.DRIVE_REACH)[0]
+    assert coverage.driver_reach(entry, driver_neutral, driver_neutral) == at_neutral
     # a frame without finite features: NaN, not a reach
     assert np.isnan(coverage.driver_reach(entry, np.full((478, 2), np.nan), driver_neutral))
 

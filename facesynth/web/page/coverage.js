@@ -13,6 +13,7 @@ export const DIRECTIONS = {  // name -> [feature, sign, target change from the n
 };
 export const SCALE = [0.12, 0.10, 0.05, 0.04, 0.07, 0.03, 0.02, 0.08];  // each feature's unit
 export const NEAREST = 3, REACH = 1.0, WEAK = 0.5;
+export const DRIVE_REACH = 2.0;  // the reach's scale for a driver's frame (coverage.py DRIVE_REACH)
 // selfReach's blocks: one second of the recording at the frames a second the page keeps (studio.js's KEEP_FPS)
 export const KEEP_FPS = 15, BLOCK = KEEP_FPS;
 const IRIS = [468, 473];
@@ -44,12 +45,13 @@ const median = (xs) => { const s = [...xs].sort((a, b) => a - b), n = s.length; 
 const avg = (xs) => xs.reduce((a, b) => a + b, 0) / xs.length;
 
 // how well frames (their z: SCALE units from the neutral) reach one shape z: 1 - the mean
-// distance to its NEAREST nearest frames / REACH, clipped to [0, 1]; its NaN features are free
-export function reach(framesZ, shapeZ) {
+// distance to its NEAREST nearest frames / scale (REACH; DRIVE_REACH for a driver's frame),
+// clipped to [0, 1]; its NaN features are free
+export function reach(framesZ, shapeZ, scale = REACH) {
   if (!framesZ.length) return 0;
   const d = framesZ.map((z) => Math.sqrt(z.reduce((acc, v, k) => acc + (Number.isNaN(shapeZ[k]) ? 0 : (shapeZ[k] - v) ** 2), 0)))
     .sort((a, b) => a - b);
-  return Math.min(1, Math.max(0, 1 - avg(d.slice(0, NEAREST)) / REACH));
+  return Math.min(1, Math.max(0, 1 - avg(d.slice(0, NEAREST)) / scale));
 }
 
 const toZ = (f, neutral) => f.map((v, k) => (v - neutral[k]) / SCALE[k]);
@@ -127,7 +129,7 @@ export function readRecording(entry) {
 // 478 x 2 flat (the tracker's), rows: mediapipe478's to_ibug68; NaN when its features are not finite
 export function driverReach(rec, points, neutral, rows, neutralFeatures = features(neutral, rows)) {
   const f = features(points, rows), z = f.map((v, k) => (v - neutralFeatures[k]) / rec.scale[k]);
-  return z.every(Number.isFinite) ? reach(rec.z, z) : NaN;
+  return z.every(Number.isFinite) ? reach(rec.z, z, DRIVE_REACH) : NaN;
 }
 
 // The readout beside the avatar (the live page's and the studio's): the current frame's reach
