@@ -43,8 +43,9 @@ LIGHT_SHIFT_PX = 0.3  # the most (frame px, per axis) the light filter moves the
 # (17 shared clips, docs/studies/flicker.md: keeps vrt_face4's and lp_d11's held-out PSNR within 0.07 dB of the
 # tracked landmarks', and every clip's flicker <= 1.2 x the real frames' with auto + filter; None: no limit)
 FAST_RADII_S = 0.25  # point speed (face radii per second) from which the light filter alone applies
-# (17 shared clips, docs/studies/flicker.md: 0.25 keeps every clip's flicker <= 1.2 x the real frames', with
-# auto + filter too, and costs talking clips less PSNR than 0.35)
+# (17 shared clips with the centroid's limit, bench.studies.landmark_smoothing --fast-radii-s: 0.25 keeps every
+# clip's flicker <= 1.2 x the real frames' with auto + filter too (0.2: 1.23) and no clip's PSNR more than
+# 0.1 dB below the tracked landmarks' (0.35: three clips)
 
 
 def _line_end(x: np.ndarray) -> np.ndarray:
