@@ -26,7 +26,7 @@ from omegaconf.errors import OmegaConfBaseException
 from facesynth.data import FaceSequence, load_sequence, temporal_split
 from facesynth.data.config import DataConf
 from facesynth.data.readers import ingest_video
-from facesynth.data.smoothing import FAST_RADII_S, smooth_sequence, split_bounds
+from facesynth.data.smoothing import FAST_RADII_S, LIGHT_SHIFT_PX, smooth_sequence, split_bounds
 from facesynth.data.synthetic import make_synthetic_sequence
 from facesynth.errors import FacesynthError
 from facesynth.sadm.fit import SADM, SADMConfig, load_sadm, save_sadm
@@ -38,8 +38,8 @@ REPORT = "report.md"
 PLOTS = "plots"
 ERI_DIR = "eri"
 # data settings newer than some runs, with the value those runs had (a smoothed run without the
-# threshold was smoothed at 0.35 face radii/s)
-LEGACY_DATA = {"smooth_landmarks": False, "smooth_fast_radii_s": 0.35}
+# threshold was smoothed at 0.35 face radii/s, one without the centroid's limit with no limit)
+LEGACY_DATA = {"smooth_landmarks": False, "smooth_fast_radii_s": 0.35, "smooth_light_shift_px": None}
 
 
 def check_data_config(data_cfg) -> None:
@@ -52,6 +52,9 @@ def check_data_config(data_cfg) -> None:
         raise FacesynthError(f"data.gap must be >= 0, got {data_cfg.gap}")
     if not getattr(data_cfg, "smooth_fast_radii_s", FAST_RADII_S) > 0:
         raise FacesynthError(f"data.smooth_fast_radii_s must be > 0 (face radii per second), got {data_cfg.smooth_fast_radii_s}")
+    shift = getattr(data_cfg, "smooth_light_shift_px", LIGHT_SHIFT_PX)
+    if shift is not None and not shift > 0:
+        raise FacesynthError(f"data.smooth_light_shift_px must be > 0 (frame px) or null (no limit), got {shift}")
     if data_cfg.kind == "synthetic" and data_cfg.n_frames < 2:
         raise FacesynthError(f"data.n_frames must be >= 2 (a training and a test frame), got {data_cfg.n_frames}")
 
@@ -71,7 +74,8 @@ def load_data(data_cfg, seed: int) -> FaceSequence:
         seq = seq.subset(np.arange(min(len(seq), data_cfg.max_frames)))
     if data_cfg.kind == "video" and getattr(data_cfg, "smooth_landmarks", False):  # tracked: zero phase, per part
         seq = smooth_sequence(seq, split_bounds(len(seq), float(data_cfg.train_fraction), int(data_cfg.gap)),
-                              fast_radii_s=float(getattr(data_cfg, "smooth_fast_radii_s", FAST_RADII_S)))
+                              fast_radii_s=float(getattr(data_cfg, "smooth_fast_radii_s", FAST_RADII_S)),
+                              light_shift_px=getattr(data_cfg, "smooth_light_shift_px", LIGHT_SHIFT_PX))
     return seq
 
 

@@ -5,11 +5,21 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from omegaconf import OmegaConf
+from scipy.ndimage import gaussian_filter1d
 from scipy.signal import lfilter, savgol_filter
 
 from facesynth.data import FaceSequence
 from facesynth.data.config import DataConf
-from facesynth.data.smoothing import FAST_RADII_S, SIGMA_STILL_S, segments, smooth_sequence, smooth_track, split_bounds
+from facesynth.data.smoothing import (
+    FAST_RADII_S,
+    LIGHT_SHIFT_PX,
+    SIGMA_MOVING_S,
+    SIGMA_STILL_S,
+    segments,
+    smooth_sequence,
+    smooth_track,
+    split_bounds,
+)
 from facesynth.errors import FacesynthError
 from facesynth.eval.common_region import common_landmarks
 from facesynth.rundir import load_data, read_config
@@ -89,6 +99,44 @@ def test_a_fast_mouth_move_is_kept_where_a_fixed_filter_flattens_it():
     assert motion(adaptive[:, still]) < 0.3 * motion(tracked[:, still])  # the rest of the face is still smoothed
 
 
+def test_a_head_moving_in_steps_keeps_its_steps_within_the_centroid_limit():
+    """A video with repeated frames (every 6th held, as vrt_face4's): the head moves in steps of
+    up to 11 px. The light Gaussian alone (scipy's gaussian_filter1d, the reference) rounds a
+    step off by more than a pixel; with the limit, the centroid is the tracked one moved by at
+    most LIGHT_SHIFT_PX, and the face's shape is what the filter makes of it without the limit."""
+    n = 120
+    k = np.arange(n)
+    held = np.maximum.accumulate(np.where(k % 6 == 5, k - 1, k))  # frame k shows frame k - 1 every 6th frame
+    y = 11 * np.sin(2 * np.pi * held / 24) + 2.0 * held  # a fast nod and drift, every point alike
+    tracked = np.round(face(n) + np.stack([np.zeros(n), y], -1)[:, None])  # whole pixels, a rigid face
+    c = tracked.mean(1)
+    light = gaussian_filter1d(c, SIGMA_MOVING_S * RATE, axis=0, mode="nearest", truncate=4.0)
+    inner = slice(10, -10)  # away from the ends' padding
+    assert np.abs(light - c)[inner].max() > 1.0  # what the light filter alone does to the steps
+    out = smooth_track(tracked, RATE).astype(np.float64)
+    free = smooth_track(tracked, RATE, light_shift_px=None).astype(np.float64)
+    ref = c + np.clip(light - c, -LIGHT_SHIFT_PX, LIGHT_SHIFT_PX)  # every point moves fast: the light filter alone
+    np.testing.assert_allclose(out.mean(1)[inner], ref[inner], atol=2e-4)
+    np.testing.assert_allclose(np.abs(free.mean(1) - light)[inner], 0, atol=2e-4)  # without the limit: the light track
+    np.testing.assert_allclose((out - out.mean(1, keepdims=True)), free - free.mean(1, keepdims=True), atol=2e-4)
+
+
+def test_the_centroid_limit_leaves_a_still_face_and_a_talking_mouth_as_they_were():
+    still = jitter(face(120))  # the strong filter alone: the light track's limit does not reach it
+    np.testing.assert_array_equal(smooth_track(still, RATE), smooth_track(still, RATE, light_shift_px=None))
+    n = 90
+    true = face(n)
+    k = np.arange(n)
+    true[:, 48:68, 1] += 20 * np.where(np.abs(k - 45) < 5, 0.5 + 0.5 * np.cos(np.pi * (k - 45) / 5), 0.0)[:, None]
+    tracked = jitter(true)
+    out, free = smooth_track(tracked, RATE), smooth_track(tracked, RATE, light_shift_px=None)
+    np.testing.assert_allclose(out, free, atol=1e-4)  # the opening moves the light track's centroid by < LIGHT_SHIFT_PX
+    assert (out[:, 48:68, 1] - true[0, 48:68, 1]).mean(1).max() > 0.9 * 20  # its peak kept
+    assert motion(out[:, :48]) < 0.3 * motion(tracked[:, :48])  # still smoothed
+    with pytest.raises(FacesynthError, match="light_shift_px"):
+        smooth_track(tracked, RATE, light_shift_px=0.0)
+
+
 def test_segments_cut_at_split_and_breaks():
     fi = np.array([0, 1, 2, 3, 4, 5, 6, 20, 21, 22])
     assert [s.tolist() for s in segments(fi, [3])] == [[0, 1, 2], [3, 4, 5, 6], [7, 8, 9]]
@@ -158,6 +206,25 @@ def test_the_threshold_is_a_data_setting_and_a_smoothed_run_without_it_reads_as_
     assert read_config(tmp_path).data.smooth_fast_radii_s == 0.35
     cfg.smooth_fast_radii_s = 0.0
     with pytest.raises(FacesynthError, match=r"^data.smooth_fast_radii_s must be > 0"):
+        load_data(cfg, 0)
+
+
+def test_the_centroid_limit_is_a_data_setting_and_a_run_without_it_reads_as_no_limit(tmp_path):
+    n = 40
+    np.save(tmp_path / "landmarks.npy", jitter(face(n)).astype(np.float32))
+    (tmp_path / "meta.json").write_text('{"video": {"fps": 25.0}}')
+    assert DataConf().smooth_light_shift_px == LIGHT_SHIFT_PX
+    for limit in (0.1, None):
+        cfg = OmegaConf.structured(DataConf(kind="video", path=str(tmp_path), smooth_light_shift_px=limit))
+        seq = load_data(cfg, 0)
+        np.testing.assert_array_equal(seq.landmarks[:30], smooth_track(seq.tracked[:30], 25.0, light_shift_px=limit))
+        assert seq.meta["landmark_smoothing"]["light_shift_px"] == limit
+    run = OmegaConf.to_container(OmegaConf.structured(DataConf(kind="video", path=str(tmp_path))))
+    del run["smooth_light_shift_px"]
+    (tmp_path / "config.yaml").write_text(OmegaConf.to_yaml({"seed": 0, "data": run}))
+    assert read_config(tmp_path).data.smooth_light_shift_px is None  # trained before the limit: re-evaluated as trained
+    cfg.smooth_light_shift_px = -1.0
+    with pytest.raises(FacesynthError, match=r"^data.smooth_light_shift_px must be > 0"):
         load_data(cfg, 0)
 
 

@@ -19,12 +19,14 @@ the inner mouth opening's largest value (points 62-66, px) over the test part; s
 smallest PSNR change and the largest relative LPIPS changes (face, mouth).
 
 ``--fast-radii-s X``: the smoothed evaluation with another motion threshold (the filter's
-trade-off between still and fast-moving clips; cached apart).
+trade-off between still and fast-moving clips; cached apart). ``--light-shift-px D``: with
+another limit on the light filter's move of the face's centroid (``none``: no limit, the filter
+before the limit; cached apart).
 
 ``--plot FILE``: a tracked and a smoothed track (lp_d19's chin, vrt_face2's lower inner lip).
 
 ``--cache DIR``: keep each evaluation's figures in DIR (``<run name>__tracked.json``,
-``<run name>__smoothed_<threshold>.json``) and reuse
+``<run name>__smoothed_<threshold>[_shift<limit>].json``, no suffix without a limit) and reuse
 them, so the table is printed again without re-evaluating.
 """
 
@@ -40,7 +42,7 @@ import numpy as np
 
 from bench.harness import emit, host, load
 from bench.studies.perceptual import metric_figures
-from facesynth.data.smoothing import FAST_RADII_S, smooth_sequence, split_bounds
+from facesynth.data.smoothing import FAST_RADII_S, LIGHT_SHIFT_PX, smooth_sequence, split_bounds
 from facesynth.eval.common_region import common_landmarks
 from facesynth.eval.flicker import flicker_rows
 from facesynth.eval.sadm_eval import EvalConfig, evaluate_sadm
@@ -50,14 +52,14 @@ from facesynth.sadm.fit import load_sadm
 MODES = {"tracked": False, "smoothed": True}
 
 
-def evaluate(run: Path, smoothed: bool, fast_radii_s: float = FAST_RADII_S) -> dict:
+def evaluate(run: Path, smoothed: bool, fast_radii_s: float = FAST_RADII_S, light_shift_px: float | None = LIGHT_SHIFT_PX) -> dict:
     cfg = read_config(run)
     trained_smoothed = bool(cfg.data.smooth_landmarks)
     cfg.data.smooth_landmarks = False
     seq, tr, te = run_data(cfg)
     bounds = split_bounds(len(seq), float(cfg.data.train_fraction), int(cfg.data.gap))
     if smoothed:  # as data.smooth_landmarks=true does (load_data), with this motion threshold
-        seq = smooth_sequence(seq, bounds, fast_radii_s=fast_radii_s)
+        seq = smooth_sequence(seq, bounds, fast_radii_s=fast_radii_s, light_shift_px=light_shift_px)
     ecfg = EvalConfig(noise=[0.0], train_level=False, talking_head=False,
                       flicker_frames=int(cfg.eval.get("flicker_frames", 40)))
     common = common_landmarks(seq, None)
@@ -67,7 +69,7 @@ def evaluate(run: Path, smoothed: bool, fast_radii_s: float = FAST_RADII_S) -> d
         times = []
         for _ in range(5):
             t0 = time.perf_counter()
-            smooth_sequence(seq, bounds, fast_radii_s=fast_radii_s)
+            smooth_sequence(seq, bounds, fast_radii_s=fast_radii_s, light_shift_px=light_shift_px)
             times.append(time.perf_counter() - t0)
         extra = {"smoothing_s": float(np.median(times)), "frames": len(seq)}
     else:
@@ -132,6 +134,9 @@ def main() -> None:
     ap.add_argument("--modes", default="tracked,smoothed", help="comma-separated: tracked, smoothed")
     ap.add_argument("--fast-radii-s", type=float, default=FAST_RADII_S,
                     help=f"the smoothing's motion threshold, face radii/s (default {FAST_RADII_S}, data.smooth_landmarks')")
+    ap.add_argument("--light-shift-px", type=lambda v: None if v.lower() == "none" else float(v), default=LIGHT_SHIFT_PX,
+                    help=f"the most the light filter moves the face's centroid, px, or none (default {LIGHT_SHIFT_PX}, "
+                         "data.smooth_light_shift_px')")
     args = ap.parse_args()
     if args.plot:
         plot(args.plot)
@@ -146,17 +151,19 @@ def main() -> None:
         for run in args.runs:
             runs[run.name] = {}
             for mode in modes:
-                tag = mode if mode == "tracked" else f"{mode}_{args.fast_radii_s:g}"  # the threshold in the name
+                shift = "" if args.light_shift_px is None else f"_shift{args.light_shift_px:g}"
+                tag = mode if mode == "tracked" else f"{mode}_{args.fast_radii_s:g}{shift}"  # the settings in the name
                 cached = args.cache / f"{run.name}__{tag}.json" if args.cache else None
                 if cached is not None and cached.is_file():
                     fig = json.loads(cached.read_text())
                 else:
-                    fig = evaluate(run, MODES[mode], args.fast_radii_s)
+                    fig = evaluate(run, MODES[mode], args.fast_radii_s, args.light_shift_px)
                     if cached is not None:
                         cached.write_text(json.dumps(fig))
                 runs[run.name][mode] = fig
                 print(json.dumps({"run": run.name, "mode": mode, **fig}), file=sys.stderr, flush=True)
-    emit({**out, "fast_radii_s": args.fast_radii_s, "runs": runs, "summary": summary(runs), "load": around})
+    emit({**out, "fast_radii_s": args.fast_radii_s, "light_shift_px": args.light_shift_px, "runs": runs, "summary": summary(runs),
+          "load": around})
 
 
 if __name__ == "__main__":

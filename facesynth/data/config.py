@@ -7,7 +7,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Optional
 
-from facesynth.data.smoothing import FAST_RADII_S
+from facesynth.data.smoothing import FAST_RADII_S, LIGHT_SHIFT_PX
 from facesynth.data.splits import TRAIN_FRACTION
 
 
@@ -19,7 +19,8 @@ class DataConf:
     ``smooth_landmarks``: smooth a video's tracked landmarks along time, zero phase, each part
     of the split alone (:mod:`facesynth.data.smoothing`), for training and evaluation alike; the
     synthetic subject's landmarks are exact and never smoothed. ``smooth_fast_radii_s``: the
-    point speed (face radii per second) from which the smoothing's light filter alone applies."""
+    point speed (face radii per second) from which the smoothing's light filter alone applies;
+    ``smooth_light_shift_px``: the most it moves the face's centroid (frame px; None: no limit)."""
 
     kind: str = "synthetic"
     path: Optional[str] = None
@@ -30,3 +31,4 @@ class DataConf:
     gap: int = 0
     smooth_landmarks: bool = True
     smooth_fast_radii_s: float = FAST_RADII_S
+    smooth_light_shift_px: Optional[float] = LIGHT_SHIFT_PX

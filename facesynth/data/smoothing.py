@@ -11,6 +11,11 @@ with symmetric kernels, so nothing lags:
   the RMS distance of the points from their centroid) picks between them per frame,
   ``w = min(1, speed / FAST_RADII_S)``, ``out = strong + w (light - strong)``, so a still
   face gets the strong filter and a fast lip the light one;
+* the light track's centroid (the mean of the points: the face's translation) stays within
+  :data:`LIGHT_SHIFT_PX` of the tracked centroid, per axis: a head that jerks from one frame to
+  the next (a fast shake, or a video with repeated frames whose head moves in steps) keeps
+  its jerks, which the light Gaussian would round off by up to 2 px, while the centroid's
+  own jitter (a few tenths of a pixel) is still smoothed;
 * both kernels are symmetric and centred (zero phase): a linear ramp passes unchanged
   whatever the weights; segment ends are padded by odd reflection (as
   :func:`scipy.signal.filtfilt`'s default ``padtype='odd'``) about the end of a straight line
@@ -34,9 +39,13 @@ from facesynth.errors import FacesynthError
 
 SIGMA_STILL_S = 0.1  # Gaussian sigma (s) of a still point: 3 frames at 30 frames/s
 SIGMA_MOVING_S = 0.02  # Gaussian sigma (s) of a fast point: 0.6 frames at 30 frames/s
+LIGHT_SHIFT_PX = 0.3  # the most (frame px, per axis) the light filter moves the face's centroid
+# (17 shared clips, docs/studies/flicker.md: keeps vrt_face4's and lp_d11's held-out PSNR within 0.07 dB of the
+# tracked landmarks', and every clip's flicker <= 1.2 x the real frames' with auto + filter; None: no limit)
 FAST_RADII_S = 0.25  # point speed (face radii per second) from which the light filter alone applies
-# (17 shared clips, docs/studies/flicker.md: 0.25 keeps every clip's flicker <= 1.2 x the real frames', with
-# auto + filter too, and costs talking clips less PSNR than 0.35)
+# (17 shared clips with the centroid's limit, bench.studies.landmark_smoothing --fast-radii-s: 0.25 keeps every
+# clip's flicker <= 1.2 x the real frames' with auto + filter too (0.2: 1.23) and no clip's PSNR more than
+# 0.1 dB below the tracked landmarks' (0.35: three clips)
 
 
 def _line_end(x: np.ndarray) -> np.ndarray:
@@ -65,22 +74,29 @@ def _gauss(x: np.ndarray, sigma: float, pad: int) -> np.ndarray:
 
 
 def smooth_track(landmarks: np.ndarray, rate: float, sigma_still_s: float = SIGMA_STILL_S,
-                 sigma_moving_s: float = SIGMA_MOVING_S, fast_radii_s: float = FAST_RADII_S) -> np.ndarray:
+                 sigma_moving_s: float = SIGMA_MOVING_S, fast_radii_s: float = FAST_RADII_S,
+                 light_shift_px: float | None = LIGHT_SHIFT_PX) -> np.ndarray:
     """float32 (T, P, 2): one segment's landmarks (T, P, 2), sampled at ``rate`` rows per
-    second, smoothed as the module docstring says (a segment of one or two rows is returned as is)."""
+    second, smoothed as the module docstring says (a segment of one or two rows is returned as is;
+    ``light_shift_px`` None: the light track's centroid is not limited)."""
     lm = np.asarray(landmarks, np.float64)
     if lm.ndim != 3 or lm.shape[-1] != 2:
         raise FacesynthError(f"smooth_track: landmarks must be (T, P, 2), got {lm.shape}")
     if not np.isfinite(lm).all():
         raise FacesynthError("smooth_track: landmarks contain NaN/inf (smooth the rows with a face only)")
-    if not rate > 0 or sigma_still_s < 0 or sigma_moving_s < 0 or not fast_radii_s > 0:
-        raise FacesynthError(f"smooth_track: need rate > 0, sigmas >= 0, fast_radii_s > 0, got rate={rate}, "
-                             f"sigma_still_s={sigma_still_s}, sigma_moving_s={sigma_moving_s}, fast_radii_s={fast_radii_s}")
+    if not rate > 0 or sigma_still_s < 0 or sigma_moving_s < 0 or not fast_radii_s > 0 or \
+            (light_shift_px is not None and not light_shift_px > 0):
+        raise FacesynthError(f"smooth_track: need rate > 0, sigmas >= 0, fast_radii_s > 0, light_shift_px > 0 or None, "
+                             f"got rate={rate}, sigma_still_s={sigma_still_s}, sigma_moving_s={sigma_moving_s}, "
+                             f"fast_radii_s={fast_radii_s}, light_shift_px={light_shift_px}")
     if len(lm) < 3:
         return lm.astype(np.float32)
     s_still, s_moving = sigma_still_s * rate, sigma_moving_s * rate
     pad = int(np.ceil(4 * max(s_still, s_moving))) + 1
     strong, light = _gauss(lm, s_still, pad), _gauss(lm, s_moving, pad)
+    if light_shift_px is not None:  # the light track's centroid kept within light_shift_px of the tracked one
+        shift = light.mean(axis=1, keepdims=True) - lm.mean(axis=1, keepdims=True)
+        light += np.clip(shift, -light_shift_px, light_shift_px) - shift
     centred = lm - lm.mean(axis=1, keepdims=True)
     radius = float(np.median(np.sqrt((centred ** 2).sum(-1).mean(-1))))  # face radius (px), the segment's median
     speed = np.linalg.norm(np.gradient(strong, axis=0), axis=-1) * rate / max(radius, 1e-6)  # (T, P) radii / s
@@ -110,7 +126,8 @@ def split_bounds(n: int, train_fraction: float, gap: int) -> list[int]:
 
 
 def smooth_sequence(seq: FaceSequence, bounds: list[int] = (), sigma_still_s: float = SIGMA_STILL_S,
-                    sigma_moving_s: float = SIGMA_MOVING_S, fast_radii_s: float = FAST_RADII_S) -> FaceSequence:
+                    sigma_moving_s: float = SIGMA_MOVING_S, fast_radii_s: float = FAST_RADII_S,
+                    light_shift_px: float | None = LIGHT_SHIFT_PX) -> FaceSequence:
     """``seq`` with its landmarks smoothed per segment (:func:`segments` of its frame numbers
     and ``bounds``; the filter's settings as :func:`smooth_track`'s), the tracked ones kept as
     ``seq.tracked``; ``meta['landmark_smoothing']`` records the filter. The rows' rate is
@@ -120,10 +137,10 @@ def smooth_sequence(seq: FaceSequence, bounds: list[int] = (), sigma_still_s: fl
     rate = float(seq.fps) / max(step, 1.0)
     out = np.empty_like(seq.landmarks)
     for rows in segments(fi, list(bounds)):
-        out[rows] = smooth_track(seq.landmarks[rows], rate, sigma_still_s, sigma_moving_s, fast_radii_s)
+        out[rows] = smooth_track(seq.landmarks[rows], rate, sigma_still_s, sigma_moving_s, fast_radii_s, light_shift_px)
     meta = {**seq.meta, "landmark_smoothing": {
         "filter": "zero-phase motion-adaptive Gaussian (facesynth.data.smoothing)", "sigma_still_s": sigma_still_s,
-        "sigma_moving_s": sigma_moving_s, "fast_radii_s": fast_radii_s, "rate": rate,
+        "sigma_moving_s": sigma_moving_s, "fast_radii_s": fast_radii_s, "light_shift_px": light_shift_px, "rate": rate,
         "bounds": [int(b) for b in bounds]}}
     return FaceSequence(out, seq.frame_index, seq.frames, seq.fps, seq.name, meta, seq.scheme,
                         tracked=seq.as_tracked)
