@@ -222,6 +222,34 @@ def test_time_left_from_the_stages_a_job_reports(tmp_path):
     assert [s.get("report_stage") for s in seen if "report_stage" in s][-1] == "report"
 
 
+def test_the_training_job_runs_its_numerical_libraries_on_one_thread(tmp_path, monkeypatch):
+    """The server starts the job with its BLAS and OpenMP on one thread each (the page tracks the
+    camera meanwhile): the environment Studio.start gives the job, and what numpy's BLAS in a process
+    with that environment reports (threadpoolctl)."""
+    import subprocess
+    import sys
+
+    from facesynth.web.studio import JOB_THREAD_VARS
+
+    real, seen = subprocess.Popen, []
+    probe = "import json, numpy, threadpoolctl; print(json.dumps(threadpoolctl.threadpool_info()))"
+
+    def fake(cmd, **kw):
+        seen.append(kw["env"])
+        return real([sys.executable, "-c", probe], stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, env=kw["env"])
+
+    monkeypatch.setattr(subprocess, "Popen", fake)
+    studio = Studio(tmp_path / "lib")
+    work = tmp_path / "lib" / ".studio-work-x"
+    work.mkdir(parents=True)
+    studio.start("me", work)
+    assert [seen[0][k] for k in JOB_THREAD_VARS] == ["1"] * len(JOB_THREAD_VARS)
+    assert seen[0]["PATH"] == os.environ["PATH"]  # the rest of the environment kept
+    info = json.loads(real([sys.executable, "-c", probe], stdout=subprocess.PIPE, env=seen[0]).communicate()[0])
+    blas = [i for i in info if i["user_api"] == "blas"]
+    assert blas and all(i["num_threads"] == 1 for i in blas)
+
+
 # -- the coverage meter: the page's (coverage.js) against the Python reference --------------------
 def test_coverage_js_matches_python(tmp_path, shared_clip_dir):
     from facesynth.data.ingest import ingest_video

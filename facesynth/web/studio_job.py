@@ -220,8 +220,8 @@ def main(argv: list[str] | None = None) -> None:
     sys.stdout = sys.__stderr__  # anything a library prints goes elsewhere than the messages
     import torch
 
-    # torch on one thread: the fit's dense algebra already spreads over the cores through numpy's
-    # BLAS; torch's OpenMP threads on top oversubscribe them (docs/studio.md: SADM fit, threads)
+    # torch on one thread, as the server starts the job's BLAS (studio.JOB_THREAD_VARS): the page
+    # tracks the camera on a core meanwhile (docs/studio.md: threads)
     torch.set_num_threads(1)
     run_job(args["work"], args["overrides"], args["min_frames"], args["min_face"], out)
 
