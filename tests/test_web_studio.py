@@ -222,32 +222,17 @@ def test_time_left_from_the_stages_a_job_reports(tmp_path):
     assert [s.get("report_stage") for s in seen if "report_stage" in s][-1] == "report"
 
 
-def test_the_training_job_runs_its_numerical_libraries_on_one_thread(tmp_path, monkeypatch):
-    """The server starts the job with its BLAS and OpenMP on one thread each (the page tracks the
-    camera meanwhile): the environment Studio.start gives the job, and what numpy's BLAS in a process
-    with that environment reports (threadpoolctl)."""
+def test_the_training_job_runs_its_numerical_libraries_on_one_thread():
+    """The job's one_thread (its main calls it first): numpy's BLAS and torch on one thread each, as
+    threadpoolctl and torch report them in a fresh process (this one's threads stay as they are)."""
     import subprocess
     import sys
 
-    from facesynth.web.studio import JOB_THREAD_VARS
-
-    real, seen = subprocess.Popen, []
-    probe = "import json, numpy, threadpoolctl; print(json.dumps(threadpoolctl.threadpool_info()))"
-
-    def fake(cmd, **kw):
-        seen.append(kw["env"])
-        return real([sys.executable, "-c", probe], stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, env=kw["env"])
-
-    monkeypatch.setattr(subprocess, "Popen", fake)
-    studio = Studio(tmp_path / "lib")
-    work = tmp_path / "lib" / ".studio-work-x"
-    work.mkdir(parents=True)
-    studio.start("me", work)
-    assert [seen[0][k] for k in JOB_THREAD_VARS] == ["1"] * len(JOB_THREAD_VARS)
-    assert seen[0]["PATH"] == os.environ["PATH"]  # the rest of the environment kept
-    info = json.loads(real([sys.executable, "-c", probe], stdout=subprocess.PIPE, env=seen[0]).communicate()[0])
+    probe = ("import json, threadpoolctl, torch; from facesynth.web.studio_job import one_thread; one_thread(); "
+             "print(json.dumps([threadpoolctl.threadpool_info(), torch.get_num_threads()]))")
+    info, torch_threads = json.loads(subprocess.run([sys.executable, "-c", probe], capture_output=True, check=True).stdout)
     blas = [i for i in info if i["user_api"] == "blas"]
-    assert blas and all(i["num_threads"] == 1 for i in blas)
+    assert blas and all(i["num_threads"] == 1 for i in blas) and torch_threads == 1
 
 
 # -- the coverage meter: the page's (coverage.js) against the Python reference --------------------

@@ -48,8 +48,6 @@ DISK_MARGIN = 300 * 2**20  # + the run folder and the model
 DEFAULT_OVERRIDES = ("eval.common_region=false",)  # no dlib landmarks beside a studio recording
 MIN_FRAMES = 150  # frames a recording needs (the page keeps the frames its tracker sees: 10-30 a second)
 MIN_FACE = 0.5
-# the training job's environment: its numerical libraries on one thread each (Job.start)
-JOB_THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
 TOKEN_HEADER = "x-facesynth-token"
 PAGE_FILES = ("workers.js", "worker.js", "tracker.js", "schemes.js", "onnxmeta.js", "neutral.js", "coverage.js", "studio.js",
               "studio.css")
@@ -111,12 +109,8 @@ class Studio:
 
         args = {"work": str(work), "overrides": self.overrides, "min_frames": self.min_frames, "min_face": self.min_face}
         self.cancelled = False
-        # the job's numerical libraries on one thread each (set before it imports them): the page tracks the
-        # camera on a core meanwhile, and BLAS threads that spin for a busy core took the SADM fit from
-        # 19 to 116 s (docs/studio.md, threads)
-        env = {**os.environ, **dict.fromkeys(JOB_THREAD_VARS, "1")}
         self.proc = subprocess.Popen([sys.executable, "-m", "facesynth.web.studio_job", json.dumps(args)],
-                                     stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, env=env)
+                                     stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL)
         self._set(state="running", name=name, stage="decode", percent=0.0, eta_s=None, elapsed_s=0.0, message="",
                   started=time.time(), report=None, report_stage=None, summary=None)
         threading.Thread(target=self._watch, args=(self.proc, name, work), daemon=True).start()

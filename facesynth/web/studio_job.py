@@ -214,15 +214,22 @@ class _Messages:
         os.write(self.fd, (MARK + json.dumps(msg) + "\n").encode())
 
 
+def one_thread() -> None:
+    """The job's numerical libraries on one thread each: torch's, and numpy's BLAS (threadpoolctl). The
+    page tracks the camera on a core meanwhile, and two BLAS threads spinning for a busy core took the
+    SADM fit from 19 to 116 s; on one it takes 20-23 s either way (docs/studio.md: threads)."""
+    import torch
+    from threadpoolctl import threadpool_limits
+
+    torch.set_num_threads(1)
+    threadpool_limits(1)
+
+
 def main(argv: list[str] | None = None) -> None:
     args = json.loads((argv if argv is not None else sys.argv[1:])[0])
     out = _Messages(os.dup(sys.stdout.fileno()))
     sys.stdout = sys.__stderr__  # anything a library prints goes elsewhere than the messages
-    import torch
-
-    # torch on one thread, as the server starts the job's BLAS (studio.JOB_THREAD_VARS): the page
-    # tracks the camera on a core meanwhile (docs/studio.md: threads)
-    torch.set_num_threads(1)
+    one_thread()
     run_job(args["work"], args["overrides"], args["min_frames"], args["min_face"], out)
 
 
