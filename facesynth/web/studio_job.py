@@ -218,6 +218,7 @@ def one_thread() -> None:
     """The job's numerical libraries on one thread each: torch's, and numpy's BLAS (threadpoolctl). The
     page tracks the camera on a core meanwhile, and two BLAS threads spinning for a busy core took the
     SADM fit from 19 to 116 s; on one it takes 20-23 s either way (docs/studio.md: threads)."""
+    import numpy  # noqa: F401  (loaded first: threadpoolctl limits only the BLAS already loaded)
     import torch
     from threadpoolctl import threadpool_limits
 
