@@ -115,10 +115,14 @@ def test_camera_drives_the_avatar_offline_and_matches_python(page_site, camera, 
         # the page reads the .onnx metadata itself (onnxmeta.js): the same as ONNX Runtime's in Python
         assert page.evaluate("window.facesynth.state.avatar.meta") == read_metadata(path)
 
-        # the page loads its avatar as graph + weights; a dropped file is one whole .onnx: the same frames
-        page.evaluate("async () => window.facesynth.loadFile(new File([await (await fetch('whole.onnx')).arrayBuffer()], "
-                      "'whole.onnx'))")
+        # the page loads its avatar as graph + weights; a dropped file is one whole .onnx: the same frames.
+        # Dropped as the page moves to two workers (auto does on a slow machine): the two are queued, so
+        # the page ends with a tracker and a renderer apart (run across each other, the page had counted
+        # two workers with one, and the next avatar's load stopped its tracker: the page froze)
+        page.evaluate("async () => { const f = new File([await (await fetch('whole.onnx')).arrayBuffer()], 'whole.onnx');"
+                      " await Promise.all([window.facesynth.loadFile(f), window.facesynth.useTwoWorkers()]); }")
         assert "Loaded whole.onnx." in _messages(page)
+        assert page.evaluate("(({ workers, worker, renderer }) => [workers, worker !== renderer])(window.facesynth.state)") == [2, True]
         x = driver[len(driver) // 2]
         out = page.evaluate("([d, n]) => window.facesynth.render(d, n)",
                             [x.ravel().tolist(), neutral.astype(np.float32).ravel().tolist()])
@@ -133,6 +137,8 @@ def test_camera_drives_the_avatar_offline_and_matches_python(page_site, camera, 
             _with_recording(path, page_site / name, entry)
             page.evaluate(f"async () => window.facesynth.loadFile(new File([await (await fetch('{name}')).arrayBuffer()], '{name}'))")
             assert f"Loaded {name}." in _messages(page)
+            frames = page.evaluate("window.facesynth.state.frames")
+            page.wait_for_function(f"window.facesynth.state.frames > {frames + 10}", timeout=30000)  # still live
             # it renders (the replay hook, through the page's worker): the same frame as Python's
             out = page.evaluate("([d, n]) => window.facesynth.render(d, n)",
                                 [x.ravel().tolist(), neutral.astype(np.float32).ravel().tolist()])

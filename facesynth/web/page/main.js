@@ -286,27 +286,37 @@ function onFrame(msg, worker) {
 // Two workers (two ONNX Runtime instances, ~60 MB more): one tracks, the other renders the newest
 // points meanwhile; for a machine on which one worker's stage is over budget. Both are new, so that
 // the one worker's heap, grown by the avatar (WebAssembly memory never shrinks), is freed with it.
-async function useTwoWorkers() {
-  if (state.workers === 2 || state.switching) return;
+// In the avatar loads' queue (loadAvatar): a load and the switch each replace workers, and one that
+// ran across the other left the page counting two workers with one, whose next load then stopped
+// the tracker (the page froze).
+function useTwoWorkers() {
+  if (state.workers === 2 || state.switching) return state.loading;
   state.switching = true;
+  const run = state.loading.then(switchToTwoWorkers).finally(() => { state.switching = false; });
+  state.loading = run.catch(() => {});
+  return run;
+}
+
+async function switchToTwoWorkers() {
   const t = startWorker(true), r = startWorker(false), g = state.avatar;
   try {
     await Promise.all([t.ready, r.ready]);
     if (g) await g.loadInto(r);
-    if (state.avatar !== g) await state.avatar.loadInto(r);  // one dropped meanwhile
     if (state.neutral) r.postMessage({ type: 'neutral', points: state.neutral });
     const one = state.worker;
-    [state.worker, state.renderer, state.workers] = [t, r, 2];
+    [state.worker, state.renderer, state.workers, state.rendering] = [t, r, 2, false];
     one.terminate();
     state.busy = false;  // the frame that worker had is dropped with it
     sendFrame();
   } catch (e) {
     t.terminate(); r.terminate();
     message(`A second worker could not start (${e.message}); the page goes on with one.`, true);
-  } finally {
-    state.switching = false;
   }
 }
+
+// replay hook for tests and tools: the switch to two workers, now (as auto makes it on a slow
+// machine), queued with the avatar loads; settles when done
+window.facesynth.useTwoWorkers = () => useTwoWorkers();
 
 // A worker (worker.js): with the tracker (the camera's) or without (a second worker, the avatar's).
 function startWorker(tracker) {
