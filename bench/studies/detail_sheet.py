@@ -108,6 +108,8 @@ def main() -> None:
                          "as bench/studies/detail.py does (0: the run as trained)")
     ap.add_argument("--set", action="append", default=[], help="KEY=VALUE of model.detail_* for the banks")
     ap.add_argument("--driver", help="a shared clip that drives every run through the talking head (no real frame)")
+    ap.add_argument("--smoothed", action="store_true",
+                    help="the landmarks (and the banks' training frames) smoothed as data.smooth_landmarks=true does")
     a = ap.parse_args()
     if len(a.labels) != len(a.runs):
         raise SystemExit("error: give one --labels entry per run")
@@ -116,7 +118,14 @@ def main() -> None:
         rows = [_row(t, f"{a.driver} frame {i['frame']} ({i['why']})", [a.driver] + a.labels) for t, i in zip(tiles, info, strict=True)]
         _write(rows, a.out, a.quality, {"driver": a.driver, "frames": info, "labels": a.labels})
         return
-    seq, _, te = run_data(read_config(a.runs[0]))
+    def data(run):
+        if a.smoothed:
+            from bench.studies.landmark_smoothing import run_sequence
+
+            return run_sequence(Path(run), True)[1:4]
+        return run_data(read_config(run))
+
+    seq, _, te = data(a.runs[0])
     lm_te = seq.landmarks[te][:, :68]
     chosen = pick(lm_te, a.frames)
     syns = []
@@ -125,7 +134,7 @@ def main() -> None:
         if strength > 0:
             from bench.studies.detail import attach_bank, parse_settings
 
-            rseq, tr, _ = run_data(read_config(r))
+            rseq, tr, _ = data(r)
             attach_bank(sadm, rseq, tr, parse_settings(a.set), strength)
         syns.append(sadm.synthesizer())
     rows, info = [], []
