@@ -12,6 +12,9 @@ others; at least 8 frames apart. Each row is labelled with its video frame and e
 LPIPS (the tile against the real one, resized to 224 px) when the perceptual
 extra is installed. Prints one JSON line.
 
+``--smoothed``: the frames' landmarks (and the banks' training frames) smoothed as
+``data.smooth_landmarks=true`` does, whatever the runs were trained on.
+
 ``--driver CLIP``: each run driven by another person instead (a shared clip's tracked
 landmarks, relative motion, the driver's neutral from its own frames): the runs exported
 (default export) and played through the full-frame talking head
