@@ -243,3 +243,52 @@ def test_the_segment_ends_are_smoothed_too():
     out = smooth_track(tracked, RATE)
     for end in (0, -1):
         assert np.abs(out[end] - true[end]).mean() < 0.8 * np.abs(tracked[end] - true[end]).mean()
+
+
+def test_the_benches_smooth_a_tracked_run_as_the_default_trains(tmp_path):
+    """bench.studies.landmark_smoothing.run_sequence (also bench.studies.detail --smoothed):
+    a run trained on tracked landmarks, from before the centroid's limit, is re-read tracked
+    as it was, or smoothed as a run with today's data settings would be (load_data, limit
+    0.3 px), on the same split."""
+    from bench.studies.landmark_smoothing import run_sequence
+    from facesynth.data.splits import temporal_split
+
+    n = 40
+    raw = jitter(face(n)).astype(np.float32)
+    raw[25:] += np.arange(15, dtype=np.float32)[:, None, None] * np.float32(3.0)  # the head moves: the limit acts
+    np.save(tmp_path / "landmarks.npy", raw)
+    (tmp_path / "meta.json").write_text('{"video": {"fps": 25.0}}')
+    run = OmegaConf.to_container(OmegaConf.structured(DataConf(kind="video", path=str(tmp_path), smooth_landmarks=False)))
+    del run["smooth_light_shift_px"]
+    (tmp_path / "config.yaml").write_text(OmegaConf.to_yaml({"seed": 0, "data": run}))
+    want_tr, want_te = temporal_split(n, DataConf().train_fraction, DataConf().gap)
+    default = load_data(OmegaConf.structured(DataConf(kind="video", path=str(tmp_path))), 0)
+    unlimited = load_data(OmegaConf.structured(DataConf(kind="video", path=str(tmp_path), smooth_light_shift_px=None)), 0)
+    assert not np.array_equal(default.landmarks, unlimited.landmarks)
+    for smoothed, want in ((False, raw), (True, default.landmarks)):
+        cfg, seq, tr, te, trained_smoothed = run_sequence(tmp_path, smoothed)
+        np.testing.assert_array_equal(seq.landmarks, want)
+        np.testing.assert_array_equal(tr, want_tr)
+        np.testing.assert_array_equal(te, want_te)
+        assert trained_smoothed is False and cfg.seed == 0
+
+
+def test_the_acceptance_against_figures_given_per_clip():
+    """bench.studies.perceptual.against_today with today's figures as a mapping (as
+    bench.studies.detail --today-json reads them): the issue's points, by hand."""
+    from bench.studies.perceptual import against_today
+
+    keys = ("lpips_face", "lpips_mouth", "psnr_frame_common", "sharpness", "flicker_ratio")
+    today = {"a": dict(zip(keys, (0.10, 0.20, 30.0, 0.4, 0.8), strict=True)),
+             "b": dict(zip(keys, (0.05, 0.10, 25.0, 0.5, 0.9), strict=True)),
+             "c": dict(zip(keys, (0.08, 0.30, 28.0, 0.6, 0.7), strict=True))}
+    new = {"a__x": {"v": dict(zip(keys, (0.05, 0.16, 29.7, 0.8, 1.1), strict=True))},
+           "b__x": {"v": dict(zip(keys, (0.06, 0.05, 25.5, 0.7, 1.0), strict=True))},
+           "c__x": {"v": dict(zip(keys, (0.04, 0.21, 28.1, 0.9, 0.9), strict=True))},
+           "d__x": {"v": dict(zip(keys, (0.01, 0.01, 40.0, 2.0, 9.0), strict=True))}}  # no figures today: left out
+    got = against_today(today, new)["v"]
+    assert got["clips"] == 3 and got["lpips_face_not_lower"] == 1
+    assert got["lpips_face_change_median"] == pytest.approx(-0.5)
+    assert got["lpips_mouth_change_median"] == pytest.approx(-0.3)
+    assert got["psnr_change_min_db"] == pytest.approx(-0.3)
+    assert (got["sharpness_median"], got["sharpness_max"], got["flicker_ratio_max"]) == (0.8, 0.9, 1.1)

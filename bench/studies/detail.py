@@ -15,6 +15,12 @@ evaluation of training), else evaluated. The last line (stdout) holds them all, 
 ``--today DIR`` (``DIR/CLIP__today``: the runs of today's default, as ``bench/studies/perceptual.py
 --out DIR`` leaves them; a run folder is named ``CLIP__VARIANT``) the issue's acceptance per
 strength against today's figures (``bench.studies.perceptual.summary``).
+
+``--smoothed``: the bank fitted and the runs evaluated on landmarks smoothed as
+``data.smooth_landmarks=true`` does (:func:`bench.studies.landmark_smoothing.run_sequence`),
+whatever the runs were trained on; strength 0 is then evaluated too. ``--today-json FILE``:
+today's figures from a ``bench.studies.landmark_smoothing`` line (its ``CLIP__today`` runs,
+smoothed with ``--smoothed``, else tracked).
 """
 
 from __future__ import annotations
@@ -27,6 +33,7 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
+from bench.studies.landmark_smoothing import run_sequence
 from bench.studies.perceptual import against_today
 from bench.studies.perceptual import metric_figures as figures
 from facesynth.eval.common_region import common_landmarks
@@ -53,10 +60,13 @@ def attach_bank(sadm, seq, tr, settings: dict, strength: float = 1.0) -> dict:
     return bank
 
 
-def sweep(run: Path, strengths: list[float], settings: dict, frames: int | None = None) -> dict:
+def sweep(run: Path, strengths: list[float], settings: dict, frames: int | None = None, smoothed: bool = False) -> dict:
     sadm = load_sadm(run)
-    cfg = read_config(run)
-    seq, tr, te = run_data(cfg)
+    if smoothed:  # the landmarks smoothed as data.smooth_landmarks=true does, whatever the run had
+        cfg, seq, tr, te, _ = run_sequence(run, True)
+    else:
+        cfg = read_config(run)
+        seq, tr, te = run_data(cfg)
     model = sadm.model
     model_seq = seq.to_scheme(get_scheme(seq.scheme).base_scheme().name)
     bank = attach_bank(sadm, seq, tr, settings)
@@ -66,7 +76,7 @@ def sweep(run: Path, strengths: list[float], settings: dict, frames: int | None 
     common = common_landmarks(seq, None)
     tex_te = model.sample_textures(model_seq, te)
     out = {}
-    if 0 in strengths and (run / "metrics.json").is_file():
+    if 0 in strengths and not smoothed and (run / "metrics.json").is_file():
         m = json.loads((run / "metrics.json").read_text())
         if "lpips_frame_common" in m and "flicker_frame_common" in m:
             out["0.0"] = figures(m)
@@ -128,13 +138,19 @@ def main() -> None:
     ap.add_argument("--from-json", type=Path, default=None, help="plot/summarise a previous run's stdout line instead of measuring")
     ap.add_argument("--jobs", type=int, default=1, help="runs at once (default 1)")
     ap.add_argument("--set", action="append", default=[], help="KEY=VALUE of model.detail_* (repeatable)")
+    ap.add_argument("--smoothed", action="store_true",
+                    help="evaluate (and fit the bank) on landmarks smoothed as data.smooth_landmarks=true does, "
+                         "whatever the runs were trained on")
+    ap.add_argument("--today-json", type=Path, default=None,
+                    help="today's figures from a bench.studies.landmark_smoothing line (its CLIP__today runs, "
+                         "smoothed with --smoothed, else tracked) instead of --today's metrics.json")
     args = ap.parse_args()
     strengths = [float(v) for v in args.detail.split(",") if v.strip()]
     settings = parse_settings(args.set)
     result = {}
 
     def one(run):
-        r = sweep(run, strengths, settings, args.frames)
+        r = sweep(run, strengths, settings, args.frames, args.smoothed)
         print(json.dumps({"run": run.name, "bank": r["bank"]}), file=sys.stderr, flush=True)
         return run.name, r
 
@@ -145,9 +161,15 @@ def main() -> None:
             result = dict(ex.map(one, args.runs))
     if args.plot is not None:
         plot(result, args.plot)
-    acceptance = (against_today(args.today, {n: {f"detail={k}": v for k, v in r["strengths"].items()} for n, r in result.items()})
-                  if args.today else {})
-    print(json.dumps({"bench": "detail", "settings": settings, "runs": result, "acceptance": acceptance}))
+    today = args.today
+    if args.today_json is not None:
+        mode = "smoothed" if args.smoothed else "tracked"
+        line = json.loads(args.today_json.read_text().strip().splitlines()[-1])
+        today = {name.split("__")[0]: r[mode] for name, r in line["runs"].items() if name.endswith("__today") and mode in r}
+    acceptance = (against_today(today, {n: {f"detail={k}": v for k, v in r["strengths"].items()} for n, r in result.items()})
+                  if today else {})
+    print(json.dumps({"bench": "detail", "settings": settings, "smoothed": args.smoothed, "runs": result,
+                      "acceptance": acceptance}))
 
 
 if __name__ == "__main__":

@@ -12,6 +12,9 @@ others; at least 8 frames apart. Each row is labelled with its video frame and e
 LPIPS (the tile against the real one, resized to 224 px) when the perceptual
 extra is installed. Prints one JSON line.
 
+``--smoothed``: the frames' landmarks (and the banks' training frames) smoothed as
+``data.smooth_landmarks=true`` does, whatever the runs were trained on.
+
 ``--driver CLIP``: each run driven by another person instead (a shared clip's tracked
 landmarks, relative motion, the driver's neutral from its own frames): the runs exported
 (default export) and played through the full-frame talking head
@@ -108,6 +111,8 @@ def main() -> None:
                          "as bench/studies/detail.py does (0: the run as trained)")
     ap.add_argument("--set", action="append", default=[], help="KEY=VALUE of model.detail_* for the banks")
     ap.add_argument("--driver", help="a shared clip that drives every run through the talking head (no real frame)")
+    ap.add_argument("--smoothed", action="store_true",
+                    help="the landmarks (and the banks' training frames) smoothed as data.smooth_landmarks=true does")
     a = ap.parse_args()
     if len(a.labels) != len(a.runs):
         raise SystemExit("error: give one --labels entry per run")
@@ -116,7 +121,14 @@ def main() -> None:
         rows = [_row(t, f"{a.driver} frame {i['frame']} ({i['why']})", [a.driver] + a.labels) for t, i in zip(tiles, info, strict=True)]
         _write(rows, a.out, a.quality, {"driver": a.driver, "frames": info, "labels": a.labels})
         return
-    seq, _, te = run_data(read_config(a.runs[0]))
+    def data(run):
+        if a.smoothed:
+            from bench.studies.landmark_smoothing import run_sequence
+
+            return run_sequence(Path(run), True)[1:4]
+        return run_data(read_config(run))
+
+    seq, _, te = data(a.runs[0])
     lm_te = seq.landmarks[te][:, :68]
     chosen = pick(lm_te, a.frames)
     syns = []
@@ -125,7 +137,7 @@ def main() -> None:
         if strength > 0:
             from bench.studies.detail import attach_bank, parse_settings
 
-            rseq, tr, _ = run_data(read_config(r))
+            rseq, tr, _ = data(r)
             attach_bank(sadm, rseq, tr, parse_settings(a.set), strength)
         syns.append(sadm.synthesizer())
     rows, info = [], []

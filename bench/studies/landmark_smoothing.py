@@ -52,14 +52,25 @@ from facesynth.sadm.fit import load_sadm
 MODES = {"tracked": False, "smoothed": True}
 
 
-def evaluate(run: Path, smoothed: bool, fast_radii_s: float = FAST_RADII_S, light_shift_px: float | None = LIGHT_SHIFT_PX) -> dict:
+def run_sequence(run: Path, smoothed: bool, fast_radii_s: float = FAST_RADII_S,
+                 light_shift_px: float | None = LIGHT_SHIFT_PX):
+    """A run's config, sequence, split (train rows, test rows) and whether it was trained on
+    smoothed landmarks; the sequence's landmarks as tracked, or (``smoothed``) smoothed as
+    ``data.smooth_landmarks=true`` does, each part of the split alone, with these settings
+    (the defaults', not the run's)."""
     cfg = read_config(run)
     trained_smoothed = bool(cfg.data.smooth_landmarks)
     cfg.data.smooth_landmarks = False
     seq, tr, te = run_data(cfg)
-    bounds = split_bounds(len(seq), float(cfg.data.train_fraction), int(cfg.data.gap))
     if smoothed:  # as data.smooth_landmarks=true does (load_data), with this motion threshold
+        bounds = split_bounds(len(seq), float(cfg.data.train_fraction), int(cfg.data.gap))
         seq = smooth_sequence(seq, bounds, fast_radii_s=fast_radii_s, light_shift_px=light_shift_px)
+    return cfg, seq, tr, te, trained_smoothed
+
+
+def evaluate(run: Path, smoothed: bool, fast_radii_s: float = FAST_RADII_S, light_shift_px: float | None = LIGHT_SHIFT_PX) -> dict:
+    cfg, seq, tr, te, trained_smoothed = run_sequence(run, smoothed, fast_radii_s, light_shift_px)
+    bounds = split_bounds(len(seq), float(cfg.data.train_fraction), int(cfg.data.gap))
     ecfg = EvalConfig(noise=[0.0], train_level=False, talking_head=False,
                       flicker_frames=int(cfg.eval.get("flicker_frames", 40)))
     common = common_landmarks(seq, None)

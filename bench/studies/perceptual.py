@@ -104,14 +104,18 @@ def summary(per_clip: dict, name: str) -> dict:
             "sharpness_max": float(max(sharp)), "flicker_ratio_max": float(max(n["flicker_ratio"] for n in new))}
 
 
-def against_today(today: Path, runs: dict[str, dict]) -> dict:
+def against_today(today: Path | dict[str, dict], runs: dict[str, dict]) -> dict:
     """The acceptance (:func:`summary`) of each variant against today's run of the same clip:
     ``runs`` maps a run folder's name (``CLIP__VARIANT``) to ``{variant: figures}``; today's
-    figures come from ``today/CLIP__today``; clips without one are left out."""
+    figures come from ``today/CLIP__today``, or from ``today`` itself when it maps a clip to
+    them; clips without them are left out."""
     per_clip = {}
     for name, variants in runs.items():
         clip = name.split("__")[0]
-        if (today / f"{clip}__today" / "metrics.json").is_file():
+        if isinstance(today, dict):
+            if clip in today:
+                per_clip[clip] = {"today": today[clip], **variants}
+        elif (today / f"{clip}__today" / "metrics.json").is_file():
             per_clip[clip] = {"today": figures(today / f"{clip}__today"), **variants}
     names = sorted({n for fig in per_clip.values() for n in fig if n != "today"})
     return {n: summary(per_clip, n) for n in names}
