@@ -117,8 +117,8 @@ def test_camera_drives_the_avatar_offline_and_matches_python(page_site, camera, 
 
         # the page loads its avatar as graph + weights; a dropped file is one whole .onnx: the same frames.
         # Dropped as the page moves to two workers (auto does on a slow machine): the two are queued, so
-        # the page ends with a tracker and a renderer apart (run across each other, the page had counted
-        # two workers with one, and the next avatar's load stopped its tracker: the page froze)
+        # the page ends with a tracker and a renderer apart (run across each other, a load could take the
+        # tracker for the old renderer and stop it: the page froze)
         page.evaluate("async () => { const f = new File([await (await fetch('whole.onnx')).arrayBuffer()], 'whole.onnx');"
                       " await Promise.all([window.facesynth.loadFile(f), window.facesynth.useTwoWorkers()]); }")
         assert "Loaded whole.onnx." in _messages(page)

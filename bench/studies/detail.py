@@ -19,8 +19,9 @@ strength against today's figures (``bench.studies.perceptual.summary``).
 ``--smoothed``: the bank fitted and the runs evaluated on landmarks smoothed as
 ``data.smooth_landmarks=true`` does (:func:`bench.studies.landmark_smoothing.run_sequence`),
 whatever the runs were trained on; strength 0 is then evaluated too. ``--today-json FILE``:
-today's figures from a ``bench.studies.landmark_smoothing`` line (its ``CLIP__today`` runs,
-smoothed with ``--smoothed``, else tracked).
+today's figures from a ``bench.studies.landmark_smoothing`` line (its ``CLIP__today`` runs), on
+their landmarks as tracked (today's default when #44 was written: the study's baseline) or, with
+``--today-smoothed``, smoothed.
 """
 
 from __future__ import annotations
@@ -143,7 +144,8 @@ def main() -> None:
                          "whatever the runs were trained on")
     ap.add_argument("--today-json", type=Path, default=None,
                     help="today's figures from a bench.studies.landmark_smoothing line (its CLIP__today runs, "
-                         "smoothed with --smoothed, else tracked) instead of --today's metrics.json")
+                         "tracked unless --today-smoothed) instead of --today's metrics.json")
+    ap.add_argument("--today-smoothed", action="store_true", help="--today-json's figures on smoothed landmarks")
     args = ap.parse_args()
     strengths = [float(v) for v in args.detail.split(",") if v.strip()]
     settings = parse_settings(args.set)
@@ -163,7 +165,7 @@ def main() -> None:
         plot(result, args.plot)
     today = args.today
     if args.today_json is not None:
-        mode = "smoothed" if args.smoothed else "tracked"
+        mode = "smoothed" if args.today_smoothed else "tracked"
         line = json.loads(args.today_json.read_text().strip().splitlines()[-1])
         today = {name.split("__")[0]: r[mode] for name, r in line["runs"].items() if name.endswith("__today") and mode in r}
     acceptance = (against_today(today, {n: {f"detail={k}": v for k, v in r["strengths"].items()} for n, r in result.items()})

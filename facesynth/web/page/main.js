@@ -286,9 +286,9 @@ function onFrame(msg, worker) {
 // Two workers (two ONNX Runtime instances, ~60 MB more): one tracks, the other renders the newest
 // points meanwhile; for a machine on which one worker's stage is over budget. Both are new, so that
 // the one worker's heap, grown by the avatar (WebAssembly memory never shrinks), is freed with it.
-// In the avatar loads' queue (loadAvatar): a load and the switch each replace workers, and one that
-// ran across the other left the page counting two workers with one, whose next load then stopped
-// the tracker (the page froze).
+// In the avatar loads' queue (loadAvatar): a load and the switch each replace workers, so neither may
+// run across the other (a load begun with one worker would take the switch's tracker for its old
+// renderer and stop it: the page would freeze).
 function useTwoWorkers() {
   if (state.workers === 2 || state.switching) return state.loading;
   state.switching = true;
