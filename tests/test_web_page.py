@@ -116,11 +116,19 @@ def test_camera_drives_the_avatar_offline_and_matches_python(page_site, camera, 
         assert page.evaluate("window.facesynth.state.avatar.meta") == read_metadata(path)
 
         # the page loads its avatar as graph + weights; a dropped file is one whole .onnx: the same frames.
-        # Dropped as the page moves to two workers (auto does on a slow machine): the two are queued, so
-        # the page ends with a tracker and a renderer apart (run across each other, a load could take the
-        # tracker for the old renderer and stop it: the page froze)
-        page.evaluate("async () => { const f = new File([await (await fetch('whole.onnx')).arrayBuffer()], 'whole.onnx');"
-                      " await Promise.all([window.facesynth.loadFile(f), window.facesynth.useTwoWorkers()]); }")
+        # Dropped just after the page starts moving to two workers (auto does on a slow machine), the
+        # file slow to come until the move is done: the two are queued, so the load sees two workers
+        # and the page ends with a tracker and a renderer apart (run across each other, the load would
+        # take the tracker for the old renderer and stop it: the page would freeze)
+        page.evaluate("""async () => {
+            const moved = window.facesynth.useTwoWorkers();
+            let give;
+            const file = new Promise((resolve) => { give = resolve; });
+            const loaded = window.facesynth.loadFile({ name: 'whole.onnx', arrayBuffer: () => file });
+            await moved;
+            give(await (await fetch('whole.onnx')).arrayBuffer());
+            await loaded;
+        }""")
         assert "Loaded whole.onnx." in _messages(page)
         assert page.evaluate("(({ workers, worker, renderer }) => [workers, worker !== renderer])(window.facesynth.state)") == [2, True]
         x = driver[len(driver) // 2]
