@@ -60,9 +60,17 @@ def _wait(page, expr: str, timeout_s: float = 60.0):
     return page.evaluate(expr)
 
 
-def test_camera_drives_the_avatar_offline_and_matches_python(page_site, camera, avatar):
+def _page_render(page, driver: np.ndarray, neutral: np.ndarray) -> np.ndarray:
+    """The page's avatar frame (the replay hook, through its worker) for one driver frame (P, 2) and
+    the driver's neutral (P, 2): uint8 (1, H, W, 3), as the talking head's Python runtime gives it."""
     import base64
 
+    out = page.evaluate("([d, n]) => window.facesynth.render(d, n)",
+                        [driver.ravel().tolist(), neutral.astype(np.float32).ravel().tolist()])
+    return np.frombuffer(base64.b64decode(out["data"]), np.uint8).reshape(out["dims"])
+
+
+def test_camera_drives_the_avatar_offline_and_matches_python(page_site, camera, avatar):
     from facesynth.runtime.talking_head import TalkingHead
 
     path, seq = avatar
@@ -107,9 +115,7 @@ def test_camera_drives_the_avatar_offline_and_matches_python(page_site, camera, 
         neutral, _ = driver_neutral_of(seq.landmarks)
         th = TalkingHead(path, driver_neutral=neutral)
         for x in driver[[0, len(driver) // 2, len(driver) - 1]]:
-            out = page.evaluate("([d, n]) => window.facesynth.render(d, n)",
-                                [x.ravel().tolist(), neutral.astype(np.float32).ravel().tolist()])
-            got = np.frombuffer(base64.b64decode(out["data"]), np.uint8).reshape(out["dims"])
+            got = _page_render(page, x, neutral)
             want, _ = th.run(x[None])
             assert got.shape == want.shape and np.abs(got.astype(int) - want).max() <= 2
         # the page reads the .onnx metadata itself (onnxmeta.js): the same as ONNX Runtime's in Python
@@ -132,9 +138,7 @@ def test_camera_drives_the_avatar_offline_and_matches_python(page_site, camera, 
         assert "Loaded whole.onnx." in _messages(page)
         assert page.evaluate("(({ workers, worker, renderer }) => [workers, worker !== renderer])(window.facesynth.state)") == [2, True]
         x = driver[len(driver) // 2]
-        out = page.evaluate("([d, n]) => window.facesynth.render(d, n)",
-                            [x.ravel().tolist(), neutral.astype(np.float32).ravel().tolist()])
-        got = np.frombuffer(base64.b64decode(out["data"]), np.uint8).reshape(out["dims"])
+        got = _page_render(page, x, neutral)
         assert np.abs(got.astype(int) - th.run(x[None])[0]).max() <= 2
         frames = page.evaluate("window.facesynth.state.frames")
         page.wait_for_function(f"window.facesynth.state.frames > {frames + 10}", timeout=30000)  # still live
@@ -148,9 +152,7 @@ def test_camera_drives_the_avatar_offline_and_matches_python(page_site, camera, 
             frames = page.evaluate("window.facesynth.state.frames")
             page.wait_for_function(f"window.facesynth.state.frames > {frames + 10}", timeout=30000)  # still live
             # it renders (the replay hook, through the page's worker): the same frame as Python's
-            out = page.evaluate("([d, n]) => window.facesynth.render(d, n)",
-                                [x.ravel().tolist(), neutral.astype(np.float32).ravel().tolist()])
-            got = np.frombuffer(base64.b64decode(out["data"]), np.uint8).reshape(out["dims"])
+            got = _page_render(page, x, neutral)
             assert np.abs(got.astype(int) - th.run(x[None])[0]).max() <= 2
             assert page.is_hidden("#reach")
             if note is None:
@@ -221,8 +223,6 @@ def test_two_workers(page_site, camera, avatar, query):
     """The avatar in a second worker, beside the tracker's: asked for (``?workers=2``), or moved
     there when the one worker's stage is over budget (``auto`` with a budget of 0 ms): the camera
     still drives the avatar, and the page's frames equal Python's runtime within 2/255."""
-    import base64
-
     from facesynth.runtime.reenact import driver_neutral_of
     from facesynth.runtime.talking_head import TalkingHead
 
@@ -235,9 +235,7 @@ def test_two_workers(page_site, camera, avatar, query):
         page.wait_for_function(f"window.facesynth.state.frames >= {frames + 30}", timeout=30000)
         assert "2 workers" in page.inner_text("#stats")
         assert not [m for m in page.evaluate("window.facesynth.state.messages") if m["error"]]
-        out = page.evaluate("([d, n]) => window.facesynth.render(d, n)",
-                            [x.ravel().tolist(), neutral.astype(np.float32).ravel().tolist()])
-        got = np.frombuffer(base64.b64decode(out["data"]), np.uint8).reshape(out["dims"])
+        got = _page_render(page, x, neutral)
         assert np.abs(got.astype(int) - TalkingHead(path, driver_neutral=neutral).run(x[None])[0]).max() <= 2
     assert blocked == []
 
