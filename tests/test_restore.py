@@ -14,7 +14,8 @@ from _faces import face_sequence_arrays
 from facesynth.data import FaceSequence
 from facesynth.data.frames import ArrayFrames
 from facesynth.model import FaceModel, FaceModelConfig
-from facesynth.model.restore import GUARD_DB, STRIPS, Restore, choose_strength, strength_curve, with_strength
+from facesynth.model.restore import (GUARD_DB, STRIPS, Restore, apply_path, choose_strength, mean_offset, path_curve, path_parts,
+                                     strength_curve, with_strength)
 
 
 @pytest.mark.parametrize(("h", "w", "size", "channels"), [(40, 52, 5, 3), (9, 30, 7, 3), (151, 77, 7, 1), (64, 64, 3, 3)])
@@ -199,7 +200,94 @@ def test_sadm_fit_scales_the_filter_within_the_guard(restored):
     # every slice (blocks of 6 rows at the end of the 18 training rows, each after a gap of 6) within the guard
     assert [sl["val_rows"] for sl in r["slices"]] == [[12, 18], [18, 24]] and r["fit_frames"] == 12
     assert r["psnr_change_db"] == min(sl["psnr_change_db"] for sl in r["slices"]) >= -r["guard_db"]
-    assert np.array_equal(m.restore_kernel, with_strength(full, r["strength"]))
+    # the model is at the chosen point of the path: the crop's filter at the variation's strength, the rest
+    # of the mean's part as the texture offset
+    assert (r["mean_strength"], r["strength"]) == path_parts(r["path"])
+    want = dataclasses.replace(model)
+    apply_path(want, full, r["path"])
+    for got, ref in ((m.restore_kernel, want.restore_kernel), (m.restore_offset, want.restore_offset)):
+        assert (got is None and ref is None) or np.array_equal(got, ref)
     off = dataclasses.replace(model)
     fit_sadm(off, seq, np.arange(24), tex, "linear", {}, SADMConfig(region_shrink=False, restore_guard=None))
-    assert np.array_equal(off.restore_kernel, full)
+    assert np.array_equal(off.restore_kernel, full) and off.restore_offset is None
+
+
+def test_the_mean_offset_is_the_crop_filter_on_the_rendered_mean(restored):
+    """restore_variation=0: the filter's part on the mean texture, added to the texture in the
+    reference frame before the warp, renders what the crop's filter does to the rendered mean added to
+    the unfiltered render (the filter is linear; the two differ by the warp's resampling of the
+    filtered mean); no filter is left in the model."""
+    seq, model, tex = restored
+    full = model.restore_kernel
+    plain = dataclasses.replace(model, restore_kernel=None, restore_offset=None)
+    mean_only = dataclasses.replace(plain)
+    apply_path(mean_only, full, 1.0)
+    assert mean_only.restore_kernel is None and mean_only.restore_offset.shape == (tex.shape[1],)
+    assert mean_only.restore_offset == pytest.approx(mean_offset(plain, full))
+    rows = np.arange(2, 24, 4)
+    got = mean_only.render(tex[rows], seq.landmarks[rows])[0]
+    img, mask, _ = plain.render(tex[rows], seq.landmarks[rows])
+    mimg = plain.render(np.repeat(model.appearance_pca.mean[None], len(rows), 0), seq.landmarks[rows])[0]
+    m = torch.from_numpy(mask)[:, None]
+    mt = torch.from_numpy(mimg).permute(0, 3, 1, 2)
+    filtered = Restore(full)(mt, m) - mt * m
+    want = np.clip(img + filtered.permute(0, 2, 3, 1).numpy(), 0, 1) * mask[..., None]
+    inside = cv2.erode(mask.transpose(1, 2, 0), np.ones((7, 7))).transpose(2, 0, 1) > 0.5  # away from the mask's edge
+    diff = np.abs(got - want)[inside]
+    change = np.abs(got - img)[inside]
+    assert diff.mean() < 0.1 * change.mean() and diff.mean() < 1 / 255
+
+
+def test_path_curve_is_the_rendered_psnr_change_and_ends_at_the_filter(restored):
+    """The path's closed-form curve against rendering each point through the face model (offset,
+    torch Restore, clamps) and pasting it with OpenCV; its end is strength_curve's full strength,
+    its middle the mean's part alone."""
+    seq, model, tex = restored
+    full = model.restore_kernel
+    plain = dataclasses.replace(model, restore_kernel=None, restore_offset=None)
+    rows = np.arange(1, 24, 3)
+    pred = np.clip(tex[rows] + np.random.default_rng(0).normal(0, 0.03, tex[rows].shape), 0, 1).astype(np.float32)
+    points = np.array([0.0, 0.5, 1.0, 1.5, 2.0])
+    curve = path_curve(plain, seq, rows, pred, full, points)
+    assert curve[0] == pytest.approx(0.0, abs=1e-9)
+    assert curve[-1] == pytest.approx(strength_curve(plain, seq, rows, pred, full, np.array([1.0]))[0], abs=1e-9)
+    base = _pasted_sse(plain, pred, seq, rows)
+    for i in (1, 2, 3, 4):
+        m = dataclasses.replace(plain)
+        apply_path(m, full, points[i])
+        direct = float(np.mean(-10 * np.log10(_pasted_sse(m, pred, seq, rows) / base)))
+        assert curve[i] == pytest.approx(direct, abs=0.03)
+
+
+def test_mean_only_model_keeps_no_filter_in_its_artifact_and_graph(restored, tmp_path):
+    import onnx
+
+    from facesynth.model.artifact import load_face_model, save_face_model
+    from facesynth.onnx.synthesis import check_export, export_synthesizer
+    from facesynth.regressors import REGISTRY
+    from facesynth.sadm.synthesis import GlobalAppearance, Synthesizer
+
+    seq, model, tex = restored
+    m = dataclasses.replace(model)
+    apply_path(m, model.restore_kernel, 1.0)
+    save_face_model(m, tmp_path / "fm")
+    back = load_face_model(tmp_path / "fm")
+    assert back.restore_kernel is None and np.array_equal(back.restore_offset, m.restore_offset)
+    x = back.shape_params(seq.landmarks, clamp=True)
+    syn = Synthesizer(back, GlobalAppearance(back, REGISTRY["linear"].fit(x, back.appearance_params(tex), seed=0))).eval()
+    with torch.no_grad():
+        crop, _, _ = syn(torch.from_numpy(seq.landmarks[:4]))
+        t = syn.texture(torch.from_numpy(seq.landmarks[:4])).reshape(4, -1).numpy()
+    assert crop.permute(0, 2, 3, 1).numpy() == pytest.approx(back.render(t, seq.landmarks[:4])[0], abs=1e-5)
+    path = export_synthesizer(syn, tmp_path / "m.onnx")
+    assert check_export(syn, path, seq.landmarks[:6]) < 1e-4
+    assert not [n for n in onnx.load(str(path)).graph.node if n.op_type == "Conv"]
+
+
+def test_restore_variation_outside_its_range_is_refused():
+    from facesynth.errors import FacesynthError
+
+    frames, lm = face_sequence_arrays(n=6, seed=2)
+    seq = FaceSequence.from_arrays(lm, ArrayFrames(frames), name="unit")
+    with pytest.raises(FacesynthError, match="restore_variation"):
+        FaceModel.fit(seq, FaceModelConfig(reference_width=48, restore=True, restore_variation=1.5), progress=False)

@@ -45,6 +45,8 @@ def save_face_model(model: FaceModel, directory: str | os.PathLike, extra: dict 
         denoise = {"denoise_total_variance": model.denoise_pca.total_variance}
     if model.restore_kernel is not None:  # absent: no restoration filter
         tensors["restore_kernel"] = np.asarray(model.restore_kernel, np.float32)
+    if model.restore_offset is not None:  # absent: no restoration of the mean beyond the kernel's
+        tensors["restore_offset"] = np.asarray(model.restore_offset, np.float32)
     if model.detail_bank is not None:  # absent: no example-based detail
         tensors.update(model.detail_bank)
     return save_artifact(directory, TENSORS, MANIFEST, tensors, {
@@ -97,6 +99,7 @@ def load_face_model(directory: str | os.PathLike) -> FaceModel:
                 t["denoise_mean"], t["denoise_components"], t["denoise_eigenvalues"],
                 float(manifest_field(manifest, "denoise_total_variance", where))),
             restore_kernel=t.get("restore_kernel"),
+            restore_offset=t.get("restore_offset"),
             detail_bank={k: t[k] for k in BANK_TENSORS if k in t} if BANK_TENSORS[0] in t else None,
         )
         check_face_model(model)
@@ -149,3 +152,6 @@ def check_face_model(model: FaceModel) -> None:
     k = model.restore_kernel
     if k is not None and (k.ndim != 2 or k.shape[0] != k.shape[1] or k.shape[0] % 2 != 1):
         raise ValueError(f"restore_kernel: expected an odd square (k, k) kernel, got {k.shape}")
+    o = model.restore_offset
+    if o is not None and o.shape != (model.n_channels * model.n_pixels,):
+        raise ValueError(f"restore_offset: expected ({model.n_channels * model.n_pixels},), a texture, got {o.shape}")

@@ -9,6 +9,8 @@ T. F. Cootes, G. J. Edwards, C. J. Taylor, "Active appearance models", IEEE TPAM
 
 from __future__ import annotations
 
+import hashlib
+
 import logging
 import time
 from dataclasses import asdict, dataclass, field, replace
@@ -25,7 +27,7 @@ from facesynth.model.detail import check_detail, fit_detail_bank
 from facesynth.model.pca import PCAModel
 from facesynth.model.procrustes import generalised_procrustes
 from facesynth.model.reference import ReferenceFrame, open_mouth, reference_width, subset_triangulation
-from facesynth.model.restore import fit_restoration
+from facesynth.model.restore import apply_path, fit_restoration
 from facesynth.model.warp import ToReference, ToTarget, apply_affine_t, candidate_spans, invert_affine_t, similarity_to
 from facesynth.progress import bar as progress_bar
 
@@ -69,6 +71,10 @@ class FaceModelConfig:
     # regressor inputs only; faster to render, docs/runtime.md); no effect on ibug68
     warp_points: str = "mesh"
     restore: bool = False  # fit a restoration filter on the training frames (model/restore.py)
+    # the filter's strength on the texture's variation from the mean (0..1), its part on the mean
+    # texture staying whole: 0 = the mean's part alone, a constant added to the texture before the
+    # warp (no filter at run time); sadm.restore_guard moves along this path up to it
+    restore_variation: float = 1.0
     # example-based detail (model/detail.py): the strength (0 = off, no bank; 1 = full) of the
     # high band of the k training frames nearest in shape, added on ``detail_parts``
     detail: float = 0.0
@@ -145,6 +151,7 @@ class FaceModel:
     scheme: str = DEFAULT_SCHEME.name
     denoise_pca: PCAModel | None = None
     restore_kernel: np.ndarray | None = None  # float32 (k, k): every render's restoration filter (model/restore.py)
+    restore_offset: np.ndarray | None = None  # float32 (C * M,): the mean's restoration added to every texture (model/restore.py)
     detail_bank: dict | None = None  # name -> array (model/detail.py BANK_TENSORS); None: no example-based detail
 
     # ------------------------------------------------------------------ fitting
@@ -176,6 +183,8 @@ class FaceModel:
         if not 0 <= mouth_q <= 1:
             raise FacesynthError(f"model.reference_mouth_quantile must lie in [0, 1] (0 = off), got {cfg.reference_mouth_quantile}")
         check_detail(cfg)
+        if not 0 <= cfg.restore_variation <= 1:
+            raise FacesynthError(f"model.restore_variation must lie in [0, 1] (0 = the mean's part only), got {cfg.restore_variation}")
         if cfg.warp_points not in WARP_POINTS:
             raise FacesynthError(f"model.warp_points must be one of {WARP_POINTS}, got {cfg.warp_points!r}")
         aligned, mean = generalised_procrustes(lm)
@@ -204,7 +213,10 @@ class FaceModel:
         t2 = time.perf_counter()
         model.appearance_pca = PCAModel.fit(textures, cfg.n_appearance, cfg.appearance_variance)
         t3 = time.perf_counter()
-        model.restore_kernel, restore = fit_restoration(model, seq, rows, textures) if cfg.restore else (None, {})
+        kernel, restore = fit_restoration(model, seq, rows, textures) if cfg.restore else (None, {})
+        if kernel is not None:  # the kernel as fitted is kept for the guard (sadm.restore_guard)
+            restore["kernel"] = kernel.tolist()
+            apply_path(model, kernel, 1.0 + cfg.restore_variation)
         t4 = time.perf_counter()
         model.detail_bank, detail = fit_detail_bank(model, seq.landmarks[rows], textures) if cfg.detail > 0 else (None, {})
         model.meta = {
@@ -290,9 +302,11 @@ class FaceModel:
 
     def target_warp(self) -> ToTarget:
         """The reference -> target warp module (built once per span, cached)."""
-        key = self.span.tobytes() + (b"" if self.restore_kernel is None else self.restore_kernel.tobytes())
+        key = (self.span.tobytes() + (b"" if self.restore_kernel is None else self.restore_kernel.tobytes())
+               + (b"" if self.restore_offset is None else hashlib.sha1(self.restore_offset.tobytes()).digest()))
         if self.__dict__.get("_target_warp_key") != key:
-            self.__dict__["_target_warp"] = ToTarget(self.reference, self.span, restore=self.restore_kernel)
+            self.__dict__["_target_warp"] = ToTarget(self.reference, self.span, restore=self.restore_kernel,
+                                                     offset=self.restore_offset)
             self.__dict__["_target_warp_key"] = key
         return self.__dict__["_target_warp"]
 

@@ -24,6 +24,17 @@ At render time :class:`Restore` runs inside the warp (:class:`facesynth.model.wa
 so the evaluation, the torch synthesiser and the exported face-only graph (three depthwise Conv
 nodes over row strips: the fill's box sums along x and along y, and the filter) all show the
 filtered face.
+
+**The mean first.** The filter is linear, so on a texture ``T = mean + v`` it adds ``D(mean) +
+D(v)`` (``D = K - delta``). ``D(mean)`` is the same for every frame: the mean texture's own detail
+given back, which is always where the warp puts it; ``D(v)`` also sharpens what the regressor got
+wrong. A point ``t`` on the filter's path (:func:`path_parts`) applies the mean's part at
+``min(t, 1)`` and the variation's at ``max(t - 1, 0)``: ``t = 2`` is the filter as fitted, ``t = 1``
+the mean's part alone, which is a constant added to the texture before the warp
+(:func:`mean_offset`, ``FaceModel.restore_offset``: no filter in the graph). The variation's part
+is the crop's filter at that strength (the mean's part it also applies is taken off the offset).
+On 17 shared clips at ``reference_width=auto`` the mean's part alone keeps 87 % of the face's
+LPIPS gain at a third of the filter's PSNR cost (docs/studies/example-detail.md).
 """
 
 from __future__ import annotations
@@ -256,10 +267,70 @@ def strength_curve(model, seq, rows: np.ndarray, textures: np.ndarray, kernel: n
 
 
 def choose_strength(curve: np.ndarray, strengths: np.ndarray = STRENGTHS, guard_db: float = GUARD_DB) -> float:
-    """The largest strength of ``strengths`` whose PSNR change on ``curve`` (dB, as from
-    :func:`strength_curve`) is no worse than ``-guard_db`` (0 when none is)."""
+    """The largest strength (or path point) of ``strengths`` whose PSNR change on ``curve`` (dB, as
+    from :func:`strength_curve` or :func:`path_curve`) is no worse than ``-guard_db`` (0 when none is)."""
     ok = np.asarray(curve) >= -float(guard_db)
     return float(np.max(np.asarray(strengths)[ok])) if ok.any() else 0.0
+
+
+def mean_offset(model, kernel: np.ndarray) -> np.ndarray:
+    """float32 (C * M,): ``D(mean)``, the filter's change to ``model``'s mean texture in the reference
+    frame (filled and filtered as :class:`Restore` does a crop, clipped to [0, 1] as it is) minus the
+    mean: what the filter adds to every frame's face at the mean's full strength."""
+    samp = model.sampler()
+    c = model.n_channels
+    mean = torch.from_numpy(np.asarray(model.appearance_pca.mean, np.float32)).reshape(1, c, -1)
+    with torch.no_grad():
+        img = samp.to_image(mean, 0.0)
+        mask = samp.to_image(torch.ones(1, 1, mean.shape[2]), 0.0)
+        out = Restore(kernel)(img, mask).reshape(1, c, -1)[:, :, samp.mask_index]
+    return (out - mean).reshape(-1).numpy().astype(np.float32)
+
+
+PATH_POINTS = np.linspace(0.0, 2.0, 81)  # the points of the filter's path the guard tries (path_parts)
+
+
+def path_parts(t: float) -> tuple[float, float]:
+    """``(mean, variation)``: the strengths of the filter's parts at point ``t`` of its path (0..2):
+    the mean's part first (``t`` <= 1), then the variation's."""
+    t = float(np.clip(t, 0.0, 2.0))
+    return min(t, 1.0), max(t - 1.0, 0.0)
+
+
+def apply_path(model, kernel: np.ndarray, t: float) -> None:
+    """Set ``model``'s filter (in place) to point ``t`` of the path of the full ``kernel``: the crop's
+    filter at the variation's strength (None at 0) and, for the rest of the mean's part, the
+    constant texture offset ``(mean - variation) D(mean)`` (None at 0)."""
+    m, v = path_parts(t)
+    model.restore_kernel = None if v <= 0 else with_strength(kernel, v)
+    model.restore_offset = None if m - v <= 0 else ((m - v) * mean_offset(model, kernel)).astype(np.float32)
+
+
+def path_curve(model, seq, rows: np.ndarray, textures: np.ndarray, kernel: np.ndarray,
+               points: np.ndarray = PATH_POINTS, feather: float = 2.0) -> np.ndarray:
+    """:func:`strength_curve` along the filter's path (:func:`path_parts`): the PSNR change (dB, mean
+    over the frames of ``rows``) at each of ``points`` against no filter. Per frame the error is
+    ``e0 + m dm + v dv`` with ``dm = (kernel - delta) * render(mean)`` and ``dv = (kernel - delta) *
+    (render(texture) - render(mean))``, so its square is a quadratic form in (m, v). ``model`` must hold
+    no filter."""
+    k = np.asarray(kernel, np.float64)
+    delta = _identity(k.shape[0]).reshape(-1)
+    step = k.reshape(-1) - delta
+    parts = np.array([path_parts(t) for t in np.asarray(points, np.float64)])  # (T, 2)
+    m, v = parts[:, 0], parts[:, 1]
+    rows = np.asarray(rows)
+    mean = np.repeat(np.asarray(model.appearance_pca.mean, np.float32)[None], len(textures), 0)
+    change = []
+    for (j, a, b), (jm, am, _) in zip(_designs(model, seq, rows, textures, feather, k.shape[0]),
+                                      _designs(model, seq, rows, mean, feather, k.shape[0]), strict=True):
+        assert j == jm
+        e0, dm = a @ delta - b, am @ step
+        dv = a @ step - dm
+        sse0 = float(e0 @ e0)
+        sse = (sse0 + 2 * m * float(e0 @ dm) + 2 * v * float(e0 @ dv) + m**2 * float(dm @ dm)
+               + 2 * m * v * float(dm @ dv) + v**2 * float(dv @ dv))
+        change.append(-10 * np.log10(np.maximum(sse, 1e-20) / max(sse0, 1e-20)))
+    return np.mean(change, 0) if change else np.zeros(len(parts))
 
 
 def fit_size(n_rows: int, n_val: int) -> int:
@@ -297,34 +368,47 @@ def slice_stops(n_rows: int, n_val: int, slices: int = VALIDATION_SLICES) -> lis
     return [stop for stop in stops if stop - 2 * n_val >= n_val] + [n_rows]
 
 
+def full_kernel(model) -> np.ndarray | None:
+    """The filter as fitted (``meta['restore']['kernel']``), whatever point of its path ``model`` is
+    at; models without it (trained before the path) hold the kernel they apply."""
+    k = model.meta.get("restore", {}).get("kernel") if isinstance(model.meta, dict) else None
+    return np.asarray(k, np.float32) if k is not None else model.restore_kernel
+
+
 def guard_restoration(fit, model, seq, rows: np.ndarray, n_val: int, guard_db: float = GUARD_DB) -> dict:
-    """Scale ``model``'s restoration filter (in place) to the largest strength whose PSNR cost is
-    at most ``guard_db`` on every validation slice (:func:`slice_stops`: blocks of ``n_val`` at
-    the end of ``rows``), each slice's textures predicted by ``fit(indices into rows)``: a
+    """Move ``model``'s restoration filter (in place) to the farthest point of its path
+    (:func:`path_parts`: the mean's part, then the variation's, up to ``1 + model.config.restore_variation``)
+    whose PSNR cost is at most ``guard_db`` on every validation slice (:func:`slice_stops`: blocks of
+    ``n_val`` at the end of ``rows``), each slice's textures predicted by ``fit(indices into rows)``: a
     synthesiser fitted on the rows before it and before a gap of ``n_val`` rows (what the filter
     will filter at run time, predictions of frames that lie beyond the training frames, not the
     frames' own textures; without the gap the slice's frames are too near the fit's, and the cost
     is underestimated: 0.16 against the test segment's 0.35 dB on lp_d13). Returns the report:
-    ``strength``, ``psnr_change_db`` at it, ``psnr_change_full_db`` at strength 1 and ``curve_db``
-    (the change at :data:`STRENGTHS`), each the worst slice's, and per slice (``slices``) its
-    ``val_rows`` [start, stop), ``fit_frames`` and ``psnr_change_db`` at the strength."""
-    kernel = model.restore_kernel
+    ``path`` (the point), ``mean_strength`` and ``strength`` (the variation's) there,
+    ``psnr_change_db`` at it, ``psnr_change_full_db`` at the path's end and ``curve_db`` (the change
+    at :data:`PATH_POINTS` up to the end), each the worst slice's, and per slice (``slices``) its
+    ``val_rows`` [start, stop), ``fit_frames`` and ``psnr_change_db`` at the point."""
+    kernel = full_kernel(model)
+    end = 1.0 + float(getattr(model.config, "restore_variation", 1.0))
+    points = PATH_POINTS[PATH_POINTS <= end + 1e-9]
     rows = np.asarray(rows)
     curves, slices = [], []
-    model.restore_kernel = None
+    kept = model.restore_kernel, model.restore_offset
+    model.restore_kernel, model.restore_offset = None, None
     try:
         for stop in slice_stops(len(rows), n_val):
             before, val, pred = validation_predictions(fit, seq, rows[:stop], n_val)
-            curves.append(strength_curve(model, seq, val, pred, kernel))
+            curves.append(path_curve(model, seq, val, pred, kernel, points))
             slices.append({"val_rows": [stop - n_val, stop], "fit_frames": int(before)})
     finally:
-        model.restore_kernel = kernel
-    curve = np.min(curves, 0)  # the worst slice at every strength
-    strength = choose_strength(curve, STRENGTHS, guard_db)
-    model.restore_kernel = with_strength(kernel, strength)
-    at = int(np.flatnonzero(STRENGTHS == strength)[0])
+        model.restore_kernel, model.restore_offset = kept
+    curve = np.min(curves, 0)  # the worst slice at every point
+    t = choose_strength(curve, points, guard_db)
+    apply_path(model, kernel, t)
+    at = int(np.flatnonzero(points == t)[0])
     for sl, c in zip(slices, curves, strict=True):
         sl["psnr_change_db"] = float(c[at])
-    return {"strength": strength, "guard_db": float(guard_db), "val_frames": int(n_val), "fit_frames": slices[-1]["fit_frames"],
-            "psnr_change_db": float(curve[at]), "psnr_change_full_db": float(curve[-1]),
+    m, v = path_parts(t)
+    return {"path": t, "mean_strength": m, "strength": v, "guard_db": float(guard_db), "val_frames": int(n_val),
+            "fit_frames": slices[-1]["fit_frames"], "psnr_change_db": float(curve[at]), "psnr_change_full_db": float(curve[-1]),
             "curve_db": [round(float(c), 4) for c in curve], "slices": slices}

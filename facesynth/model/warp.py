@@ -201,6 +201,9 @@ class ToTarget(nn.Module):
         Output size; defaults to the reference frame size.
     restore : (k, k) array, optional
         A restoration filter applied to the warped face (:class:`facesynth.model.restore.Restore`).
+    offset : (C * M,) array, optional
+        A constant added to every texture before the warp (clipped to [0, 1] after): the mean
+        texture's restoration (:func:`facesynth.model.restore.apply_path`).
 
     Forward
     -------
@@ -210,9 +213,10 @@ class ToTarget(nn.Module):
     """
 
     def __init__(self, ref: ReferenceFrame, span: np.ndarray, canvas: tuple[int, int] | None = None,
-                 restore: np.ndarray | None = None):
+                 restore: np.ndarray | None = None, offset: np.ndarray | None = None):
         super().__init__()
         self.restore = None if restore is None else Restore(restore)
+        self.register_buffer("offset", None if offset is None else torch.from_numpy(np.asarray(offset, np.float32).reshape(1, -1)))
         self.canvas = tuple(int(s) for s in (canvas or ref.size))
         self.ref_size = tuple(int(s) for s in ref.size)
         tri = np.asarray(ref.triangles, np.int64)
@@ -494,6 +498,8 @@ class ToTarget(nn.Module):
         return out[0] if c == 1 else torch.cat(out, 1)
 
     def forward(self, textures: torch.Tensor, target: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        if self.offset is not None:
+            textures = torch.clamp(textures + self.offset.reshape(1, textures.shape[1], -1), 0.0, 1.0)
         vert, e, ed = self.coordinates(target)
         maps, det = self.affine_maps(vert, e)
         lo, hi = self.box(target)

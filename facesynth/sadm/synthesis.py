@@ -213,7 +213,7 @@ class Synthesizer(nn.Module):
             raise FacesynthError(f"landmark scheme {scheme!r} does not fit a face model of {self.model_points} points")
         self.encoder = ShapeEncoder(model, clamp_shape)
         self.appearance = appearance
-        self.warp = ToTarget(model.reference, model.span, restore=model.restore_kernel)
+        self.warp = ToTarget(model.reference, model.span, restore=model.restore_kernel, offset=model.restore_offset)
         self.detail = detail_transfer(model)
         # FaceModel.denoise on the model's points, the rest as given (identity without a denoise PCA)
         self.denoise = shape_denoiser(model.denoise_pca)
