@@ -14,8 +14,18 @@ from _faces import face_sequence_arrays
 from facesynth.data import FaceSequence
 from facesynth.data.frames import ArrayFrames
 from facesynth.model import FaceModel, FaceModelConfig
-from facesynth.model.restore import (GUARD_DB, STRIPS, Restore, apply_path, choose_strength, mean_offset, path_curve, path_parts,
-                                     strength_curve, with_strength)
+from facesynth.model.restore import (
+    GUARD_DB,
+    STRIPS,
+    Restore,
+    apply_path,
+    choose_strength,
+    mean_offset,
+    path_curve,
+    path_parts,
+    strength_curve,
+    with_strength,
+)
 
 
 @pytest.mark.parametrize(("h", "w", "size", "channels"), [(40, 52, 5, 3), (9, 30, 7, 3), (151, 77, 7, 1), (64, 64, 3, 3)])

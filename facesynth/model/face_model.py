@@ -10,7 +10,6 @@ T. F. Cootes, G. J. Edwards, C. J. Taylor, "Active appearance models", IEEE TPAM
 from __future__ import annotations
 
 import hashlib
-
 import logging
 import time
 from dataclasses import asdict, dataclass, field, replace
