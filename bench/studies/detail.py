@@ -1,6 +1,6 @@
 """The example-based detail (``model.detail``) along its strength, on trained runs; one JSON line.
 
-    OMP_NUM_THREADS=1 python python -m bench.studies.detail RUN [RUN ...] [--detail 0,0.25,0.5,0.75,1] \
+    OMP_NUM_THREADS=1 python -m bench.studies.detail RUN [RUN ...] [--detail 0,0.25,0.5,0.75,1] \
         [--set detail_parts=mouth --set detail_k=4] [--today DIR] [--jobs 2]
 
 Each RUN is a ``facesynth train`` run (video data). Its face model gets a detail bank fitted on

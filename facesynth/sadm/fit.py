@@ -79,10 +79,11 @@ class SADMConfig:
         segment, or (< 2) the validation slice (at least :data:`MIN_SHRINK_FRAMES` frames)
     restore_guard : with a face model holding a restoration filter (``model.restore=true``),
         the PSNR (dB) the filter may cost on held-out predictions of every validation slice
-        (:func:`facesynth.model.restore.slice_stops`): its strength is the largest that costs no
-        more (:func:`facesynth.model.restore.guard_restoration`);
-        None (default) = the filter at full strength; :data:`~facesynth.model.restore.GUARD_DB` (0.05)
-        trades some of its LPIPS gain for PSNR (docs/studies/example-detail.md)
+        (:func:`facesynth.model.restore.slice_stops`): the filter goes as far along its path (the
+        mean texture's part first, then the variation's, up to ``model.restore_variation``) as costs
+        no more (:func:`facesynth.model.restore.guard_restoration`);
+        None (default) = the path's end (``model.restore_variation``); :data:`~facesynth.model.restore.GUARD_DB`
+        (0.05) trades some of its LPIPS gain for PSNR (docs/studies/example-detail.md)
     """
 
     features: str = "landmarks"
@@ -288,7 +289,8 @@ def fit_sadm(
     restore = None
     if model.restore_kernel is not None and cfg.restore_guard is not None and n_val >= 2 and seq.has_frames:
         restore = guard_restoration(refit, model, seq, rows, n_val, cfg.restore_guard)
-        log.info("restoration filter: strength %g (validation PSNR %+.3f dB)", restore["strength"], restore["psnr_change_db"])
+        log.info("restoration filter: mean %g, variation %g (validation PSNR %+.3f dB)", restore["mean_strength"],
+                 restore["strength"], restore["psnr_change_db"])
     return SADM(model, reg.eval(), name, cfg, reg.config_dict(), table, scheme.name, gaze, shrink, restore)
 
 
@@ -370,7 +372,7 @@ def save_sadm(sadm: SADM, run_dir: str | os.PathLike, extra: dict | None = None)
         "sadm": asdict(sadm.config),
         "search_table": sadm.search_table,
         "region_shrink": sadm.region_shrink,  # per-part weights towards the mean texture (None: none)
-        "restore": sadm.restore,  # the restoration filter's strength (face_model holds the scaled kernel; None: not chosen)
+        "restore": sadm.restore,  # the filter's point on its path: path, mean_strength, strength (the variation's); None: not chosen
         "data_fingerprint": sadm.model.fingerprint,
         "face_model_sha256": face_model_manifest(d / "face_model")["tensors_sha256"],
         **(extra or {}),
