@@ -1,5 +1,7 @@
 """The statistical face model: Procrustes-aligned shape PCA and appearance PCA on
-textures warped (piecewise affine) into the mean shape.
+textures warped (piecewise affine) into the mean shape. Its config holds every part's settings
+and its fit runs every part (shape, reference frame, textures, appearance, the restoration
+filter and the detail bank) in order, hence its length.
 
 References
 ----------
