@@ -220,6 +220,13 @@ def test_sadm_fit_scales_the_filter_within_the_guard(restored):
     off = dataclasses.replace(model)
     fit_sadm(off, seq, np.arange(24), tex, "linear", {}, SADMConfig(region_shrink=False, restore_guard=None))
     assert np.array_equal(off.restore_kernel, full) and off.restore_offset is None
+    # a model at the mean's part alone (restore_variation=0) is guarded too, along the path's first half
+    mean_only = dataclasses.replace(model, config=dataclasses.replace(model.config, restore_variation=0.0))
+    apply_path(mean_only, full, 1.0)
+    r0 = fit_sadm(mean_only, seq, np.arange(24), tex, "linear", {},
+                  SADMConfig(region_shrink=False, val_fraction=0.25, restore_guard=GUARD_DB)).restore
+    assert r0 is not None and r0["path"] <= 1.0 and r0["strength"] == 0.0 and mean_only.restore_kernel is None
+    assert len(r0["curve_db"]) == 41 and r0["psnr_change_db"] >= -r0["guard_db"]
 
 
 def test_the_mean_offset_is_the_crop_filter_on_the_rendered_mean(restored):

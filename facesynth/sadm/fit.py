@@ -34,7 +34,7 @@ from facesynth.landmarks import get_scheme
 from facesynth.model.artifact import load_face_model, save_face_model
 from facesynth.model.artifact import read_manifest as face_model_manifest
 from facesynth.model.face_model import FaceModel
-from facesynth.model.restore import guard_restoration, validation_predictions
+from facesynth.model.restore import full_kernel, guard_restoration, validation_predictions
 from facesynth.regressors import REGISTRY, Regressor, search
 from facesynth.sadm.compress import compress_synthesizer
 from facesynth.sadm.gaze import TARGETS as GAZE_TARGETS
@@ -287,7 +287,7 @@ def fit_sadm(
         shrink = fit_region_shrink(refit, model, lm, textures, cfg.shrink_folds, n_val)
         log.info("region shrinkage: %s", shrink["weights"])
     restore = None
-    if model.restore_kernel is not None and cfg.restore_guard is not None and n_val >= 2 and seq.has_frames:
+    if full_kernel(model) is not None and cfg.restore_guard is not None and n_val >= 2 and seq.has_frames:
         restore = guard_restoration(refit, model, seq, rows, n_val, cfg.restore_guard)
         log.info("restoration filter: mean %g, variation %g (validation PSNR %+.3f dB)", restore["mean_strength"],
                  restore["strength"], restore["psnr_change_db"])
