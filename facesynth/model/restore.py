@@ -34,7 +34,8 @@ the mean's part alone, which is a constant added to the texture before the warp
 (:func:`mean_offset`, ``FaceModel.restore_offset``: no filter in the graph). The variation's part
 is the crop's filter at that strength (the mean's part it also applies is taken off the offset).
 On 17 shared clips at ``reference_width=auto`` the mean's part alone keeps 87 % of the face's
-LPIPS gain at a third of the filter's PSNR cost (docs/studies/example-detail.md).
+LPIPS gain at a third of the filter's own PSNR cost on the clips that lose most
+(docs/studies/example-detail.md).
 
 The filter, its fit, its PSNR curve and guard, and its path all read the same least-squares
 design (:func:`_designs`), hence its length.
