@@ -141,16 +141,23 @@ def _designs(model, seq, rows: np.ndarray, textures: np.ndarray, feather: float 
     rendered crop (filled, :meth:`Restore.fill`) shifted by tap t and pasted into the frame, over
     a seeded subset of :data:`FIT_PIXELS` face pixels; ``b`` is the real frame there, in [0, 1].
     Yields ``(index into rows, a, b)``; frames without face pixels are skipped."""
+    for j, (a,), b in _design_sets(model, seq, rows, [textures], feather, full, seed_offset):
+        yield j, a, b
+
+
+def _design_sets(model, seq, rows: np.ndarray, sets: list[np.ndarray], feather: float = 2.0, full: int = max(SIZES),
+                 seed_offset: int = 0):
+    """:func:`_designs` of several texture sets of the same ``rows`` on the same pixels, each frame
+    read once: yields ``(index into rows, [a of each set], b)``."""
     r = full // 2
     rows = np.asarray(rows)
     lm = seq.landmarks[rows][:, : model.mean_shape.shape[0]]
-    crops, masks, places = model.render(textures, lm)
+    rendered = [model.render(textures, lm) for textures in sets]
+    _, masks, places = rendered[0]  # the mask and placement follow the landmarks alone
     n_taps = full * full
     fill = Restore(np.zeros((full, full), np.float32))
     for j, frame in enumerate(seq.iter_frames(rows)):
-        img = torch.from_numpy(crops[j]).permute(2, 0, 1)[None]
         msk = torch.from_numpy(masks[j])[None, None]
-        x = fill.fill(img, msk)[0].permute(1, 2, 0).numpy()
         h, w = frame.shape[:2]
         alpha = cv2.warpAffine(masks[j], places[j], (w, h), flags=cv2.INTER_LINEAR) > 0.999
         region = cv2.erode(alpha.astype(np.uint8), np.ones((2 * int(np.ceil(feather)) + 1,) * 2, np.uint8)) > 0
@@ -165,16 +172,19 @@ def _designs(model, seq, rows: np.ndarray, textures: np.ndarray, feather: float 
         if len(sy) > FIT_PIXELS:
             keep = np.sort(np.random.default_rng(j + seed_offset).choice(len(sy), FIT_PIXELS, replace=False))
             sy, sx = sy[keep], sx[keep]
-        xp = cv2.copyMakeBorder(x, r, r, r, r, cv2.BORDER_CONSTANT, value=0)
-        hh, ww = x.shape[:2]
-        cols = []
-        for dy in range(-r, r + 1):
-            for dx in range(-r, r + 1):  # conv2d is a correlation: tap (dy, dx) reads x[p + (dy, dx)]
-                shifted = np.ascontiguousarray(xp[r + dy : r + dy + hh, r + dx : r + dx + ww])
-                cols.append(cv2.warpAffine(shifted, place, (x1 - x0, y1 - y0), flags=cv2.INTER_LINEAR)[sy, sx])
-        a = np.stack(cols, -1).reshape(-1, n_taps).astype(np.float64)  # (pixels * 3, taps)
+        designs = []
+        for crops, _, _ in rendered:
+            x = fill.fill(torch.from_numpy(crops[j]).permute(2, 0, 1)[None], msk)[0].permute(1, 2, 0).numpy()
+            xp = cv2.copyMakeBorder(x, r, r, r, r, cv2.BORDER_CONSTANT, value=0)
+            hh, ww = x.shape[:2]
+            cols = []
+            for dy in range(-r, r + 1):
+                for dx in range(-r, r + 1):  # conv2d is a correlation: tap (dy, dx) reads x[p + (dy, dx)]
+                    shifted = np.ascontiguousarray(xp[r + dy : r + dy + hh, r + dx : r + dx + ww])
+                    cols.append(cv2.warpAffine(shifted, place, (x1 - x0, y1 - y0), flags=cv2.INTER_LINEAR)[sy, sx])
+            designs.append(np.stack(cols, -1).reshape(-1, n_taps).astype(np.float64))  # (pixels * 3, taps)
         b = frame[y0:y1, x0:x1][sy, sx].reshape(-1).astype(np.float64) / 255.0
-        yield j, a, b
+        yield j, designs, b
 
 
 def fit_restoration(model, seq, rows: np.ndarray, textures: np.ndarray, feather: float = 2.0) -> tuple[np.ndarray | None, dict]:
@@ -325,9 +335,7 @@ def path_curve(model, seq, rows: np.ndarray, textures: np.ndarray, kernel: np.nd
     rows = np.asarray(rows)
     mean = np.repeat(np.asarray(model.appearance_pca.mean, np.float32)[None], len(textures), 0)
     change = []
-    for (j, a, b), (jm, am, _) in zip(_designs(model, seq, rows, textures, feather, k.shape[0]),
-                                      _designs(model, seq, rows, mean, feather, k.shape[0]), strict=True):
-        assert j == jm
+    for _, (a, am), b in _design_sets(model, seq, rows, [textures, mean], feather, k.shape[0]):
         e0, dm = a @ delta - b, am @ step
         dv = a @ step - dm
         sse0 = float(e0 @ e0)
