@@ -292,3 +292,10 @@ def test_the_acceptance_against_figures_given_per_clip():
     assert got["lpips_mouth_change_median"] == pytest.approx(-0.3)
     assert got["psnr_change_min_db"] == pytest.approx(-0.3)
     assert (got["sharpness_median"], got["sharpness_max"], got["flicker_ratio_max"]) == (0.8, 0.9, 1.1)
+    assert got["ceiling_change_median"]["mouth"] == {"oracle": None, "rewarp": None}  # figures without ceilings
+    ceil = {"a": 0.10, "b": 0.07, "c": 0.15}  # the variant's mouth oracle: -50 %, -30 %, -50 % of today's prediction
+    for clip, v in ceil.items():
+        new[f"{clip}__x"]["v"]["lpips_ceiling"] = {"mouth": {"oracle": v, "rewarp": v / 2}}
+    got = against_today(today, new)["v"]["ceiling_change_median"]
+    assert got["mouth"]["oracle"] == pytest.approx(-0.5) and got["mouth"]["rewarp"] == pytest.approx(-0.75)
+    assert got["face"] == {"oracle": None, "rewarp": None}

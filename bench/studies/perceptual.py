@@ -14,6 +14,9 @@ variant, held out, sigma 0, row ``sadm``, the face pasted into the real frame:
   frames (``lpips_frame_common``; needs the ``perceptual`` extra);
 * ``psnr_frame_common`` (dB), ``sharpness`` (the whole common region's, ``sharpness_frame_common``);
 * ``flicker_ratio``: the face's frame-to-frame change over the real frames' (``flicker_frame_common``);
+* ``lpips_ceiling``: per part (face, eyes, mouth), the LPIPS of the ``oracle`` (the frame's own
+  texture projected on the appearance PCA) and of the ``rewarp`` (that texture through the render
+  path): what a perfect regressor and a perfect appearance model would reach;
 * ``train_s``: face model + SADM fit seconds (``timings_s``; the width guard's fits included),
   ``model_mb``: the run's model files;
 * ``width_px``: the reference width trained (``auto`` resolved, or the width guard's choice), and
@@ -22,7 +25,8 @@ variant, held out, sigma 0, row ``sadm``, the face pasted into the real frame:
 The summary holds, per variant against ``today``, the issue's acceptance: the median over
 clips of the per-clip relative LPIPS change (face, mouth), the clips whose face LPIPS did not
 drop, the worst per-clip PSNR change, the sharpness median and maximum, and the largest
-flicker ratio. Runs go into ``--out`` (default: a temporary folder, removed).
+flicker ratio; beside them ``ceiling_change_median``: the same median change of the variant's
+oracle and re-warp per part, against today's prediction. Runs go into ``--out`` (default: a temporary folder, removed).
 """
 
 from __future__ import annotations
@@ -46,6 +50,9 @@ from facesynth.data.shared import shared_data_dir  # noqa: E402
 EVAL = ["eval.noise=[0]", "eval.train_level=false", "eval.talking_head=false"]
 
 
+PARTS, CEILINGS = ("face", "eyes", "mouth"), ("oracle", "rewarp")
+
+
 def metric_figures(m: dict) -> dict:
     """The acceptance figures of one run's metrics (held out, sigma 0, the prediction's row)."""
     lp = m.get("lpips_frame_common") or {}
@@ -55,6 +62,7 @@ def metric_figures(m: dict) -> dict:
         "psnr_frame_common": m["psnr_frame_common"]["sadm"]["0"],
         "sharpness": m["sharpness_frame_common"]["whole"]["sadm"],
         "flicker_ratio": m["flicker_frame_common"]["ratio"]["sadm"],
+        "lpips_ceiling": {part: {row: lp.get(part, {}).get(row) for row in CEILINGS} for part in PARTS},
     }
 
 
@@ -97,11 +105,18 @@ def summary(per_clip: dict, name: str) -> dict:
     face, mouth = rel("lpips_face"), rel("lpips_mouth")
     dpsnr = [n["psnr_frame_common"] - b["psnr_frame_common"] for b, n in zip(base, new, strict=True)]
     sharp = [n["sharpness"] for n in new]
+
+    def ceiling(part, row):
+        ch = [n["lpips_ceiling"][part][row] / b[f"lpips_{part}"] - 1 for b, n in zip(base, new, strict=True)
+              if b.get(f"lpips_{part}") and (n.get("lpips_ceiling") or {}).get(part, {}).get(row) is not None]
+        return float(np.median(ch)) if ch else None
+
     return {"clips": len(base), "lpips_face_change_median": float(np.median(face)) if face else None,
             "lpips_face_not_lower": int(sum(v >= 0 for v in face)),
             "lpips_mouth_change_median": float(np.median(mouth)) if mouth else None,
             "psnr_change_min_db": float(min(dpsnr)), "sharpness_median": float(np.median(sharp)),
-            "sharpness_max": float(max(sharp)), "flicker_ratio_max": float(max(n["flicker_ratio"] for n in new))}
+            "sharpness_max": float(max(sharp)), "flicker_ratio_max": float(max(n["flicker_ratio"] for n in new)),
+            "ceiling_change_median": {p: {r: ceiling(p, r) for r in CEILINGS} for p in PARTS}}
 
 
 def against_today(today: Path | dict[str, dict], runs: dict[str, dict]) -> dict:
