@@ -31,7 +31,7 @@ blocks every request off 127.0.0.1, waits for the first avatar frame, then measu
   paused (median of 100, ``performance.now()``, the worker's message round trip included), and
   ``avatar_vs_python`` their ratio.
 
-    python -m bench.web.page --model M.onnx --video CLIP.mp4 [--seconds 30] [--workers 1|2|auto] [--stage-ms 30]
+    python -m bench.web.page --model M.onnx --video CLIP.mp4 [--seconds 30] [--workers 1|2|auto] [--stage-ms 33.3]
 
 Prints ONE JSON line.
 """
@@ -112,7 +112,8 @@ def main() -> None:
     ap.add_argument("--size", default="640x480", help="camera frame size WxH")
     ap.add_argument("--workers", default="auto", choices=["1", "2", "auto"],
                     help="the page's ?workers= (auto: one, two if its stage is over --stage-ms)")
-    ap.add_argument("--stage-ms", type=float, default=30.0, help="the page's ?stage_ms= (auto's budget per stage)")
+    ap.add_argument("--stage-ms", type=float, default=1000 / 30,
+                    help="the page's ?stage_ms= (auto's budget per stage; the page's default, a frame at 30 frames/s)")
     args = ap.parse_args()
     size = tuple(int(v) for v in args.size.split("x"))
     marker = f"--facesynth-bench={uuid.uuid4().hex}"

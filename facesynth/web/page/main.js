@@ -4,7 +4,8 @@
 // and records them. Each avatar is loaded into a new worker and checked there before it replaces
 // the current one (loadAvatar): a file that fails leaves with its worker, memory and all. Where that worker's stage (tracker + avatar) takes longer than a frame's
 // budget, the avatar moves to a second worker and renders beside the tracker (docs/web.md).
-// URL options: ?workers=1|2|auto (default auto) and ?stage_ms=N (auto's budget, default 30).
+// URL options: ?workers=1|2|auto (default auto) and ?stage_ms=N (auto's budget, default 33.3: one
+// frame at 30 frames/s, the page's target; a second worker costs ~60 MB, so only when it is needed).
 import { driverReach, ReachReadout, readRecording } from './coverage.js';
 import { selectNeutral } from './neutral.js';
 import { onnxMetadata } from './onnxmeta.js';
@@ -15,7 +16,7 @@ import { spawnWorker } from './workers.js';
 const NEUTRAL_MS = 1000, NO_FACE_FRAMES = 15, STAGE_FRAMES = 90, WARMUP_FRAMES = 120;
 const base = new URL('.', location.href).href;
 const options = new URLSearchParams(location.search);
-const WORKERS = options.get('workers') ?? 'auto', STAGE_MS = Number(options.get('stage_ms') ?? 30);
+const WORKERS = options.get('workers') ?? 'auto', STAGE_MS = Number(options.get('stage_ms') ?? 1000 / 30);
 const $ = (id) => document.getElementById(id);
 const state = { frames: 0, trackerMs: [], avatarMs: [], compositeMs: [], latencyMs: [], reachMs: [], messages: [], firstFrameMs: null,
   avatar: null, neutral: null, neutralSamples: [], neutralStart: null, noFace: 0, busy: false, ready: false,
