@@ -16,8 +16,8 @@ extra is installed. Prints one JSON line.
 ``data.smooth_landmarks=true`` does, whatever the runs were trained on.
 
 ``--driver CLIP``: each run driven by another person instead (a shared clip's tracked
-landmarks, relative motion, the driver's neutral from its own frames): the runs exported
-(default export) and played through the full-frame talking head
+landmarks, or an ingested folder's: a MediaPipe avatar takes a MediaPipe driver; relative
+motion, the driver's neutral from its own frames): the runs exported (default export) and played through the full-frame talking head
 (:class:`facesynth.runtime.Reenactor`), at the driver's widest open mouth, largest head turn
 and evenly spaced frames; per row the driver's face (scaled to the tile's height) | each run's
 frame, cut to the avatar's head at the video's resolution. No real frame, so no LPIPS.
@@ -69,9 +69,12 @@ def driven_rows(runs: list[str], driver: str, n: int) -> tuple[list[np.ndarray],
     from facesynth.runtime import Reenactor
     from facesynth.runtime.reenact import driver_neutral_of
 
-    if shared_data_dir() is None:
-        raise SystemExit("detail_sheet: ../shared/data/faces is absent")
-    dseq = load_sequence(shared_data_dir() / "faces" / driver)
+    folder = Path(driver)
+    if not folder.is_dir():  # a shared clip's name
+        if shared_data_dir() is None:
+            raise SystemExit("detail_sheet: ../shared/data/faces is absent")
+        folder = shared_data_dir() / "faces" / driver
+    dseq = load_sequence(folder)
     neutral, _ = driver_neutral_of(dseq.landmarks)
     with tempfile.TemporaryDirectory() as tmp:
         players = []
@@ -110,7 +113,7 @@ def main() -> None:
                     help="per run: the example-based detail's strength, its bank fitted on the run's training frames "
                          "as bench/studies/detail.py does (0: the run as trained)")
     ap.add_argument("--set", action="append", default=[], help="KEY=VALUE of model.detail_* for the banks")
-    ap.add_argument("--driver", help="a shared clip that drives every run through the talking head (no real frame)")
+    ap.add_argument("--driver", help="a shared clip (or an ingested folder) that drives every run through the talking head (no real frame)")
     ap.add_argument("--smoothed", action="store_true",
                     help="the landmarks (and the banks' training frames) smoothed as data.smooth_landmarks=true does")
     a = ap.parse_args()
@@ -118,7 +121,8 @@ def main() -> None:
         raise SystemExit("error: give one --labels entry per run")
     if a.driver:
         tiles, info = driven_rows(a.runs, a.driver, a.frames)
-        rows = [_row(t, f"{a.driver} frame {i['frame']} ({i['why']})", [a.driver] + a.labels) for t, i in zip(tiles, info, strict=True)]
+        name = Path(a.driver).name
+        rows = [_row(t, f"{name} frame {i['frame']} ({i['why']})", [name] + a.labels) for t, i in zip(tiles, info, strict=True)]
         _write(rows, a.out, a.quality, {"driver": a.driver, "frames": info, "labels": a.labels})
         return
     def data(run):
