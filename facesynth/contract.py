@@ -85,7 +85,7 @@ METADATA_FIELDS = {
     "regressor": "str: the SADM regressor's name",
     "data_fingerprint": "str: hex fingerprint of the training data (facesynth.provenance)",
     "target_fingerprint": "str: hex fingerprint of the ERI target's image and landmarks",
-    "avatar_neutral": "(P, 2) float (x, y) pixels of frame_size: the avatar's neutral landmarks",
+    "avatar_neutral": "(P, 2) float (x, y) pixels of frame_size: the avatar's neutral landmarks (its eyes the clip's typical ones)",
     "avatar_neutral_row": "int: the neutral's row in the training clip",
     "avatar_neutral_rule": "str: how the neutral was chosen (facesynth.neutral.select_neutral)",
     "shape_pca": "{mean (2P,), components (K, 2P), limit (K,)}: the avatar's shape PCA, (x, y) interleaved",

@@ -2,6 +2,10 @@
 the 3D transfer, the reenactment's driver and the exported avatar): among frames with a
 closed mouth, the one closest to the mean shape. Numpy only (the torch-free runtime uses it).
 
+A reenactment carries motion relative to two neutrals, so whatever one frame's eyes happen to
+do (a glance, lids half down) would stay in every frame: :func:`typical_eyes` puts a clip's
+neutral eyes (lids and irises) where that clip's eyes usually are.
+
 Points are (x, y) pixels, iBUG-68 landmarks (N, 68, 2); :func:`select_neutral` also takes
 another registered scheme's (N, P, 2) and decides on their iBUG-68 view.
 """
@@ -14,7 +18,8 @@ from facesynth.errors import FacesynthError
 from facesynth.geometry import generalised_procrustes
 from facesynth.landmarks import INNER_LOWER, INNER_UPPER, MOUTH_CLOSED, ibug68_view, mouth_open, scheme_for_points
 
-__all__ = ["INNER_LOWER", "INNER_UPPER", "MOUTH_CLOSED", "NEUTRAL_FRAMES", "OnlineNeutral", "mouth_open", "select_neutral"]
+__all__ = ["INNER_LOWER", "INNER_UPPER", "MOUTH_CLOSED", "NEUTRAL_FRAMES", "OnlineNeutral", "mouth_open", "select_neutral",
+           "typical_eyes"]
 
 NEUTRAL_FRAMES = 30  # one second of a 30 fps driver: long enough to meet a closed-mouth frame
 
@@ -50,6 +55,56 @@ def select_neutral(landmarks: np.ndarray, mouth_closed_max: float = MOUTH_CLOSED
     best = int(cand[np.argmin(dist[cand])])
     return best, {"rule": rule, "candidates": int(len(cand)), "procrustes_distance": float(dist[best]),
                   "mouth_open": float(gap[best])}
+
+
+def _eye_parts(scheme) -> list[tuple[int, int, np.ndarray]]:
+    """Per eye of ``scheme``: its two corners (``eye_corners``: right outer, right inner, left
+    inner, left outer) and its points (lids, and iris where the scheme has one)."""
+    reg = scheme.regions
+    corners = [int(i) for i in reg["eye_corners"]]
+    out = []
+    for k, side in enumerate(("right", "left")):
+        pts = list(reg[f"{side}_eye"]) + list(reg.get(f"{side}_iris", []))
+        out.append((corners[2 * k], corners[2 * k + 1], np.asarray(sorted(set(pts)), np.int64)))
+    return out
+
+
+def eye_coordinates(landmarks: np.ndarray, a: int, b: int, points: np.ndarray) -> np.ndarray:
+    """(..., P, 2) landmarks -> (..., len(points), 2): each point in its eye's frame, (along,
+    across) the corner-to-corner vector from corner ``a`` to ``b``, in units of its length
+    (a similarity of the face leaves them unchanged)."""
+    lm = np.asarray(landmarks, np.float64)
+    e = lm[..., b, :] - lm[..., a, :]
+    n2 = (e ** 2).sum(-1)[..., None]
+    perp = np.stack([-e[..., 1], e[..., 0]], -1)
+    v = lm[..., points, :] - lm[..., a, None, :]
+    return np.stack([(v * e[..., None, :]).sum(-1) / n2, (v * perp[..., None, :]).sum(-1) / n2], -1)
+
+
+def typical_eyes(neutral: np.ndarray, landmarks: np.ndarray) -> np.ndarray:
+    """``neutral`` (P, 2) with each eye's points (lids, iris) at the median over ``landmarks``
+    (N, P, 2; rows with NaN left out) of their :func:`eye_coordinates`, placed on the neutral's
+    own eye corners; every other point, the corners included, unchanged. Float64 (P, 2).
+
+    Motion is carried relative to a neutral (:mod:`facesynth.retarget`): lp_d6 (MediaPipe)
+    driven by its own clip, its avatar's and its driver's neutral frames look 0.09-0.14 eye
+    widths apart, and every retargeted frame kept that offset; with each neutral's eyes at its
+    clip's typical place the offset is under 0.005."""
+    n = np.asarray(neutral, np.float64)
+    lm = np.asarray(landmarks, np.float64)
+    scheme = scheme_for_points(n.shape[0]) if n.ndim == 2 and n.shape[1] == 2 else None
+    if scheme is None or lm.ndim != 3 or lm.shape[1:] != n.shape:
+        raise FacesynthError(f"typical_eyes: a (P, 2) neutral and (N, P, 2) landmarks of one scheme are needed, "
+                             f"got {n.shape} and {lm.shape}")
+    lm = lm[np.isfinite(lm).all((1, 2))]
+    out = n.copy()
+    if not len(lm):
+        return out
+    for a, b, pts in _eye_parts(scheme):
+        uv = np.median(eye_coordinates(lm, a, b, pts), 0)  # (len(pts), 2)
+        e = n[b] - n[a]
+        out[pts] = n[a] + uv[:, :1] * e + uv[:, 1:] * np.array([-e[1], e[0]])
+    return out
 
 
 class OnlineNeutral:

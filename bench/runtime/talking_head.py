@@ -80,6 +80,7 @@ from facesynth.neutral import select_neutral  # noqa: E402
 from facesynth.rundir import read_config, run_data  # noqa: E402
 from facesynth.runtime import Reenactor  # noqa: E402
 from facesynth.runtime.fullframe import head_region  # noqa: E402
+from facesynth.runtime.reenact import driver_neutral_of  # noqa: E402
 
 CLIPS = ("lp_d3", "lp_d20", "lp_d11", "sadtalker_aoc", "vrt_face1", "vrt_face2", "vrt_face4", "vrt_face5")
 PAIRS = (("lp_d20", "lp_d3"), ("vrt_face2", "lp_d11"), ("sadtalker_aoc", "vrt_face5"), ("vrt_face4", "lp_d3"),
@@ -300,7 +301,7 @@ def avatar_info(clip: str, work: Path, dl: Dlib, regressor: str) -> dict:
 def drive(info: dict, dl: Dlib, driver_lm: np.ndarray, neutral=None, real_rows=None, renderers=("static", "warp", "full"),
           sheet_rows=()) -> tuple[dict, dict]:
     """Figures per renderer and the sheet frames {row: {renderer: frame}}."""
-    full = Reenactor(info["path"], neutral if neutral is not None else driver_lm[select_neutral(driver_lm)[0]])
+    full = Reenactor(info["path"], neutral if neutral is not None else driver_neutral_of(driver_lm)[0])
     paste = Reenactor(info["path"], full.driver_neutral, full_frame=False) if "paste" in renderers else None
     # the still frame is one image: its detection figures are the avatar's (avatar_info)
     static_frame = full.avatar.background

@@ -23,9 +23,9 @@ import numpy as np
 from facesynth.compositing import blend_rendered
 from facesynth.landmarks import ibug68_view
 from facesynth.metrics import psnr
-from facesynth.neutral import mouth_open, select_neutral
+from facesynth.neutral import mouth_open
 from facesynth.retarget import Retargeter, eye_open
-from facesynth.runtime.reenact import Reenactor
+from facesynth.runtime.reenact import Reenactor, driver_neutral_of
 
 
 def shape_ratio(landmarks: np.ndarray) -> np.ndarray:
@@ -58,7 +58,7 @@ def drive(model_path, driver: np.ndarray, motion: str = "relative", neutral: np.
     coverage, "frames": {row: uint8 frame} for ``sheet_rows``}.
     """
     if neutral is None and motion == "relative":
-        neutral = driver[select_neutral(driver)[0]]
+        neutral = driver_neutral_of(driver)[0]
     re = Reenactor(model_path, neutral, motion)
     size = re.background.shape[:2] if re.background is not None else None
     out_lm = np.zeros(driver.shape, np.float32)
@@ -120,7 +120,7 @@ def self_driving_psnr(model_path, landmarks: np.ndarray, frames, neutral: np.nda
 
 def speed(model_path, driver: np.ndarray, avatar_neutral_model=None, reps: int = 500) -> dict:
     """Median CPU time (µs) per frame at batch 1, one thread: the model call and retargeting."""
-    re = Reenactor(model_path, driver[select_neutral(driver)[0]], "relative", threads=1)
+    re = Reenactor(model_path, driver_neutral_of(driver)[0], "relative", threads=1)
     ret: Retargeter = re._retarget
     x = [f.astype(np.float64) for f in driver[: min(len(driver), 50)]]
     lm = [ret.one(f).astype(np.float32)[None] for f in x]

@@ -3,7 +3,8 @@ into its ONNX metadata at export time (torch-side; the runtime reads it with
 :func:`facesynth.runtime.reenact.avatar_from_metadata`):
 
 * ``avatar_neutral``: the avatar's neutral landmarks (P, 2) in its frame pixels, chosen
-  among the training frames by ERI's rule (:func:`facesynth.neutral.select_neutral`),
+  among the training frames by ERI's rule (:func:`facesynth.neutral.select_neutral`), its
+  eyes put where the training frames' usually are (:func:`facesynth.neutral.typical_eyes`),
   and ``avatar_neutral_row`` (the frame's index in the clip);
 * ``shape_pca``: the model's shape PCA (mean, orthonormal components, clamp limits
   k sqrt(lambda)), the widest opening of each eye over the training frames
@@ -35,7 +36,7 @@ import numpy as np
 from facesynth.coverage import RECORDING_KEY, recording_entry
 from facesynth.errors import FacesynthError
 from facesynth.landmarks import eye_openings
-from facesynth.neutral import select_neutral
+from facesynth.neutral import select_neutral, typical_eyes
 from facesynth.onnx.headmotion import FRAMES, VALIDATION, fit_frame_motion
 from facesynth.retarget import RETARGET_SCHEMES, ShapeSpace, head_shifts, retarget_scheme
 
@@ -82,13 +83,14 @@ def avatar_metadata(syn, landmarks: np.ndarray, rows: np.ndarray | None = None, 
     lm = np.asarray(landmarks, np.float32)
     idx, info = select_neutral(lm)
     row = int(rows[idx]) if rows is not None else idx
-    meta = {"avatar_neutral": np.round(lm[idx].astype(np.float64), 3).tolist(), "avatar_neutral_row": row,
-            "avatar_neutral_rule": info["rule"], "shape_pca": shape_space(syn, lm, lm[idx]).to_dict()}
+    neutral = np.round(typical_eyes(lm[idx], lm), 3)  # the eyes where the clip's usually are
+    meta = {"avatar_neutral": neutral.tolist(), "avatar_neutral_row": row,
+            "avatar_neutral_rule": f"{info['rule']}; eyes typical", "shape_pca": shape_space(syn, lm, neutral).to_dict()}
     if sequence is not None and sequence.has_frames:
         frame = np.asarray(sequence.frame(row))
         meta["background_jpeg"] = encode_jpeg(frame)
         meta["frame_size"] = [int(frame.shape[1]), int(frame.shape[0])]
-        meta["frame_motion"] = frame_motion(frame, lm[idx], lm, rows, sequence)
+        meta["frame_motion"] = frame_motion(frame, neutral, lm, rows, sequence)
     if lm.shape[1] == 478 and getattr(syn, "scheme", "ibug68") == "mediapipe478":
         times = None
         if sequence is not None and sequence.fps:

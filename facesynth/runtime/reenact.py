@@ -24,7 +24,7 @@ import numpy as np
 
 from facesynth.compositing import GREY, blend_rendered
 from facesynth.errors import FacesynthError
-from facesynth.neutral import NEUTRAL_FRAMES, OnlineNeutral, select_neutral
+from facesynth.neutral import NEUTRAL_FRAMES, OnlineNeutral, select_neutral, typical_eyes
 from facesynth.retarget import MOTIONS, Retargeter, ShapeSpace, retarget_scheme
 from facesynth.runtime.fullframe import RING_SCALE, FrameWarp, checked_ring_scale
 from facesynth.runtime.renderer import Renderer
@@ -187,17 +187,19 @@ class Reenactor:
 
 
 def driver_neutral_of(landmarks: np.ndarray, index: int | None = None) -> tuple[np.ndarray, int]:
-    """The driver's neutral (P, 2) and its row: row ``index`` (``--driver-neutral N``) or
-    :func:`facesynth.neutral.select_neutral` over the whole clip (a file driver)."""
+    """The driver's neutral (P, 2) and its row: row ``index`` as it is (``--driver-neutral N``),
+    or :func:`facesynth.neutral.select_neutral` over the whole clip (a file driver) with its
+    eyes where the clip's usually are (:func:`facesynth.neutral.typical_eyes`, as the avatar's)."""
     lm = np.asarray(landmarks, np.float64)
-    if index is None:
+    chosen = index is None
+    if chosen:
         index = select_neutral(lm)[0]
     if not -len(lm) <= int(index) < len(lm):
         raise FacesynthError(f"--driver-neutral: row {index} out of range for {len(lm)} driver frames")
     row = lm[int(index)]
     if not np.isfinite(row).all():
         raise FacesynthError(f"--driver-neutral: driver row {index} has no face (NaN)")
-    return row, int(index) % len(lm)
+    return (typical_eyes(row, lm) if chosen else row), int(index) % len(lm)
 
 
 def reenact_frames(reenactor: Reenactor, landmarks: np.ndarray, rendered: np.ndarray | None = None,
