@@ -89,7 +89,7 @@ def typical_eyes(neutral: np.ndarray, landmarks: np.ndarray) -> np.ndarray:
     Motion is carried relative to a neutral (:mod:`facesynth.retarget`): lp_d6 (MediaPipe)
     driven by its own clip, its avatar's and its driver's neutral frames look 0.09-0.14 eye
     widths apart, and every retargeted frame kept that offset; with each neutral's eyes at its
-    clip's typical place the offset is under 0.005."""
+    clip's typical place the offset is under 0.006 (median 0.002)."""
     n = np.asarray(neutral, np.float64)
     lm = np.asarray(landmarks, np.float64)
     scheme = scheme_for_points(n.shape[0]) if n.ndim == 2 and n.shape[1] == 2 else None
