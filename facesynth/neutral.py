@@ -17,6 +17,7 @@ import numpy as np
 from facesynth.errors import FacesynthError
 from facesynth.geometry import generalised_procrustes
 from facesynth.landmarks import INNER_LOWER, INNER_UPPER, MOUTH_CLOSED, ibug68_view, mouth_open, scheme_for_points
+from facesynth.shape_space import eye_patches
 
 __all__ = ["INNER_LOWER", "INNER_UPPER", "MOUTH_CLOSED", "NEUTRAL_FRAMES", "OnlineNeutral", "mouth_open", "select_neutral",
            "typical_eyes"]
@@ -57,18 +58,6 @@ def select_neutral(landmarks: np.ndarray, mouth_closed_max: float = MOUTH_CLOSED
                   "mouth_open": float(gap[best])}
 
 
-def _eye_parts(scheme) -> list[tuple[int, int, np.ndarray]]:
-    """Per eye of ``scheme``: its two corners (``eye_corners``: right outer, right inner, left
-    inner, left outer) and its points (lids, and iris where the scheme has one)."""
-    reg = scheme.regions
-    corners = [int(i) for i in reg["eye_corners"]]
-    out = []
-    for k, side in enumerate(("right", "left")):
-        pts = list(reg[f"{side}_eye"]) + list(reg.get(f"{side}_iris", []))
-        out.append((corners[2 * k], corners[2 * k + 1], np.asarray(sorted(set(pts)), np.int64)))
-    return out
-
-
 def eye_coordinates(landmarks: np.ndarray, a: int, b: int, points: np.ndarray) -> np.ndarray:
     """(..., P, 2) landmarks -> (..., len(points), 2): each point in its eye's frame, (along,
     across) the corner-to-corner vector from corner ``a`` to ``b``, in units of its length
@@ -100,7 +89,7 @@ def typical_eyes(neutral: np.ndarray, landmarks: np.ndarray) -> np.ndarray:
     out = n.copy()
     if not len(lm):
         return out
-    for a, b, pts in _eye_parts(scheme):
+    for pts, a, b in eye_patches(scheme):
         uv = np.median(eye_coordinates(lm, a, b, pts), 0)  # (len(pts), 2)
         e = n[b] - n[a]
         out[pts] = n[a] + uv[:, :1] * e + uv[:, 1:] * np.array([-e[1], e[0]])
