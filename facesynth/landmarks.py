@@ -278,12 +278,16 @@ def folded_triangles(landmarks: np.ndarray, triangles: np.ndarray, reference: np
     (..., P, 2) is folded when its orientation differs from that in ``reference`` (P, 2),
     or, without a reference, when its signed area (b - a) x (c - a) in image axes is not
     positive (the orientation of :attr:`LandmarkScheme.triangles`); degenerate ones count."""
-    def signed_area(p):
-        a, b, c = (p[..., triangles[:, k], :] for k in range(3))
-        return (b[..., 0] - a[..., 0]) * (c[..., 1] - a[..., 1]) - (b[..., 1] - a[..., 1]) * (c[..., 0] - a[..., 0])
+    ref = 1.0 if reference is None else np.sign(triangle_areas(reference, triangles))
+    return triangle_areas(landmarks, triangles) * ref <= 0
 
-    ref = 1.0 if reference is None else np.sign(signed_area(np.asarray(reference, np.float64)))
-    return signed_area(np.asarray(landmarks, np.float64)) * ref <= 0
+
+def triangle_areas(shapes: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """Signed areas (..., T) of (..., P, 2) shapes' ``triangles`` (T, 3): half of (b - a) x (c - a)
+    in image axes, positive for the orientation of :attr:`LandmarkScheme.triangles`."""
+    p = np.asarray(shapes, np.float64)
+    a, b, c = (p[..., np.asarray(triangles)[:, k], :] for k in range(3))
+    return 0.5 * ((b[..., 0] - a[..., 0]) * (c[..., 1] - a[..., 1]) - (b[..., 1] - a[..., 1]) * (c[..., 0] - a[..., 0]))
 
 
 FACE_REGIONS = ("eyes", "mouth_interior", "lips", "brows", "rest")

@@ -282,6 +282,13 @@ def write_report(metrics: dict, out_dir: str | os.PathLike, plots: list[str], he
         doc.para(f"first 10: {', '.join(f'{v:.2f}' for v in ncc[:10])}; mean over all {ncc.size}: {ncc.mean():.3f}; "
                  f"range {ncc.min():.2f} .. {ncc.max():.2f}")
         doc.close_section()
+    st = metrics.get("reference_stretch")
+    if st:
+        doc.open_section("Reference stretch (test frames)")
+        doc.para(f"The render stretches the reference frame's most stretched triangle {st['median']:.1f} times in area on "
+                 f"the median test frame ({st['p99']:.1f} at the 99th percentile, {st['max']:.1f} at most); a part "
+                 f"stretched past about 5 times shows its few reference pixels as streaks (model.reference_area_quantile).")
+        doc.close_section()
     rest = [p for p in plots if p != strip]
     if rest:
         doc.open_section("Plots")

@@ -35,6 +35,9 @@
   and their validation-slice figures (None: no shrinkage).
 * ``ncc``: per-component normalised cross-correlation of predicted vs true b_g on the
   test frames at sigma 0 (the paper's Table 1).
+* ``reference_stretch``: {median, p99, max} over the test frames of the largest area ratio of
+  a reference triangle on the frame (:meth:`FaceModel.stretch`): where the reference frame
+  holds too few pixels for a part, the render stretches them into streaks.
 """
 
 from __future__ import annotations
@@ -115,6 +118,10 @@ def _predict(syn, lm: np.ndarray, bs: int) -> np.ndarray:
     return np.concatenate(out)
 
 
+def _quantiles(x: np.ndarray) -> dict:
+    return {"median": float(np.median(x)), "p99": float(np.percentile(x, 99)), "max": float(np.max(x))}
+
+
 def _psnr01(a: np.ndarray, b: np.ndarray) -> float:
     return psnr(np.clip(a, 0, 1) * 255.0, np.clip(b, 0, 1) * 255.0)
 
@@ -192,6 +199,7 @@ def evaluate_sadm(
         "psnr_ref_regions": ref_regions,
         "region_shrink": sadm.region_shrink,
         "ncc": [float(v) for v in ncc(sadm.predict_params(lm_te), b_true)],
+        "reference_stretch": _quantiles(model.stretch(model_seq.landmarks[test_rows])),
     }
     err = ((np.clip(pred0, 0, 1) - tex_te) ** 2).reshape(len(tex_te), model.n_channels, -1).mean((0, 1))
     extras = {"err_map": model.sampler().to_image(torch.from_numpy(err)[None, None].float())[0, 0].numpy() * 255**2}

@@ -22,12 +22,12 @@ import torch
 from facesynth.data.sequence import FaceSequence, validate_landmarks
 from facesynth.errors import FacesynthError
 from facesynth.geometry import apply_affine, invert_affine, similarity_fit
-from facesynth.landmarks import DEFAULT_SCHEME, folded_triangles, get_scheme
+from facesynth.landmarks import DEFAULT_SCHEME, folded_triangles, get_scheme, triangle_areas
 from facesynth.model.denoise import denoise_model
 from facesynth.model.detail import check_detail, fit_detail_bank
 from facesynth.model.pca import PCAModel
 from facesynth.model.procrustes import generalised_procrustes
-from facesynth.model.reference import ReferenceFrame, open_mouth, reference_width, subset_triangulation
+from facesynth.model.reference import ReferenceFrame, open_mouth, reference_width, spread_triangles, subset_triangulation
 from facesynth.model.restore import apply_path, fit_restoration
 from facesynth.model.warp import ToReference, ToTarget, apply_affine_t, candidate_spans, invert_affine_t, similarity_to
 from facesynth.progress import bar as progress_bar
@@ -62,6 +62,11 @@ class FaceModelConfig:
     # the reference frame's mouth opening, as a quantile of the training shapes' (the mean
     # shape opened along the data: reference.open_mouth), for every scheme; 0 = the mean's own
     reference_mouth_quantile: float = 0.9
+    # a scheme's own fixed mesh (warp_points=mesh): each reference triangle holds at least this
+    # quantile of its share of the face's area over the training shapes, over
+    # reference.AREA_STRETCH (the mean moved as little as that takes: reference.spread_triangles);
+    # 0 = the mean's own
+    reference_area_quantile: float = 0.9
     # points the denoiser leaves as given: "eyes" (the eye contours and irises: a driver's
     # blinks and wide eyes outside the avatar's training range stay, as retarget.ShapeSpace
     # keeps them; it doubles the sigma 2 loss, docs/sadm.md) or "none"; None = the scheme's default
@@ -124,7 +129,8 @@ class FaceModel:
         Over flattened (P * 2,) Procrustes-aligned shapes (unit-norm scale), P the
         scheme's point count.
     reference : ReferenceFrame
-        Mean shape (its mouth opened to ``reference_mouth_quantile``, unless 0) at
+        Mean shape (its mouth opened to ``reference_mouth_quantile``, unless 0; a fixed
+        triangulation's slivers spread to ``reference_area_quantile``, unless 0) at
         ``reference_width`` pixels, triangulated (the scheme's fixed triangulation, the
         triangles folded on it turned and placed last, or Delaunay).
     appearance_pca : PCAModel
@@ -183,6 +189,8 @@ class FaceModel:
             raise FacesynthError(f"model.denoise_variance must be a fraction in (0, 1] (1 = off), got {cfg.denoise_variance}")
         if not 0 <= mouth_q <= 1:
             raise FacesynthError(f"model.reference_mouth_quantile must lie in [0, 1] (0 = off), got {cfg.reference_mouth_quantile}")
+        if not 0 <= cfg.reference_area_quantile <= 1:
+            raise FacesynthError(f"model.reference_area_quantile must lie in [0, 1] (0 = off), got {cfg.reference_area_quantile}")
         check_detail(cfg)
         if not 0 <= cfg.restore_variation <= 1:
             raise FacesynthError(f"model.restore_variation must lie in [0, 1] (0 = the mean's part only), got {cfg.restore_variation}")
@@ -199,6 +207,9 @@ class FaceModel:
         ref_shape, mouth = mean, {}
         if mouth_q > 0:
             ref_shape, mouth = open_mouth(mean, aligned, scheme.region("inner_lips"), mouth_q, fixed)
+        spread = {}
+        if fixed is not None and cfg.warp_points == "mesh" and cfg.reference_area_quantile > 0:  # sparse: Delaunay of the mean
+            ref_shape, spread = spread_triangles(ref_shape, aligned, fixed, float(cfg.reference_area_quantile))
         ref = ReferenceFrame.from_mean_shape(ref_shape, cfg.reference_width, cfg.margin, fixed)
         model = cls(cfg, shape_pca, ref, None, np.zeros((ref.n_triangles, 2), np.int64), seq.fingerprint,  # type: ignore
                     scheme=scheme.name, denoise_pca=denoise_pca)
@@ -225,7 +236,7 @@ class FaceModel:
             "fit_seconds": {"shape": t1 - t0, "textures": t2 - t1, "appearance_pca": t3 - t2},
             "sequence": seq.name,
             "triangles_folded_on_mean": folded,
-            "reference_mouth": mouth, **({"restore": {**restore, "seconds": t4 - t3}} if restore else {}),
+            "reference_mouth": mouth, "reference_spread": spread, **({"restore": {**restore, "seconds": t4 - t3}} if restore else {}),
             **({"detail": {**detail, "seconds": time.perf_counter() - t4}} if detail else {}),
         }
         log.info("face model: %d shape / %d appearance components (%.1f%% / %.1f%% variance), %d mask pixels",
@@ -274,6 +285,16 @@ class FaceModel:
         lm = validate_landmarks(landmarks, "landmarks", scheme=self.scheme).astype(np.float64)
         m = similarity_fit(lm, self.reference.points[None].astype(np.float64))
         return apply_affine(lm, m).astype(np.float32), m
+
+    def stretch(self, landmarks: np.ndarray) -> np.ndarray:
+        """(N, P, 2) frame landmarks -> (N,): the largest area ratio of a reference triangle
+        (one the reference does not fold) on each frame, mapped to the reference's scale by
+        :meth:`to_canvas`: how many times the render stretches the reference's most stretched
+        pixels (1 = a similarity of the reference shape; streaks show past ~5, docs/sadm.md)."""
+        tri = self.reference.triangles
+        own = triangle_areas(self.reference.points, tri)
+        live = own > 0
+        return (triangle_areas(self.to_canvas(landmarks)[0], tri)[:, live] / own[live]).max(1)
 
     def denoise(self, landmarks: np.ndarray) -> np.ndarray:
         """(N, P, 2) frame landmarks -> float32 (N, P, 2): similarity-aligned to the mean

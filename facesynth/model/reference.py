@@ -12,7 +12,7 @@ import numpy as np
 from scipy.spatial import Delaunay
 
 from facesynth.errors import FacesynthError
-from facesynth.landmarks import facing_pairs, folded_triangles
+from facesynth.landmarks import facing_pairs, folded_triangles, triangle_areas
 
 
 @dataclass
@@ -160,6 +160,70 @@ def open_mouth(mean: np.ndarray, shapes: np.ndarray, ring: np.ndarray, quantile:
         if not (folded_triangles(cand, tri) & ~base).any():
             return cand, {**info, "opened": True, "gap_reference": float(lip_gap(cand, ring)), "fraction": frac}
     return mean, {**info, "opened": False, "fraction": 0.0}
+
+
+AREA_STEPS = (1.0, 0.8, 0.6, 0.4, 0.2)  # fractions of the spreading tried, whole first
+AREA_STRETCH = 2.0  # how far a frame may stretch a reference triangle (area ratio) before it is spread
+AREA_KEEP = 1.0  # the share of its own area every other triangle keeps while the slivers spread
+
+
+def spread_triangles(shape: np.ndarray, shapes: np.ndarray, triangles: np.ndarray, quantile: float,
+                     stretch: float = AREA_STRETCH, stiffness: float = 1e-3) -> tuple[np.ndarray, dict]:
+    """The reference ``shape`` (P, 2) moved as little as it takes for every triangle of a fixed
+    triangulation (T, 3) to hold at least 1 / ``stretch`` of the ``quantile`` of its share of the
+    face's area over the (N, P, 2) aligned training shapes: no training frame up to that
+    quantile stretches it more than ``stretch`` times in area. A mean shape averages a band that
+    most frames fold or squash (lp_d6's MediaPipe points 17-18 under the lower lip: 0.015 eye
+    widths on the mean, 0.09 at the 95th percentile, 0.12 on its neutral) into a sliver of a
+    pixel, and a face rendered where that band is wide stretches those rows into streaks.
+    Solved by L-BFGS on the squared relative shortfalls (every other triangle's below
+    :data:`AREA_KEEP` of its own area: none pays for a sliver with its own pixels) plus
+    ``stiffness`` times the squared displacement (in units of the face's area); then cut back
+    (:data:`AREA_STEPS`) until it folds no triangle the shape does not fold. Returns the shape
+    and what was done (for the model's meta)."""
+    from scipy.optimize import minimize
+
+    tri = np.asarray(triangles, np.int64)
+    x0 = np.asarray(shape, np.float64)
+    own = triangle_areas(x0, tri)
+    live = own > 0  # triangles folded on the shape itself keep their place (ReferenceFrame puts them last)
+    area = triangle_areas(shapes, tri)
+    share = area / np.abs(area).sum(-1, keepdims=True)
+    total = float(own[live].sum())
+    want = np.quantile(share, quantile, axis=0) * total / stretch  # (T,) target areas on this shape's scale
+    short = live & (want > own)
+    info = {"quantile": float(quantile), "short_triangles": int(short.sum()),
+            "largest_shortfall": float((want[short] / own[short]).max()) if short.any() else 1.0}
+    if not short.any():
+        return x0, {**info, "spread": False}
+    # every other live triangle keeps its area (else the spread only moves the stretch to a neighbour)
+    target = np.where(short, want, AREA_KEEP * own)
+    t, w, scale = tri[live], target[live], stiffness / total
+
+    def f(v):
+        x = v.reshape(x0.shape)
+        a, b, c = x[t[:, 0]], x[t[:, 1]], x[t[:, 2]]
+        u, s = b - a, c - a
+        gap = np.maximum(w - 0.5 * (u[:, 0] * s[:, 1] - u[:, 1] * s[:, 0]), 0.0) / w
+        d = x - x0
+        g = np.zeros_like(x)
+        coef = (-2.0 * gap / w)[:, None]  # d(gap^2)/d(area)
+        gb, gc = 0.5 * np.stack([s[:, 1], -s[:, 0]], 1), 0.5 * np.stack([-u[:, 1], u[:, 0]], 1)
+        np.add.at(g, t[:, 1], coef * gb)
+        np.add.at(g, t[:, 2], coef * gc)
+        np.add.at(g, t[:, 0], -coef * (gb + gc))
+        return float((gap ** 2).sum() + scale * (d ** 2).sum()), (g + 2.0 * scale * d).ravel()
+
+    out = minimize(f, x0.ravel(), jac=True, method="L-BFGS-B", options={"maxiter": 500}).x.reshape(x0.shape)
+    base = folded_triangles(x0, tri)
+    for frac in AREA_STEPS:
+        cand = x0 + frac * (out - x0)
+        if not (folded_triangles(cand, tri) & ~base).any():
+            got = triangle_areas(cand, tri)
+            return cand, {**info, "spread": True, "fraction": frac,
+                          "largest_shortfall_after": float(max((want[short] / got[short]).max(), 1.0)),
+                          "largest_move": float(np.abs(cand - x0).max() / np.sqrt(total))}
+    return x0, {**info, "spread": False, "fraction": 0.0}
 
 
 def subset_triangulation(points: np.ndarray, subset: np.ndarray) -> np.ndarray:
