@@ -129,8 +129,8 @@ class FaceModel:
         Over flattened (P * 2,) Procrustes-aligned shapes (unit-norm scale), P the
         scheme's point count.
     reference : ReferenceFrame
-        Mean shape (its mouth opened to ``reference_mouth_quantile``, unless 0; a fixed
-        triangulation's slivers spread to ``reference_area_quantile``, unless 0) at
+        Mean shape (its mouth opened to ``reference_mouth_quantile``, unless 0; the slivers of
+        the scheme's own mesh spread to ``reference_area_quantile``, unless 0) at
         ``reference_width`` pixels, triangulated (the scheme's fixed triangulation, the
         triangles folded on it turned and placed last, or Delaunay).
     appearance_pca : PCAModel
@@ -290,7 +290,7 @@ class FaceModel:
         """(N, P, 2) frame landmarks -> (N,): the largest area ratio of a reference triangle
         (one the reference does not fold) on each frame, mapped to the reference's scale by
         :meth:`to_canvas`: how many times the render stretches the reference's most stretched
-        pixels (1 = a similarity of the reference shape; streaks show past ~5, docs/sadm.md)."""
+        pixels (1 = a similarity of the reference shape; streaks show past ~5: docs/studies/open-mouth.md)."""
         tri = self.reference.triangles
         own = triangle_areas(self.reference.points, tri)
         live = own > 0
