@@ -125,6 +125,9 @@ def main() -> None:
     ap.add_argument("--today", type=Path, default=None, help="DIR holding CLIP__today runs: report changes against them")
     args = ap.parse_args()
     modes = [m for m in args.modes.split(",") if m]
+    bad = [m for m in modes if m != "refit" and not (m.startswith("best") and m[4:].isdigit() and int(m[4:]) > 0)]
+    if bad or not modes:
+        ap.error(f"--modes: unknown mode(s) {bad} (refit, bestK with K >= 1)")
     runs = {run.name: {"run": figures(run), **evaluate(run, modes)} for run in args.runs}
     result = {"runs": runs}
     if args.today is not None:
