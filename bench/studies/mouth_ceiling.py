@@ -89,7 +89,14 @@ class BestOfKSADM(SADM):
         return syn.setup(*self.oracle)
 
 
+def best_k(mode: str) -> int | None:
+    """K of a ``bestK`` mode (K >= 1); None for any other mode."""
+    k = mode[4:] if mode.startswith("best") else ""
+    return int(k) if k.isdigit() and int(k) > 0 else None
+
+
 def evaluate(run: Path, modes: list[str]) -> dict:
+    """Each mode's figures on ``run`` (modes checked by :func:`main`: ``refit`` or ``bestK``)."""
     sadm = load_sadm(run)
     cfg, seq, tr, te, _ = run_sequence(run, True)
     model = sadm.model
@@ -103,12 +110,10 @@ def evaluate(run: Path, modes: list[str]) -> dict:
             params = {k: v for k, v in sadm.regressor_config.items() if k != "info"}
             s = fit_sadm(model, seq, np.concatenate([tr, te]), np.concatenate([tex_tr, tex_te]), sadm.name, params,
                          sadm.config, int(cfg.seed))
-        elif mode.startswith("best") and mode[4:].isdigit():
-            truth = {seq.landmarks[r].tobytes(): tex_te[i] for i, r in enumerate(te)}
-            oracle = (sadm, int(mode[4:]), sadm.features(seq.landmarks[tr]), tex_tr, truth, mouth_weight(model))
-            s = BestOfKSADM(**{f.name: getattr(sadm, f.name) for f in dataclasses.fields(SADM)}, oracle=oracle)
         else:
-            raise SystemExit(f"error: --modes: unknown mode {mode!r} (refit, bestK)")
+            truth = {seq.landmarks[r].tobytes(): tex_te[i] for i, r in enumerate(te)}
+            oracle = (sadm, best_k(mode), sadm.features(seq.landmarks[tr]), tex_tr, truth, mouth_weight(model))
+            s = BestOfKSADM(**{f.name: getattr(sadm, f.name) for f in dataclasses.fields(SADM)}, oracle=oracle)
         with torch.no_grad():
             metrics, _ = evaluate_sadm(s, seq, tr, te, ecfg, int(cfg.seed), test_textures=tex_te, common=common)
         fig = metric_figures(metrics)
@@ -125,7 +130,7 @@ def main() -> None:
     ap.add_argument("--today", type=Path, default=None, help="DIR holding CLIP__today runs: report changes against them")
     args = ap.parse_args()
     modes = [m for m in args.modes.split(",") if m]
-    bad = [m for m in modes if m != "refit" and not (m.startswith("best") and m[4:].isdigit() and int(m[4:]) > 0)]
+    bad = [m for m in modes if m != "refit" and best_k(m) is None]
     if bad or not modes:
         ap.error(f"--modes: unknown mode(s) {bad} (refit, bestK with K >= 1)")
     runs = {run.name: {"run": figures(run), **evaluate(run, modes)} for run in args.runs}
